@@ -1,0 +1,17 @@
+# The two commands of the README. Each creates .venv and installs everything it needs.
+.PHONY: reproduce test bench bootstrap
+
+bootstrap:
+	@bash scripts/bootstrap.sh
+
+# Main job: the whole paper reproduction, writing results/.
+reproduce: bootstrap
+	.venv/bin/buck-cosim reproduce
+
+# The test suite (what CI runs).
+test: bootstrap
+	.venv/bin/python -m pytest -q
+
+# Benchmarks (not run by CI; a smoke test runs each once on a tiny size).
+bench: bootstrap
+	.venv/bin/buck-cosim bench

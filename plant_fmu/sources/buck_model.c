@@ -1,0 +1,610 @@
+/* Buck converter equations and their exact piecewise solution; see buck_model.h. */
+#include "buck_model.h"
+
+#include <float.h>
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#ifndef M_PI
+#define M_PI 3.14159265358979323846
+#endif
+
+/* A time within this fraction of a PWM period of an edge is "on" the edge. It absorbs the
+ * rounding of importer clocks (t = n*h accumulates ~1e-16 relative per step). */
+#define PHASE_TOLERANCE 1e-9
+/* Model exchange event update: an inductor current below this counts as zero [A]. */
+#define EVENT_CURRENT_TOLERANCE 1e-9
+/* Averaged DCM integrator (Dormand-Prince 5(4)) tolerances. */
+#define DCM_RELATIVE_TOLERANCE 1e-11
+#define DCM_ABSOLUTE_TOLERANCE_CURRENT 1e-12 /* [A] */
+#define DCM_ABSOLUTE_TOLERANCE_VOLTAGE 1e-10 /* [V] */
+#define DCM_FIRST_STEP 1e-7                  /* [s] */
+#define MAX_GUARD_SAMPLES 1000000
+/* A call makes at most this many consecutive regime changes without time advancing. */
+#define MAX_STALLED_TRANSITIONS 16
+
+typedef enum { TOPOLOGY_SWITCH_ON, TOPOLOGY_SWITCH_OFF, TOPOLOGY_AVERAGED } Topology;
+
+/* ------------------------------------------------------------------------------------------ */
+/* Defaults and validation                                                                    */
+
+void buck_set_defaults(BuckModel *m) {
+    memset(m, 0, sizeof *m);
+    m->p.inductance = 220e-6;
+    m->p.capacitance = 10e-6;
+    m->p.switching_frequency = 75e3;
+    m->p.plant_mode = MODE_AVERAGED;
+    m->p.pwm_carrier = CARRIER_SAWTOOTH;
+    m->u.duty_cycle = 0.0;
+    m->u.input_voltage = 48.0;
+    m->u.load_resistance = 6.0;
+    m->conduction = CONDUCTION_CONTINUOUS;
+    m->pwm_period = -1;
+}
+
+typedef struct {
+    const char *name;
+    double value;
+    const char *unit;
+    int strictly_positive;
+} Rule;
+
+const char *buck_check(const BuckModel *m, char *buffer, size_t size) {
+    const Rule rules[] = {
+        {"inductance", m->p.inductance, "H", 1},
+        {"capacitance", m->p.capacitance, "F", 1},
+        {"switching_frequency", m->p.switching_frequency, "Hz", 1},
+        {"load_resistance", m->u.load_resistance, "Ohm", 1},
+        {"input_voltage", m->u.input_voltage, "V", 0},
+        {"inductor_resistance", m->p.inductor_resistance, "Ohm", 0},
+        {"switch_on_resistance", m->p.switch_on_resistance, "Ohm", 0},
+        {"diode_forward_voltage", m->p.diode_forward_voltage, "V", 0},
+        {"capacitor_esr", m->p.capacitor_esr, "Ohm", 0},
+        {"inductor_current", m->inductor_current, "A", 0},
+    };
+    for (size_t i = 0; i < sizeof rules / sizeof rules[0]; ++i) {
+        const Rule *r = &rules[i];
+        int bad = !isfinite(r->value) || (r->strictly_positive ? r->value <= 0.0 : r->value < 0.0);
+        if (bad) {
+            snprintf(buffer, size, "%s = %g %s is invalid: expected a finite value %s 0%s", r->name,
+                     r->value, r->unit, r->strictly_positive ? ">" : ">=",
+                     strcmp(r->name, "inductor_current") == 0 ? " (the diode blocks reverse current)" : "");
+            return buffer;
+        }
+    }
+    if (!isfinite(m->capacitor_voltage)) {
+        snprintf(buffer, size, "capacitor_voltage = %g V is invalid: expected a finite value",
+                 m->capacitor_voltage);
+        return buffer;
+    }
+    if (m->p.plant_mode != MODE_AVERAGED && m->p.plant_mode != MODE_SWITCHED) {
+        snprintf(buffer, size, "plant_mode = %d is invalid: expected 0 (averaged) or 1 (switched)",
+                 m->p.plant_mode);
+        return buffer;
+    }
+    if (m->p.pwm_carrier != CARRIER_SAWTOOTH && m->p.pwm_carrier != CARRIER_TRIANGLE) {
+        snprintf(buffer, size, "pwm_carrier = %d is invalid: expected 0 (sawtooth) or 1 (triangle)",
+                 m->p.pwm_carrier);
+        return buffer;
+    }
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Circuit quantities                                                                         */
+
+/* v_o = k (v_C + ESR i_L) with k = R / (R + ESR): the output node between ESR branch and load. */
+static double esr_divider(const BuckModel *m) {
+    return m->u.load_resistance / (m->u.load_resistance + m->p.capacitor_esr);
+}
+
+static double output_voltage_of(const BuckModel *m, double current, double capacitor_voltage) {
+    return esr_divider(m) * (capacitor_voltage + m->p.capacitor_esr * current);
+}
+
+double buck_output_voltage(const BuckModel *m) {
+    return output_voltage_of(m, m->inductor_current, m->capacitor_voltage);
+}
+
+double buck_applied_duty(const BuckModel *m) {
+    if (m->p.plant_mode == MODE_SWITCHED && m->pwm_period >= 0) return m->pwm_duty;
+    return m->u.duty_cycle;
+}
+
+/* The switch node seen by the inductor: an ideal source behind a series resistance. */
+typedef struct {
+    double voltage;    /* [V] */
+    double resistance; /* [Ohm] */
+} SwitchNode;
+
+static SwitchNode switch_node(const BuckModel *m, Topology topology) {
+    SwitchNode node;
+    double d = m->u.duty_cycle;
+    switch (topology) {
+    case TOPOLOGY_SWITCH_ON:
+        node.voltage = m->u.input_voltage;
+        node.resistance = m->p.switch_on_resistance;
+        break;
+    case TOPOLOGY_SWITCH_OFF:
+        node.voltage = -m->p.diode_forward_voltage;
+        node.resistance = 0.0;
+        break;
+    default: /* averaged over a period in continuous conduction (eq. 3 plus parasitics) */
+        node.voltage = d * m->u.input_voltage - (1.0 - d) * m->p.diode_forward_voltage;
+        node.resistance = d * m->p.switch_on_resistance;
+        break;
+    }
+    return node;
+}
+
+/* While blocked (i_L = 0), current starts to flow once v_o falls below this voltage. */
+static double unblock_threshold(const BuckModel *m, Topology topology) {
+    if (topology == TOPOLOGY_SWITCH_ON || (topology == TOPOLOGY_AVERAGED && m->u.duty_cycle > 0.0))
+        return m->u.input_voltage;
+    return -m->p.diode_forward_voltage;
+}
+
+static double capacitor_rate(const BuckModel *m, double current, double capacitor_voltage) {
+    double R = m->u.load_resistance, esr = m->p.capacitor_esr;
+    return (R * current - capacitor_voltage) / ((R + esr) * m->p.capacitance);
+}
+
+/* Averaged model valid in CCM and DCM (the full-order averaged model of Sun et al., IEEE Trans.
+ * Power Electron. 16(4), 2001): within a period the switch conducts for d1, the diode for d2,
+ * and nothing for 1 - d1 - d2. d2 follows from the ripple geometry; it saturates at 1 - d1 in
+ * CCM, where the model reduces to eq. 3. Resistive drops use the period-average current. */
+static double averaged_current_rate(const BuckModel *m, double current, double capacitor_voltage) {
+    double d1 = m->u.duty_cycle;
+    double L = m->p.inductance;
+    double vo = output_voltage_of(m, current, capacitor_voltage);
+    double on_voltage = m->u.input_voltage - (m->p.switch_on_resistance + m->p.inductor_resistance) * current - vo;
+    double off_voltage = m->p.diode_forward_voltage + m->p.inductor_resistance * current + vo;
+    double d2 = 1.0 - d1;
+    if (d1 > 0.0 && on_voltage > 0.0) {
+        double d2_dcm = 2.0 * L * m->p.switching_frequency * current / (on_voltage * d1) - d1;
+        if (d2_dcm < d2) d2 = d2_dcm > 0.0 ? d2_dcm : 0.0;
+    }
+    return (d1 * on_voltage - d2 * off_voltage) / L;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Closed-form flow of a linear interval: x' = A x + b, b = (b0, 0)                           */
+
+typedef struct {
+    double a11, a12, a21, a22;
+    double b0;
+    double eq0, eq1;       /* equilibrium -A^-1 b */
+    double s;              /* trace / 2 */
+    double m11, m12, m21;  /* M = A - s I (m22 = -m11); M^2 = delta I */
+    double delta, w;       /* w = sqrt(|delta|) */
+} Flow;
+
+static void flow_init(Flow *f, const BuckModel *m, SwitchNode node) {
+    double L = m->p.inductance, C = m->p.capacitance;
+    double R = m->u.load_resistance, esr = m->p.capacitor_esr;
+    double k = esr_divider(m);
+    f->a11 = -(node.resistance + m->p.inductor_resistance + k * esr) / L;
+    f->a12 = -k / L;
+    f->a21 = k / C;
+    f->a22 = -1.0 / ((R + esr) * C);
+    f->b0 = node.voltage / L;
+    double det = f->a11 * f->a22 - f->a12 * f->a21; /* > 0 for every valid parameter set */
+    f->eq0 = -f->a22 * f->b0 / det;
+    f->eq1 = f->a21 * f->b0 / det;
+    f->s = 0.5 * (f->a11 + f->a22);
+    f->m11 = 0.5 * (f->a11 - f->a22);
+    f->m12 = f->a12;
+    f->m21 = f->a21;
+    f->delta = f->m11 * f->m11 + f->a12 * f->a21;
+    f->w = sqrt(fabs(f->delta));
+}
+
+/* x(t) = eq + exp(At)(x0 - eq), exp(At) = ec I + es M. */
+static void flow_eval(const Flow *f, const double x0[2], double t, double x[2]) {
+    double ec, es;
+    double z = f->delta * t * t;
+    if (fabs(z) < 1e-3) { /* series: robust near critical damping */
+        double e = exp(f->s * t);
+        ec = e * (1.0 + z / 2.0 * (1.0 + z / 12.0 * (1.0 + z / 30.0 * (1.0 + z / 56.0))));
+        es = e * t * (1.0 + z / 6.0 * (1.0 + z / 20.0 * (1.0 + z / 42.0 * (1.0 + z / 72.0))));
+    } else if (f->delta < 0.0) { /* under-damped: the LC ringing */
+        double e = exp(f->s * t);
+        ec = e * cos(f->w * t);
+        es = e * sin(f->w * t) / f->w;
+    } else { /* over-damped: combine exponentials first so nothing overflows */
+        double e1 = exp((f->s + f->w) * t), e2 = exp((f->s - f->w) * t);
+        ec = 0.5 * (e1 + e2);
+        es = 0.5 * (e1 - e2) / f->w;
+    }
+    double d0 = x0[0] - f->eq0, d1 = x0[1] - f->eq1;
+    x[0] = f->eq0 + ec * d0 + es * (f->m11 * d0 + f->m12 * d1);
+    x[1] = f->eq1 + ec * d1 + es * (f->m21 * d0 - f->m11 * d1);
+}
+
+/* A guard g(x) = c0 x0 + c1 x1 + k: the regime holds while g >= 0. */
+typedef struct {
+    double c0, c1, k;
+} Guard;
+
+static double guard_value(const Guard *g, const double x[2]) {
+    return g->c0 * x[0] + g->c1 * x[1] + g->k;
+}
+
+/* dg/dt along the flow, itself a linear guard. */
+static Guard guard_rate(const Guard *g, const Flow *f) {
+    Guard r;
+    r.c0 = g->c0 * f->a11 + g->c1 * f->a21;
+    r.c1 = g->c0 * f->a12 + g->c1 * f->a22;
+    r.k = g->c0 * f->b0;
+    return r;
+}
+
+/* With g(lo) >= 0 > g(hi), shrink the bracket (safeguarded Newton) to the resolution of the
+ * absolute clock and return its upper end, where g < 0: the new regime starts there. */
+static double refine_crossing(const Flow *f, const double x0[2], const Guard *g, double lo, double hi,
+                              double clock) {
+    Guard rate = guard_rate(g, f);
+    double resolution = 4.0 * DBL_EPSILON * (clock + hi);
+    double t = 0.5 * (lo + hi);
+    for (int i = 0; i < 200 && hi - lo > resolution; ++i) {
+        double x[2];
+        flow_eval(f, x0, t, x);
+        double value = guard_value(g, x);
+        if (value >= 0.0) lo = t; else hi = t;
+        double slope = guard_value(&rate, x);
+        double next = slope != 0.0 ? t - value / slope : 0.5 * (lo + hi);
+        if (!(next > lo && next < hi)) {
+            next = 0.5 * (lo + hi);
+        } else if (fabs(next - t) < resolution) { /* converged: probe across the root to close the bracket */
+            next = value >= 0.0 ? fmin(t + resolution, hi) : fmax(t - resolution, lo);
+            if (!(next > lo && next < hi)) next = 0.5 * (lo + hi);
+        }
+        t = next;
+    }
+    return hi;
+}
+
+/* Earliest t in [0, h] where g leaves g >= 0 along the flow from x0, or INFINITY. Samples are
+ * at most a quarter of the ringing period apart; g has at most one extremum between two samples
+ * (its rate is a damped sinusoid), so a dip below zero between samples is found from the sign
+ * change of the rate. */
+static double first_crossing(const Flow *f, const double x0[2], double h, const Guard *g, double clock) {
+    Guard rate = guard_rate(g, f);
+    long n = 1;
+    if (f->delta < 0.0) {
+        double spacing = 0.5 * M_PI / f->w;
+        double count = ceil(h / spacing);
+        n = count < 1.0 ? 1 : (count > MAX_GUARD_SAMPLES ? MAX_GUARD_SAMPLES : (long)count);
+    }
+    double ta = 0.0;
+    double ga = guard_value(g, x0), ra = guard_value(&rate, x0);
+    if (ga < 0.0) return 0.0;
+    for (long i = 1; i <= n; ++i) {
+        double tb = i == n ? h : h * (double)i / (double)n;
+        double xb[2];
+        flow_eval(f, x0, tb, xb);
+        double gb = guard_value(g, xb), rb = guard_value(&rate, xb);
+        if (gb < 0.0) return refine_crossing(f, x0, g, ta, tb, clock);
+        if (ra < 0.0 && rb > 0.0) { /* a minimum in between: is it below zero? */
+            Guard falling = {-rate.c0, -rate.c1, -rate.k};
+            double tm = refine_crossing(f, x0, &falling, ta, tb, clock);
+            double xm[2];
+            flow_eval(f, x0, tm, xm);
+            if (guard_value(g, xm) < 0.0) return refine_crossing(f, x0, g, ta, tm, clock);
+        }
+        ta = tb;
+        ga = gb;
+        ra = rb;
+    }
+    return INFINITY;
+}
+
+/* Averaged mode: CCM holds while i_L >= half the ripple a d1 / (2 L f_sw). */
+static Guard continuous_conduction_guard(const BuckModel *m) {
+    double q = m->u.duty_cycle / (2.0 * m->p.inductance * m->p.switching_frequency);
+    double k = esr_divider(m);
+    Guard g;
+    g.c0 = 1.0 + q * (m->p.switch_on_resistance + m->p.inductor_resistance + k * m->p.capacitor_esr);
+    g.c1 = q * k;
+    g.k = -q * m->u.input_voltage;
+    return g;
+}
+
+static Conduction classify_conducting(const BuckModel *m, Topology topology) {
+    if (topology != TOPOLOGY_AVERAGED) return CONDUCTION_CONTINUOUS;
+    Guard g = continuous_conduction_guard(m);
+    double x[2] = {m->inductor_current, m->capacitor_voltage};
+    return guard_value(&g, x) >= 0.0 ? CONDUCTION_CONTINUOUS : CONDUCTION_DISCONTINUOUS;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Averaged DCM: Dormand-Prince 5(4) with error control                                       */
+
+static void dcm_rate(const BuckModel *m, const double x[2], double dx[2]) {
+    dx[0] = averaged_current_rate(m, x[0], x[1]);
+    dx[1] = capacitor_rate(m, x[0], x[1]);
+}
+
+/* One step; returns the scaled error norm (<= 1 is acceptable). */
+static double dopri_step(const BuckModel *m, const double x[2], double h, double out[2]) {
+    static const double c[7][6] = {
+        {0},
+        {1.0 / 5.0},
+        {3.0 / 40.0, 9.0 / 40.0},
+        {44.0 / 45.0, -56.0 / 15.0, 32.0 / 9.0},
+        {19372.0 / 6561.0, -25360.0 / 2187.0, 64448.0 / 6561.0, -212.0 / 729.0},
+        {9017.0 / 3168.0, -355.0 / 33.0, 46732.0 / 5247.0, 49.0 / 176.0, -5103.0 / 18656.0},
+        {35.0 / 384.0, 0.0, 500.0 / 1113.0, 125.0 / 192.0, -2187.0 / 6784.0, 11.0 / 84.0},
+    };
+    static const double e[7] = {71.0 / 57600.0, 0.0, -71.0 / 16695.0, 71.0 / 1920.0,
+                                -17253.0 / 339200.0, 22.0 / 525.0, -1.0 / 40.0};
+    double k[7][2];
+    dcm_rate(m, x, k[0]);
+    for (int s = 1; s < 7; ++s) {
+        double y[2] = {x[0], x[1]};
+        for (int j = 0; j < s; ++j) {
+            y[0] += h * c[s][j] * k[j][0];
+            y[1] += h * c[s][j] * k[j][1];
+        }
+        if (s == 6) {
+            out[0] = y[0];
+            out[1] = y[1];
+        }
+        dcm_rate(m, y, k[s]);
+    }
+    double err0 = 0.0, err1 = 0.0;
+    for (int s = 0; s < 7; ++s) {
+        err0 += h * e[s] * k[s][0];
+        err1 += h * e[s] * k[s][1];
+    }
+    double sc0 = DCM_ABSOLUTE_TOLERANCE_CURRENT + DCM_RELATIVE_TOLERANCE * fmax(fabs(x[0]), fabs(out[0]));
+    double sc1 = DCM_ABSOLUTE_TOLERANCE_VOLTAGE + DCM_RELATIVE_TOLERANCE * fmax(fabs(x[1]), fabs(out[1]));
+    return fmax(fabs(err0) / sc0, fabs(err1) / sc1);
+}
+
+/* Integrate the averaged DCM regime to t_end, or until CCM is re-entered. */
+static void advance_discontinuous(BuckModel *m, double t_end) {
+    Guard ccm = continuous_conduction_guard(m);
+    double h = m->dcm_step > 0.0 ? m->dcm_step : DCM_FIRST_STEP;
+    double min_step = 64.0 * DBL_EPSILON * fmax(fabs(t_end), 1e-9);
+    while (m->time < t_end) {
+        double remaining = t_end - m->time;
+        int last = h >= remaining;
+        double step = last ? remaining : h;
+        double x[2] = {m->inductor_current, m->capacitor_voltage}, xn[2];
+        double err = dopri_step(m, x, step, xn);
+        double factor = err > 0.0 ? fmin(5.0, fmax(0.2, 0.9 * pow(err, -0.2))) : 5.0;
+        if (err > 1.0 && step > min_step) {
+            h = step * factor;
+            continue;
+        }
+        if (guard_value(&ccm, xn) >= 0.0) { /* back in CCM within this step: locate by bisection */
+            double lo = 0.0, hi = step;
+            double resolution = 4.0 * DBL_EPSILON * (fabs(t_end) + step);
+            while (hi - lo > resolution) {
+                double mid = 0.5 * (lo + hi), xm[2];
+                dopri_step(m, x, mid, xm);
+                if (guard_value(&ccm, xm) >= 0.0) {
+                    hi = mid;
+                    xn[0] = xm[0];
+                    xn[1] = xm[1];
+                } else {
+                    lo = mid;
+                }
+            }
+            m->time = hi == remaining ? t_end : m->time + hi;
+            m->inductor_current = xn[0];
+            m->capacitor_voltage = xn[1];
+            m->conduction = CONDUCTION_CONTINUOUS;
+            m->dcm_step = h;
+            return;
+        }
+        m->time = last ? t_end : m->time + step;
+        m->inductor_current = xn[0];
+        m->capacitor_voltage = xn[1];
+        if (!last || factor < 1.0) h = step * factor;
+    }
+    m->dcm_step = h;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Piecewise-exact advance with a fixed circuit topology                                      */
+
+static void advance_topology(BuckModel *m, Topology topology, double t_end) {
+    Flow flow;
+    int flow_ready = 0;
+    int stalls = 0;
+    while (m->time < t_end && stalls < MAX_STALLED_TRANSITIONS) {
+        double start = m->time;
+        double h = t_end - m->time;
+        if (m->conduction == CONDUCTION_BLOCKED) {
+            /* i_L = 0: v_C discharges through R + ESR until v_o falls below the threshold. */
+            double tau = (m->u.load_resistance + m->p.capacitor_esr) * m->p.capacitance;
+            double threshold = unblock_threshold(m, topology);
+            double vo = esr_divider(m) * m->capacitor_voltage;
+            m->inductor_current = 0.0;
+            if (threshold - vo > 0.0) {
+                m->conduction = classify_conducting(m, topology);
+            } else if (threshold - vo * exp(-h / tau) > 0.0) {
+                double dt = tau * log(vo / threshold); /* same sign, |vo| > |threshold| here */
+                if (!(dt >= 0.0 && dt < h)) dt = h;
+                m->capacitor_voltage *= exp(-dt / tau);
+                m->time = dt < h ? m->time + dt : t_end;
+                m->conduction = classify_conducting(m, topology);
+            } else {
+                m->capacitor_voltage *= exp(-h / tau);
+                m->time = t_end;
+            }
+        } else if (m->conduction == CONDUCTION_CONTINUOUS) {
+            if (!flow_ready) {
+                flow_init(&flow, m, switch_node(m, topology));
+                flow_ready = 1;
+            }
+            double x0[2] = {m->inductor_current, m->capacitor_voltage}, x[2];
+            Guard positive_current = {1.0, 0.0, 0.0};
+            double t_block = first_crossing(&flow, x0, h, &positive_current, fabs(start));
+            double t_dcm = INFINITY;
+            if (topology == TOPOLOGY_AVERAGED) {
+                Guard ccm = continuous_conduction_guard(m);
+                t_dcm = first_crossing(&flow, x0, h, &ccm, fabs(start));
+            }
+            double dt = fmin(h, fmin(t_block, t_dcm));
+            flow_eval(&flow, x0, dt, x);
+            m->inductor_current = x[0];
+            m->capacitor_voltage = x[1];
+            m->time = dt < h ? m->time + dt : t_end;
+            if (t_block <= dt && t_block <= t_dcm) {
+                m->inductor_current = 0.0;
+                m->conduction = CONDUCTION_BLOCKED;
+            } else if (t_dcm <= dt) {
+                m->conduction = CONDUCTION_DISCONTINUOUS;
+            }
+        } else {
+            advance_discontinuous(m, t_end);
+        }
+        stalls = m->time > start ? 0 : stalls + 1;
+    }
+    if (m->time < t_end) m->time = t_end; /* unreachable for valid inputs; never loop forever */
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* PWM                                                                                        */
+
+static long long period_index(const BuckModel *m, double t) {
+    return (long long)floor(t * m->p.switching_frequency + PHASE_TOLERANCE);
+}
+
+static void latch_period(BuckModel *m, long long k) {
+    if (k != m->pwm_period) {
+        m->pwm_period = k;
+        m->pwm_duty = m->u.duty_cycle;
+    }
+}
+
+/* Switch state at time t in the latched period and the time of the next PWM edge. */
+static int pwm_switch_on(const BuckModel *m, double t, double *next_edge) {
+    double fsw = m->p.switching_frequency, d = m->pwm_duty;
+    double k = (double)m->pwm_period;
+    double on_start = m->p.pwm_carrier == CARRIER_TRIANGLE ? 0.5 * (1.0 - d) : 0.0;
+    double on_end = m->p.pwm_carrier == CARRIER_TRIANGLE ? 0.5 * (1.0 + d) : d;
+    double phase = t * fsw - k;
+    if (phase < on_start - PHASE_TOLERANCE) {
+        *next_edge = (k + on_start) / fsw;
+        return 0;
+    }
+    if (phase < on_end - PHASE_TOLERANCE) {
+        *next_edge = (k + on_end) / fsw;
+        return 1;
+    }
+    *next_edge = (k + 1.0) / fsw;
+    return 0;
+}
+
+static void advance_switched(BuckModel *m, double t_end) {
+    double edge_tolerance = PHASE_TOLERANCE / m->p.switching_frequency;
+    while (m->time < t_end) {
+        latch_period(m, period_index(m, m->time));
+        double edge;
+        int on = pwm_switch_on(m, m->time, &edge);
+        /* An edge within tolerance of t_end belongs to the next step, so the importer's new
+         * duty is latched when the next period starts. */
+        double segment_end = edge > t_end - edge_tolerance ? t_end : edge;
+        advance_topology(m, on ? TOPOLOGY_SWITCH_ON : TOPOLOGY_SWITCH_OFF, segment_end);
+    }
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Public entry points                                                                        */
+
+static Topology current_topology(const BuckModel *m) {
+    if (m->p.plant_mode == MODE_AVERAGED) return TOPOLOGY_AVERAGED;
+    return m->switch_on ? TOPOLOGY_SWITCH_ON : TOPOLOGY_SWITCH_OFF;
+}
+
+void buck_start(BuckModel *m, double t) {
+    m->time = t;
+    m->pwm_period = -1;
+    m->dcm_step = 0.0;
+    if (m->p.plant_mode == MODE_SWITCHED) {
+        double edge;
+        latch_period(m, period_index(m, t));
+        m->switch_on = pwm_switch_on(m, t, &edge) != 0;
+    }
+    Topology topology = current_topology(m);
+    double vo = esr_divider(m) * m->capacitor_voltage;
+    if (m->inductor_current <= 0.0 && unblock_threshold(m, topology) - vo <= 0.0) {
+        m->inductor_current = 0.0;
+        m->conduction = CONDUCTION_BLOCKED;
+    } else {
+        m->conduction = classify_conducting(m, topology);
+    }
+}
+
+void buck_advance(BuckModel *m, double t_end) {
+    if (m->p.plant_mode == MODE_SWITCHED) {
+        advance_switched(m, t_end);
+    } else {
+        /* inputs may have changed since the last step: re-decide CCM versus DCM */
+        if (m->conduction != CONDUCTION_BLOCKED) m->conduction = classify_conducting(m, TOPOLOGY_AVERAGED);
+        advance_topology(m, TOPOLOGY_AVERAGED, t_end);
+    }
+    m->time = t_end;
+}
+
+void buck_derivatives(const BuckModel *m, double dx[2]) {
+    double iL = m->inductor_current, vC = m->capacitor_voltage;
+    if (m->conduction == CONDUCTION_BLOCKED) {
+        dx[0] = 0.0;
+        dx[1] = capacitor_rate(m, 0.0, vC);
+        return;
+    }
+    if (m->p.plant_mode == MODE_AVERAGED) {
+        dx[0] = averaged_current_rate(m, iL, vC);
+    } else {
+        SwitchNode node = switch_node(m, current_topology(m));
+        double vo = output_voltage_of(m, iL, vC);
+        dx[0] = (node.voltage - (node.resistance + m->p.inductor_resistance) * iL - vo) / m->p.inductance;
+    }
+    dx[1] = capacitor_rate(m, iL, vC);
+}
+
+void buck_event_indicators(const BuckModel *m, double z[2]) {
+    if (m->conduction == CONDUCTION_BLOCKED) {
+        z[0] = unblock_threshold(m, current_topology(m)) - esr_divider(m) * m->capacitor_voltage;
+        z[1] = 1.0;
+        return;
+    }
+    z[0] = m->inductor_current;
+    if (m->p.plant_mode == MODE_AVERAGED) {
+        /* CCM/DCM boundary: the averaged model has a kink here, the solver should stop on it */
+        Guard g = continuous_conduction_guard(m);
+        double x[2] = {m->inductor_current, m->capacitor_voltage};
+        z[1] = guard_value(&g, x);
+    } else {
+        z[1] = 1.0;
+    }
+}
+
+bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_event_defined) {
+    bool states_changed = false;
+    *next_event_defined = false;
+    if (m->p.plant_mode == MODE_SWITCHED) {
+        latch_period(m, period_index(m, m->time));
+        m->switch_on = pwm_switch_on(m, m->time, next_event_time) != 0;
+        *next_event_defined = true;
+    }
+    Topology topology = current_topology(m);
+    double drive = unblock_threshold(m, topology) - esr_divider(m) * m->capacitor_voltage;
+    if (m->conduction == CONDUCTION_BLOCKED) {
+        if (drive > 0.0) m->conduction = CONDUCTION_CONTINUOUS;
+    } else if (m->inductor_current <= EVENT_CURRENT_TOLERANCE && drive <= 0.0) {
+        m->conduction = CONDUCTION_BLOCKED;
+        m->inductor_current = 0.0;
+        states_changed = true;
+    } else if (m->inductor_current < 0.0) {
+        m->inductor_current = 0.0;
+        states_changed = true;
+    }
+    return states_changed;
+}

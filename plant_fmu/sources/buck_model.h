@@ -1,0 +1,83 @@
+/* Buck converter equations (paper eq. 1-3) and their exact piecewise solution.
+ *
+ * Circuit: source Vs -> switch (R_on) -> node -> inductor (L, DCR) -> output node;
+ * freewheeling diode (forward drop V_F) from ground to the switch node; capacitor C with ESR
+ * in parallel with the load R at the output node. States: inductor current i_L >= 0 (the
+ * diode blocks reverse current) and capacitor voltage v_C.
+ *
+ * Between switch and diode transitions the circuit is linear, x' = A x + b, so every
+ * interval has a closed-form solution (2x2 matrix exponential). The only non-linear piece
+ * is the averaged model in discontinuous conduction (DCM), integrated by an embedded
+ * Runge-Kutta 5(4) method with tight tolerances.
+ *
+ * This file knows nothing about FMI: fmi2_functions.c is the glue. */
+#ifndef BUCK_MODEL_H
+#define BUCK_MODEL_H
+
+#include <stdbool.h>
+#include <stddef.h>
+
+enum { MODE_AVERAGED = 0, MODE_SWITCHED = 1 };
+enum { CARRIER_SAWTOOTH = 0, CARRIER_TRIANGLE = 1 };
+
+typedef enum {
+    CONDUCTION_CONTINUOUS = 0,    /* current flows (switched: through switch or diode; averaged: CCM) */
+    CONDUCTION_DISCONTINUOUS = 1, /* averaged mode only: each PWM period has an idle interval (DCM) */
+    CONDUCTION_BLOCKED = 2        /* i_L held at 0 by the diode */
+} Conduction;
+
+typedef struct {
+    double inductance;            /* L [H] */
+    double capacitance;           /* C [F] */
+    double switching_frequency;   /* f_sw [Hz] */
+    double inductor_resistance;   /* inductor DCR [Ohm] */
+    double switch_on_resistance;  /* R_on [Ohm] */
+    double diode_forward_voltage; /* V_F [V] */
+    double capacitor_esr;         /* ESR [Ohm] */
+    int plant_mode;               /* MODE_AVERAGED or MODE_SWITCHED */
+    int pwm_carrier;              /* CARRIER_SAWTOOTH (trailing edge) or CARRIER_TRIANGLE (centred) */
+} BuckParameters;
+
+typedef struct {
+    double duty_cycle;      /* [1], already clamped to [0, 1] */
+    double input_voltage;   /* V_s [V] */
+    double load_resistance; /* R [Ohm] */
+} BuckInputs;
+
+typedef struct {
+    BuckParameters p;
+    BuckInputs u;
+    double time;              /* [s] */
+    double inductor_current;  /* state i_L [A] */
+    double capacitor_voltage; /* state v_C [V] */
+    Conduction conduction;
+    /* switched mode: PWM bookkeeping. The duty is latched at the start of each carrier period,
+     * like the shadow register of a microcontroller PWM unit. */
+    long long pwm_period;     /* index of the period whose duty is latched, -1 before the first */
+    double pwm_duty;          /* duty latched for pwm_period */
+    bool switch_on;           /* model exchange: switch state of the current interval */
+    double dcm_step;          /* last accepted step of the DCM integrator [s] */
+} BuckModel;
+
+void buck_set_defaults(BuckModel *m);
+
+/* NULL if parameters and inputs are physically valid, else a message naming the culprit. */
+const char *buck_check(const BuckModel *m, char *buffer, size_t size);
+
+/* Classify the conduction state and latch the PWM at time t (after initialization). */
+void buck_start(BuckModel *m, double t);
+
+/* Co-simulation: advance exactly from m->time to t_end with the current inputs. */
+void buck_advance(BuckModel *m, double t_end);
+
+/* Model exchange. */
+void buck_derivatives(const BuckModel *m, double dx[2]);
+void buck_event_indicators(const BuckModel *m, double z[2]);
+/* Event update at m->time; returns true if the continuous states were changed. */
+bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_event_defined);
+
+/* Outputs. */
+double buck_output_voltage(const BuckModel *m);
+double buck_applied_duty(const BuckModel *m);
+
+#endif

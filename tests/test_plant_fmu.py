@@ -1,0 +1,325 @@
+"""The BuckConverter FMU against closed-form physics, FMI tooling and a second importer."""
+
+from __future__ import annotations
+
+import re
+import zipfile
+
+import fmpy
+import numpy as np
+import pytest
+from fmpy.fmi1 import FMICallException
+from fmpy.validation import validate_fmu
+from scipy.linalg import expm
+
+from conftest import FSW, C, L, R, VS, RawSlave, simulate_raw
+from plant_fmu import build as plant_build
+
+AVERAGED, SWITCHED = 0, 1
+TS = 1.0 / FSW
+
+
+def averaged_reference(times, x0, duty, resistance=R, vs=VS):
+    """Closed-form solution of eq. 3 (CCM) by the matrix exponential."""
+    a = np.array([[0.0, -1.0 / L], [1.0 / C, -1.0 / (resistance * C)]])
+    b = np.array([duty * vs / L, 0.0])
+    x_eq = -np.linalg.solve(a, b)
+    return np.array([x_eq + expm(a * t) @ (np.asarray(x0) - x_eq) for t in times])
+
+
+def dcm_output_voltage(duty, resistance, vs=VS):
+    """Textbook DCM conversion ratio M = 2 / (1 + sqrt(1 + 4K/D^2)), K = 2 L f_sw / R."""
+    k = 2 * L * FSW / resistance
+    return vs * 2.0 / (1.0 + np.sqrt(1.0 + 4.0 * k / duty**2))
+
+
+# ------------------------------------------------------------------------------------------ FMI
+
+
+def test_fmpy_validation_reports_no_problems(buck_fmu):
+    assert validate_fmu(str(buck_fmu)) == []
+
+
+def test_model_description_supports_both_interfaces_and_fmu_state(buck_fmu):
+    md = fmpy.read_model_description(str(buck_fmu))
+    assert md.fmiVersion == "2.0"
+    for interface in (md.modelExchange, md.coSimulation):
+        assert interface.canGetAndSetFMUstate and interface.canSerializeFMUstate
+    assert md.coSimulation.canHandleVariableCommunicationStepSize
+    assert md.numberOfContinuousStates == 2 and md.numberOfEventIndicators == 2
+    units = {v.name: (v.declaredType.unit if v.declaredType else v.unit) for v in md.modelVariables}
+    assert units["output_voltage"] == "V" and units["inductor_current"] == "A" and units["load_resistance"] == "Ohm"
+    assert all(v.description for v in md.modelVariables)
+
+
+def test_value_references_in_header_match_model_description(buck_fmu):
+    header = (plant_build.SOURCE_DIR / "buck_variables.h").read_text()
+    from_header = {name.lower(): int(vr) for name, vr in re.findall(r"VR_(\w+)\s*=\s*(\d+)", header)}
+    md = fmpy.read_model_description(str(buck_fmu))
+    for v in md.modelVariables:
+        key = v.name.replace("der(", "der_").replace(")", "")
+        assert from_header[key] == v.valueReference, v.name
+    assert len(from_header) == len(md.modelVariables)
+
+
+def test_fmu_contains_binary_and_sources_and_source_fmu_has_no_binary(buck_fmu):
+    from plant_fmu import source_fmu_path
+
+    with zipfile.ZipFile(buck_fmu) as z:
+        names = set(z.namelist())
+    assert f"binaries/{fmpy.platform}/BuckConverter.so" in names
+    assert {"sources/buck_model.c", "sources/fmi2_functions.c", "modelDescription.xml"} <= names
+    with zipfile.ZipFile(source_fmu_path()) as z:
+        source_names = set(z.namelist())
+    assert not any(n.startswith("binaries/") for n in source_names)
+    assert "sources/buck_model.c" in source_names
+
+
+def test_build_is_cached_by_source_hash(buck_fmu, tmp_path, monkeypatch):
+    mtime = buck_fmu.stat().st_mtime_ns
+    assert plant_build.fmu_path() == buck_fmu
+    assert buck_fmu.stat().st_mtime_ns == mtime  # not rebuilt
+    digest = plant_build.source_digest()
+    copy = tmp_path / "sources"
+    copy.mkdir()
+    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.C_SOURCES):
+        (copy / name).write_bytes((plant_build.SOURCE_DIR / name).read_bytes())
+    (copy / "buck_model.c").write_text((copy / "buck_model.c").read_text() + "\n/* edited */\n")
+    monkeypatch.setattr(plant_build, "SOURCE_DIR", copy)
+    assert plant_build.source_digest() != digest
+
+
+def test_compile_errors_name_the_log(tmp_path, monkeypatch):
+    copy = tmp_path / "sources"
+    copy.mkdir()
+    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.C_SOURCES):
+        (copy / name).write_bytes((plant_build.SOURCE_DIR / name).read_bytes())
+    (copy / "buck_model.c").write_text((copy / "buck_model.c").read_text() + "\nstatic int unused_variable_here;\n")
+    monkeypatch.setattr(plant_build, "SOURCE_DIR", copy)
+    monkeypatch.setenv("BUCK_COSIM_CACHE", str(tmp_path / "cache"))
+    with pytest.raises(plant_build.PlantBuildError, match=r"compiling BuckConverter.fmu failed .*compiler log"):
+        plant_build.fmu_path()  # warnings are errors: the unused variable fails the build
+
+
+# ------------------------------------------------------------------------------------------ physics
+
+
+def test_averaged_ccm_matches_matrix_exponential_over_20ms(buck_fmu):
+    x0 = (2.0, 8.0)  # CCM throughout (the current stays far above half the ripple)
+    times, y = simulate_raw(buck_fmu, 0.02, 1e-4, {"plant_mode": AVERAGED, "duty_cycle": 0.25,
+                                                     "inductor_current": x0[0], "capacitor_voltage": x0[1]})
+    reference = averaged_reference(times, x0, 0.25)
+    np.testing.assert_allclose(y[:, 0], reference[:, 0], rtol=1e-6)
+    np.testing.assert_allclose(y[:, 1], reference[:, 1], rtol=1e-6)
+
+
+def test_averaged_duty_step_from_steady_state_matches_matrix_exponential(buck_fmu):
+    times, y = simulate_raw(buck_fmu, 0.02, 2e-4, {"plant_mode": AVERAGED, "duty_cycle": 0.3125,
+                                                     "inductor_current": 2.0, "capacitor_voltage": 12.0})
+    reference = averaged_reference(times, (2.0, 12.0), 0.3125)
+    np.testing.assert_allclose(y, reference, rtol=1e-6)
+    assert y[-1, 1] == pytest.approx(15.0, rel=1e-6)
+
+
+def _switched_steady_period(buck_fmu, resistance, duty=0.25, points_per_period=400, periods=75, settle=0.02,
+                            carrier=0):
+    """Sample the last ``periods`` PWM periods after ``settle`` seconds, finely."""
+    slave = RawSlave(buck_fmu, {"plant_mode": SWITCHED, "duty_cycle": duty, "load_resistance": resistance,
+                                "pwm_carrier": carrier})
+    try:
+        slave.step_to(settle)
+        k0 = round(settle * FSW)
+        n = periods * points_per_period
+        samples = np.empty((n, 2))
+        for i in range(n):
+            slave.step_to((k0 + (i + 1) / points_per_period) / FSW)
+            samples[i] = slave.get("inductor_current", "output_voltage")
+    finally:
+        slave.close()
+    return samples
+
+
+def test_switched_ripple_and_period_average(buck_fmu):
+    samples = _switched_steady_period(buck_fmu, R)
+    ripple_current = samples[:, 0].max() - samples[:, 0].min()
+    ripple_voltage = samples[:, 1].max() - samples[:, 1].min()
+    assert ripple_current == pytest.approx((VS - 12.0) * 0.25 / (FSW * L), rel=0.02)  # 0.545 A
+    assert ripple_voltage == pytest.approx(ripple_current / (8 * C * FSW), rel=0.02)  # 91 mV
+    assert 0.5450 < ripple_current < 0.5562 and 0.0891 < ripple_voltage < 0.0928
+    average = samples.mean(axis=0)  # whole periods sampled uniformly: the period average
+    assert average[0] == pytest.approx(2.0, rel=0.01)
+    assert average[1] == pytest.approx(12.0, rel=0.01)
+
+
+def test_triangle_carrier_keeps_the_period_average(buck_fmu):
+    samples = _switched_steady_period(buck_fmu, R, carrier=1, periods=15)
+    assert samples.mean(axis=0) == pytest.approx([2.0, 12.0], rel=0.01)
+
+
+@pytest.mark.parametrize("mode", [AVERAGED, SWITCHED])
+def test_dcm_at_100_ohm_current_never_negative_and_output_above_d_vs(buck_fmu, mode):
+    duty, resistance = 0.25, 100.0
+    step = TS / 50
+    times, y = simulate_raw(buck_fmu, 0.03, step, {"plant_mode": mode, "duty_cycle": duty,
+                                                     "load_resistance": resistance})
+    assert y[:, 0].min() >= 0.0
+    tail = times > 0.03 - 75 * TS  # whole periods at the end
+    vo = y[tail, 1][:-1].mean()
+    assert vo > duty * VS + 4.0  # DCM lifts the output well above D Vs = 12 V
+    assert vo == pytest.approx(dcm_output_voltage(duty, resistance), rel=0.01)  # 16.83 V
+    if mode == SWITCHED:
+        assert np.mean(y[tail, 0] == 0.0) > 0.2  # an idle interval in every period
+
+
+STEP_GRIDS = (1e-6, TS, 1e-4, 1e-3)
+
+
+@pytest.mark.parametrize("mode,start,tolerance", [
+    (AVERAGED, {"inductor_current": 2.0, "capacitor_voltage": 12.0}, 1e-9),
+    (AVERAGED, {}, 1e-9),  # from rest: starts in DCM, crosses into CCM inside steps
+    (SWITCHED, {}, 1e-6),
+])
+def test_communication_step_size_does_not_change_the_result(buck_fmu, mode, start, tolerance):
+    results = []
+    for step in STEP_GRIDS:
+        times, y = simulate_raw(buck_fmu, 0.01, step, {"plant_mode": mode, "duty_cycle": 0.25, **start},
+                                input_changes={0.005: {"duty_cycle": 0.3}})
+        every_ms = np.isclose(np.remainder(times + 1e-12, 1e-3), 0.0, atol=1e-9)
+        results.append(y[every_ms])
+    for other in results[1:]:
+        np.testing.assert_allclose(other, results[0], rtol=tolerance, atol=tolerance * 1e-3)
+
+
+@pytest.mark.parametrize("mode", [AVERAGED, SWITCHED])
+def test_model_exchange_with_cvode_agrees_with_co_simulation(buck_fmu, mode):
+    signals = np.array([(0.0, 0.25, VS, R), (0.005, 0.25, VS, R), (0.005, 0.3, VS, R), (0.01, 0.3, VS, R)],
+                       dtype=[("time", float), ("duty_cycle", float), ("input_voltage", float),
+                              ("load_resistance", float)])
+    me = fmpy.simulate_fmu(str(buck_fmu), fmi_type="ModelExchange", stop_time=0.01, output_interval=1e-4,
+                           relative_tolerance=1e-8, start_values={"plant_mode": mode}, input=signals,
+                           output=["inductor_current", "output_voltage"], record_events=False)
+    times, cs = simulate_raw(buck_fmu, 0.01, 1e-3, {"plant_mode": mode, "duty_cycle": 0.25},
+                             input_changes={0.005: {"duty_cycle": 0.3}})
+    me_values = np.column_stack([np.interp(times, me["time"], me[n]) for n in ("inductor_current", "output_voltage")])
+    np.testing.assert_allclose(me_values[1:], cs[1:], rtol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------ state
+
+
+def test_get_set_fmu_state_round_trips_exactly(raw_slave_factory):
+    slave = raw_slave_factory({"plant_mode": SWITCHED, "duty_cycle": 0.25, "load_resistance": 40.0})
+    slave.step_to(3e-3 + 0.37 * TS)  # mid-period, DCM-prone load
+    state = slave.fmu.getFMUstate()
+    t_saved = slave.time
+    slave.step_to(5e-3)
+    first = slave.get("inductor_current", "output_voltage", "applied_duty_cycle")
+    slave.fmu.setFMUstate(state)
+    slave.time = t_saved
+    slave.step_to(5e-3)
+    again = slave.get("inductor_current", "output_voltage", "applied_duty_cycle")
+    assert np.array_equal(first, again)
+    serialized = slave.fmu.serializeFMUstate(state)
+    other = raw_slave_factory({"plant_mode": SWITCHED, "load_resistance": 40.0})
+    restored = other.fmu.deSerializeFMUstate(serialized)
+    other.fmu.setFMUstate(restored)
+    other.time = t_saved
+    other.step_to(5e-3)
+    assert np.array_equal(other.get("inductor_current", "output_voltage", "applied_duty_cycle"), first)
+    slave.fmu.freeFMUstate(state)
+    other.fmu.freeFMUstate(restored)
+
+
+def test_instances_do_not_share_state(raw_slave_factory):
+    solo = raw_slave_factory({"plant_mode": SWITCHED, "duty_cycle": 0.25})
+    for k in range(1, 21):
+        solo.step_to(k * 1e-4)
+    expected = solo.get("inductor_current", "output_voltage")
+    a = raw_slave_factory({"plant_mode": SWITCHED, "duty_cycle": 0.25})
+    b = raw_slave_factory({"plant_mode": AVERAGED, "duty_cycle": 0.6, "load_resistance": 3.0})
+    for k in range(1, 21):  # interleaved stepping
+        a.step_to(k * 1e-4)
+        b.step_to(k * 1e-4)
+    assert np.array_equal(a.get("inductor_current", "output_voltage"), expected)
+    assert not np.allclose(b.get("output_voltage"), expected[1])
+
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+@pytest.mark.parametrize("name,value,pattern", [
+    ("load_resistance", -1.0, r"load_resistance = -1 Ohm is invalid: expected a finite value > 0"),
+    ("load_resistance", 0.0, r"load_resistance = 0 Ohm is invalid"),
+    ("inductance", 0.0, r"inductance = 0 H is invalid: expected a finite value > 0"),
+    ("capacitance", -1e-6, r"capacitance = -1e-06 F is invalid"),
+    ("switching_frequency", 0.0, r"switching_frequency = 0 Hz is invalid"),
+])
+def test_non_positive_values_are_fmi2_errors_naming_the_variable(buck_fmu, name, value, pattern):
+    log: list = []
+    with pytest.raises(FMICallException) as info:
+        RawSlave(buck_fmu, {name: value}, log=log)  # set before initialization, as a parameter must be
+    assert info.value.status == 3  # fmi2Error
+    assert info.value.function == "fmi2SetReal"
+    assert any(re.search(pattern, message) for _, message in log), log
+
+
+def test_invalid_input_during_a_run_is_refused_and_the_old_value_kept(raw_slave_factory):
+    log: list = []
+    slave = raw_slave_factory({}, log=log)
+    with pytest.raises(FMICallException):
+        slave.fmu.setReal([slave.vr["load_resistance"]], [-2.0])
+    assert any("load_resistance = -2 Ohm is invalid" in m for _, m in log)
+    assert slave.get("load_resistance")[0] == R
+
+
+def test_out_of_range_duty_is_clamped_and_logged(raw_slave_factory):
+    log: list = []
+    slave = raw_slave_factory({"plant_mode": AVERAGED}, log=log)
+    slave.set({"duty_cycle": 1.5})
+    assert any("duty_cycle = 1.5" in m and "clamped to 1" in m for s, m in log if s == 1)  # fmi2Warning
+    assert slave.get("applied_duty_cycle", "duty_cycle").tolist() == [1.0, 1.5]
+    slave.set({"duty_cycle": -0.2})
+    assert slave.get("applied_duty_cycle")[0] == 0.0
+
+
+def test_fixed_parameters_cannot_change_after_initialization(raw_slave_factory):
+    log: list = []
+    slave = raw_slave_factory({}, log=log)
+    with pytest.raises(FMICallException):
+        slave.fmu.setReal([slave.vr["inductance"]], [300e-6])
+    assert any("inductance can only be set before fmi2ExitInitializationMode" in m for _, m in log)
+
+
+# ------------------------------------------------------------------------------------------ importers
+
+
+def test_libcosimpy_gives_the_same_result_as_fmpy(buck_fmu):
+    from libcosimpy.CosimEnums import CosimVariableType
+    from libcosimpy.CosimExecution import CosimExecution
+    from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+    from libcosimpy.CosimManipulator import CosimManipulator
+    from libcosimpy.CosimObserver import CosimObserver
+    from libcosimpy.CosimSlave import CosimLocalSlave
+
+    log_output_level(CosimLogLevel.ERROR)
+    md = fmpy.read_model_description(str(buck_fmu))
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    step = 1e-4
+    execution = CosimExecution.from_step_size(step_size=int(round(step * 1e9)))
+    index = execution.add_local_slave(CosimLocalSlave(fmu_path=str(buck_fmu), instance_name="buck"))
+    observer = CosimObserver.create_last_value()
+    execution.add_observer(observer)
+    manipulator = CosimManipulator.create_override()
+    execution.add_manipulator(manipulator)
+    execution.integer_initial_value(index, vr["plant_mode"], SWITCHED)
+    execution.real_initial_value(index, vr["duty_cycle"], 0.25)
+    libcosim = []
+    for k in range(100):
+        if k == 50:
+            manipulator.slave_real_values(index, [vr["duty_cycle"]], [0.3])
+        execution.step()
+        libcosim.append(observer.last_real_values(index, [vr["inductor_current"], vr["output_voltage"]]))
+    assert CosimVariableType.REAL is not None
+    _, reference = simulate_raw(buck_fmu, 0.01, step, {"plant_mode": SWITCHED, "duty_cycle": 0.25},
+                                input_changes={0.005: {"duty_cycle": 0.3}})
+    np.testing.assert_allclose(np.array(libcosim), reference[1:], rtol=1e-9, atol=1e-12)
