@@ -475,8 +475,12 @@ static long long period_index(const BuckModel *m, double t) {
     return (long long)floor(t * m->p.switching_frequency + PHASE_TOLERANCE);
 }
 
-static void latch_period(BuckModel *m, long long k) {
-    if (k != m->pwm_period) {
+/* Latch the duty for the period containing t. A duty written at the very instant a period
+ * starts applies to that period, whichever of the edge and the write the importer handled first. */
+static void latch_period(BuckModel *m, double t) {
+    long long k = period_index(m, t);
+    int at_period_start = fabs(t * m->p.switching_frequency - (double)k) < PHASE_TOLERANCE;
+    if (k != m->pwm_period || at_period_start) {
         m->pwm_period = k;
         m->pwm_duty = m->u.duty_cycle;
     }
@@ -504,7 +508,7 @@ static int pwm_switch_on(const BuckModel *m, double t, double *next_edge) {
 static void advance_switched(BuckModel *m, double t_end) {
     double edge_tolerance = PHASE_TOLERANCE / m->p.switching_frequency;
     while (m->time < t_end) {
-        latch_period(m, period_index(m, m->time));
+        latch_period(m, m->time);
         double edge;
         int on = pwm_switch_on(m, m->time, &edge);
         /* An edge within tolerance of t_end belongs to the next step, so the importer's new
@@ -528,7 +532,7 @@ void buck_start(BuckModel *m, double t) {
     m->dcm_step = 0.0;
     if (m->p.plant_mode == MODE_SWITCHED) {
         double edge;
-        latch_period(m, period_index(m, t));
+        latch_period(m, t);
         m->switch_on = pwm_switch_on(m, t, &edge) != 0;
     }
     Topology topology = current_topology(m);
@@ -590,7 +594,7 @@ bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_even
     bool states_changed = false;
     *next_event_defined = false;
     if (m->p.plant_mode == MODE_SWITCHED) {
-        latch_period(m, period_index(m, m->time));
+        latch_period(m, m->time);
         m->switch_on = pwm_switch_on(m, m->time, next_event_time) != 0;
         *next_event_defined = true;
     }

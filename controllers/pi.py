@@ -1,0 +1,61 @@
+"""Discrete PI voltage controller with duty limits and anti-windup.
+
+    e(k) = v_ref(k) - v_o(k)
+    I(k) = I(k-1) + K_i T_s e(k)      -- kept only if it does not push a saturated duty further
+    d(k) = clip(K_p e(k) + I(k), d_min, d_max)
+
+The integral uses the current error (backward Euler), so a pure integral loop acts on the very
+first sample; with K_i T_s = 1/V_s it is the dead-beat controller of a plant that settles within
+one sample period.
+
+Conditional integration (clamping) keeps the integrator from winding up while the duty is
+saturated, e.g. during start-up, so the output does not overshoot when it leaves saturation.
+"""
+
+from __future__ import annotations
+
+from controllers.base import Measurement, check_duty_limits, check_sample_period
+
+
+class PIController:
+    """PI voltage loop. ``kp`` in 1/V (duty per volt of error), ``ki`` in 1/(V s)."""
+
+    def __init__(self, kp: float, ki: float, sample_period: float = 1e-3,
+                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI",
+                 tuning: dict | None = None):
+        if kp < 0 or ki < 0:
+            raise ValueError(f"PI gains kp = {kp}, ki = {ki} are invalid: expected values >= 0")
+        self.kp = float(kp)
+        self.ki = float(ki)
+        self.sample_period = check_sample_period(sample_period, "PI")
+        self.duty_limits = check_duty_limits(duty_limits, "PI")
+        self.name = name
+        self.tuning = tuning or {}
+        self.integral = 0.0
+
+    def reset(self) -> None:
+        self.integral = 0.0
+
+    def step(self, measurement: Measurement) -> float:
+        error = measurement.reference - measurement.output_voltage
+        low, high = self.duty_limits
+        integral = self.integral + self.ki * self.sample_period * error
+        unclamped = self.kp * error + integral
+        duty = min(max(unclamped, low), high)
+        pushing_high = unclamped > high and error > 0
+        pushing_low = unclamped < low and error < 0
+        if not (pushing_high or pushing_low):
+            self.integral = integral
+        return duty
+
+    def describe(self) -> dict:
+        return {
+            "type": "PI",
+            "name": self.name,
+            "kp_per_V": self.kp,
+            "ki_per_V_s": self.ki,
+            "sample_period_s": self.sample_period,
+            "duty_limits": list(self.duty_limits),
+            "anti_windup": "conditional integration (clamping)",
+            "tuning": self.tuning,
+        }

@@ -1,0 +1,113 @@
+"""Plant bindings: which FMU variable plays which role for the workbench, with unit conversion.
+
+The workbench speaks SI units and six role names. A binding maps each role onto a variable of a
+particular FMU, with ``fmu_value = scale * workbench_value + offset`` (e.g. a duty cycle in percent
+has ``scale = 100``; a current in mA has ``scale = 1000``). The built-in BuckConverter FMU binds
+every role to the variable of the same name; :mod:`cosim.binding_file` reads user bindings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Mapping
+
+INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
+OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current")
+ROLES = INPUT_ROLES + OUTPUT_ROLES
+REQUIRED_ROLES = ("duty_cycle", "output_voltage")
+ROLE_UNITS = {
+    "duty_cycle": "1",
+    "input_voltage": "V",
+    "load_resistance": "Ohm",
+    "output_voltage": "V",
+    "inductor_current": "A",
+    "load_current": "A",
+}
+ROLE_DESCRIPTIONS = {
+    "duty_cycle": "duty cycle command, 0..1 (input, required)",
+    "input_voltage": "input/supply voltage Vs (input, optional: needed for supply steps)",
+    "load_resistance": "load resistance R (input, optional: needed for load steps)",
+    "output_voltage": "output voltage vo (output, required)",
+    "inductor_current": "inductor current iL (output, required by NNPC and the cost of eq. 23)",
+    "load_current": "load current io (output, optional: lets predictive controllers estimate the load)",
+}
+
+PLANT_MODES = {"averaged": 0, "switched": 1}
+
+
+@dataclass(frozen=True)
+class RoleMap:
+    """One role bound to an FMU variable: ``fmu_value = scale * workbench_value + offset``."""
+
+    variable: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+    def to_fmu(self, value: float) -> float:
+        return self.scale * value + self.offset
+
+    def from_fmu(self, value: float) -> float:
+        return (value - self.offset) / self.scale
+
+
+@dataclass(frozen=True)
+class PlantBinding:
+    """Everything the master needs to drive one plant FMU."""
+
+    fmu_path: Path
+    roles: Mapping[str, RoleMap]
+    interface: str | None = None  # "co-simulation", "model-exchange", or None: prefer co-simulation
+    parameters: Mapping[str, float | int | bool | str] = field(default_factory=dict)
+    max_step: float | None = None  # largest step the FMU accepts [s]; the master subdivides longer ones
+    source: Path | None = None  # the binding file, named in error messages
+    label: str = "BuckConverter (built-in)"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
+        object.__setattr__(self, "parameters", MappingProxyType(dict(self.parameters)))
+
+    def has(self, role: str) -> bool:
+        return role in self.roles
+
+    @property
+    def origin(self) -> str:
+        """How to name this plant in a message: the binding file if any, else the FMU."""
+        return f"binding file {self.source}" if self.source else f"plant FMU {self.fmu_path}"
+
+    def describe(self) -> dict:
+        """JSON-ready description for run metadata."""
+        return {
+            "label": self.label,
+            "fmu": str(self.fmu_path),
+            "binding_file": str(self.source) if self.source else None,
+            "interface": self.interface,
+            "roles": {r: {"variable": m.variable, "scale": m.scale, "offset": m.offset} for r, m in self.roles.items()},
+            "parameters": dict(self.parameters),
+            "max_step_s": self.max_step,
+        }
+
+
+def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int] | None = None,
+                    interface: str | None = None) -> PlantBinding:
+    """Binding for the project's own BuckConverter FMU (built on first use).
+
+    ``mode`` is "averaged" (eq. 3 with DCM) or "switched" (ideal switch and diode with PWM);
+    ``parameters`` overrides FMU parameters by name, e.g. ``{"inductance": 264e-6}``.
+    """
+    from plant_fmu import fmu_path
+
+    if mode not in PLANT_MODES:
+        from cosim.errors import ConfigError
+
+        raise ConfigError(f"plant mode {mode!r} is unknown: expected one of {', '.join(PLANT_MODES)}")
+    values: dict[str, float | int] = {"plant_mode": PLANT_MODES[mode]}
+    values.update(parameters or {})
+    return PlantBinding(
+        fmu_path=fmu_path(),
+        roles={role: RoleMap(role) for role in ROLES},
+        interface=interface,
+        parameters=values,
+        label=f"BuckConverter (built-in, {mode})",
+    )

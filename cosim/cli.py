@@ -1,0 +1,324 @@
+"""``buck-cosim``: the workbench's command line.
+
+Every user mistake ends in one line ``error: ...`` on stderr and a non-zero exit code:
+2 bad input or configuration, 3 a plant or controller fault during a run, 4 the FMU build
+failed, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in every case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from cosim.errors import ConfigError, WorkbenchError
+
+DEFAULT_RESULTS = Path("results")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """Usage mistakes end in one line on stderr (exit code 2), like every other user error."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def parse_period(text: str) -> float:
+    """A period in seconds: ``1e-3``, ``0.001`` or a fraction such as ``1/75e3``."""
+    try:
+        if "/" in text:
+            numerator, denominator = text.split("/", 1)
+            value = float(numerator) / float(denominator)
+        else:
+            value = float(text)
+    except (ValueError, ZeroDivisionError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a period in seconds (e.g. 1e-3 or 1/75e3)") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"period {text} s is invalid: expected a finite value > 0")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Commands
+
+
+def cmd_scenarios(args) -> int:
+    from cosim.scenarios import SHIPPED_DIR, shipped_scenarios
+
+    print(f"Shipped scenarios ({SHIPPED_DIR}):")
+    for s in shipped_scenarios():
+        events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(f"{k}={v:g}" for k, v in e.changes.items())
+                           for e in s.events) or "none"
+        print(f"  {s.name:<16} {s.description}  [duration {s.duration * 1e3:g} ms, settle {s.settle * 1e3:g} ms; "
+              f"events: {events}]")
+    return 0
+
+
+def _plant_binding(args):
+    from cosim.binding import builtin_binding
+
+    return builtin_binding(args.mode), args.mode
+
+
+def _pi_controller(args, binding, out_dir: Path):
+    from cosim.pi_tuning import load_or_tune
+    from cosim.runner import period_label, slug
+
+    limits = (args.duty_min, args.duty_max)
+    if args.kp is not None or args.ki is not None:
+        if args.kp is None or args.ki is None:
+            raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
+        from controllers.pi import PIController
+
+        try:
+            return PIController(args.kp, args.ki, args.control_period, limits, tuning={"method": "given on the command line"})
+        except ValueError as error:
+            raise ConfigError(str(error)) from None
+    path = out_dir / "tuning" / f"pi__{slug(binding.label)}__{period_label(args.control_period)}.json"
+    print(f"tuning the PI for {binding.label} at {args.control_period * 1e6:.4g} us (cached in {path}) ...",
+          file=sys.stderr)
+    tuning = load_or_tune(path, binding, args.control_period, progress=args.progress)
+    try:
+        return tuning.controller(limits)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+
+
+def cmd_run(args) -> int:
+    from cosim.runner import run_batch, write_metrics
+    from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+
+    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
+        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
+    binding, tag = _plant_binding(args)
+    out_dir = Path(args.out)
+    controllers = []
+    for name in args.controller:
+        controllers.append(_pi_controller(args, binding, out_dir))
+    batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=tag, interface=args.interface,
+                      record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
+                      progress=args.progress)
+    files = write_metrics(batch.metrics, out_dir / "metrics" / f"metrics__{tag}")
+    columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "settling_time_ms",
+               "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
+    print(batch.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print(f"wrote {len(batch.files) + len(files)} files under {out_dir}/")
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    from cosim.inspect_fmu import describe_fmu
+
+    print(describe_fmu(args.fmu))
+    return 0
+
+
+def cmd_export(args) -> int:
+    from cosim.results import read_run, write_parquet
+    from cosim.results import atomic_write
+
+    source = Path(args.run_file)
+    if not source.is_file():
+        raise ConfigError(f"run file {source} does not exist")
+    try:
+        result = read_run(source)
+    except (ValueError, OSError) as error:
+        raise ConfigError(f"{source}: cannot read run ({error})") from None
+    out_dir = Path(args.out) if args.out else source.parent
+    frame = result.frame.drop(columns=["controller_compute_time"], errors="ignore")
+    if args.to == "csv":
+        import json
+
+        target = out_dir / f"{source.stem}.csv"
+        atomic_write(target, lambda tmp: frame.to_csv(tmp, index=False))
+        atomic_write(target.with_suffix(".json"),
+                     lambda tmp: tmp.write_text(json.dumps(result.metadata, indent=2, sort_keys=True) + "\n"))
+    else:
+        target = write_parquet(frame, result.metadata, out_dir / f"{source.stem}.parquet")
+    print(f"wrote {target}")
+    return 0
+
+
+def cmd_build_fmu(args) -> int:
+    from plant_fmu import export_fmus, fmu_path, source_fmu_path
+
+    if args.output:
+        binary, source = export_fmus(Path(args.output), force=args.force)
+    else:
+        binary, source = fmu_path(force=args.force), source_fmu_path(force=args.force)
+    print(f"co-simulation + model exchange FMU: {binary}")
+    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    return 0
+
+
+def cmd_tune_pi(args) -> int:
+    from cosim.pi_tuning import tune_pi
+    from cosim.results import atomic_write_text
+
+    binding, _ = _plant_binding(args)
+    tuning = tune_pi(binding, args.control_period, progress=args.progress)
+    print(f"Kp = {tuning.kp:.6g} 1/V, Ki = {tuning.ki:.6g} 1/(V s) at Ts = {args.control_period * 1e6:.4g} us "
+          f"(cost {tuning.cost:.4g} V^2 s, worst overshoot {tuning.worst_overshoot_pct:.3g} %, "
+          f"{tuning.evaluations} simulations)")
+    if args.out:
+        atomic_write_text(Path(args.out), tuning.to_json() + "\n")
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    from cosim.reproduce import reproduce
+
+    if args.workers < 1:
+        raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
+    reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from cosim.benchmarks import BENCHMARKS, run_benchmarks
+
+    unknown = [name for name in args.only or [] if name not in BENCHMARKS]
+    if unknown:
+        raise ConfigError(f"unknown benchmark(s) {', '.join(unknown)}: expected {', '.join(BENCHMARKS)}")
+    command = "buck-cosim bench" + "".join(f" --only {n}" for n in args.only or [])
+    md_path, csv_path = run_benchmarks(Path(args.out), quick=args.quick, only=args.only, command=command)
+    print(md_path.read_text())
+    print(f"wrote {md_path} and {csv_path}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Parser
+
+
+def _add_plant_options(parser) -> None:
+    parser.add_argument("--mode", choices=["averaged", "switched"], default="averaged",
+                        help="built-in plant: averaged model (eq. 3, with DCM) or switched (PWM, ideal switch and "
+                             "diode) (default: averaged)")
+    parser.add_argument("--interface", choices=["cs", "me"], default=None,
+                        help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
+                             "(default: the binding's choice, else co-simulation)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog="buck-cosim",
+        description="FMU co-simulation workbench for a 48 V -> 12 V buck converter: PI, NNPC and MPC controllers "
+                    "driving an FMI 2.0 plant through fmpy. Units: seconds, volts, amperes, ohms.")
+    parser.add_argument("--no-progress", dest="progress", action="store_false",
+                        help="hide progress bars (shown by default on long runs)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("scenarios", help="list the shipped scenarios",
+                       description="List the shipped scenario files (TOML) with their events.")
+    p.set_defaults(func=cmd_scenarios)
+
+    p = sub.add_parser("run", help="run scenarios with controllers; write tables, metrics and figures",
+                       description="Run scenarios in closed loop on the plant FMU. Writes per-run Parquet/CSV "
+                                   "(+ JSON metadata) under OUT/runs, a metrics table under OUT/metrics and one "
+                                   "figure per scenario (PNG + SVG) under OUT/figures.")
+    p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
+                   help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
+    p.add_argument("--controller", action="append", choices=["pi"],
+                   help="controller(s) to run; repeat to overlay several (default: pi)")
+    _add_plant_options(p)
+    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+                   help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
+                        "(default: 1e-3)")
+    p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
+                   help="recording step in s; need not divide the control period (default: 1e-5)")
+    p.add_argument("--kp", type=float, help="PI proportional gain [1/V] (default: tuned automatically)")
+    p.add_argument("--ki", type=float, help="PI integral gain [1/(V s)] (default: tuned automatically)")
+    p.add_argument("--duty-min", type=float, default=0.0, help="lower duty limit (default: 0)")
+    p.add_argument("--duty-max", type=float, default=1.0, help="upper duty limit (default: 1)")
+    p.add_argument("--seed", type=int, default=0, help="random seed recorded with the run (default: 0)")
+    p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                   help="output folder (default: results/runs-cli)")
+    p.add_argument("--no-figures", action="store_true", help="skip the figures")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("inspect", help="describe any FMU",
+                       description="Check an FMU archive and print its FMI version, interfaces, platforms and "
+                                   "variables (causality, variability, unit, start value).")
+    p.add_argument("fmu", help="path to a .fmu file")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("export", help="convert a run file between Parquet and CSV",
+                       description="Read a run (.parquet, or .csv with its .json sidecar) and write it in the "
+                                   "other format, metadata included.")
+    p.add_argument("run_file", help="a run's .parquet or .csv file")
+    p.add_argument("--to", choices=["csv", "parquet"], required=True, help="target format")
+    p.add_argument("--out", metavar="DIR", help="output folder (default: beside the input)")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu from its C sources with fmpy",
+                       description="Build the plant FMU (model exchange + co-simulation) with fmpy's CMake "
+                                   "compile; cached by a hash of the sources. Also writes a source-only FMU.")
+    p.add_argument("--output", metavar="DIR", help="copy BuckConverter.fmu and BuckConverter-source.fmu here")
+    p.add_argument("--force", action="store_true", help="rebuild even if a cached build exists")
+    p.set_defaults(func=cmd_build_fmu)
+
+    p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",
+                       description="Tune Kp, Ki by the repeatable method in cosim/pi_tuning.py.")
+    _add_plant_options(p)
+    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+                   help="controller sample period in s (default: 1e-3)")
+    p.add_argument("--out", metavar="FILE.json", help="write the gains as JSON")
+    p.set_defaults(func=cmd_tune_pi)
+
+    p = sub.add_parser("reproduce", help="reproduce the paper end to end into results/ (the main job)",
+                       description="Tune the PI per plant and rate, run the paper's scenarios on the averaged "
+                                   "and switched plant at 1 ms and at one switching period (13.3 us), and write "
+                                   "runs, metrics, figures and REPORT.md under OUT.")
+    p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
+    p.add_argument("--workers", type=int, default=2, help="parallel worker processes (default: 2)")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse finished artefacts (tuned gains) from an interrupted reproduction")
+    p.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
+    p.set_defaults(func=cmd_reproduce)
+
+    p = sub.add_parser("bench", help="run the benchmark suite; write results/benchmarks.md and .csv",
+                       description="Measure plant, master and controller costs as medians, p99 and same-run "
+                                   "ratios; write benchmarks.md and benchmarks.csv.")
+    p.add_argument("--quick", action="store_true",
+                   help="run each benchmark once on a tiny size (smoke test; writes benchmarks-quick.*)")
+    p.add_argument("--only", action="append", metavar="NAME", help="run only this benchmark (repeatable)")
+    p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "controller", "unset") is None:
+        args.controller = ["pi"]
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        return args.func(args) or 0
+    except WorkbenchError as error:
+        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
+        return error.exit_code
+    except KeyboardInterrupt:
+        print("error: interrupted; completed results were kept", file=sys.stderr)
+        return 130
+    except Exception as error:
+        from plant_fmu import PlantBuildError
+
+        if isinstance(error, PlantBuildError):
+            print(f"error: {str(error).splitlines()[0]}", file=sys.stderr)
+            return 4
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,112 @@
+"""Checks on an FMU archive before anything is extracted or loaded.
+
+Loading an FMU runs its native code in this process, so an archive is refused early, with one
+line naming the problem, if it is not a zip, has members that would land outside the extraction
+folder, would expand to an unreasonable size, is not FMI 2.0, or has no binary for this platform.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from xml.etree import ElementTree
+
+import fmpy
+from fmpy.model_description import ModelDescription
+
+from cosim.errors import FmuArchiveError
+
+MAX_UNCOMPRESSED_BYTES = 1 << 30  # 1 GiB: far above any plant model, far below a zip bomb
+SUPPORTED = "FMI 2.0 (model exchange or co-simulation)"
+SHARED_LIBRARY_SUFFIX = {"linux64": ".so", "darwin64": ".dylib", "win64": ".dll", "win32": ".dll"}
+
+
+@dataclass(frozen=True)
+class CheckedFmu:
+    """An FMU that passed the checks: its path and parsed model description."""
+
+    path: Path
+    model_description: ModelDescription
+    interfaces: tuple[str, ...]  # "co-simulation" and/or "model-exchange" with a binary for this platform
+    platforms: tuple[str, ...]
+
+
+def _member_problem(name: str) -> str | None:
+    if name.startswith(("/", "\\")) or (len(name) > 1 and name[1] == ":"):
+        return "is an absolute path"
+    parts = PurePosixPath(name.replace("\\", "/")).parts
+    if ".." in parts:
+        return "climbs out of the archive with '..'"
+    return None
+
+
+def _binary_platforms(names: list[str]) -> tuple[str, ...]:
+    platforms = {
+        parts[1]
+        for parts in (n.split("/") for n in names)
+        if len(parts) >= 3 and parts[0] == "binaries" and parts[2]
+    }
+    return tuple(sorted(platforms))
+
+
+def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_BYTES) -> CheckedFmu:
+    """Validate an FMU archive without extracting it; raise :class:`FmuArchiveError` naming the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise FmuArchiveError(f"plant FMU {path} does not exist (expected a .fmu file)")
+    if not zipfile.is_zipfile(path):
+        raise FmuArchiveError(f"plant FMU {path} is not a zip archive (an FMU is a zip file with modelDescription.xml)")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+            names = [info.filename for info in infos]
+            for name in names:
+                problem = _member_problem(name)
+                if problem:
+                    raise FmuArchiveError(f"plant FMU {path}: member {name!r} {problem}; refusing to extract it")
+            total = sum(info.file_size for info in infos)
+            if total > max_uncompressed_bytes:
+                raise FmuArchiveError(
+                    f"plant FMU {path} would expand to {total / 2**20:.0f} MiB, "
+                    f"more than the limit of {max_uncompressed_bytes / 2**20:.0f} MiB"
+                )
+            if "modelDescription.xml" not in names:
+                raise FmuArchiveError(f"plant FMU {path} has no modelDescription.xml at the top level")
+            xml = archive.read("modelDescription.xml")
+    except zipfile.BadZipFile as error:
+        raise FmuArchiveError(f"plant FMU {path} is a damaged zip archive ({error})") from None
+    except (EOFError, OSError) as error:
+        raise FmuArchiveError(f"plant FMU {path} is truncated or unreadable ({error})") from None
+    try:
+        root = ElementTree.fromstring(xml)
+    except ElementTree.ParseError as error:
+        raise FmuArchiveError(f"plant FMU {path}: modelDescription.xml is not well-formed XML ({error})") from None
+    version = root.get("fmiVersion")
+    if version is None:
+        raise FmuArchiveError(f"plant FMU {path}: modelDescription.xml has no fmiVersion attribute")
+    if version != "2.0":
+        raise FmuArchiveError(f"plant FMU {path} is FMI {version}; the workbench supports {SUPPORTED}")
+    try:
+        model_description = fmpy.read_model_description(str(path), validate=False)
+    except Exception as error:  # fmpy raises plain Exceptions for malformed descriptions
+        message = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise FmuArchiveError(f"plant FMU {path}: malformed modelDescription.xml ({message})") from None
+    platforms = _binary_platforms(names)
+    suffix = SHARED_LIBRARY_SUFFIX.get(fmpy.platform, ".so")
+    interfaces = []
+    for label, interface in (("co-simulation", model_description.coSimulation),
+                             ("model-exchange", model_description.modelExchange)):
+        if interface is not None:
+            if f"binaries/{fmpy.platform}/{interface.modelIdentifier}{suffix}" in names:
+                interfaces.append(label)
+    if not interfaces:
+        declared = [label for label, i in (("co-simulation", model_description.coSimulation),
+                                           ("model-exchange", model_description.modelExchange)) if i]
+        have = ", ".join(platforms) if platforms else "none"
+        raise FmuArchiveError(
+            f"plant FMU {path} has no {fmpy.platform} binary for its interfaces ({', '.join(declared) or 'none declared'}); "
+            f"binaries present: {have}"
+        )
+    return CheckedFmu(path=path, model_description=model_description, interfaces=tuple(interfaces),
+                      platforms=platforms)

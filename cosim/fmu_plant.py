@@ -1,0 +1,444 @@
+"""One plant FMU instance stepped by fmpy: co-simulation through ``fmi2DoStep``, model exchange
+through fmpy's CVode solver. The master sees the same small interface for both.
+
+The hot path (set inputs, step, get outputs) calls the C functions that fmpy loaded with their
+prototypes, on value-reference and value buffers allocated once, so a macro step allocates no
+Python objects beyond what ctypes needs.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import sys
+from collections import deque
+from ctypes import byref, c_double, c_uint
+from typing import Mapping, Sequence
+
+import fmpy
+from fmpy.fmi1 import FMICallException
+from fmpy.fmi2 import (
+    FMU2Model,
+    FMU2Slave,
+    fmi2CallbackAllocateMemoryTYPE,
+    fmi2CallbackFreeMemoryTYPE,
+    fmi2CallbackFunctions,
+    fmi2CallbackLoggerTYPE,
+    fmi2True,
+)
+
+from cosim.binding import INPUT_ROLES, OUTPUT_ROLES, PlantBinding
+from cosim.errors import ConfigError, PlantError
+from cosim.fmu_archive import check_fmu
+
+STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
+CO_SIMULATION = "co-simulation"
+MODEL_EXCHANGE = "model-exchange"
+INTERFACE_ALIASES = {"cs": CO_SIMULATION, "co-simulation": CO_SIMULATION,
+                     "me": MODEL_EXCHANGE, "model-exchange": MODEL_EXCHANGE}
+
+
+def normalise_interface(name: str | None) -> str | None:
+    if name is None:
+        return None
+    try:
+        return INTERFACE_ALIASES[name.lower()]
+    except KeyError:
+        raise ConfigError(f"interface {name!r} is unknown: expected 'co-simulation' (cs) or 'model-exchange' (me)") from None
+
+
+class _NoInput:
+    """fmpy's CVode wrapper re-applies inputs at root checks; the master holds them instead."""
+
+    def apply(self, time, continuous=True, discrete=True, after_event=False):
+        return None
+
+
+class FmuPlant:
+    """An instantiated plant FMU with the workbench's roles resolved to value references."""
+
+    def __init__(self, binding: PlantBinding, interface: str | None = None, relative_tolerance: float = 1e-8,
+                 instance_name: str = "plant"):
+        checked = check_fmu(binding.fmu_path)
+        self.binding = binding
+        self.model_description = md = checked.model_description
+        self.interface = self._choose_interface(checked.interfaces, normalise_interface(interface or binding.interface))
+        self.relative_tolerance = relative_tolerance
+        self.time = 0.0
+        self.log: deque[tuple[str, str, str]] = deque(maxlen=500)  # (status, category, message)
+        variables = {v.name: v for v in md.modelVariables}
+        self._variables = variables
+        self.input_roles = tuple(r for r in INPUT_ROLES if binding.has(r))
+        self.output_roles = tuple(r for r in OUTPUT_ROLES if binding.has(r))
+        in_vrs = [self._resolve(role, variables, inputs=True) for role in self.input_roles]
+        out_vrs = [self._resolve(role, variables, inputs=False) for role in self.output_roles]
+        self._in_vr = (c_uint * len(in_vrs))(*in_vrs)
+        self._in_value = (c_double * len(in_vrs))()
+        self._out_vr = (c_uint * len(out_vrs))(*out_vrs)
+        self._out_value = (c_double * len(out_vrs))()
+        maps_in = [binding.roles[r] for r in self.input_roles]
+        maps_out = [binding.roles[r] for r in self.output_roles]
+        self._in_scale = [m.scale for m in maps_in]
+        self._in_offset = [m.offset for m in maps_in]
+        self._out_identity = all(m.scale == 1.0 and m.offset == 0.0 for m in maps_out)
+        self._out_scale = [m.scale for m in maps_out]
+        self._out_offset = [m.offset for m in maps_out]
+        self._parameters = [self._resolve_parameter(name, value, variables) for name, value in binding.parameters.items()]
+        self.feedthrough = self._feedthrough(md)
+        self._unzipdir = fmpy.extract(str(binding.fmu_path))
+        self._callbacks = self._make_callbacks()
+        self._fmu = None
+        self._initialized = False
+        self._solver = None
+        self._inputs_changed = False
+        self._next_event_time: float | None = None
+        self._needs_completed_step = False
+        try:
+            self._instantiate(instance_name)
+        except BaseException:
+            self._remove_unzipdir()
+            raise
+
+    # ------------------------------------------------------------------ set-up
+    def _choose_interface(self, available: tuple[str, ...], wanted: str | None) -> str:
+        if wanted is None:
+            return CO_SIMULATION if CO_SIMULATION in available else available[0]
+        if wanted not in available:
+            raise ConfigError(
+                f"{self.binding.origin}: interface {wanted!r} is not available for this platform "
+                f"(the FMU offers: {', '.join(available)})"
+            )
+        return wanted
+
+    def _resolve(self, role: str, variables: dict, inputs: bool) -> int:
+        mapping = self.binding.roles[role]
+        variable = variables.get(mapping.variable)
+        if variable is None:
+            raise ConfigError(
+                f"{self.binding.origin}: role {role!r} names variable {mapping.variable!r}, "
+                f"which {self.binding.fmu_path.name} does not have"
+            )
+        if variable.type != "Real":
+            raise ConfigError(
+                f"{self.binding.origin}: role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}"
+            )
+        if inputs and variable.causality not in ("input", "parameter"):
+            raise ConfigError(
+                f"{self.binding.origin}: role {role!r} needs an input, but {mapping.variable!r} has causality {variable.causality}"
+            )
+        if not inputs and variable.causality not in ("output", "local"):
+            raise ConfigError(
+                f"{self.binding.origin}: role {role!r} needs an output, but {mapping.variable!r} has causality {variable.causality}"
+            )
+        if mapping.scale == 0.0 or not math.isfinite(mapping.scale) or not math.isfinite(mapping.offset):
+            raise ConfigError(f"{self.binding.origin}: role {role!r} has scale {mapping.scale} / offset {mapping.offset}; expected a finite, non-zero scale")
+        return variable.valueReference
+
+    def _feedthrough(self, md) -> dict[str, bool]:
+        """Per input role: can setting it change a bound output at the same instant?
+
+        Read from the ModelStructure dependencies; an output without declared dependencies
+        depends on everything. The master re-reads outputs after an input change only if so.
+        """
+        dependencies = {u.variable.name: u.dependencies for u in md.outputs}
+        outputs = [self.binding.roles[r].variable for r in self.output_roles]
+        result = {}
+        for role in self.input_roles:
+            name = self.binding.roles[role].variable
+            result[role] = any(dependencies.get(o) is None or any(d.name == name for d in dependencies[o])
+                               for o in outputs)
+        return result
+
+    def _resolve_parameter(self, name: str, value, variables: dict):
+        variable = variables.get(name)
+        if variable is None:
+            raise ConfigError(f"{self.binding.origin}: parameter {name!r} is not a variable of {self.binding.fmu_path.name}")
+        kind = variable.type
+        expected = {"Real": (int, float), "Integer": (int,), "Enumeration": (int,), "Boolean": (bool,), "String": (str,)}[kind]
+        if isinstance(value, bool) and kind != "Boolean" or not isinstance(value, expected):
+            raise ConfigError(
+                f"{self.binding.origin}: parameter {name!r} is {kind} in the FMU, got {value!r} ({type(value).__name__})"
+            )
+        return variable.valueReference, kind, value
+
+    def _make_callbacks(self):
+        def on_log(environment, instance_name, status, category, message):
+            try:
+                text = message.decode("utf-8", "replace") if message else ""
+                cat = category.decode("utf-8", "replace") if category else ""
+                label = STATUS_NAMES[status] if 0 <= status < len(STATUS_NAMES) else str(status)
+                self.log.append((label, cat, text))
+            except Exception:  # never let an exception cross the C boundary
+                pass
+
+        callbacks = fmi2CallbackFunctions()
+        callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
+        callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
+        callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
+        from fmpy.logging import addLoggerProxy
+
+        addLoggerProxy(byref(callbacks))
+        self._logger_function = on_log  # keep the Python function alive as long as the callbacks
+        return callbacks
+
+    def _instantiate(self, instance_name: str) -> None:
+        md = self.model_description
+        if self.interface == CO_SIMULATION:
+            cls, identifier = FMU2Slave, md.coSimulation.modelIdentifier
+        else:
+            cls, identifier = FMU2Model, md.modelExchange.modelIdentifier
+            self._needs_completed_step = bool(md.modelExchange.needsCompletedIntegratorStep)
+        self._fmu = cls(guid=md.guid, unzipDirectory=self._unzipdir, modelIdentifier=identifier,
+                        instanceName=instance_name)
+        try:
+            self._fmu.instantiate(callbacks=self._callbacks)
+        except Exception:
+            self._fmu.freeLibrary()
+            self._fmu = None
+            raise PlantError(f"{self.binding.origin}: fmi2Instantiate failed{self._last_log_suffix()}") from None
+        dll = self._fmu.dll
+        self._set_real = dll.fmi2SetReal
+        self._get_real = dll.fmi2GetReal
+        self._do_step = dll.fmi2DoStep if self.interface == CO_SIMULATION else None
+        self._component = self._fmu.component
+
+    @property
+    def label(self) -> str:
+        return self.binding.label
+
+    def _last_log_suffix(self) -> str:
+        for status, _, message in reversed(self.log):
+            if status in ("error", "fatal", "discard", "warning"):
+                return f": {message}"
+        return ""
+
+    def _fail(self, call: str, status: int | None = None, at: float | None = None) -> PlantError:
+        when = self.time if at is None else at
+        label = f" ({STATUS_NAMES[status]})" if status is not None and 0 <= status < len(STATUS_NAMES) else ""
+        return PlantError(f"{self.binding.origin}: {call} failed{label} at t = {when:.9g} s{self._last_log_suffix()}")
+
+    # ------------------------------------------------------------------ life cycle
+    def initialize(self, inputs: Sequence[float], start_time: float = 0.0,
+                   start_values: Mapping[str, float] | None = None) -> None:
+        """Set parameters, start values and the first inputs, and leave initialization mode at ``start_time``."""
+        fmu = self._fmu
+        extra = [self._resolve_parameter(n, v, self._variables) for n, v in (start_values or {}).items()]
+        try:
+            fmu.setupExperiment(startTime=start_time)
+            self._apply_parameters(self._parameters + extra)
+            fmu.enterInitializationMode()
+            self._write_inputs(inputs)
+            fmu.exitInitializationMode()
+        except FMICallException as error:
+            raise self._fail(error.function, error.status, at=start_time) from None
+        self.time = start_time
+        self._initialized = True
+        if self.interface == MODEL_EXCHANGE:
+            self._start_model_exchange(start_time)
+
+    def _apply_parameters(self, parameters) -> None:
+        fmu = self._fmu
+        for vr, kind, value in parameters:
+            if kind == "Real":
+                fmu.setReal([vr], [float(value)])
+            elif kind in ("Integer", "Enumeration"):
+                fmu.setInteger([vr], [int(value)])
+            elif kind == "Boolean":
+                fmu.setBoolean([vr], [bool(value)])
+            else:
+                fmu.setString([vr], [str(value)])
+
+    def reset(self) -> None:
+        """Return to the instantiated state (fmi2Reset) so the same instance serves another run."""
+        try:
+            self._fmu.reset()
+        except FMICallException as error:
+            raise self._fail(error.function, error.status) from None
+        self._solver = None
+        self._initialized = False
+        self.time = 0.0
+        self.log.clear()
+
+    def close(self) -> None:
+        """Terminate, free the instance and delete the extracted files. Safe to call twice."""
+        if self._fmu is not None:
+            fmu, self._fmu = self._fmu, None
+            self._solver = None
+            if self._initialized:
+                try:
+                    fmu.terminate()
+                except Exception:
+                    pass  # already in an error state; freeing is what matters
+            try:
+                fmu.freeInstance()
+            except Exception:
+                pass
+        self._remove_unzipdir()
+
+    def _remove_unzipdir(self) -> None:
+        if getattr(self, "_unzipdir", None):
+            shutil.rmtree(self._unzipdir, ignore_errors=True)
+            self._unzipdir = None
+
+    def __enter__(self) -> "FmuPlant":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):  # last resort; the master closes explicitly
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # ------------------------------------------------------------------ signals
+    def _write_inputs(self, values: Sequence[float]) -> None:
+        buffer = self._in_value
+        for i, value in enumerate(values):
+            buffer[i] = self._in_scale[i] * value + self._in_offset[i]
+        status = self._set_real(self._component, self._in_vr, len(buffer), buffer)
+        if status > 1:
+            raise FMICallException("fmi2SetReal", status)
+
+    def set_inputs(self, values: Sequence[float]) -> None:
+        """Set the input roles (order of :attr:`input_roles`, workbench units); held until the next call."""
+        try:
+            self._write_inputs(values)
+        except FMICallException as error:
+            raise self._fail(error.function, error.status) from None
+        self._inputs_changed = True
+
+    def outputs(self) -> list[float]:
+        """Output roles (order of :attr:`output_roles`) in workbench units, as Python floats."""
+        status = self._get_real(self._component, self._out_vr, len(self._out_value), self._out_value)
+        if status > 1:
+            raise self._fail("fmi2GetReal", status)
+        values = self._out_value[:]
+        if self._out_identity:
+            return values
+        return [(v - o) / k for v, o, k in zip(values, self._out_offset, self._out_scale)]
+
+    # ------------------------------------------------------------------ time
+    def advance_to(self, t_next: float) -> None:
+        """Advance the plant from :attr:`time` to ``t_next`` with the inputs held."""
+        t0 = self.time
+        if t_next <= t0:
+            return
+        if self._do_step is not None and not self.binding.max_step:  # the common case, kept lean
+            status = self._do_step(self._component, t0, t_next - t0, fmi2True)
+            if status > 1:
+                raise self._fail("fmi2DoStep", status, at=t0)
+        elif self.interface == CO_SIMULATION:
+            self._advance_cs(t_next)
+        else:
+            self._advance_me(t_next)
+        self.time = t_next
+
+    def _advance_cs(self, t_next: float) -> None:
+        t0 = self.time
+        h = t_next - t0
+        max_step = self.binding.max_step
+        n = math.ceil(h / max_step * (1.0 - 1e-12)) if h > max_step else 1
+        for i in range(n):
+            start = t0 + h * i / n if i else t0
+            end = t0 + h * (i + 1) / n if i + 1 < n else t_next
+            status = self._do_step(self._component, start, end - start, fmi2True)
+            if status > 1:
+                raise self._fail("fmi2DoStep", status, at=start)
+
+    # model exchange ---------------------------------------------------
+    def _start_model_exchange(self, start_time: float) -> None:
+        from fmpy.sundials import CVodeSolver
+
+        fmu = self._fmu
+        self._event_update()
+        fmu.enterContinuousTimeMode()
+        md = self.model_description
+        self._solver = CVodeSolver(
+            nx=md.numberOfContinuousStates,
+            nz=md.numberOfEventIndicators,
+            get_x=fmu.getContinuousStates,
+            set_x=fmu.setContinuousStates,
+            get_dx=fmu.getDerivatives,
+            get_z=fmu.getEventIndicators,
+            get_nominals=fmu.getNominalsOfContinuousStates,
+            set_time=fmu.setTime,
+            input=_NoInput(),
+            startTime=start_time,
+            maxStep=self.binding.max_step or float("inf"),
+            relativeTolerance=self.relative_tolerance,
+            maxNumSteps=1_000_000,
+        )
+        self._inputs_changed = False
+
+    def _event_update(self) -> None:
+        fmu = self._fmu
+        needed, terminate = True, False
+        while needed and not terminate:
+            needed, terminate, _, _, defined, next_time = fmu.newDiscreteStates()
+        if terminate:
+            raise PlantError(f"{self.binding.origin}: the FMU asked to terminate at t = {self.time:.9g} s{self._last_log_suffix()}")
+        self._next_event_time = next_time if defined else None
+
+    def _handle_event(self, time: float) -> None:
+        fmu = self._fmu
+        fmu.enterEventMode()
+        self._event_update()
+        fmu.enterContinuousTimeMode()
+        self._solver.reset(time)
+
+    def _advance_me(self, t_next: float) -> None:
+        fmu, solver = self._fmu, self._solver
+        t = self.time
+        try:
+            if self._inputs_changed:  # inputs may change discrete states (e.g. the diode unblocks)
+                fmu.setTime(t)
+                self._handle_event(t)
+                self._inputs_changed = False
+            while t < t_next:
+                target = t_next
+                time_event = False
+                if self._next_event_time is not None and self._next_event_time <= t_next:
+                    target, time_event = max(self._next_event_time, t), True
+                if target - t <= 8 * sys.float_info.epsilon * max(abs(t), abs(target), 1e-300):
+                    state_event, t_reached = False, target  # CVode cannot take so short a step
+                else:
+                    state_event, _, t_reached = solver.step(t, target)
+                fmu.setTime(t_reached)
+                step_event = False
+                if self._needs_completed_step:
+                    step_event, terminate = fmu.completedIntegratorStep()
+                    if terminate:
+                        raise PlantError(f"{self.binding.origin}: the FMU asked to terminate at t = {t_reached:.9g} s")
+                reached_target = t_reached >= target - 1e-13 * max(1.0, abs(target))
+                if state_event or step_event or (time_event and reached_target):
+                    self._handle_event(t_reached)
+                if reached_target and target == t_next:
+                    break
+                t = t_reached
+        except FMICallException as error:
+            raise self._fail(error.function, error.status, at=t) from None
+        except RuntimeError as error:  # CVode failure
+            raise PlantError(f"{self.binding.origin}: the model-exchange solver failed at t = {t:.9g} s ({error})") from None
+
+    # ------------------------------------------------------------------ FMU state
+    def get_state(self):
+        """Snapshot of the FMU (fmi2GetFMUstate); free it with :meth:`free_state`."""
+        return self._fmu.getFMUstate()
+
+    def set_state(self, state, time: float) -> None:
+        self._fmu.setFMUstate(state)
+        self.time = time
+        if self._solver is not None:
+            self._fmu.setTime(time)
+            self._solver.reset(time)
+
+    def free_state(self, state) -> None:
+        self._fmu.freeFMUstate(state)
+
+    def serialize_state(self, state) -> bytes:
+        return bytes(self._fmu.serializeFMUstate(state))
+
+    def deserialize_state(self, data: bytes):
+        return self._fmu.deSerializeFMUstate(bytearray(data))

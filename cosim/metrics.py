@@ -1,0 +1,151 @@
+"""Control-quality metrics of a run, with the definitions a control engineer expects.
+
+The metrics window starts at the scenario's ``metrics_start`` (t0: the first event, or 0 for
+start-up) and ends with the run. y is the output voltage, r the reference in effect, e = r - y,
+y0 = y(t0), r_f = the reference at the end of the run. A run is a *step* when
+|r_f - y0| > 2 % of r_f (start-up, reference changes) and a *regulation* run otherwise (load or
+supply disturbances at constant reference).
+
+* ``rise_time_ms`` -- step only: time from first reaching y0 + 10 % (r_f - y0) to first reaching
+  y0 + 90 % (r_f - y0) (python-control ``RiseTime``); NaN for regulation runs.
+* ``overshoot_pct`` -- step: largest excursion beyond r_f in the direction of the step, in % of
+  |r_f - y0|; regulation: largest excursion above r, in % of r.
+* ``undershoot_pct`` -- step: largest excursion from y0 *against* the step direction, in % of
+  |r_f - y0|; regulation: largest excursion below r, in % of r.
+* ``settling_time_ms`` -- time after t0 at which |y - r_f| last leaves a band of 2 % of r_f;
+  0 if it never leaves, NaN if it is outside the band at the end.
+* ``steady_state_error_V`` / ``_pct`` -- mean of e over the last 5 ms (an integer number of PWM
+  periods at the default 10 us recording step), in volts and in % of r_f.
+* ``iae_Vs``, ``ise_V2s``, ``itae_Vs2`` -- integrals of |e|, e^2 and (t - t0)|e| over the window
+  (trapezoidal rule on the recording grid).
+* ``peak_inductor_current_A`` -- largest inductor current in the window.
+* ``duty_saturation_ms`` -- time in the window with the duty at either controller limit.
+* ``controller_p50_us`` / ``controller_p99_us`` -- median and 99th percentile of the controller's
+  wall-clock compute time per sample over the recorded run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from cosim.results import RunResult
+
+SETTLING_BAND = 0.02
+STEP_THRESHOLD = 0.02
+STEADY_STATE_WINDOW = 5e-3  # [s]
+
+METRIC_COLUMNS = (
+    "rise_time_ms",
+    "overshoot_pct",
+    "undershoot_pct",
+    "settling_time_ms",
+    "steady_state_error_V",
+    "steady_state_error_pct",
+    "iae_Vs",
+    "ise_V2s",
+    "itae_Vs2",
+    "peak_inductor_current_A",
+    "duty_saturation_ms",
+    "controller_p50_us",
+    "controller_p99_us",
+)
+
+
+def _first_crossing(t: np.ndarray, y: np.ndarray, level: float, rising: bool) -> float:
+    reached = y >= level if rising else y <= level
+    index = int(np.argmax(reached))
+    if not reached[index]:
+        return math.nan
+    if index == 0:
+        return float(t[0])
+    y0, y1 = y[index - 1], y[index]  # linear interpolation between samples
+    fraction = (level - y0) / (y1 - y0) if y1 != y0 else 1.0
+    return float(t[index - 1] + fraction * (t[index] - t[index - 1]))
+
+
+def _trapezoid(t: np.ndarray, values: np.ndarray) -> float:
+    return float(np.trapezoid(values, t)) if len(t) > 1 else 0.0
+
+
+def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0) -> dict[str, float]:
+    """Step/regulation metrics of output ``y`` against reference ``r`` on the window ``t >= t0``."""
+    window = t >= t0 - 1e-12
+    t, y, r = t[window], y[window], r[window]
+    y0, r_final = float(y[0]), float(r[-1])
+    e = r - y
+    step = abs(r_final - y0) > STEP_THRESHOLD * abs(r_final)
+    out: dict[str, float] = {}
+    if step:
+        delta = r_final - y0
+        sign = 1.0 if delta > 0 else -1.0
+        t10 = _first_crossing(t, sign * y, sign * (y0 + 0.1 * delta), rising=True)
+        t90 = _first_crossing(t, sign * y, sign * (y0 + 0.9 * delta), rising=True)
+        out["rise_time_ms"] = (t90 - t10) * 1e3
+        out["overshoot_pct"] = max(0.0, float(np.max(sign * (y - r_final)))) / abs(delta) * 100
+        out["undershoot_pct"] = max(0.0, float(np.max(sign * (y0 - y)))) / abs(delta) * 100
+    else:
+        scale = abs(r_final) if r_final else 1.0
+        out["rise_time_ms"] = math.nan
+        out["overshoot_pct"] = max(0.0, float(np.max(y - r))) / scale * 100
+        out["undershoot_pct"] = max(0.0, float(np.max(r - y))) / scale * 100
+    band = SETTLING_BAND * abs(r_final)
+    outside = np.abs(y - r_final) > band
+    if not outside.any():
+        out["settling_time_ms"] = 0.0
+    elif outside[-1]:
+        out["settling_time_ms"] = math.nan
+    else:
+        last = int(np.nonzero(outside)[0][-1])
+        out["settling_time_ms"] = (t[last + 1] - t0) * 1e3
+    tail = t >= t[-1] - STEADY_STATE_WINDOW + 1e-12
+    sse = float(np.mean(e[tail]))
+    out["steady_state_error_V"] = sse
+    out["steady_state_error_pct"] = sse / abs(r_final) * 100 if r_final else math.nan
+    out["iae_Vs"] = _trapezoid(t, np.abs(e))
+    out["ise_V2s"] = _trapezoid(t, e * e)
+    out["itae_Vs2"] = _trapezoid(t, (t - t0) * np.abs(e))
+    return out
+
+
+def run_metrics(result: RunResult) -> dict[str, float]:
+    """All metrics of one run (see the module docstring for the definitions)."""
+    frame = result.frame
+    t0 = float(result.metadata.get("scenario", {}).get("metrics_start_s", 0.0))
+    t = frame["time"].to_numpy()
+    out = signal_metrics(t, frame["output_voltage"].to_numpy(), frame["reference"].to_numpy(), t0)
+    window = t >= t0 - 1e-12
+    current = frame["inductor_current"].to_numpy()[window]
+    out["peak_inductor_current_A"] = float(np.nanmax(current)) if np.isfinite(current).any() else math.nan
+    low, high = result.metadata.get("controller", {}).get("duty_limits", [0.0, 1.0])
+    duty = frame["duty_cycle"].to_numpy()[window]
+    tw = t[window]
+    saturated = (duty <= low + 1e-9) | (duty >= high - 1e-9)
+    out["duty_saturation_ms"] = float(np.sum(np.diff(tw) * saturated[:-1])) * 1e3 if len(tw) > 1 else 0.0
+    compute = frame.loc[frame["control_sample"], "controller_compute_time"].to_numpy() \
+        if "controller_compute_time" in frame else np.array([])
+    compute = compute[np.isfinite(compute)]
+    out["controller_p50_us"] = float(np.percentile(compute, 50)) * 1e6 if len(compute) else math.nan
+    out["controller_p99_us"] = float(np.percentile(compute, 99)) * 1e6 if len(compute) else math.nan
+    return {name: out[name] for name in METRIC_COLUMNS}
+
+
+def run_label(result: RunResult) -> dict[str, object]:
+    """Identifying columns of a run for metrics tables."""
+    meta = result.metadata
+    return {
+        "scenario": meta.get("scenario", {}).get("name"),
+        "controller": meta.get("controller", {}).get("name"),
+        "plant": meta.get("plant", {}).get("label"),
+        "interface": meta.get("plant", {}).get("interface"),
+        "control_period_us": meta.get("rates", {}).get("control_period_s", math.nan) * 1e6,
+        "complete": result.complete,
+    }
+
+
+def metrics_table(results: list[RunResult]) -> pd.DataFrame:
+    """One row per run: identifying columns, then :data:`METRIC_COLUMNS`."""
+    rows = [{**run_label(r), **run_metrics(r)} for r in results]
+    return pd.DataFrame(rows)

@@ -1,0 +1,148 @@
+"""Repeatable PI tuning on the plant FMU, redone for every control rate.
+
+Method: minimise the total ISE of the start-up and both reference steps (12 -> 15 V, 12 -> 9 V)
+simulated on the plant FMU at the given control period, subject to overshoot and undershoot
+<= 5 % (quadratic penalty) and a steady-state error <= 0.5 % (penalty). The search runs in the
+normalised gains a = Kp Vs (proportional loop gain) and b = Ki Ts Vs (integral gain per sample):
+a grid over a in {0, 0.03, 0.1, 0.3, 1} and b log-spaced over [1e-3, 1], then Nelder-Mead from
+the best grid point. Everything is deterministic, so the same plant and period give the same
+gains.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from controllers.pi import PIController
+from cosim.binding import PlantBinding
+from cosim.errors import WorkbenchError
+from cosim.fmu_plant import FmuPlant
+from cosim.master import run
+from cosim.metrics import run_metrics
+from cosim.scenarios import load_scenario
+
+TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
+OVERSHOOT_LIMIT_PCT = 5.0
+STEADY_STATE_LIMIT_PCT = 0.5
+GRID_A = (0.0, 0.03, 0.1, 0.3, 1.0)
+GRID_B = tuple(np.logspace(-3, 0, 7))
+METHOD = (
+    "minimise total ISE of start-up and both reference steps on the plant FMU, s.t. overshoot/undershoot "
+    "<= 5 % and |steady-state error| <= 0.5 % (quadratic penalties); grid over a = Kp*Vs, b = Ki*Ts*Vs, "
+    "then Nelder-Mead"
+)
+#: tuning runs are shortened versions of the paper scenarios: long enough to settle at either rate
+TUNING_DURATION = 0.02  # [s]
+TUNING_SETTLE = 0.015  # [s]
+
+
+@dataclass(frozen=True)
+class PITuning:
+    kp: float  # [1/V]
+    ki: float  # [1/(V s)]
+    control_period: float  # [s]
+    cost: float
+    worst_overshoot_pct: float
+    evaluations: int
+    plant: str
+    method: str = METHOD
+
+    def controller(self, duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI") -> PIController:
+        return PIController(self.kp, self.ki, self.control_period, duty_limits, name=name,
+                            tuning={"method": self.method, "cost_V2s": self.cost, "plant": self.plant})
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "PITuning":
+        return cls(**json.loads(text))
+
+
+def _tuning_scenarios():
+    scenarios = []
+    for name in TUNING_SCENARIOS:
+        s = load_scenario(name)
+        events = tuple(e for e in s.events if e.time < TUNING_DURATION)
+        scenarios.append(replace(s, duration=TUNING_DURATION, settle=TUNING_SETTLE if s.settle else 0.0,
+                                 events=events))
+    return scenarios
+
+
+def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
+            input_voltage: float = 48.0, progress: bool = False) -> PITuning:
+    """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring."""
+    scenarios = _tuning_scenarios()
+    evaluations = 0
+    worst: dict[tuple[float, float], float] = {}
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc=f"tuning PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False)
+
+    with FmuPlant(binding) as plant:
+
+        def cost(params: np.ndarray) -> float:
+            nonlocal evaluations
+            a, b = float(params[0]), float(params[1])
+            kp, ki = a / input_voltage, b / (control_period * input_voltage)
+            controller = PIController(max(kp, 0.0), max(ki, 0.0), control_period)
+            total, worst_os = 0.0, 0.0
+            for scenario in scenarios:
+                try:
+                    metrics = run_metrics(run(plant, controller, scenario, record_period=record_period))
+                except WorkbenchError:
+                    return 1e6
+                if not math.isfinite(metrics["ise_V2s"]):
+                    return 1e6
+                excess = max(metrics["overshoot_pct"], metrics["undershoot_pct"]) - OVERSHOOT_LIMIT_PCT
+                sse = abs(metrics["steady_state_error_pct"]) - STEADY_STATE_LIMIT_PCT
+                total += metrics["ise_V2s"] + 0.1 * max(0.0, excess) ** 2 + 10.0 * max(0.0, sse) ** 2
+                worst_os = max(worst_os, metrics["overshoot_pct"], metrics["undershoot_pct"])
+            evaluations += 1
+            worst[(a, b)] = worst_os
+            if bar is not None:
+                bar.update(1)
+            return total
+
+        grid = [(a, b) for a in GRID_A for b in GRID_B]
+        scores = [cost(np.array(p)) for p in grid]
+        start = np.array(grid[int(np.argmin(scores))])
+        result = minimize(cost, start, method="Nelder-Mead",
+                          bounds=[(0.0, 3.0), (1e-4, 1.5)],
+                          options={"maxfev": 60, "xatol": 1e-3, "fatol": 1e-7,
+                                   "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
+    if bar is not None:
+        bar.close()
+    best = result.x if result.fun <= min(scores) else start
+    best_cost = float(min(result.fun, min(scores)))
+    a, b = float(best[0]), float(best[1])
+    return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
+                    cost=best_cost, worst_overshoot_pct=float(worst.get((a, b), math.nan)),
+                    evaluations=evaluations, plant=binding.label)
+
+
+def load_or_tune(path: Path, binding: PlantBinding, control_period: float, **kwargs) -> PITuning:
+    """Read tuned gains from ``path`` if they match plant and period; else tune and save them there."""
+    from cosim.results import atomic_write_text
+
+    path = Path(path)
+    if path.is_file():
+        try:
+            tuning = PITuning.from_json(path.read_text(encoding="utf-8"))
+            if tuning.plant == binding.label and math.isclose(tuning.control_period, control_period, rel_tol=1e-12) \
+                    and tuning.method == METHOD:
+                return tuning
+        except (ValueError, TypeError, KeyError):
+            pass  # unreadable or stale: tune again
+    tuning = tune_pi(binding, control_period, **kwargs)
+    atomic_write_text(path, tuning.to_json() + "\n")
+    return tuning

@@ -1,0 +1,94 @@
+"""Run scenario sets and write what they produce: run tables, a metrics table and figures.
+
+Shared by ``buck-cosim run`` and the paper reproduction. Each run is written as soon as it
+finishes (atomically), so an interrupted batch keeps every completed run; a failed or
+interrupted run is written too, with ``complete = false`` in its metadata.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import pandas as pd
+
+from controllers.base import Controller
+from cosim.binding import PlantBinding
+from cosim.errors import RunInterrupted
+from cosim.fmu_plant import FmuPlant
+from cosim.master import RunFailed, check_plant_supports, run
+from cosim.metrics import metrics_table
+from cosim.plots import plot_scenario
+from cosim.results import RunResult, atomic_write, write_parquet, write_run
+from cosim.scenarios import Scenario
+
+
+def period_label(period: float) -> str:
+    """Short file-name label of a control period: ``1ms``, ``13.33us``."""
+    if period >= 1e-3 and math.isclose(period * 1e3, round(period * 1e3), rel_tol=1e-9):
+        return f"{round(period * 1e3)}ms"
+    return f"{period * 1e6:.4g}us".replace(".", "p")
+
+
+def slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "-", text).strip("-").lower()
+
+
+def run_stem(scenario: Scenario, controller: Controller, plant_tag: str) -> str:
+    return f"{scenario.name}__{slug(controller.name)}__{plant_tag}__{period_label(controller.sample_period)}"
+
+
+@dataclass
+class BatchOutput:
+    results: list[RunResult]
+    metrics: pd.DataFrame
+    files: list[Path]
+
+
+def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenarios: Iterable[Scenario], out_dir: Path,
+              *, plant_tag: str, interface: str | None = None, record_period: float = 1e-5, seed: int | None = None,
+              figures: bool = True, progress: bool = False, extra_metadata: dict | None = None,
+              on_run: Callable[[RunResult], None] | None = None) -> BatchOutput:
+    """Run every controller on every scenario with one reused plant instance; write runs, metrics, figures."""
+    out_dir = Path(out_dir)
+    controllers, scenarios = list(controllers), list(scenarios)
+    for scenario in scenarios:  # refuse before running anything
+        check_plant_supports(binding, scenario)
+    results: list[RunResult] = []
+    files: list[Path] = []
+    with FmuPlant(binding, interface=interface) as plant:
+        for scenario in scenarios:
+            per_scenario: list[RunResult] = []
+            for controller in controllers:
+                stem = run_stem(scenario, controller, plant_tag)
+                try:
+                    result = run(plant, controller, scenario, record_period=record_period, seed=seed,
+                                 progress=progress, extra_metadata=extra_metadata)
+                except (RunFailed, RunInterrupted) as error:
+                    if error.partial is not None:
+                        files.extend(write_run(error.partial, out_dir / "runs", stem).values())
+                    raise
+                files.extend(write_run(result, out_dir / "runs", stem).values())
+                per_scenario.append(result)
+                if on_run is not None:
+                    on_run(result)
+            results.extend(per_scenario)
+            if figures:
+                files.extend(plot_scenario(per_scenario, out_dir / "figures" / f"{scenario.name}__{plant_tag}__"
+                                           f"{period_label(controllers[0].sample_period)}"))
+    table = metrics_table(results)
+    table.insert(2, "plant_tag", plant_tag)
+    return BatchOutput(results=results, metrics=table, files=files)
+
+
+def write_metrics(table: pd.DataFrame, path_stem: Path) -> list[Path]:
+    """Write a metrics table as CSV and Parquet (atomically)."""
+    path_stem = Path(path_stem)
+    return [
+        atomic_write(path_stem.with_suffix(".csv"), lambda tmp: table.to_csv(tmp, index=False)),
+        write_parquet(table, {"description": "metrics per scenario and controller; see cosim/metrics.py"},
+                      path_stem.with_suffix(".parquet"), units={}),
+    ]

@@ -1,0 +1,282 @@
+"""Scenarios: what happens to the converter and when, in a small human-editable TOML format.
+
+Example (``cosim/scenarios/load_change.toml``)::
+
+    name = "load_change"
+    description = "Load step 6 -> 5 Ohm at 12 V (paper Fig. 9)"
+    duration = 0.03      # [s] recorded time after t = 0
+    settle = 0.015       # [s] closed-loop operation at the initial conditions before t = 0, not recorded
+
+    [initial]
+    reference = 12.0         # [V]  output-voltage reference
+    load_resistance = 6.0    # [Ohm]
+    input_voltage = 48.0     # [V]
+
+    [[events]]
+    time = 0.005             # [s]
+    load_resistance = 5.0
+
+Top-level keys: ``name`` (text), ``description`` (text), ``duration`` (> 0 s), ``settle`` (>= 0 s,
+default 0, rounded to whole control periods), ``analysis_start`` (s, default: the first event
+time, or 0 without events; metrics start here). ``[initial]`` keys: ``reference`` (>= 0 V),
+``load_resistance`` (> 0 Ohm, default 6), ``input_voltage`` (> 0 V, default 48). Each
+``[[events]]`` entry has ``time`` (0 <= time < duration) and at least one of ``reference``,
+``load_resistance``, ``input_voltage``. The plant starts at rest (zero current and voltage) at
+the beginning of the settle interval. Reference changes reach the controller at its next sample;
+load and input-voltage changes act on the plant at the exact event time.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from cosim.errors import ConfigError
+
+SHIPPED_DIR = Path(__file__).parent / "scenarios"
+EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
+SIGNAL_UNITS = {"reference": "V", "load_resistance": "Ohm", "input_voltage": "V"}
+TOP_KEYS = {"name", "description", "duration", "settle", "analysis_start", "initial", "events"}
+INITIAL_KEYS = {"reference", "load_resistance", "input_voltage"}
+EVENT_KEYS = {"time", *EVENT_SIGNALS}
+#: role each event signal needs from the plant binding (the reference is the controller's own input)
+SIGNAL_ROLES = {"load_resistance": "load_resistance", "input_voltage": "input_voltage"}
+
+
+@dataclass(frozen=True)
+class ScenarioEvent:
+    time: float  # [s]
+    changes: dict[str, float]  # signal -> new value
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    duration: float  # [s]
+    initial: dict[str, float]
+    events: tuple[ScenarioEvent, ...] = ()
+    settle: float = 0.0  # [s]
+    analysis_start: float | None = None  # [s]
+    source: Path | None = None
+
+    @property
+    def metrics_start(self) -> float:
+        """Start of the metrics window: ``analysis_start``, else the first event, else 0."""
+        if self.analysis_start is not None:
+            return self.analysis_start
+        return self.events[0].time if self.events else 0.0
+
+    def schedule(self, signal: str) -> list[tuple[float, float]]:
+        """Piecewise-constant schedule ``[(time, value), ...]`` of one signal, starting at t = 0."""
+        points = [(0.0, self.initial[signal])]
+        for event in self.events:
+            if signal in event.changes:
+                points.append((event.time, event.changes[signal]))
+        return points
+
+    def required_roles(self) -> set[str]:
+        """Plant roles this scenario needs because it changes them during the run."""
+        return {SIGNAL_ROLES[s] for e in self.events for s in e.changes if s in SIGNAL_ROLES}
+
+    def describe(self) -> dict:
+        return {
+            "name": self.name,
+            "description": self.description,
+            "duration_s": self.duration,
+            "settle_s": self.settle,
+            "metrics_start_s": self.metrics_start,
+            "initial": dict(self.initial),
+            "events": [{"time_s": e.time, **e.changes} for e in self.events],
+            "source": str(self.source) if self.source else None,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# Parsing with messages that name file, key and line
+
+
+class _Locator:
+    """Finds the line of a key in a TOML text (tables, arrays of tables, dotted position)."""
+
+    def __init__(self, text: str):
+        self.lines = text.splitlines()
+
+    def line_of(self, key: str, table: str | None = None, index: int | None = None) -> int | None:
+        current, count = None, -1
+        for number, raw in enumerate(self.lines, start=1):
+            line = raw.split("#", 1)[0].strip()
+            header = re.fullmatch(r"\[\[\s*([\w.-]+)\s*\]\]", line) or re.fullmatch(r"\[\s*([\w.-]+)\s*\]", line)
+            if header:
+                name = header.group(1)
+                if line.startswith("[[") and name == table:
+                    count += 1
+                current = name
+                if key is None and name == table and (index is None or count == index):
+                    return number
+                continue
+            in_place = current == table and (index is None or count == index)
+            if key is not None and in_place and re.match(rf"{re.escape(key)}\s*=", line):
+                return number
+        return None
+
+
+def _where(path: Path | None, locator: _Locator, key: str, table: str | None = None, index: int | None = None) -> str:
+    name = str(path) if path else "<scenario>"
+    line = locator.line_of(key, table, index)
+    return f"{name}:{line}" if line else name
+
+
+def _number(value, path, locator, key, label, table=None, index=None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(
+            f"{_where(path, locator, key, table, index)}: {label} = {value!r} has the wrong type: expected a number"
+        )
+    value = float(value)
+    if not math.isfinite(value):
+        raise ConfigError(f"{_where(path, locator, key, table, index)}: {label} = {value} is not finite")
+    return value
+
+
+def parse_scenario(text: str, path: Path | None = None) -> Scenario:
+    """Parse and validate scenario TOML; raise :class:`ConfigError` naming file, key and line."""
+    name_for_errors = str(path) if path else "<scenario>"
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{name_for_errors}: invalid TOML: {error}") from None
+    loc = _Locator(text)
+
+    for key in data:
+        if key not in TOP_KEYS:
+            raise ConfigError(
+                f"{_where(path, loc, key)}: unknown key {key!r}: expected one of {', '.join(sorted(TOP_KEYS))}"
+            )
+    for key in ("name", "duration", "initial"):
+        if key not in data:
+            raise ConfigError(f"{name_for_errors}: missing required key {key!r}")
+    name = data["name"]
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+        raise ConfigError(
+            f"{_where(path, loc, 'name')}: name = {name!r} is invalid: expected letters, digits, '_', '-' or '.'"
+        )
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise ConfigError(f"{_where(path, loc, 'description')}: description has the wrong type: expected text")
+    duration = _number(data["duration"], path, loc, "duration", "duration")
+    if duration <= 0:
+        raise ConfigError(f"{_where(path, loc, 'duration')}: duration = {duration} s is invalid: expected > 0")
+    settle = _number(data.get("settle", 0.0), path, loc, "settle", "settle")
+    if settle < 0:
+        raise ConfigError(f"{_where(path, loc, 'settle')}: settle = {settle} s is negative: expected >= 0")
+
+    initial_table = data["initial"]
+    if not isinstance(initial_table, dict):
+        raise ConfigError(f"{_where(path, loc, 'initial')}: 'initial' must be a table ([initial])")
+    for key in initial_table:
+        if key not in INITIAL_KEYS:
+            raise ConfigError(
+                f"{_where(path, loc, key, 'initial')}: unknown key 'initial.{key}': "
+                f"expected one of {', '.join(sorted(INITIAL_KEYS))}"
+            )
+    if "reference" not in initial_table:
+        raise ConfigError(f"{_where(path, loc, None, 'initial')}: missing required key 'initial.reference'")
+    initial = {"reference": None, "load_resistance": 6.0, "input_voltage": 48.0}
+    for key in INITIAL_KEYS:
+        if key in initial_table:
+            initial[key] = _number(initial_table[key], path, loc, key, f"initial.{key}", "initial")
+        _check_signal(key, initial[key], path, loc, f"initial.{key}", key, "initial", None)
+
+    raw_events = data.get("events", [])
+    if not isinstance(raw_events, list) or not all(isinstance(e, dict) for e in raw_events):
+        raise ConfigError(f"{_where(path, loc, 'events')}: 'events' must be an array of tables ([[events]])")
+    events = []
+    for i, entry in enumerate(raw_events):
+        label = f"events[{i}]"
+        for key in entry:
+            if key not in EVENT_KEYS:
+                raise ConfigError(
+                    f"{_where(path, loc, key, 'events', i)}: unknown key '{label}.{key}': "
+                    f"expected one of {', '.join(sorted(EVENT_KEYS))}"
+                )
+        if "time" not in entry:
+            raise ConfigError(f"{_where(path, loc, None, 'events', i)}: {label} has no 'time'")
+        time = _number(entry["time"], path, loc, "time", f"{label}.time", "events", i)
+        if time < 0:
+            raise ConfigError(f"{_where(path, loc, 'time', 'events', i)}: {label}.time = {time} s is negative: expected >= 0")
+        if time >= duration:
+            raise ConfigError(
+                f"{_where(path, loc, 'time', 'events', i)}: {label}.time = {time} s is at or after the end "
+                f"of the scenario (duration = {duration} s)"
+            )
+        changes = {}
+        for key in EVENT_SIGNALS:
+            if key in entry:
+                value = _number(entry[key], path, loc, key, f"{label}.{key}", "events", i)
+                _check_signal(key, value, path, loc, f"{label}.{key}", key, "events", i)
+                changes[key] = value
+        if not changes:
+            raise ConfigError(
+                f"{_where(path, loc, None, 'events', i)}: {label} changes nothing: "
+                f"expected at least one of {', '.join(EVENT_SIGNALS)}"
+            )
+        events.append(ScenarioEvent(time=time, changes=changes))
+    events.sort(key=lambda e: e.time)
+
+    analysis_start = None
+    if "analysis_start" in data:
+        analysis_start = _number(data["analysis_start"], path, loc, "analysis_start", "analysis_start")
+        if not 0 <= analysis_start < duration:
+            raise ConfigError(
+                f"{_where(path, loc, 'analysis_start')}: analysis_start = {analysis_start} s is outside "
+                f"[0, duration = {duration} s)"
+            )
+    return Scenario(name=name, description=description, duration=duration, initial=initial,
+                    events=tuple(events), settle=settle, analysis_start=analysis_start, source=path)
+
+
+def _check_signal(signal, value, path, loc, label, key, table, index) -> None:
+    if signal == "reference" and value < 0:
+        raise ConfigError(f"{_where(path, loc, key, table, index)}: {label} = {value} V is negative: expected >= 0")
+    if signal in ("load_resistance", "input_voltage") and value <= 0:
+        raise ConfigError(
+            f"{_where(path, loc, key, table, index)}: {label} = {value} {SIGNAL_UNITS[signal]} is invalid: expected > 0"
+        )
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a scenario file, or a shipped scenario by name (see :func:`shipped_scenarios`)."""
+    path = Path(name_or_path)
+    if not path.is_file():
+        shipped = SHIPPED_DIR / f"{name_or_path}.toml"
+        if shipped.is_file():
+            path = shipped
+        else:
+            names = ", ".join(shipped_scenario_names())
+            raise ConfigError(f"scenario {str(name_or_path)!r} is neither a file nor a shipped scenario ({names})")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read scenario file ({error})") from None
+    return parse_scenario(text, path)
+
+
+def shipped_scenario_names() -> list[str]:
+    return sorted(p.stem for p in SHIPPED_DIR.glob("*.toml"))
+
+
+#: the paper's four scenarios, in the order of its figures
+PAPER_SCENARIOS = ("startup", "load_change", "reference_up", "reference_down")
+
+
+def paper_scenarios() -> list[Scenario]:
+    return [load_scenario(name) for name in PAPER_SCENARIOS]
+
+
+def shipped_scenarios() -> list[Scenario]:
+    return [load_scenario(name) for name in shipped_scenario_names()]
+
+

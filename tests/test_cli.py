@@ -1,0 +1,88 @@
+"""The command line: runs write tables, metrics and a figure per scenario; mistakes are one line."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from cosim.cli import main
+from cosim.results import read_run
+
+
+def cli(*args, cwd=None):
+    """Run ``buck-cosim`` in a subprocess, as a user would (no stdin)."""
+    return subprocess.run([sys.executable, "-m", "cosim.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+def test_run_writes_tables_metrics_and_one_figure_per_scenario(tmp_path, capsys):
+    code = main(["--no-progress", "run", "startup", "load_change", "--kp", "0", "--ki", "14", "--out", str(tmp_path)])
+    assert code == 0
+    for scenario in ("startup", "load_change"):
+        png = tmp_path / "figures" / f"{scenario}__averaged__1ms.png"
+        svg = png.with_suffix(".svg")
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+        text = svg.read_text()
+        assert "output voltage" in text and "inductor current" in text and "time [ms]" in text
+        run = read_run(tmp_path / "runs" / f"{scenario}__pi__averaged__1ms.parquet")
+        assert run.complete and run.frame["output_voltage"].iloc[-1] == pytest.approx(12.0, rel=1e-3)
+    metrics = pd.read_csv(tmp_path / "metrics" / "metrics__averaged.csv")
+    assert metrics["scenario"].tolist() == ["startup", "load_change"]
+    assert (metrics["steady_state_error_pct"].abs() < 0.2).all()
+    assert "startup" in capsys.readouterr().out
+
+
+def test_export_converts_between_formats(tmp_path):
+    main(["--no-progress", "run", "reference_down", "--kp", "0", "--ki", "14", "--out", str(tmp_path), "--no-figures"])
+    source = tmp_path / "runs" / "reference_down__pi__averaged__1ms.parquet"
+    assert main(["export", str(source), "--to", "csv", "--out", str(tmp_path / "exported")]) == 0
+    back = read_run(tmp_path / "exported" / "reference_down__pi__averaged__1ms.csv")
+    original = read_run(source)
+    pd.testing.assert_frame_equal(back.frame, original.frame.drop(columns=["controller_compute_time"]))
+    assert back.metadata == original.metadata
+
+
+def test_build_fmu_copies_binary_and_source_fmus(tmp_path):
+    assert main(["build-fmu", "--output", str(tmp_path)]) == 0
+    assert (tmp_path / "BuckConverter.fmu").stat().st_size > 5000
+    assert (tmp_path / "BuckConverter-source.fmu").is_file()
+
+
+def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
+    assert main(["scenarios"]) == 0
+    out = capsys.readouterr().out
+    assert "load_change" in out and "5 ms: load_resistance=5" in out
+    assert main(["inspect", str(buck_fmu)]) == 0
+    out = capsys.readouterr().out
+    assert "co-simulation, model-exchange" in out and "load_resistance" in out and "Ohm" in out
+
+
+@pytest.mark.parametrize("args,message", [
+    (["run", "no_such_scenario"], "error: scenario 'no_such_scenario' is neither a file nor a shipped scenario"),
+    (["run", "startup", "--control-period", "0"], "error: buck-cosim run: argument --control-period: period 0 s is invalid"),
+    (["run", "startup", "--control-period", "fast"], "'fast' is not a period in seconds"),
+    (["run", "startup", "--kp", "0.1"], "error: --kp and --ki must be given together"),
+    (["run", "startup", "--kp", "-1", "--ki", "3"], "error: PI gains kp = -1.0, ki = 3.0 are invalid"),
+    (["run", "startup", "--duty-max", "1.5"], "error: duty limits (0.0, 1.5) are invalid"),
+    (["inspect", "README.md"], "is not a zip archive"),
+    (["export", "missing.parquet", "--to", "csv"], "error: run file missing.parquet does not exist"),
+    (["frobnicate"], "error: buck-cosim: argument COMMAND: invalid choice"),
+])
+def test_user_mistakes_are_one_line_errors_without_traceback(args, message, tmp_path):
+    (tmp_path / "README.md").write_text("not an FMU")
+    done = cli(*args, "--out", str(tmp_path)) if args[0] == "run" else cli(*args, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, done.stderr
+    assert message in lines[0]
+    assert "Traceback" not in done.stderr
+
+
+def test_help_texts_state_units():
+    done = cli("run", "--help")
+    assert done.returncode == 0
+    assert "--control-period SECONDS" in done.stdout and "[1/V]" in done.stdout and "1/75e3" in done.stdout

@@ -1,0 +1,96 @@
+"""Scenario files: the shipped ones parse; every mistake names file, key and line."""
+
+from __future__ import annotations
+
+import pytest
+
+from cosim.errors import ConfigError
+from cosim.scenarios import PAPER_SCENARIOS, load_scenario, parse_scenario, shipped_scenarios
+
+GOOD = """\
+name = "custom"
+description = "a user scenario"
+duration = 0.05
+settle = 0.01
+
+[initial]
+reference = 12.0
+load_resistance = 6.0
+
+[[events]]
+time = 0.02
+reference = 15.0
+
+[[events]]
+time = 0.01
+load_resistance = 5.0
+input_voltage = 40.0
+"""
+
+
+def test_shipped_scenarios_are_the_papers_four_plus_extras():
+    names = {s.name for s in shipped_scenarios()}
+    assert set(PAPER_SCENARIOS) <= names
+    startup = load_scenario("startup")
+    assert startup.initial == {"reference": 12.0, "load_resistance": 6.0, "input_voltage": 48.0}
+    assert startup.events == () and startup.metrics_start == 0.0
+    load = load_scenario("load_change")
+    assert load.events[0].changes == {"load_resistance": 5.0} and load.required_roles() == {"load_resistance"}
+    assert load_scenario("reference_up").events[0].changes == {"reference": 15.0}
+    assert load_scenario("reference_down").events[0].changes == {"reference": 9.0}
+
+
+def test_a_user_scenario_parses_with_sorted_events_and_schedules(tmp_path):
+    path = tmp_path / "custom.toml"
+    path.write_text(GOOD)
+    s = load_scenario(path)
+    assert [e.time for e in s.events] == [0.01, 0.02]
+    assert s.schedule("reference") == [(0.0, 12.0), (0.02, 15.0)]
+    assert s.schedule("input_voltage") == [(0.0, 48.0), (0.01, 40.0)]
+    assert s.required_roles() == {"load_resistance", "input_voltage"}
+    assert s.metrics_start == 0.01 and s.source == path
+
+
+def write(tmp_path, text):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("edit,message", [
+    (("settle = 0.01", "setle = 0.01"), r"bad.toml:4: unknown key 'setle'"),
+    (("load_resistance = 6.0", "load = 6.0"), r"bad.toml:8: unknown key 'initial.load'"),
+    (("reference = 15.0", "refrence = 15.0"), r"bad.toml:12: unknown key 'events\[0\].refrence'"),
+    (("duration = 0.05", 'duration = "long"'), r"bad.toml:3: duration = 'long' has the wrong type: expected a number"),
+    (("duration = 0.05", "duration = -0.05"), r"bad.toml:3: duration = -0.05 s is invalid: expected > 0"),
+    (("settle = 0.01", "settle = -1"), r"bad.toml:4: settle = -1.0 s is negative"),
+    (("time = 0.02", "time = 0.08"), r"bad.toml:11: events\[0\].time = 0.08 s is at or after the end of the scenario"),
+    (("time = 0.02", "time = -0.01"), r"bad.toml:11: events\[0\].time = -0.01 s is negative"),
+    (("load_resistance = 5.0", "load_resistance = 0"), r"bad.toml:16: events\[1\].load_resistance = 0.0 Ohm is invalid"),
+    (("reference = 12.0", "reference = true"), r"bad.toml:7: initial.reference = True has the wrong type"),
+    (("name = \"custom\"", "name = \"has space\""), r"bad.toml:1: name = 'has space' is invalid"),
+    (("duration = 0.05", "duration = 0.05\nduration = 0.06"), r"bad.toml: invalid TOML"),
+])
+def test_mistakes_name_file_key_and_line(tmp_path, edit, message):
+    path = write(tmp_path, GOOD.replace(*edit, 1))
+    with pytest.raises(ConfigError, match=message):
+        load_scenario(path)
+
+
+def test_event_without_changes_and_missing_keys(tmp_path):
+    with pytest.raises(ConfigError, match=r"bad.toml:10: events\[0\] changes nothing"):
+        load_scenario(write(tmp_path, GOOD.replace("reference = 15.0\n", "")))
+    with pytest.raises(ConfigError, match=r"missing required key 'duration'"):
+        load_scenario(write(tmp_path, GOOD.replace("duration = 0.05\n", "")))
+    with pytest.raises(ConfigError, match=r"missing required key 'initial.reference'"):
+        load_scenario(write(tmp_path, GOOD.replace("reference = 12.0\n", "")))
+
+
+def test_unknown_scenario_name_lists_the_shipped_ones():
+    with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(load_change"):
+        load_scenario("nope")
+
+
+def test_analysis_start_must_be_inside_the_run():
+    with pytest.raises(ConfigError, match=r"analysis_start = 1.0 s is outside"):
+        parse_scenario('name = "x"\nduration = 0.1\nanalysis_start = 1.0\n[initial]\nreference = 1.0\n')
