@@ -14,7 +14,8 @@ from types import MappingProxyType
 from typing import Mapping
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
-OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current")
+OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
+                "measured_inductor_current")
 ROLES = INPUT_ROLES + OUTPUT_ROLES
 REQUIRED_ROLES = ("duty_cycle", "output_voltage")
 ROLE_UNITS = {
@@ -24,6 +25,8 @@ ROLE_UNITS = {
     "output_voltage": "V",
     "inductor_current": "A",
     "load_current": "A",
+    "measured_output_voltage": "V",
+    "measured_inductor_current": "A",
 }
 ROLE_DESCRIPTIONS = {
     "duty_cycle": "duty cycle command, 0..1 (input, required)",
@@ -32,6 +35,10 @@ ROLE_DESCRIPTIONS = {
     "output_voltage": "output voltage vo (output, required)",
     "inductor_current": "inductor current iL (output, required by NNPC and the cost of eq. 23)",
     "load_current": "load current io (output, optional: lets predictive controllers estimate the load)",
+    "measured_output_voltage": "what the controller's voltage sensor reads, e.g. a period average "
+                               "(output, optional: default output_voltage)",
+    "measured_inductor_current": "what the controller's current sensor reads (output, optional: default "
+                                 "inductor_current)",
 }
 
 PLANT_MODES = {"averaged": 0, "switched": 1}
@@ -104,9 +111,14 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
         raise ConfigError(f"plant mode {mode!r} is unknown: expected one of {', '.join(PLANT_MODES)}")
     values: dict[str, float | int] = {"plant_mode": PLANT_MODES[mode]}
     values.update(parameters or {})
+    roles = {role: RoleMap(role) for role in ROLES}
+    # The controller measures like an averaging ADC: the mean over the last PWM period, free of the
+    # switching ripple a point sample would alias into a DC error (equal to the state when averaged).
+    roles["measured_output_voltage"] = RoleMap("average_output_voltage")
+    roles["measured_inductor_current"] = RoleMap("average_inductor_current")
     return PlantBinding(
         fmu_path=fmu_path(),
-        roles={role: RoleMap(role) for role in ROLES},
+        roles=roles,
         interface=interface,
         parameters=values,
         label=f"BuckConverter (built-in, {mode})",

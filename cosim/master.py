@@ -133,6 +133,9 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     i_vo = roles_out.index("output_voltage")
     i_il = roles_out.index("inductor_current") if "inductor_current" in roles_out else -1
     i_io = roles_out.index("load_current") if "load_current" in roles_out else -1
+    # the controller reads its sensors: the measured roles where bound, else the plain outputs
+    i_mv = roles_out.index("measured_output_voltage") if "measured_output_voltage" in roles_out else i_vo
+    i_mi = roles_out.index("measured_inductor_current") if "measured_inductor_current" in roles_out else i_il
     inputs = {"duty_cycle": 0.0, "input_voltage": supply[0], "load_resistance": load[0]}
     # after a duty change alone, outputs need re-reading only if the FMU declares a feedthrough
     duty_feedthrough = plant.feedthrough.get("duty_cycle", True)
@@ -176,7 +179,7 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
             if flag & CONTROL:
                 y = outputs()
                 _check_finite(y, roles_out, t - settle)
-                measurement = Measurement(t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan,
+                measurement = Measurement(t - settle, references[i], y[i_mv], y[i_mi] if i_mi >= 0 else nan,
                                           y[i_io] if i_io >= 0 else nan, last_supply)
                 start = clock()
                 try:
@@ -202,9 +205,9 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
                 if y is None:
                     y = outputs()
                     _check_finite(y, roles_out, t - settle)
-                append((t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan,
-                        y[i_io] if i_io >= 0 else nan, duty, last_load, last_supply,
-                        1.0 if flag & CONTROL else 0.0, compute))
+                append((t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan, y[i_mv],
+                        y[i_mi] if i_mi >= 0 else nan, y[i_io] if i_io >= 0 else nan, duty, last_load,
+                        last_supply, 1.0 if flag & CONTROL else 0.0, compute))
             if bar is not None and i % 2048 == 0:
                 bar.update(min(2048, timeline.size - bar.n))
     except KeyboardInterrupt:

@@ -14,8 +14,9 @@ supply disturbances at constant reference).
   |r_f - y0|; regulation: largest excursion below r, in % of r.
 * ``settling_time_ms`` -- time after t0 at which |y - r_f| last leaves a band of 2 % of r_f;
   0 if it never leaves, NaN if it is outside the band at the end.
-* ``steady_state_error_V`` / ``_pct`` -- mean of e over the last 5 ms (an integer number of PWM
-  periods at the default 10 us recording step), in volts and in % of r_f.
+* ``steady_state_error_V`` / ``_pct`` -- mean of e over the uniform recording grid in the last
+  5 ms (375 PWM periods; rows added only for control samples are left out, as they all sit at
+  one PWM phase), in volts and in % of r_f.
 * ``iae_Vs``, ``ise_V2s``, ``itae_Vs2`` -- integrals of |e|, e^2 and (t - t0)|e| over the window
   (trapezoidal rule on the recording grid).
 * ``peak_inductor_current_A`` -- largest inductor current in the window.
@@ -70,10 +71,16 @@ def _trapezoid(t: np.ndarray, values: np.ndarray) -> float:
     return float(np.trapezoid(values, t)) if len(t) > 1 else 0.0
 
 
-def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0) -> dict[str, float]:
-    """Step/regulation metrics of output ``y`` against reference ``r`` on the window ``t >= t0``."""
+def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0,
+                   regular: np.ndarray | None = None) -> dict[str, float]:
+    """Step/regulation metrics of output ``y`` against reference ``r`` on the window ``t >= t0``.
+
+    ``regular`` marks the rows of the uniform recording grid; the steady-state error averages over
+    those only (extra rows at control samples all sit at one PWM phase and would bias it).
+    """
     window = t >= t0 - 1e-12
     t, y, r = t[window], y[window], r[window]
+    regular = np.ones(len(t), dtype=bool) if regular is None else np.asarray(regular)[window]
     y0, r_final = float(y[0]), float(r[-1])
     e = r - y
     step = abs(r_final - y0) > STEP_THRESHOLD * abs(r_final)
@@ -100,8 +107,8 @@ def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0)
     else:
         last = int(np.nonzero(outside)[0][-1])
         out["settling_time_ms"] = (t[last + 1] - t0) * 1e3
-    tail = t >= t[-1] - STEADY_STATE_WINDOW + 1e-12
-    sse = float(np.mean(e[tail]))
+    tail = (t >= t[-1] - STEADY_STATE_WINDOW + 1e-12) & regular
+    sse = float(np.mean(e[tail])) if tail.any() else float(e[-1])
     out["steady_state_error_V"] = sse
     out["steady_state_error_pct"] = sse / abs(r_final) * 100 if r_final else math.nan
     out["iae_Vs"] = _trapezoid(t, np.abs(e))
@@ -115,7 +122,12 @@ def run_metrics(result: RunResult) -> dict[str, float]:
     frame = result.frame
     t0 = float(result.metadata.get("scenario", {}).get("metrics_start_s", 0.0))
     t = frame["time"].to_numpy()
-    out = signal_metrics(t, frame["output_voltage"].to_numpy(), frame["reference"].to_numpy(), t0)
+    record_period = float(result.metadata.get("rates", {}).get("record_period_s", 0.0) or 0.0)
+    regular = None
+    if record_period > 0:
+        phase = t / record_period
+        regular = np.abs(phase - np.round(phase)) < 1e-6
+    out = signal_metrics(t, frame["output_voltage"].to_numpy(), frame["reference"].to_numpy(), t0, regular)
     window = t >= t0 - 1e-12
     current = frame["inductor_current"].to_numpy()[window]
     out["peak_inductor_current_A"] = float(np.nanmax(current)) if np.isfinite(current).any() else math.nan

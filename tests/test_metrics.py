@@ -82,3 +82,16 @@ def test_run_metrics_saturation_and_compute_percentiles():
     samples = np.arange(0, n, 100) * 1e-8
     assert m["controller_p50_us"] == pytest.approx(np.percentile(samples, 50) * 1e6)
     assert m["controller_p99_us"] == pytest.approx(np.percentile(samples, 99) * 1e6)
+
+
+def test_steady_state_error_uses_the_regular_grid_only():
+    fsw = 75e3
+    regular = np.arange(0, 0.01, 1e-5)
+    extra = np.arange(0, 0.01, 1 / fsw)  # control samples, always at the same PWM phase
+    extra = extra[np.abs(extra / 1e-5 - np.round(extra / 1e-5)) > 1e-6]  # the master merges coincident ones
+    t = np.sort(np.concatenate([regular, extra]))
+    y = 12.0 + 0.05 * np.cos(2 * np.pi * fsw * t)  # the extra rows all sit on the ripple's crest
+    on_grid = np.abs(t / 1e-5 - np.round(t / 1e-5)) < 1e-6
+    m = signal_metrics(t, y, np.full_like(t, 12.0), regular=on_grid)
+    assert abs(m["steady_state_error_V"]) < 1e-6
+    assert abs(np.mean(12.0 - y[t >= 0.005])) > 1e-2  # all rows would report a 10+ mV error

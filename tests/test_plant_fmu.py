@@ -46,7 +46,7 @@ def test_model_description_supports_both_interfaces_and_fmu_state(buck_fmu):
     for interface in (md.modelExchange, md.coSimulation):
         assert interface.canGetAndSetFMUstate and interface.canSerializeFMUstate
     assert md.coSimulation.canHandleVariableCommunicationStepSize
-    assert md.numberOfContinuousStates == 2 and md.numberOfEventIndicators == 2
+    assert md.numberOfContinuousStates == 4 and md.numberOfEventIndicators == 2  # iL, vC + period integrals
     units = {v.name: (v.declaredType.unit if v.declaredType else v.unit) for v in md.modelVariables}
     assert units["output_voltage"] == "V" and units["inductor_current"] == "A" and units["load_resistance"] == "Ohm"
     assert all(v.description for v in md.modelVariables)
@@ -192,15 +192,16 @@ def test_communication_step_size_does_not_change_the_result(buck_fmu, mode, star
 
 @pytest.mark.parametrize("mode", [AVERAGED, SWITCHED])
 def test_model_exchange_with_cvode_agrees_with_co_simulation(buck_fmu, mode):
+    names = ("inductor_current", "output_voltage", "average_inductor_current", "average_output_voltage")
     signals = np.array([(0.0, 0.25, VS, R), (0.005, 0.25, VS, R), (0.005, 0.3, VS, R), (0.01, 0.3, VS, R)],
                        dtype=[("time", float), ("duty_cycle", float), ("input_voltage", float),
                               ("load_resistance", float)])
     me = fmpy.simulate_fmu(str(buck_fmu), fmi_type="ModelExchange", stop_time=0.01, output_interval=1e-4,
                            relative_tolerance=1e-8, start_values={"plant_mode": mode}, input=signals,
-                           output=["inductor_current", "output_voltage"], record_events=False)
+                           output=list(names), record_events=False)
     times, cs = simulate_raw(buck_fmu, 0.01, 1e-3, {"plant_mode": mode, "duty_cycle": 0.25},
-                             input_changes={0.005: {"duty_cycle": 0.3}})
-    me_values = np.column_stack([np.interp(times, me["time"], me[n]) for n in ("inductor_current", "output_voltage")])
+                             input_changes={0.005: {"duty_cycle": 0.3}}, outputs=names)
+    me_values = np.column_stack([np.interp(times, me["time"], me[n]) for n in names])
     np.testing.assert_allclose(me_values[1:], cs[1:], rtol=1e-4)
 
 
@@ -323,3 +324,43 @@ def test_libcosimpy_gives_the_same_result_as_fmpy(buck_fmu):
     _, reference = simulate_raw(buck_fmu, 0.01, step, {"plant_mode": SWITCHED, "duty_cycle": 0.25},
                                 input_changes={0.005: {"duty_cycle": 0.3}})
     np.testing.assert_allclose(np.array(libcosim), reference[1:], rtol=1e-9, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------ averaging sensor
+
+
+@pytest.mark.parametrize("carrier", [0, 1])
+def test_period_averages_are_the_exact_means_of_the_last_period(buck_fmu, carrier):
+    slave = RawSlave(buck_fmu, {"plant_mode": SWITCHED, "duty_cycle": 0.25, "pwm_carrier": carrier,
+                                "load_resistance": R})
+    try:
+        k0 = 1500  # 20 ms: steady state
+        slave.step_to(k0 / FSW)
+        fine = []
+        for i in range(1, 401):  # one period, finely (the mean of a polynomial-like arc)
+            slave.step_to((k0 + i / 400) / FSW)
+            fine.append(slave.get("inductor_current", "output_voltage"))
+        fine = np.array(fine)
+        averages = slave.get("average_inductor_current", "average_output_voltage")
+        instant = slave.get("inductor_current", "output_voltage")
+    finally:
+        slave.close()
+    # trapezoidal mean of the finely sampled period (the last sample closes the period)
+    assert averages[0] == pytest.approx(2.0, rel=2e-3) and averages[1] == pytest.approx(12.0, rel=2e-4)
+    np.testing.assert_allclose(averages, fine.mean(axis=0), rtol=1e-4)
+    assert abs(instant[1] - 12.0) > 5 * abs(averages[1] - 12.0)  # the instantaneous sample carries ripple
+
+
+def test_period_averages_do_not_depend_on_the_communication_step(buck_fmu):
+    outputs = ("average_inductor_current", "average_output_voltage")
+    _, coarse = simulate_raw(buck_fmu, 0.004, 1e-3, {"plant_mode": SWITCHED, "duty_cycle": 0.3}, outputs=outputs)
+    times, fine = simulate_raw(buck_fmu, 0.004, TS / 7, {"plant_mode": SWITCHED, "duty_cycle": 0.3}, outputs=outputs)
+    on_ms = [int(round(k * 1e-3 / (TS / 7))) for k in range(5)]
+    np.testing.assert_allclose(fine[on_ms][1:], coarse[1:], rtol=1e-9)
+
+
+def test_averaged_mode_average_outputs_are_the_state(raw_slave_factory):
+    slave = raw_slave_factory({"plant_mode": AVERAGED, "duty_cycle": 0.25})
+    slave.step_to(3e-3)
+    assert np.array_equal(slave.get("average_inductor_current", "average_output_voltage"),
+                          slave.get("inductor_current", "output_voltage"))

@@ -107,6 +107,16 @@ double buck_output_voltage(const BuckModel *m) {
     return output_voltage_of(m, m->inductor_current, m->capacitor_voltage);
 }
 
+double buck_average_output_voltage(const BuckModel *m) {
+    if (m->p.plant_mode == MODE_SWITCHED && m->have_average) return m->average_voltage;
+    return buck_output_voltage(m);
+}
+
+double buck_average_inductor_current(const BuckModel *m) {
+    if (m->p.plant_mode == MODE_SWITCHED && m->have_average) return m->average_current;
+    return m->inductor_current;
+}
+
 double buck_applied_duty(const BuckModel *m) {
     if (m->p.plant_mode == MODE_SWITCHED && m->pwm_period >= 0) return m->pwm_duty;
     return m->u.duty_cycle;
@@ -178,6 +188,7 @@ typedef struct {
     double s;              /* trace / 2 */
     double m11, m12, m21;  /* M = A - s I (m22 = -m11); M^2 = delta I */
     double delta, w;       /* w = sqrt(|delta|) */
+    double det;            /* det A > 0 */
 } Flow;
 
 static void flow_init(Flow *f, const BuckModel *m, SwitchNode node) {
@@ -190,6 +201,7 @@ static void flow_init(Flow *f, const BuckModel *m, SwitchNode node) {
     f->a22 = -1.0 / ((R + esr) * C);
     f->b0 = node.voltage / L;
     double det = f->a11 * f->a22 - f->a12 * f->a21; /* > 0 for every valid parameter set */
+    f->det = det;
     f->eq0 = -f->a22 * f->b0 / det;
     f->eq1 = f->a21 * f->b0 / det;
     f->s = 0.5 * (f->a11 + f->a22);
@@ -220,6 +232,33 @@ static void flow_eval(const Flow *f, const double x0[2], double t, double x[2]) 
     double d0 = x0[0] - f->eq0, d1 = x0[1] - f->eq1;
     x[0] = f->eq0 + ec * d0 + es * (f->m11 * d0 + f->m12 * d1);
     x[1] = f->eq1 + ec * d1 + es * (f->m21 * d0 - f->m11 * d1);
+}
+
+/* Integral of x(t) over [0, h] from x0 to x1 = x(h): eq h + A^-1 (x1 - x0), exact and free. */
+static void flow_integral(const Flow *f, const double x0[2], const double x1[2], double h, double out[2]) {
+    double d0 = x1[0] - x0[0], d1 = x1[1] - x0[1];
+    out[0] = f->eq0 * h + (f->a22 * d0 - f->a12 * d1) / f->det;
+    out[1] = f->eq1 * h + (-f->a21 * d0 + f->a11 * d1) / f->det;
+}
+
+/* Switched mode: add integrals of i_L and v_C over a segment to the period sums. */
+static void accumulate(BuckModel *m, double current_integral, double capacitor_integral) {
+    if (m->p.plant_mode != MODE_SWITCHED) return;
+    m->period_charge += current_integral;
+    m->period_flux += esr_divider(m) * (capacitor_integral + m->p.capacitor_esr * current_integral);
+}
+
+/* Publish the means of the period that ends now and start the next one. */
+static void finish_period(BuckModel *m) {
+    double span = m->time - m->period_start;
+    if (span > 0.0) {
+        m->average_current = m->period_charge / span;
+        m->average_voltage = m->period_flux / span;
+        m->have_average = true;
+    }
+    m->period_charge = 0.0;
+    m->period_flux = 0.0;
+    m->period_start = m->time;
 }
 
 /* A guard g(x) = c0 x0 + c1 x1 + k: the regime holds while g >= 0. */
@@ -429,11 +468,15 @@ static void advance_topology(BuckModel *m, Topology topology, double t_end) {
             } else if (threshold - vo * exp(-h / tau) > 0.0) {
                 double dt = tau * log(vo / threshold); /* same sign, |vo| > |threshold| here */
                 if (!(dt >= 0.0 && dt < h)) dt = h;
+                double v0 = m->capacitor_voltage;
                 m->capacitor_voltage *= exp(-dt / tau);
+                accumulate(m, 0.0, tau * (v0 - m->capacitor_voltage));
                 m->time = dt < h ? m->time + dt : t_end;
                 m->conduction = classify_conducting(m, topology);
             } else {
+                double v0 = m->capacitor_voltage;
                 m->capacitor_voltage *= exp(-h / tau);
+                accumulate(m, 0.0, tau * (v0 - m->capacitor_voltage));
                 m->time = t_end;
             }
         } else if (m->conduction == CONDUCTION_CONTINUOUS) {
@@ -451,6 +494,9 @@ static void advance_topology(BuckModel *m, Topology topology, double t_end) {
             }
             double dt = fmin(h, fmin(t_block, t_dcm));
             flow_eval(&flow, x0, dt, x);
+            double integral[2];
+            flow_integral(&flow, x0, x, dt, integral);
+            accumulate(m, integral[0], integral[1]);
             m->inductor_current = x[0];
             m->capacitor_voltage = x[1];
             m->time = dt < h ? m->time + dt : t_end;
@@ -515,6 +561,8 @@ static void advance_switched(BuckModel *m, double t_end) {
          * duty is latched when the next period starts. */
         double segment_end = edge > t_end - edge_tolerance ? t_end : edge;
         advance_topology(m, on ? TOPOLOGY_SWITCH_ON : TOPOLOGY_SWITCH_OFF, segment_end);
+        double period_end = ((double)m->pwm_period + 1.0) / m->p.switching_frequency;
+        if (fabs(m->time - period_end) <= edge_tolerance) finish_period(m);
     }
 }
 
@@ -530,6 +578,10 @@ void buck_start(BuckModel *m, double t) {
     m->time = t;
     m->pwm_period = -1;
     m->dcm_step = 0.0;
+    m->period_charge = 0.0;
+    m->period_flux = 0.0;
+    m->period_start = t;
+    m->have_average = false;
     if (m->p.plant_mode == MODE_SWITCHED) {
         double edge;
         latch_period(m, t);
@@ -556,13 +608,18 @@ void buck_advance(BuckModel *m, double t_end) {
     m->time = t_end;
 }
 
-void buck_derivatives(const BuckModel *m, double dx[2]) {
+void buck_derivatives(const BuckModel *m, double dx[BUCK_STATES]) {
     double iL = m->inductor_current, vC = m->capacitor_voltage;
+    int switched = m->p.plant_mode == MODE_SWITCHED;
     if (m->conduction == CONDUCTION_BLOCKED) {
         dx[0] = 0.0;
         dx[1] = capacitor_rate(m, 0.0, vC);
+        dx[2] = 0.0;
+        dx[3] = switched ? output_voltage_of(m, 0.0, vC) : 0.0;
         return;
     }
+    dx[2] = switched ? iL : 0.0;
+    dx[3] = switched ? output_voltage_of(m, iL, vC) : 0.0;
     if (m->p.plant_mode == MODE_AVERAGED) {
         dx[0] = averaged_current_rate(m, iL, vC);
     } else {
@@ -594,6 +651,12 @@ bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_even
     bool states_changed = false;
     *next_event_defined = false;
     if (m->p.plant_mode == MODE_SWITCHED) {
+        double fsw = m->p.switching_frequency;
+        double phase = m->time * fsw - floor(m->time * fsw + PHASE_TOLERANCE);
+        if (fabs(phase) < PHASE_TOLERANCE && m->time - m->period_start > PHASE_TOLERANCE / fsw) {
+            finish_period(m); /* the period integrals are states: they restart at zero */
+            states_changed = true;
+        }
         latch_period(m, m->time);
         m->switch_on = pwm_switch_on(m, m->time, next_event_time) != 0;
         *next_event_defined = true;

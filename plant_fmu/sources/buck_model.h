@@ -57,7 +57,16 @@ typedef struct {
     double pwm_duty;          /* duty latched for pwm_period */
     bool switch_on;           /* model exchange: switch state of the current interval */
     double dcm_step;          /* last accepted step of the DCM integrator [s] */
+    /* switched mode: exact means over each PWM period, as an averaging ADC measures them */
+    double period_charge;     /* integral of i_L since period_start [A s] (a model-exchange state) */
+    double period_flux;       /* integral of v_o since period_start [V s] (a model-exchange state) */
+    double period_start;      /* [s] */
+    double average_current;   /* mean i_L over the last completed period [A] */
+    double average_voltage;   /* mean v_o over the last completed period [V] */
+    bool have_average;
 } BuckModel;
+
+#define BUCK_STATES 4 /* i_L, v_C, and the two period integrals */
 
 void buck_set_defaults(BuckModel *m);
 
@@ -70,8 +79,8 @@ void buck_start(BuckModel *m, double t);
 /* Co-simulation: advance exactly from m->time to t_end with the current inputs. */
 void buck_advance(BuckModel *m, double t_end);
 
-/* Model exchange. */
-void buck_derivatives(const BuckModel *m, double dx[2]);
+/* Model exchange: dx has BUCK_STATES entries. */
+void buck_derivatives(const BuckModel *m, double dx[BUCK_STATES]);
 void buck_event_indicators(const BuckModel *m, double z[2]);
 /* Event update at m->time; returns true if the continuous states were changed. */
 bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_event_defined);
@@ -79,5 +88,8 @@ bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_even
 /* Outputs. */
 double buck_output_voltage(const BuckModel *m);
 double buck_applied_duty(const BuckModel *m);
+/* Mean over the last completed PWM period (switched mode); the averaged model's own state otherwise. */
+double buck_average_output_voltage(const BuckModel *m);
+double buck_average_inductor_current(const BuckModel *m);
 
 #endif

@@ -27,7 +27,14 @@ typedef enum {
     VR_CAPACITOR_ESR = 16,
     /* Integer parameters */
     VR_PLANT_MODE = 20,
-    VR_PWM_CARRIER = 21
+    VR_PWM_CARRIER = 21,
+    /* period means (averaging sensor) and the model-exchange states that integrate them */
+    VR_AVERAGE_OUTPUT_VOLTAGE = 22,
+    VR_AVERAGE_INDUCTOR_CURRENT = 23,
+    VR_PERIOD_CHARGE = 24,
+    VR_PERIOD_FLUX = 25,
+    VR_DER_PERIOD_CHARGE = 26,
+    VR_DER_PERIOD_FLUX = 27
 } ValueReference;
 
 #endif

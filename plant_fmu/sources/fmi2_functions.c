@@ -15,10 +15,10 @@
 
 /* Must equal the guid attribute of modelDescription.xml. */
 #define MODEL_GUID "{5d0c2f1e-48a2-4c1b-9b7e-3a1c0b0c4802}"
-#define NUMBER_OF_STATES 2
+#define NUMBER_OF_STATES BUCK_STATES
 #define NUMBER_OF_EVENT_INDICATORS 2
 #define SNAPSHOT_MAGIC 0x4255434bu /* "BUCK" */
-#define SNAPSHOT_VERSION 1u
+#define SNAPSHOT_VERSION 2u
 
 typedef enum {
     STATE_INSTANTIATED,
@@ -109,6 +109,12 @@ static fmi2Status get_real(Instance *inst, fmi2ValueReference vr, fmi2Real *valu
     case VR_SWITCH_ON_RESISTANCE: *value = m->p.switch_on_resistance; break;
     case VR_DIODE_FORWARD_VOLTAGE: *value = m->p.diode_forward_voltage; break;
     case VR_CAPACITOR_ESR: *value = m->p.capacitor_esr; break;
+    case VR_AVERAGE_OUTPUT_VOLTAGE: *value = buck_average_output_voltage(m); break;
+    case VR_AVERAGE_INDUCTOR_CURRENT: *value = buck_average_inductor_current(m); break;
+    case VR_PERIOD_CHARGE: *value = m->period_charge; break;
+    case VR_PERIOD_FLUX: *value = m->period_flux; break;
+    case VR_DER_PERIOD_CHARGE: buck_derivatives(m, dx); *value = dx[2]; break;
+    case VR_DER_PERIOD_FLUX: buck_derivatives(m, dx); *value = dx[3]; break;
     default:
         log_message(inst, fmi2Error, "logStatusError", "fmi2GetReal: unknown value reference %u", vr);
         return fmi2Error;
@@ -487,7 +493,7 @@ fmi2Status fmi2NewDiscreteStates(fmi2Component c, fmi2EventInfo *info) {
     info->nextEventTimeDefined = next_event_defined ? fmi2True : fmi2False;
     info->nextEventTime = next_event_time;
     if (changed)
-        log_message(inst, fmi2OK, "logEvents", "t = %.9g s: inductor current reached zero, diode blocks",
+        log_message(inst, fmi2OK, "logEvents", "t = %.9g s: continuous states reinitialised (diode or period mean)",
                     inst->plant.model.time);
     return fmi2OK;
 }
@@ -519,17 +525,19 @@ fmi2Status fmi2SetTime(fmi2Component c, fmi2Real time) {
 fmi2Status fmi2SetContinuousStates(fmi2Component c, const fmi2Real x[], size_t nx) {
     Instance *inst = (Instance *)c;
     if (!allowed(inst, "fmi2SetContinuousStates", IN(STATE_EVENT) | IN(STATE_CONTINUOUS_TIME))) return fmi2Error;
-    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2SetContinuousStates", "expected 2 states");
+    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2SetContinuousStates", "expected 4 states");
     BuckModel *m = &inst->plant.model;
     m->inductor_current = m->conduction == CONDUCTION_BLOCKED ? 0.0 : x[0];
     m->capacitor_voltage = x[1];
+    m->period_charge = x[2];
+    m->period_flux = x[3];
     return fmi2OK;
 }
 
 fmi2Status fmi2GetDerivatives(fmi2Component c, fmi2Real derivatives[], size_t nx) {
     Instance *inst = (Instance *)c;
     if (!allowed(inst, "fmi2GetDerivatives", ~IN(STATE_ERROR) & ANY_STATE)) return fmi2Error;
-    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetDerivatives", "expected 2 states");
+    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetDerivatives", "expected 4 states");
     buck_derivatives(&inst->plant.model, derivatives);
     return fmi2OK;
 }
@@ -545,17 +553,21 @@ fmi2Status fmi2GetEventIndicators(fmi2Component c, fmi2Real eventIndicators[], s
 fmi2Status fmi2GetContinuousStates(fmi2Component c, fmi2Real x[], size_t nx) {
     Instance *inst = (Instance *)c;
     if (!allowed(inst, "fmi2GetContinuousStates", ~IN(STATE_ERROR) & ANY_STATE)) return fmi2Error;
-    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetContinuousStates", "expected 2 states");
+    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetContinuousStates", "expected 4 states");
     x[0] = inst->plant.model.inductor_current;
     x[1] = inst->plant.model.capacitor_voltage;
+    x[2] = inst->plant.model.period_charge;
+    x[3] = inst->plant.model.period_flux;
     return fmi2OK;
 }
 
 fmi2Status fmi2GetNominalsOfContinuousStates(fmi2Component c, fmi2Real x_nominal[], size_t nx) {
     Instance *inst = (Instance *)c;
-    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetNominalsOfContinuousStates", "expected 2 states");
+    if (nx != NUMBER_OF_STATES) return fail(inst, "fmi2GetNominalsOfContinuousStates", "expected 4 states");
     x_nominal[0] = 1.0;  /* [A] */
     x_nominal[1] = 10.0; /* [V] */
+    x_nominal[2] = 1e-5; /* [A s]: about 1 A over one period */
+    x_nominal[3] = 1e-4; /* [V s] */
     return fmi2OK;
 }
 
