@@ -56,33 +56,11 @@ def cmd_scenarios(args) -> int:
 
 
 def _plant_binding(args):
-    from cosim.binding import builtin_binding
+    from cosim.experiments import plant_binding
 
-    return builtin_binding(args.mode), args.mode
-
-
-def _pi_controller(args, binding, out_dir: Path):
-    from cosim.pi_tuning import load_or_tune
-    from cosim.runner import period_label, slug
-
-    limits = (args.duty_min, args.duty_max)
-    if args.kp is not None or args.ki is not None:
-        if args.kp is None or args.ki is None:
-            raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
-        from controllers.pi import PIController
-
-        try:
-            return PIController(args.kp, args.ki, args.control_period, limits, tuning={"method": "given on the command line"})
-        except ValueError as error:
-            raise ConfigError(str(error)) from None
-    path = out_dir / "tuning" / f"pi__{slug(binding.label)}__{period_label(args.control_period)}.json"
-    print(f"tuning the PI for {binding.label} at {args.control_period * 1e6:.4g} us (cached in {path}) ...",
-          file=sys.stderr)
-    tuning = load_or_tune(path, binding, args.control_period, progress=args.progress)
-    try:
-        return tuning.controller(limits)
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
+    binding = plant_binding(args.variant, args.mode, args.sensor)
+    tag = f"{args.variant}-{args.mode}" + ("" if args.sensor == "average" else "-sync")
+    return binding, tag
 
 
 def cmd_run(args) -> int:
@@ -94,9 +72,15 @@ def cmd_run(args) -> int:
     scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
     binding, tag = _plant_binding(args)
     out_dir = Path(args.out)
-    controllers = []
-    for name in args.controller:
-        controllers.append(_pi_controller(args, binding, out_dir))
+    from cosim.controller_factory import make_controllers
+    from cosim.master import check_plant_supports
+
+    for scenario in scenarios:  # refuse before any tuning or training
+        check_plant_supports(binding, scenario)
+    controllers = make_controllers(args.controller, binding, args.control_period, out_dir,
+                                   duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
+                                   model_path=args.model, samples=args.samples, seed=args.seed,
+                                   progress=args.progress)
     batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=tag, interface=args.interface,
                       record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
                       progress=args.progress)
@@ -168,12 +152,60 @@ def cmd_tune_pi(args) -> int:
     return 0
 
 
+def cmd_collect(args) -> int:
+    from cosim.controller_factory import tuned_pi
+    from cosim.data_collection import CollectionSettings, collect, save_samples
+
+    binding, _ = _plant_binding(args)
+    pi = tuned_pi(binding, args.control_period, Path(args.work_dir), args.progress)
+    settings = CollectionSettings(samples=args.samples, seed=args.seed, excitation=args.excitation,
+                                  hold_range=(5, 40) if args.control_period >= 0.5e-3 else (20, 200))
+    data = collect(binding, pi.controller(), settings, progress=args.progress)
+    save_samples(data, Path(args.out))
+    print(f"wrote {len(data)} samples ({', '.join(data.columns)}) to {args.out}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from controllers.nn_model import NNConfig, TrainingSettings, save_model, train
+    from cosim.results import read_parquet
+
+    try:  # arguments first, before any file is read
+        config = NNConfig(hidden=tuple(args.hidden), activation=args.activation, delays=args.delays,
+                          extra_signals=tuple(args.extra or ()), residual=args.residual)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    source = Path(args.data)
+    if not source.is_file():
+        raise ConfigError(f"data file {source} does not exist (write one with buck-cosim collect-data)")
+    try:
+        frame, metadata = read_parquet(source)
+    except Exception as error:
+        raise ConfigError(f"{source}: cannot read samples ({str(error).splitlines()[0]})") from None
+    needed = ["measured_inductor_current", "measured_output_voltage", "duty_cycle", *config.extra_signals]
+    missing = [c for c in needed if c not in frame.columns]
+    if missing:
+        raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
+    model = train(frame, config, TrainingSettings(seed=args.seed), progress=args.progress,
+                  metadata={"control_period_s": metadata.get("control_period_s"), "plant": metadata.get("plant"),
+                            "data_file": str(source), "seed": args.seed})
+    save_model(model, Path(args.out))
+    rmse = model.metadata["held_out_rmse"]
+    print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
+          f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step {rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_reproduce(args) -> int:
     from cosim.reproduce import reproduce
 
     if args.workers < 1:
         raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
-    reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed)
+    from cosim.reproduce import FULL, QUICK
+
+    reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
+              profile=QUICK if args.quick else FULL)
     return 0
 
 
@@ -198,6 +230,12 @@ def _add_plant_options(parser) -> None:
     parser.add_argument("--mode", choices=["averaged", "switched"], default="averaged",
                         help="built-in plant: averaged model (eq. 3, with DCM) or switched (PWM, ideal switch and "
                              "diode) (default: averaged)")
+    parser.add_argument("--variant", choices=["nominal", "mismatch"], default="nominal",
+                        help="built-in plant parameters: Table II, or L +20 %%, C -20 %% with parasitics "
+                             "(default: nominal)")
+    parser.add_argument("--sensor", choices=["average", "synchronous"], default="average",
+                        help="what controllers measure: the mean over the last PWM period (default), or a point "
+                             "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--interface", choices=["cs", "me"], default=None,
                         help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
                              "(default: the binding's choice, else co-simulation)")
@@ -222,8 +260,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "figure per scenario (PNG + SVG) under OUT/figures.")
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                    help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
-    p.add_argument("--controller", action="append", choices=["pi"],
-                   help="controller(s) to run; repeat to overlay several (default: pi)")
+    p.add_argument("--controller", action="append",
+                   choices=["pi", "nnpc", "nnpc-paper", "mpc-oracle", "mpc-nominal"],
+                   help="controller(s) to run; repeat to overlay several (default: pi). nnpc trains its network "
+                        "on demand (data collected with the tuned PI) unless --model is given")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
@@ -234,11 +274,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ki", type=float, help="PI integral gain [1/(V s)] (default: tuned automatically)")
     p.add_argument("--duty-min", type=float, default=0.0, help="lower duty limit (default: 0)")
     p.add_argument("--duty-max", type=float, default=1.0, help="upper duty limit (default: 1)")
-    p.add_argument("--seed", type=int, default=0, help="random seed recorded with the run (default: 0)")
+    p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")
+    p.add_argument("--samples", type=int, default=10_000, help="samples collected when nnpc trains on demand")
+    p.add_argument("--seed", type=int, default=0, help="random seed for data collection and training (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="output folder (default: results/runs-cli)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("collect-data", help="collect NN training data with the tuned PI (paper Section IV)",
+                       description="Drive the plant with the tuned PI under random references and loads held for "
+                                   "random intervals; write one row per control sample (iL, vo, d, ...) as Parquet.")
+    _add_plant_options(p)
+    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+                   help="sample period in s (default: 1e-3)")
+    p.add_argument("--samples", type=int, default=10_000, help="number of samples (default: 10000, the paper's)")
+    p.add_argument("--excitation", type=float, default=0.01,
+                   help="standard deviation of the duty dither added to the PI (default: 0.01; 0 = plain PI)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                   help="where tuned PI gains are cached (default: results/runs-cli)")
+    p.add_argument("--out", required=True, metavar="DATA.parquet", help="output file")
+    p.set_defaults(func=cmd_collect)
+
+    p = sub.add_parser("train", help="train an NN plant model from collected data",
+                       description="Fit [iL, vo, d](k-1..k-D) (+ extra signals) -> [iL, vo](k) with torch; report "
+                                   "held-out one-step and 10-step RMSE; save with weights only.")
+    p.add_argument("data", help="samples written by collect-data (.parquet)")
+    p.add_argument("--hidden", type=int, nargs="+", default=[7], help="hidden layer sizes (default: 7, the paper's)")
+    p.add_argument("--activation", default="tanh", help="tanh (default), relu or sigmoid")
+    p.add_argument("--delays", type=int, default=1, help="past samples of [iL, vo, d] fed in (default: 1)")
+    p.add_argument("--extra", action="append", choices=["load_conductance", "load_current", "input_voltage"],
+                   help="extra measured input at k-1 (repeatable)")
+    p.add_argument("--residual", action="store_true", help="learn the change over one sample (skip connection)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("inspect", help="describe any FMU",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "
@@ -270,13 +341,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_tune_pi)
 
     p = sub.add_parser("reproduce", help="reproduce the paper end to end into results/ (the main job)",
-                       description="Tune the PI per plant and rate, run the paper's scenarios on the averaged "
-                                   "and switched plant at 1 ms and at one switching period (13.3 us), and write "
-                                   "runs, metrics, figures and REPORT.md under OUT.")
+                       description="For the nominal averaged, nominal switched and mismatch-study plants at 1 ms "
+                                   "and at one switching period (13.3 us): tune the PI, collect 10 000 samples, "
+                                   "train the NN plant models, run the paper's scenarios with PI, NNPC and the "
+                                   "MPC baselines, and write data, models, runs, metrics, figures and "
+                                   "REPORT.md under OUT.")
     p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
     p.add_argument("--workers", type=int, default=2, help="parallel worker processes (default: 2)")
     p.add_argument("--resume", action="store_true",
-                   help="reuse finished artefacts (tuned gains) from an interrupted reproduction")
+                   help="keep pipelines an interrupted reproduction finished, and their tuned gains")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny sizes for a smoke test (400 samples, two scenarios): checks the pipeline, not the paper")
     p.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
     p.set_defaults(func=cmd_reproduce)
 

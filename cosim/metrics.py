@@ -15,8 +15,8 @@ supply disturbances at constant reference).
 * ``settling_time_ms`` -- time after t0 at which |y - r_f| last leaves a band of 2 % of r_f;
   0 if it never leaves, NaN if it is outside the band at the end.
 * ``steady_state_error_V`` / ``_pct`` -- mean of e over the uniform recording grid in the last
-  5 ms (375 PWM periods; rows added only for control samples are left out, as they all sit at
-  one PWM phase), in volts and in % of r_f.
+  quarter of the window, at most 5 ms (375 PWM periods; rows added only for control samples are
+  left out, as they all sit at one PWM phase), in volts and in % of r_f.
 * ``iae_Vs``, ``ise_V2s``, ``itae_Vs2`` -- integrals of |e|, e^2 and (t - t0)|e| over the window
   (trapezoidal rule on the recording grid).
 * ``peak_inductor_current_A`` -- largest inductor current in the window.
@@ -107,7 +107,8 @@ def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0,
     else:
         last = int(np.nonzero(outside)[0][-1])
         out["settling_time_ms"] = (t[last + 1] - t0) * 1e3
-    tail = (t >= t[-1] - STEADY_STATE_WINDOW + 1e-12) & regular
+    window_length = min(STEADY_STATE_WINDOW, 0.25 * (t[-1] - t0))
+    tail = (t >= t[-1] - window_length + 1e-12) & regular
     sse = float(np.mean(e[tail])) if tail.any() else float(e[-1])
     out["steady_state_error_V"] = sse
     out["steady_state_error_pct"] = sse / abs(r_final) * 100 if r_final else math.nan

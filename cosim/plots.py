@@ -16,17 +16,29 @@ import matplotlib.pyplot as plt  # noqa: E402
 from cosim.results import RunResult, atomic_write  # noqa: E402
 
 plt.rcParams["svg.hashsalt"] = "buck-cosim"
-COLORS = {"PI": "tab:blue", "NNPC": "tab:red", "MPC-oracle": "tab:green", "MPC-mismatched": "tab:purple"}
+COLORS = {"PI": "tab:blue", "NNPC": "tab:red", "NNPC-paper": "tab:orange", "MPC-oracle": "tab:green",
+          "MPC-mismatched": "tab:purple", "MPC-nominal": "tab:purple"}
+STYLES = {"NNPC-paper": (0, (4, 2)), "MPC-mismatched": (0, (1, 1)), "MPC-nominal": (0, (1, 1))}
+#: a run whose output ends this far from the reference (relative) does not set the axis limits
+DIVERGED = 0.05
 
 
 def _label(result: RunResult) -> str:
     return str(result.metadata.get("controller", {}).get("name", "controller"))
 
 
-def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, float] | None = None):
-    """Two stacked panels (output voltage, inductor current) against time in ms."""
+def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, float] | None = None,
+                    period_means: bool = False):
+    """Two stacked panels (output voltage, inductor current) against time in ms.
+
+    ``period_means``: draw the PWM-period means (the ``measured_*`` columns) instead of the
+    instantaneous switched waveforms, whose ripple would hide the controllers behind each other.
+    """
+    v_column, i_column = ("measured_output_voltage", "measured_inductor_current") if period_means \
+        else ("output_voltage", "inductor_current")
     fig, (ax_v, ax_i) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True, constrained_layout=True)
     reference_drawn = False
+    limits_v, limits_i, clipped = [], [], []
     for result in results:
         frame = result.frame
         if zoom is not None:
@@ -34,13 +46,29 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
         t_ms = frame["time"].to_numpy() * 1e3
         name = _label(result)
         color = COLORS.get(name)
+        style = STYLES.get(name, "-")
         if not reference_drawn:
             ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
             reference_drawn = True
-        ax_v.plot(t_ms, frame["output_voltage"], color=color, linewidth=1.2, label=name)
-        ax_i.plot(t_ms, frame["inductor_current"], color=color, linewidth=1.2, label=name)
-    ax_v.set_ylabel("output voltage $v_o$ [V]")
-    ax_i.set_ylabel("inductor current $i_L$ [A]")
+        ax_v.plot(t_ms, frame[v_column], color=color, linestyle=style, linewidth=1.2, label=name)
+        ax_i.plot(t_ms, frame[i_column], color=color, linestyle=style, linewidth=1.2, label=name)
+        final_error = abs(frame[v_column].iloc[-1] - frame["reference"].iloc[-1])
+        if final_error <= DIVERGED * max(abs(frame["reference"].iloc[-1]), 1.0):
+            limits_v.append((frame[v_column].min(), frame[v_column].max()))
+            limits_i.append((frame[i_column].min(), frame[i_column].max()))
+        else:
+            clipped.append(name)
+    # a diverging controller must not squash the others into a line: scale to the settled runs
+    for ax, limits in ((ax_v, limits_v), (ax_i, limits_i)):
+        if limits and clipped:
+            low, high = min(l for l, _ in limits), max(h for _, h in limits)
+            margin = 0.08 * (high - low or 1.0)
+            ax.set_ylim(low - margin, high + margin)
+    if clipped:
+        title += f"\n(axes scaled to the settled runs; {', '.join(clipped)} {'leaves' if len(clipped) == 1 else 'leave'} the plot)"
+    mean = " (PWM-period mean)" if period_means else ""
+    ax_v.set_ylabel(f"output voltage $v_o${mean} [V]")
+    ax_i.set_ylabel(f"inductor current $i_L${mean} [A]")
     ax_i.set_xlabel("time [ms]")
     ax_v.set_title(title, fontsize=10)
     for ax in (ax_v, ax_i):
@@ -53,7 +81,7 @@ def save_figure(fig, stem: Path) -> list[Path]:
     """Write ``<stem>.png`` (150 dpi) and ``<stem>.svg`` atomically; close the figure."""
     stem = Path(stem)
     paths = [
-        atomic_write(stem.with_suffix(".png"), lambda tmp: fig.savefig(tmp, format="png", dpi=150,
+        atomic_write(stem.with_suffix(".png"), lambda tmp: fig.savefig(tmp, format="png", dpi=110,
                                                                        metadata={"Software": None})),
         atomic_write(stem.with_suffix(".svg"), lambda tmp: fig.savefig(tmp, format="svg",
                                                                        metadata={"Date": None})),
@@ -62,15 +90,32 @@ def save_figure(fig, stem: Path) -> list[Path]:
     return paths
 
 
+def default_zoom(result: RunResult) -> tuple[float, float] | None:
+    """Around the scenario's main event: from a little before it to when a 1 ms loop has settled."""
+    meta = result.metadata
+    t0 = float(meta.get("scenario", {}).get("metrics_start_s", 0.0))
+    end = float(result.frame["time"].iloc[-1])
+    period = float(meta.get("rates", {}).get("control_period_s", 0.0))
+    if period < 0.5e-3:
+        return None  # fast-rate runs are short already
+    return max(0.0, t0 - 1e-3), min(end, t0 + 10e-3)
+
+
 def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None,
                   zoom: tuple[float, float] | None = None) -> list[Path]:
-    """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths."""
+    """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths.
+
+    Switched plants are drawn as PWM-period means (the ripple is 0.55 A / 91 mV peak to peak and
+    would hide the controllers behind one another); 1 ms runs are zoomed on their event.
+    """
     if not results:
         raise ValueError("plot_scenario needs at least one run")
     meta = results[0].metadata
+    switched = meta.get("plant", {}).get("parameters", {}).get("plant_mode") == 1
+    zoom = zoom if zoom is not None else default_zoom(results[0])
     if title is None:
         period = meta.get("rates", {}).get("control_period_s", float("nan"))
         shown = f"{period * 1e3:.4g} ms" if period >= 1e-3 else f"{period * 1e6:.4g} µs"
         title = (f"{meta.get('scenario', {}).get('description', '')}\n{meta.get('plant', {}).get('label', '')}, "
                  f"control period {shown}")
-    return save_figure(scenario_figure(results, title, zoom), stem)
+    return save_figure(scenario_figure(results, title, zoom, period_means=switched), stem)

@@ -1,132 +1,222 @@
 """The paper reproduction: every experiment, end to end, into ``results/``.
 
-One pipeline per (plant, control rate): tune the PI for that plant and rate, then run the
-paper's four scenarios. Pipelines are independent and run in parallel worker processes; each
-writes its files atomically as it goes, so an interrupted reproduction keeps what finished.
+One pipeline per plant (nominal averaged, nominal switched, mismatch-study switched) and control
+rate (1 ms, one switching period). Each pipeline, all seeded:
+
+1. tunes the PI on that plant at that rate (:mod:`cosim.pi_tuning`);
+2. collects the NN training data with that PI (:mod:`cosim.data_collection`, 10 000 samples);
+3. trains the paper's 3-7-2 network and the workbench's NNPC network (+ load conductance);
+4. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
+   averaged model of that plant) and the mismatched MPC (nominal model on the mismatch plant;
+   on the nominal plant, the mismatch plant's parameters);
+5. writes runs, metrics and figures as it goes.
+
+Pipelines are independent and run in parallel worker processes; files are written atomically,
+so an interrupted reproduction keeps what finished, and ``--resume`` skips finished pipelines.
 """
 
 from __future__ import annotations
 
-import math
+import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import pandas as pd
 
-from cosim.binding import builtin_binding
-from cosim.pi_tuning import PITuning, load_or_tune, tune_pi
+from cosim.data_collection import CollectionSettings, collect, save_samples
+from cosim.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD,
+                               model_mpc, nn_configs, nnpc, plant_binding, scenarios_for)
+from cosim.pi_tuning import load_or_tune
+from cosim.report import write_report
 from cosim.results import atomic_write_text
 from cosim.runner import period_label, run_batch, write_metrics
-from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+from cosim.scenarios import PAPER_SCENARIOS
 
-PAPER_PERIOD = 1e-3  # [s]
-SWITCHING_PERIOD = 1 / 75e3  # [s]
-RATES = (PAPER_PERIOD, SWITCHING_PERIOD)
-MODES = ("averaged", "switched")
+
+@dataclass(frozen=True)
+class Profile:
+    """Sizes of the reproduction; ``quick`` is the CI smoke profile (tiny, meaningless numbers)."""
+
+    samples: int = 10_000
+    scenarios: tuple[str, ...] = PAPER_SCENARIOS
+    ablations: bool = True  # horizon N = 3 at 1 ms; synchronous sampling at 13.33 us
+    quick: bool = False
+    pipelines: tuple[str, ...] | None = None  # tags to run (default: all)
+
+
+FULL = Profile()
+QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True,
+                pipelines=("nominal-averaged__1ms", "nominal-switched__1ms", "mismatch-switched__1ms",
+                           "nominal-switched__13p33us"))
 
 
 @dataclass(frozen=True)
 class Pipeline:
-    """One plant and one control rate."""
-
-    mode: str
+    variant: str  # "nominal" or "mismatch"
+    mode: str  # "averaged" or "switched"
     control_period: float
 
     @property
+    def plant_tag(self) -> str:
+        return f"{self.variant}-{self.mode}"
+
+    @property
     def tag(self) -> str:
-        return f"{self.mode}__{period_label(self.control_period)}"
+        return f"{self.plant_tag}__{period_label(self.control_period)}"
+
+
+PIPELINES = tuple(Pipeline(variant, mode, period)
+                  for period in (PAPER_PERIOD, SWITCHING_PERIOD)
+                  for variant, mode in (("nominal", "averaged"), ("nominal", "switched"), ("mismatch", "switched")))
 
 
 @dataclass
 class PipelineOutput:
     pipeline: Pipeline
     metrics: pd.DataFrame
-    pi: PITuning
-    seconds: float
+    pi: dict
+    models: dict[str, dict]  # name -> metadata (held-out RMSE, training)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models,
+                           "timings": self.timings}, indent=2, sort_keys=True, default=str)
 
 
 def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def run_pipeline(pipeline: Pipeline, out_dir: Path, resume: bool, seed: int) -> PipelineOutput:
+def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int) -> PipelineOutput:
+    import torch
+
+    from controllers.nn_model import TrainingSettings, save_model, train
+
+    torch.set_num_threads(1)  # two pipelines share two cores
+    timings: dict[str, float] = {}
+    tag, period = pipeline.tag, pipeline.control_period
+    binding = plant_binding(pipeline.variant, pipeline.mode)
+
     start = time.perf_counter()
-    binding = builtin_binding(pipeline.mode)
-    tuning_path = out_dir / "tuning" / f"pi__{pipeline.tag}.json"
-    if resume:
-        pi = load_or_tune(tuning_path, binding, pipeline.control_period, record_period=2e-5)
-    else:
-        pi = tune_pi(binding, pipeline.control_period, record_period=2e-5)
-        atomic_write_text(tuning_path, pi.to_json() + "\n")
-    log(f"  {pipeline.tag}: PI tuned: Kp = {pi.kp:.4g} 1/V, Ki = {pi.ki:.4g} 1/(V s) ({pi.evaluations} simulations)")
-    controllers = [pi.controller()]
-    scenarios = [load_scenario(name) for name in PAPER_SCENARIOS]
-    batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=pipeline.mode, seed=seed)
-    log(f"  {pipeline.tag}: {len(batch.results)} runs done")
-    return PipelineOutput(pipeline=pipeline, metrics=batch.metrics, pi=pi, seconds=time.perf_counter() - start)
+    pi = load_or_tune(out_dir / "tuning" / f"pi__{tag}.json", binding, period, record_period=2e-5,
+                      quick=profile.quick)
+    timings["pi_tuning_s"] = time.perf_counter() - start
+    log(f"  {tag}: PI Kp = {pi.kp:.4g} 1/V, Ki = {pi.ki:.4g} 1/(V s) ({pi.evaluations} simulations, "
+        f"{timings['pi_tuning_s']:.1f} s)")
+
+    start = time.perf_counter()
+    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
+    data = collect(binding, pi.controller(), CollectionSettings(samples=profile.samples, hold_range=hold, seed=seed))
+    data.attrs["metadata"]["seed"] = seed
+    data_path = out_dir / "data" / f"{tag}.parquet"
+    save_samples(data, data_path)
+    timings["data_collection_s"] = time.perf_counter() - start
+
+    models, model_meta = {}, {}
+    for name, config in nn_configs(period).items():
+        start = time.perf_counter()
+        model = train(data, config, TrainingSettings(seed=seed),
+                      metadata={"control_period_s": period, "plant": binding.label,
+                                "data_file": f"data/{tag}.parquet", "seed": seed})
+        timings[f"training_{name}_s"] = time.perf_counter() - start
+        save_model(model, out_dir / "models" / f"{tag}__{name}.pt")
+        models[name] = model
+        model_meta[name] = {"architecture": config.label, **model.metadata}
+        rmse = model.metadata["held_out_rmse"]
+        log(f"  {tag}: {name} {config.label}: one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
+            f"{rmse['one_step_rmse_current_A'] * 1e3:.1f} mA ({timings[f'training_{name}_s']:.1f} s)")
+
+    true_parameters = PLANT_VARIANTS[pipeline.variant]
+    wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
+    wrong_name = "MPC-nominal" if pipeline.variant == "mismatch" else "MPC-mismatched"
+    controllers = [
+        pi.controller(),
+        nnpc(models["nnpc"], period, "NNPC"),
+        nnpc(models["nnpc-paper"], period, "NNPC-paper"),
+        model_mpc(true_parameters, period, "MPC-oracle"),
+        model_mpc(wrong_parameters, period, wrong_name),
+    ]
+    scenarios = scenarios_for(period, profile.scenarios)
+    start = time.perf_counter()
+    batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=pipeline.plant_tag, seed=seed,
+                      extra_metadata={"pipeline": asdict(pipeline)})
+    metrics = batch.metrics
+    if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
+        if period >= 0.5e-3:  # does a longer horizon change anything at 1 ms?
+            ablation = run_batch(binding, [nnpc(models["nnpc"], period, "NNPC (N=3)", horizon=3)], scenarios,
+                                 out_dir, plant_tag=pipeline.plant_tag, seed=seed, figures=False)
+        else:  # the averaging sensor's lag against a synchronous point sample, with the oracle model
+            synchronous = plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous")
+            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, "MPC-oracle (sync. sample)")],
+                                 scenarios, out_dir, plant_tag=f"{pipeline.plant_tag}-sync", seed=seed,
+                                 figures=False)
+        ablation.metrics["plant_tag"] = pipeline.plant_tag
+        metrics = pd.concat([metrics, ablation.metrics], ignore_index=True)
+    timings["runs_s"] = time.perf_counter() - start
+    metrics.insert(0, "pipeline", tag)
+    log(f"  {tag}: {len(metrics)} runs ({timings['runs_s']:.1f} s)")
+    output = PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
+                            timings=timings)
+    write_metrics(metrics, out_dir / "metrics" / f"metrics__{tag}")
+    atomic_write_text(out_dir / "pipelines" / f"{tag}.json", output.to_json() + "\n")
+    return output
 
 
-def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0) -> Path:
+def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
+    """A pipeline whose summary and metrics were written by an earlier (interrupted) run."""
+    summary = out_dir / "pipelines" / f"{pipeline.tag}.json"
+    metrics = out_dir / "metrics" / f"metrics__{pipeline.tag}.csv"
+    if not (summary.is_file() and metrics.is_file()):
+        return None
+    data = json.loads(summary.read_text(encoding="utf-8"))
+    return PipelineOutput(pipeline=pipeline, metrics=pd.read_csv(metrics), pi=data["pi"], models=data["models"],
+                          timings=data["timings"])
+
+
+def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
+              profile: Profile = FULL) -> Path:
     """Run every pipeline and write ``REPORT.md``; returns the report path."""
     from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
     started = time.perf_counter()
     fmu_path()  # build once, before workers start
-    pipelines = [Pipeline(mode, period) for period in RATES for mode in MODES]
-    log(f"reproduction: {len(pipelines)} pipelines on {workers} worker(s) -> {out_dir}/")
-    outputs: list[PipelineOutput] = []
+    if not resume:  # a fresh reproduction recomputes everything, tuned gains included
+        for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
+            stale.unlink()
+    outputs: dict[Pipeline, PipelineOutput] = {}
+    todo = []
+    selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
+    for pipeline in selected:
+        finished = _load_finished(out_dir, pipeline) if resume else None
+        if finished is not None:
+            outputs[pipeline] = finished
+            log(f"  {pipeline.tag}: finished earlier, kept (--resume)")
+        else:
+            todo.append(pipeline)
+    log(f"reproduction: {len(todo)} pipeline(s) on {workers} worker(s) -> {out_dir}/"
+        + (" [quick profile: tiny sizes]" if profile.quick else ""))
     if workers <= 1:
-        for p in pipelines:
-            outputs.append(run_pipeline(p, out_dir, resume, seed))
+        for done, p in enumerate(todo, start=1):
+            outputs[p] = run_pipeline(p, out_dir, profile, seed)
+            log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(run_pipeline, p, out_dir, resume, seed): p for p in pipelines}
+            # longest first (the fast-rate pipelines), so the two workers finish together
+            ordered_todo = sorted(todo, key=lambda p: p.control_period)
+            futures = {pool.submit(run_pipeline, p, out_dir, profile, seed): p for p in ordered_todo}
             for done, future in enumerate(as_completed(futures), start=1):
                 output = future.result()
-                outputs.append(output)
-                log(f"[{done}/{len(pipelines)}] {output.pipeline.tag} finished in {output.seconds:.1f} s")
-    outputs.sort(key=lambda o: pipelines.index(o.pipeline))
-    metrics = pd.concat([o.metrics for o in outputs], ignore_index=True)
+                outputs[output.pipeline] = output
+                log(f"[{done}/{len(todo)}] {output.pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
+    ordered = [outputs[p] for p in selected]
+    metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
     elapsed = time.perf_counter() - started
-    report = write_report(out_dir, outputs, metrics, elapsed)
+    report = write_report(out_dir, ordered, metrics, elapsed, profile=profile, seed=seed, workers=workers)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 
-
-def _fmt(value: float, digits: int = 3) -> str:
-    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}g}"
-
-
-def write_report(out_dir: Path, outputs: list[PipelineOutput], metrics: pd.DataFrame, elapsed: float) -> Path:
-    lines = [
-        "# Reproduction report",
-        "",
-        "Generated by `make reproduce` (`buck-cosim reproduce`); do not edit by hand.",
-        f"Wall time of this reproduction: {elapsed:.1f} s.",
-        "",
-        "## PI gains (tuned per plant and control rate)",
-        "",
-        "| plant | control period | Kp [1/V] | Ki [1/(V s)] | worst overshoot [%] | simulations |",
-        "|---|---|---:|---:|---:|---:|",
-    ]
-    for o in outputs:
-        lines.append(f"| {o.pipeline.mode} | {period_label(o.pipeline.control_period)} | {o.pi.kp:.4g} | "
-                     f"{o.pi.ki:.4g} | {_fmt(o.pi.worst_overshoot_pct)} | {o.pi.evaluations} |")
-    lines += ["", f"Tuning method: {outputs[0].pi.method}.", "", "## Metrics", ""]
-    columns = ["scenario", "controller", "plant_tag", "control_period_us", "rise_time_ms", "overshoot_pct",
-               "undershoot_pct", "settling_time_ms", "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
-    lines.append("| " + " | ".join(columns) + " |")
-    lines.append("|" + "---|" * len(columns))
-    for _, row in metrics[columns].iterrows():
-        lines.append("| " + " | ".join(str(v) if isinstance(v, str) else _fmt(v, 4) for v in row) + " |")
-    lines += ["", "## Figures", ""]
-    for o in outputs:
-        for scenario in PAPER_SCENARIOS:
-            name = f"{scenario}__{o.pipeline.mode}__{period_label(o.pipeline.control_period)}.png"
-            lines.append(f"![{scenario}, {o.pipeline.tag}](figures/{name})")
-    return atomic_write_text(out_dir / "REPORT.md", "\n".join(lines) + "\n")

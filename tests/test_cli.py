@@ -23,14 +23,14 @@ def test_run_writes_tables_metrics_and_one_figure_per_scenario(tmp_path, capsys)
     code = main(["--no-progress", "run", "startup", "load_change", "--kp", "0", "--ki", "14", "--out", str(tmp_path)])
     assert code == 0
     for scenario in ("startup", "load_change"):
-        png = tmp_path / "figures" / f"{scenario}__averaged__1ms.png"
+        png = tmp_path / "figures" / f"{scenario}__nominal-averaged__1ms.png"
         svg = png.with_suffix(".svg")
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
         text = svg.read_text()
         assert "output voltage" in text and "inductor current" in text and "time [ms]" in text
-        run = read_run(tmp_path / "runs" / f"{scenario}__pi__averaged__1ms.parquet")
+        run = read_run(tmp_path / "runs" / f"{scenario}__pi__nominal-averaged__1ms.parquet")
         assert run.complete and run.frame["output_voltage"].iloc[-1] == pytest.approx(12.0, rel=1e-3)
-    metrics = pd.read_csv(tmp_path / "metrics" / "metrics__averaged.csv")
+    metrics = pd.read_csv(tmp_path / "metrics" / "metrics__nominal-averaged.csv")
     assert metrics["scenario"].tolist() == ["startup", "load_change"]
     assert (metrics["steady_state_error_pct"].abs() < 0.2).all()
     assert "startup" in capsys.readouterr().out
@@ -38,9 +38,9 @@ def test_run_writes_tables_metrics_and_one_figure_per_scenario(tmp_path, capsys)
 
 def test_export_converts_between_formats(tmp_path):
     main(["--no-progress", "run", "reference_down", "--kp", "0", "--ki", "14", "--out", str(tmp_path), "--no-figures"])
-    source = tmp_path / "runs" / "reference_down__pi__averaged__1ms.parquet"
+    source = tmp_path / "runs" / "reference_down__pi__nominal-averaged__1ms.parquet"
     assert main(["export", str(source), "--to", "csv", "--out", str(tmp_path / "exported")]) == 0
-    back = read_run(tmp_path / "exported" / "reference_down__pi__averaged__1ms.csv")
+    back = read_run(tmp_path / "exported" / "reference_down__pi__nominal-averaged__1ms.csv")
     original = read_run(source)
     pd.testing.assert_frame_equal(back.frame, original.frame.drop(columns=["controller_compute_time"]))
     assert back.metadata == original.metadata
@@ -86,3 +86,49 @@ def test_help_texts_state_units():
     done = cli("run", "--help")
     assert done.returncode == 0
     assert "--control-period SECONDS" in done.stdout and "[1/V]" in done.stdout and "1/75e3" in done.stdout
+
+
+def test_mpc_baselines_run_without_training(tmp_path):
+    code = main(["--no-progress", "run", "reference_up", "--controller", "mpc-oracle", "--controller", "mpc-nominal",
+                 "--variant", "mismatch", "--mode", "switched", "--out", str(tmp_path), "--no-figures"])
+    assert code == 0
+    metrics = pd.read_csv(tmp_path / "metrics" / "metrics__mismatch-switched.csv")
+    assert metrics["controller"].tolist() == ["MPC-oracle", "MPC-nominal"]
+    assert (metrics["steady_state_error_pct"].abs() < 0.2).all()
+
+
+def test_collect_train_and_run_an_nnpc(tmp_path):
+    data, model = tmp_path / "data.parquet", tmp_path / "model.pt"
+    assert main(["--no-progress", "collect-data", "--samples", "600", "--out", str(data),
+                 "--work-dir", str(tmp_path)]) == 0
+    assert main(["--no-progress", "train", str(data), "--extra", "load_conductance", "--out", str(model)]) == 0
+    assert main(["--no-progress", "run", "reference_up", "--controller", "nnpc", "--model", str(model),
+                 "--kp", "0", "--ki", "14", "--out", str(tmp_path / "runs")]) == 0
+    run = read_run(tmp_path / "runs" / "runs" / "reference_up__nnpc__nominal-averaged__1ms.parquet")
+    assert run.metadata["controller"]["predictor"]["architecture"].startswith("4-7-2 tanh")
+    assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=2e-3)
+
+
+def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
+    args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--kp", "0", "--ki", "14",
+            "--out", str(tmp_path), "--no-figures"]
+    assert main(args) == 0
+    model = next((tmp_path / "models").glob("*__nnpc.pt"))
+    mtime = model.stat().st_mtime_ns
+    assert main(args) == 0
+    assert model.stat().st_mtime_ns == mtime  # reused, not retrained
+
+
+@pytest.mark.parametrize("make,args,message", [
+    (None, ["train", "missing.parquet", "--out", "m.pt"], "error: data file missing.parquet does not exist"),
+    ("garbage", ["run", "startup", "--controller", "nnpc", "--model", "bad.pt"], "model file bad.pt cannot be read"),
+    (None, ["train", "x.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
+])
+def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):
+    if make == "garbage":
+        (tmp_path / "bad.pt").write_bytes(b"not a model at all")
+    (tmp_path / "x.parquet").write_bytes(b"")
+    done = cli(*args, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and message in lines[0], done.stderr

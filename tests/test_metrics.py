@@ -93,5 +93,5 @@ def test_steady_state_error_uses_the_regular_grid_only():
     y = 12.0 + 0.05 * np.cos(2 * np.pi * fsw * t)  # the extra rows all sit on the ripple's crest
     on_grid = np.abs(t / 1e-5 - np.round(t / 1e-5)) < 1e-6
     m = signal_metrics(t, y, np.full_like(t, 12.0), regular=on_grid)
-    assert abs(m["steady_state_error_V"]) < 1e-6
+    assert abs(m["steady_state_error_V"]) < 5e-4  # a partial 40 us phase cycle at most
     assert abs(np.mean(12.0 - y[t >= 0.005])) > 1e-2  # all rows would report a 10+ mV error

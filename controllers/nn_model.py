@@ -1,0 +1,455 @@
+"""The neural-network plant model of the NNPC: identification, evaluation, saving and loading.
+
+Paper (eq. 21-22): input [iL(k-1), vc(k-1), d(k-1)] -> output [iL(k), vc(k)], one hidden layer of
+7 neurons. Here the hidden layers, the activation and the inputs are configurable: more delayed
+samples (``delays``) and extra measured signals at k-1 (``extra_signals``, e.g. the load
+current, which tells the network the load). Inputs and outputs are standardised with the
+training-set mean and standard deviation; training is full-batch L-BFGS with early stopping on a
+validation split, seeded, single-threaded, so the same data give the same weights.
+
+Files are written with ``torch.save`` and read with ``torch.load(weights_only=True)``, which
+never executes code from the file; the loader then checks the format, the shapes and a SHA-256
+of the weights, and refuses anything else with a one-line :class:`ModelFileError`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cosim.errors import ModelFileError
+
+FORMAT = "buck-cosim NN plant model"
+VERSION = 1
+STATE_SIGNALS = ("measured_inductor_current", "measured_output_voltage")
+ACTIVATIONS = {"tanh": (torch.nn.Tanh, np.tanh),
+               "relu": (torch.nn.ReLU, lambda z: np.maximum(z, 0.0)),
+               "sigmoid": (torch.nn.Sigmoid, lambda z: 0.5 * (1.0 + np.tanh(0.5 * z)))}
+#: extra measured inputs: the load conductance io / vo (= 1/R, constant while the load is) tells the
+#: network the load; the load current and the input voltage are offered too
+EXTRA_SIGNALS = ("load_conductance", "load_current", "input_voltage")
+
+
+@dataclass(frozen=True)
+class NNConfig:
+    """Architecture and inputs. The default is the paper's 3-7-2 network."""
+
+    hidden: tuple[int, ...] = (7,)
+    activation: str = "tanh"
+    delays: int = 1  # samples of [iL, vc, d] fed in: k-1 (paper), k-2, ...
+    extra_signals: tuple[str, ...] = ()  # measured at k-1, e.g. ("load_current",)
+    residual: bool = False  # learn x(k) - x(k-1) (a skip connection); the paper learns x(k) itself
+
+    def __post_init__(self):
+        if not self.hidden or any(int(n) < 1 for n in self.hidden):
+            raise ValueError(f"hidden layers {self.hidden} are invalid: expected one or more sizes >= 1")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation {self.activation!r} is unknown: expected one of {', '.join(ACTIVATIONS)}")
+        if self.delays < 1:
+            raise ValueError(f"delays = {self.delays} is invalid: expected >= 1")
+        for name in self.extra_signals:
+            if name not in EXTRA_SIGNALS:
+                raise ValueError(f"extra signal {name!r} is unknown: expected one of {', '.join(EXTRA_SIGNALS)}")
+        object.__setattr__(self, "hidden", tuple(int(n) for n in self.hidden))
+        object.__setattr__(self, "extra_signals", tuple(self.extra_signals))
+
+    @property
+    def input_names(self) -> list[str]:
+        names = []
+        for lag in range(1, self.delays + 1):
+            names += [f"{s}[k-{lag}]" for s in (*STATE_SIGNALS, "duty_cycle")]
+        names += [f"{s}[k-1]" for s in self.extra_signals]
+        return names
+
+    @property
+    def n_inputs(self) -> int:
+        return 3 * self.delays + len(self.extra_signals)
+
+    @property
+    def label(self) -> str:
+        arch = "-".join(str(n) for n in (self.n_inputs, *self.hidden, 2))
+        extra = f", +{'+'.join(self.extra_signals)}" if self.extra_signals else ""
+        skip = ", residual" if self.residual else ""
+        return f"{arch} {self.activation}, {self.delays} delay(s){extra}{skip}"
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    seed: int = 0
+    validation_fraction: float = 0.15  # random share of the training span used for early stopping
+    test_fraction: float = 0.2  # the last share of the record, held out (time order kept)
+    max_iterations: int = 3000  # L-BFGS iterations
+    check_every: int = 25
+    patience: int = 8  # checks without validation improvement before stopping
+    horizon: int = 10  # steps of the multi-step (open-loop) RMSE report
+
+
+def build_dataset(frame, config: NNConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Regressors X (n, n_inputs) and targets Y (n, 2) from a sample table in time order.
+
+    One row per control sample: the measured state at k, the duty applied from k to k+1 and the
+    extra signals. Sample k's target is the state at k; its inputs are the samples before it.
+    """
+    states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
+    duty = frame["duty_cycle"].to_numpy(dtype=float)
+    extras = frame[list(config.extra_signals)].to_numpy(dtype=float) if config.extra_signals else None
+    first = config.delays
+    rows = []
+    for lag in range(1, config.delays + 1):
+        rows += [states[first - lag:len(frame) - lag], duty[first - lag:len(frame) - lag, None]]
+    if extras is not None:
+        rows.append(extras[first - 1:len(frame) - 1])
+    x = np.hstack(rows)
+    y = states[first:]
+    return x, y
+
+
+class PlantNetwork(torch.nn.Module):
+    """Standardised inputs -> hidden layers -> standardised [iL(k), vc(k)]."""
+
+    def __init__(self, config: NNConfig):
+        super().__init__()
+        layers: list[torch.nn.Module] = []
+        width = config.n_inputs
+        for size in config.hidden:
+            layers += [torch.nn.Linear(width, size, dtype=torch.float64), ACTIVATIONS[config.activation][0]()]
+            width = size
+        layers.append(torch.nn.Linear(width, 2, dtype=torch.float64))
+        self.layers = torch.nn.Sequential(*layers)
+
+    def forward(self, x):
+        return self.layers(x)
+
+
+@dataclass
+class NNPlantModel:
+    """A trained network with its normalisation and metadata; predicts in physical units."""
+
+    config: NNConfig
+    network: PlantNetwork
+    input_mean: np.ndarray
+    input_std: np.ndarray
+    output_mean: np.ndarray
+    output_std: np.ndarray
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self._fold()
+
+    def _fold(self) -> None:
+        """Fold the normalisation into the first and last layer, for a lean numpy forward pass."""
+        linears = [m for m in self.network.layers if isinstance(m, torch.nn.Linear)]
+        weights = [m.weight.detach().numpy().copy() for m in linears]
+        biases = [m.bias.detach().numpy().copy() for m in linears]
+        biases[0] = biases[0] - weights[0] @ (self.input_mean / self.input_std)
+        weights[0] = weights[0] / self.input_std
+        weights[-1] = weights[-1] * self.output_std[:, None]
+        biases[-1] = biases[-1] * self.output_std + self.output_mean
+        self._weights = [w.T.copy() for w in weights]  # row-vector convention: x @ W + b
+        self._biases = biases
+        self._activation = ACTIVATIONS[self.config.activation][1]
+        self._tanh = self.config.activation == "tanh"
+        if len(self._weights) == 2:  # pieces of the one-hidden-layer fast path, per lag
+            w1 = self._weights[0]
+            lags = range(self.config.delays)
+            self._fast = ([w1[3 * l:3 * l + 2].copy() for l in lags], [w1[3 * l + 2].copy() for l in lags],
+                          w1[3 * self.config.delays:].copy(), self._biases[0], self._weights[1], self._biases[1])
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Batch prediction in physical units: x (M, n_inputs) -> (M, 2) [iL(k), vc(k)]."""
+        h = x
+        last = len(self._weights) - 1
+        for i, (w, b) in enumerate(zip(self._weights, self._biases)):
+            h = h @ w + b
+            if i < last:
+                h = self._activation(h)
+        if self.config.residual:
+            h = h + x[:, :2]
+        return h
+
+    def predict_torch(self, x: np.ndarray) -> np.ndarray:
+        """Reference forward pass through torch (the numpy one must agree with it)."""
+        with torch.inference_mode():
+            z = (torch.from_numpy(x) - torch.from_numpy(self.input_mean)) / torch.from_numpy(self.input_std)
+            y = self.network(z).numpy()
+        y = y * self.output_std + self.output_mean
+        return y + x[:, :2] if self.config.residual else y
+
+    # ------------------------------------------------------------------ evaluation
+    def rollout(self, x0_history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+                disturbance: np.ndarray | None = None) -> np.ndarray:
+        """Open-loop prediction from measured history, for one or many duty sequences.
+
+        ``x0_history`` (M, delays, 3): the last ``delays`` samples [iL, vc, d] (most recent first,
+        its duty being the first of the sequence is ignored); ``duties`` (M, N); ``extras`` (M, n_extra)
+        held constant; ``disturbance`` (2,) is added to every predicted state before it is fed back
+        (the offset-free controller's state-disturbance estimate). Returns (M, N, 2): k+1 .. k+N.
+        """
+        m, n = duties.shape
+        delays = self.config.delays
+        window = np.array(x0_history, dtype=float, copy=True)  # (M, delays, 3)
+        out = np.empty((m, n, 2))
+        for j in range(n):
+            window[:, 0, 2] = duties[:, j]
+            parts = [window.reshape(m, 3 * delays)]
+            if extras is not None and extras.shape[1]:
+                parts.append(extras)
+            state = self.predict(np.hstack(parts) if len(parts) > 1 else parts[0])
+            if disturbance is not None:
+                state += disturbance
+            out[:, j] = state
+            if delays > 1:
+                window[:, 1:] = window[:, :-1]
+            window[:, 0, :2] = state
+        return out
+
+    def rollout_shared(self, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+                       disturbance: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`rollout` for many duty sequences from one measured history (the controller's case).
+
+        With one hidden layer, the parts of the first layer that come from the measured history are
+        computed once, and each step costs a handful of array operations (the NNPC hot path).
+        """
+        if len(self._weights) != 2:
+            m = duties.shape[0]
+            batch = np.empty((m, *history.shape))
+            batch[:] = history
+            ex = None
+            if extras is not None and len(extras):
+                ex = np.empty((m, len(extras)))
+                ex[:] = extras
+            return self.rollout(batch, duties, ex, disturbance)
+        w_state, w_duty, w_extra, b1, w2, b2 = self._fast  # per lag: w_state[l] (2, H), w_duty[l] (H,)
+        if disturbance is not None:
+            b2 = b2 + disturbance  # added to every predicted state, as in rollout()
+        constant = b1 if extras is None or not len(extras) else b1 + extras @ w_extra
+        residual, tanh, delays = self.config.residual, self._tanh, self.config.delays
+        m, n = duties.shape
+        out = np.empty((m, n, 2))
+        for j in range(n):
+            # input lag l is time k+j-l: predicted (t >= 1) or measured (t <= 0) state, candidate
+            # (t >= 0) or applied (t < 0) duty; measured parts go into one shared vector
+            shared = constant
+            z = duties[:, j:j + 1] * w_duty[0]
+            for lag in range(delays):
+                t = j - lag
+                if t >= 1:
+                    z += out[:, t - 1] @ w_state[lag]
+                else:
+                    shared = shared + history[-t, :2] @ w_state[lag]
+                if lag:
+                    if t >= 0:
+                        z += duties[:, t:t + 1] * w_duty[lag]
+                    else:
+                        shared = shared + history[-t, 2] * w_duty[lag]
+            z += shared
+            if tanh:
+                np.tanh(z, out=z)
+            else:
+                z = self._activation(z)
+            new = z @ w2
+            new += b2
+            if residual:
+                new += out[:, j - 1] if j else history[0, :2]
+            out[:, j] = new
+        return out
+
+    def rmse_report(self, frame, horizon: int) -> dict[str, float]:
+        """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table."""
+        x, y = build_dataset(frame, self.config)
+        one = self.predict(x) - y
+        report = {"one_step_rmse_current_A": float(np.sqrt(np.mean(one[:, 0] ** 2))),
+                  "one_step_rmse_voltage_V": float(np.sqrt(np.mean(one[:, 1] ** 2)))}
+        states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
+        duty = frame["duty_cycle"].to_numpy(dtype=float)
+        extras = frame[list(self.config.extra_signals)].to_numpy(dtype=float) if self.config.extra_signals else None
+        d = self.config.delays
+        starts = np.arange(d - 1, len(frame) - horizon - 1)
+        if len(starts) == 0:
+            return report
+        history = np.stack([np.column_stack([states[starts - lag], duty[starts - lag]]) for lag in range(d)], axis=1)
+        duties = np.stack([duty[starts + j] for j in range(horizon)], axis=1)
+        ex = extras[starts] if extras is not None else None
+        predicted = self.rollout(history, duties, ex)
+        actual = np.stack([states[starts + j + 1] for j in range(horizon)], axis=1)
+        error = predicted - actual
+        report[f"{horizon}_step_rmse_current_A"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
+        report[f"{horizon}_step_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
+        report[f"horizon_mean_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
+        return report
+
+
+# ---------------------------------------------------------------------------------------------
+# Training
+
+
+def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = TrainingSettings(),
+          metadata: dict | None = None, progress: bool = False) -> NNPlantModel:
+    """Identify the network from a sample table (time order); RMSEs on the held-out tail in metadata."""
+    n = len(frame)
+    test_start = int(round(n * (1 - settings.test_fraction)))
+    train_frame, test_frame = frame.iloc[:test_start], frame.iloc[test_start:]
+    x, y = build_dataset(train_frame, config)
+    if config.residual:
+        y = y - x[:, :2]  # the network learns the change over one sample
+    if len(x) < 20:
+        raise ValueError(f"{len(frame)} samples are too few to train on: expected at least 100")
+    rng = np.random.default_rng(settings.seed)
+    order = rng.permutation(len(x))
+    n_val = max(1, int(round(len(x) * settings.validation_fraction)))
+    val_idx, fit_idx = order[:n_val], order[n_val:]
+    in_mean, in_std = x[fit_idx].mean(axis=0), x[fit_idx].std(axis=0)
+    out_mean, out_std = y[fit_idx].mean(axis=0), y[fit_idx].std(axis=0)
+    in_std[in_std < 1e-12] = 1.0
+    out_std[out_std < 1e-12] = 1.0
+    xn = torch.from_numpy((x - in_mean) / in_std)
+    yn = torch.from_numpy((y - out_mean) / out_std)
+    fit_x, fit_y, val_x, val_y = xn[fit_idx], yn[fit_idx], xn[val_idx], yn[val_idx]
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(settings.seed)
+        network = PlantNetwork(config)
+        optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
+                                      history_size=20, line_search_fn="strong_wolfe",
+                                      tolerance_grad=1e-12, tolerance_change=1e-15)
+        loss_fn = torch.nn.MSELoss()
+
+        def closure():
+            optimizer.zero_grad()
+            loss = loss_fn(network(fit_x), fit_y)
+            loss.backward()
+            return loss
+
+        best = (math.inf, None, 0)
+        checks_without_gain = 0
+        iterations = 0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=settings.max_iterations, desc=f"training {config.label}", unit="it", leave=False,
+                       delay=1.0)
+        while iterations < settings.max_iterations:
+            optimizer.step(closure)
+            iterations += settings.check_every
+            if bar is not None:
+                bar.update(settings.check_every)
+            with torch.no_grad():
+                val = float(loss_fn(network(val_x), val_y))
+            if val < best[0] * (1 - 1e-4):
+                best = (val, {k: v.clone() for k, v in network.state_dict().items()}, iterations)
+                checks_without_gain = 0
+            else:
+                checks_without_gain += 1
+                if checks_without_gain >= settings.patience:
+                    break
+        if bar is not None:
+            bar.close()
+        network.load_state_dict(best[1])
+        with torch.no_grad():
+            fit_loss = float(loss_fn(network(fit_x), fit_y))
+    finally:
+        torch.set_num_threads(threads)
+
+    model = NNPlantModel(config, network, in_mean, in_std, out_mean, out_std)
+    report = model.rmse_report(test_frame, settings.horizon) if len(test_frame) > settings.horizon + 5 else {}
+    model.metadata = {
+        **(metadata or {}),
+        "config": asdict(config),
+        "training": {**asdict(settings), "iterations": iterations, "best_iteration": best[2],
+                     "fit_loss_standardised": fit_loss, "validation_loss_standardised": best[0],
+                     "samples": n, "train_samples": int(len(fit_idx)), "validation_samples": int(n_val),
+                     "test_samples": int(len(test_frame))},
+        "held_out_rmse": report,
+    }
+    return model
+
+
+# ---------------------------------------------------------------------------------------------
+# Files
+
+
+def _checksum(state_dict: dict, extra: list[np.ndarray]) -> str:
+    digest = hashlib.sha256()
+    for name in sorted(state_dict):
+        digest.update(name.encode())
+        digest.update(state_dict[name].detach().numpy().tobytes())
+    for array in extra:
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def save_model(model: NNPlantModel, path: Path) -> Path:
+    """Write the model atomically; only tensors, numbers, strings, lists and dicts go in."""
+    from cosim.results import atomic_write
+
+    state = {k: v.detach().clone() for k, v in model.network.state_dict().items()}
+    norm = [model.input_mean, model.input_std, model.output_mean, model.output_std]
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": {"hidden": list(model.config.hidden), "activation": model.config.activation,
+                   "delays": model.config.delays, "extra_signals": list(model.config.extra_signals),
+                   "residual": model.config.residual},
+        "state_dict": state,
+        "normalisation": {name: torch.from_numpy(np.asarray(a, dtype=np.float64).copy()) for name, a in
+                          zip(("input_mean", "input_std", "output_mean", "output_std"), norm)},
+        "metadata": model.metadata,
+        "checksum": _checksum(state, norm),
+    }
+    return atomic_write(Path(path), lambda tmp: torch.save(payload, tmp))
+
+
+def load_model(path: Path, expect_period: float | None = None,
+               expect_config: NNConfig | None = None) -> NNPlantModel:
+    """Read a model with ``weights_only=True``; refuse anything that is not exactly what we wrote."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"model file {path} does not exist")
+    try:
+        payload = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as error:  # truncated zip, pickled code refused by weights_only, ...
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if "weights_only" in str(error) or "Unsupported global" in str(error):
+            reason = "it contains objects other than plain weights (refused without running them)"
+        raise ModelFileError(f"model file {path} cannot be read: {reason[:200]}") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ModelFileError(f"model file {path} is not a {FORMAT} (missing or wrong 'format')")
+    if payload.get("version") != VERSION:
+        raise ModelFileError(f"model file {path} has format version {payload.get('version')!r}; expected {VERSION}")
+    try:
+        raw = payload["config"]
+        config = NNConfig(hidden=tuple(raw["hidden"]), activation=raw["activation"], delays=int(raw["delays"]),
+                          extra_signals=tuple(raw["extra_signals"]), residual=bool(raw["residual"]))
+        norm = {k: payload["normalisation"][k].numpy().astype(np.float64) for k in
+                ("input_mean", "input_std", "output_mean", "output_std")}
+        network = PlantNetwork(config)
+        network.load_state_dict(payload["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ModelFileError(f"model file {path} does not match its declared network: {first[:200]}") from None
+    expected_shapes = {"input_mean": config.n_inputs, "input_std": config.n_inputs, "output_mean": 2, "output_std": 2}
+    for name, size in expected_shapes.items():
+        if norm[name].shape != (size,):
+            raise ModelFileError(f"model file {path}: normalisation {name} has shape {norm[name].shape}, expected ({size},)")
+    checksum = _checksum(network.state_dict(), [norm[k] for k in ("input_mean", "input_std", "output_mean", "output_std")])
+    if checksum != payload.get("checksum"):
+        raise ModelFileError(f"model file {path} fails its SHA-256 check: the weights were changed after saving")
+    metadata = payload.get("metadata", {})
+    if expect_config is not None and expect_config != config:
+        raise ModelFileError(f"model file {path} was trained for inputs {config.label}; expected {expect_config.label}")
+    period = metadata.get("control_period_s")
+    if expect_period is not None and period is not None and not math.isclose(period, expect_period, rel_tol=1e-9):
+        raise ModelFileError(
+            f"model file {path} was trained at a control period of {period * 1e6:.4g} us; "
+            f"the controller samples every {expect_period * 1e6:.4g} us"
+        )
+    return NNPlantModel(config, network, norm["input_mean"], norm["input_std"], norm["output_mean"],
+                        norm["output_std"], metadata)

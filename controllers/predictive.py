@@ -1,0 +1,318 @@
+"""Receding-horizon predictive control: one optimizer for the NNPC and every MPC baseline.
+
+Cost (paper eq. 16 and 23): for a candidate duty sequence over the horizon N,
+
+    J = sum_{j=1..N} gamma^(j-1) * sqrt((vo(k+j) - vref)^2 + (iL(k+j) - iref)^2)
+
+with iref = vref / R the steady-state inductor current for vref at the load R, measured as
+vo / io from the load-current sensor (or estimated as vo / iL when there is none).
+
+Optimizer (:class:`HorizonOptimizer`): the duty is held over blocks of the horizon (move
+blocking), so a candidate is a few block values. All candidates of a stage are evaluated in one
+batched array pass of the predictor: a grid of constant sequences, a grid of first moves followed
+by the steady-state duty, bang-bang openings (full or zero duty for the first blocks), and the
+previous solution shifted by one sample (warm start); then a batched pattern search refines the
+best candidate block by block with a shrinking step.
+
+Offset-free tracking: the model's one-step prediction made at k-1 for the applied duty is
+compared with the measurement at k; the difference (a state-disturbance estimate, optionally
+low-pass filtered) is added to every predicted state before it is fed back. The measured steady
+state is then a fixed point of the corrected model over the whole horizon, so a model error does
+not leave a steady-state error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+import numpy as np
+
+from controllers.base import Measurement, check_duty_limits, check_sample_period
+from controllers.predictors import PredictionContext, Predictor
+
+
+def doubling_blocks(horizon: int) -> tuple[int, ...]:
+    """Block lengths 1, 1, 2, 4, ... summing to ``horizon`` (fine early moves, coarse late ones)."""
+    blocks, total, size = [], 0, 1
+    while total < horizon:
+        step = min(size, horizon - total)
+        blocks.append(step)
+        total += step
+        if len(blocks) >= 2:
+            size *= 2
+    return tuple(blocks)
+
+
+@dataclass(frozen=True)
+class HorizonSettings:
+    horizon: int = 3  # prediction steps N
+    blocks: tuple[int, ...] | None = None  # move blocking; default doubling_blocks(horizon)
+    discount: float = 0.95  # gamma of eq. 16
+    levels: int = 21  # grid points per block in the first stage (full grid if few blocks)
+    refine_iterations: int = 8  # at most this many refinement passes after the first stage
+    duty_tolerance: float = 1e-4  # stop zooming once the lattice step is this fine
+    bias_filter: float = 0.5  # weight of the newest disturbance estimate (1 = no filtering)
+
+    def __post_init__(self):
+        if self.horizon < 1:
+            raise ValueError(f"horizon = {self.horizon} is invalid: expected >= 1")
+        blocks = self.blocks or doubling_blocks(self.horizon)
+        if sum(blocks) != self.horizon or min(blocks) < 1:
+            raise ValueError(f"blocks {blocks} are invalid: expected positive lengths summing to the horizon {self.horizon}")
+        object.__setattr__(self, "blocks", tuple(blocks))
+        if not 0 < self.discount <= 1:
+            raise ValueError(f"discount = {self.discount} is invalid: expected 0 < gamma <= 1")
+        if self.levels < 2 or self.refine_iterations < 0:
+            raise ValueError("levels must be >= 2 and refine_iterations >= 0")
+        if not 0 < self.bias_filter <= 1:
+            raise ValueError(f"bias_filter = {self.bias_filter} is invalid: expected 0 < alpha <= 1")
+
+
+#: a full grid/lattice over the blocks is used while it has at most this many points
+FULL_GRID_LIMIT = 128
+
+
+class HorizonOptimizer:
+    """Minimise a batched cost over block-held duty sequences within duty limits.
+
+    Stage 1 (one batched evaluation): a fine lattice around the previous solution shifted by one
+    sample (warm start) and a global search -- the full grid over all blocks when that is small,
+    else constant sequences, a grid over the first move and a coarse one over the first two
+    (then the steady-state duty), and bang-bang profiles (accelerate, brake, hold).
+    Then refinement passes, each one batched evaluation around the best:
+    * few blocks: a full lattice of offsets -h..h steps per block (17 points for one block, 5 per
+      block for three), the step shrinking by 2h per pass so each lattice spans the previous cell;
+    * many blocks: a pattern search (moves of -4..4 steps along each block, one step along each
+      pair of blocks in all four sign combinations, and all blocks together) from a step of 1/8 of
+      the duty range, divided by three per pass.
+    Refinement starts from the warm lattice's fine step when the warm start won stage 1, so steady
+    operation needs few passes; passes stop at ``duty_tolerance`` or after ``refine_iterations``.
+    """
+
+    def __init__(self, settings: HorizonSettings, duty_limits: tuple[float, float]):
+        self.settings = settings
+        self.low, self.high = duty_limits
+        self.blocks = np.array(settings.blocks)
+        nb = self.n_blocks = len(settings.blocks)
+        self.block_starts = np.concatenate([[0], np.cumsum(self.blocks)[:-1]])
+        self._unblocked = bool(np.all(self.blocks == 1))
+        self.passes = 0
+        levels = settings.levels
+        self.spacing = (self.high - self.low) / (levels - 1)
+        grid = np.linspace(self.low, self.high, levels)
+        self._grid = grid
+        if levels ** nb <= FULL_GRID_LIMIT * 4:
+            mesh = np.meshgrid(*[grid] * nb, indexing="ij")
+            self._global = np.stack([g.ravel() for g in mesh], axis=1)
+            self._global_is_full = True
+        else:
+            self._global = np.repeat(grid[:, None], nb, axis=1)  # constant sequences
+            self._global_is_full = False
+        # zoom lattice: the most points per block (odd, at most 17) a full lattice can afford;
+        # offsets -h..h steps, and the step shrinks by 2h so each lattice spans the previous cell
+        per_axis = max((p for p in range(3, 18, 2) if p ** nb <= FULL_GRID_LIMIT), default=0)
+        if per_axis:
+            half = (per_axis - 1) // 2
+            offsets = np.arange(-half, half + 1, dtype=float)
+            mesh = np.meshgrid(*[offsets] * nb, indexing="ij")
+            self._lattice = np.stack([g.ravel() for g in mesh], axis=1)
+            self._shrink = float(2 * half)
+            self._full_lattice = True
+        else:  # many blocks: a 9-point line along each block, pairs of blocks, all blocks together
+            eye = np.eye(nb)
+            moves = [np.zeros((1, nb))] + [v * eye for v in np.arange(-4.0, 5.0) if v]
+            for i in range(nb):
+                for j in range(i + 1, nb):
+                    for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                        row = np.zeros((1, nb))
+                        row[0, i], row[0, j] = a, b
+                        moves.append(row)
+            moves += [np.ones((1, nb)), -np.ones((1, nb))]
+            self._lattice = np.vstack(moves)
+            self._shrink = 3.0
+            self._full_lattice = False
+        self.evaluations = 0
+        # the warm lattice spans about one tenth of a grid cell around the previous solution
+        self.warm_step = self.spacing / (10 * self._shrink)
+        self.warm_span = self.warm_step * float(np.max(np.abs(self._lattice)))
+        self._warm_offsets = self.warm_step * self._lattice
+        if self._global_is_full:
+            self._stage_buffer = np.vstack([np.zeros_like(self._lattice), self._global])
+
+    def expand(self, moves: np.ndarray) -> np.ndarray:
+        """Block values (K, blocks) -> per-step duties (K, horizon)."""
+        return moves if self._unblocked else np.repeat(moves, self.blocks, axis=1)
+
+    def first_stage(self, warm: np.ndarray | None, anchor: float) -> tuple[np.ndarray, int]:
+        """Stage-1 candidates and how many of them (leading) form the warm-start lattice."""
+        anchor = min(max(anchor, self.low), self.high)
+        self._warm_center = None
+        if self._global_is_full:  # a preallocated buffer: [warm lattice | global grid]
+            if warm is None:
+                return self._global, 0
+            buffer = self._stage_buffer
+            n_warm = len(self._lattice)
+            center = np.concatenate([warm[1:], warm[-1:]])[self.block_starts]
+            self._warm_center = center
+            np.add(center, self._warm_offsets, out=buffer[:n_warm])
+            np.clip(buffer[:n_warm], self.low, self.high, out=buffer[:n_warm])
+            return buffer, n_warm
+        candidates, n_warm = [], 0
+        if warm is not None:  # first, so that ties go to the warm start
+            shifted = np.concatenate([warm[1:], warm[-1:]])[self.block_starts]
+            self._warm_center = shifted
+            lattice = np.clip(shifted[None, :] + self._warm_offsets, self.low, self.high)
+            candidates.append(lattice)
+            n_warm = len(lattice)
+        candidates.append(self._global)
+        candidates.append(self._openings(anchor))
+        return np.vstack(candidates), n_warm
+
+
+    def _openings(self, anchor: float) -> np.ndarray:
+        """Structured sequences for long horizons, each ending at the steady-state duty ``anchor``:
+        a grid over the first move, a coarse grid over the first two, and bang-bang profiles
+        (full or zero duty for some blocks, then the opposite for some, then the anchor)."""
+        nb, grid = self.n_blocks, self._grid
+        rows = []
+        first = np.full((len(grid), nb), anchor)
+        first[:, 0] = grid
+        rows.append(first)
+        coarse = np.linspace(self.low, self.high, 5)
+        pairs = np.full((25, nb), anchor)
+        pairs[:, 0] = np.repeat(coarse, 5)
+        pairs[:, 1] = np.tile(coarse, 5)
+        rows.append(pairs)
+        for a, b in ((self.high, self.low), (self.low, self.high)):
+            for j in range(1, nb):
+                for m in range(0, nb - j):
+                    row = np.full(nb, anchor)
+                    row[:j] = a
+                    row[j:j + m] = b
+                    rows.append(row[None, :])
+        return np.vstack(rows)
+
+    def solve(self, cost: Callable[[np.ndarray], np.ndarray], warm: np.ndarray | None = None,
+              anchor: float = 0.5) -> tuple[np.ndarray, float]:
+        """Return the best per-step duty sequence (horizon,) and its cost.
+
+        :attr:`best_location` tells which call of ``cost`` (0-based) and which row produced it.
+        """
+        candidates, n_warm = self.first_stage(warm, anchor)
+        costs = cost(self.expand(candidates))
+        self.evaluations = len(candidates)
+        self.passes = 1
+        index = int(np.argmin(costs))
+        best, best_cost = candidates[index].copy(), float(costs[index])
+        self.best_location = (0, index)
+        near_warm = n_warm and np.max(np.abs(best - self._warm_center)) <= self.warm_span
+        if near_warm:  # the best lies where the warm lattice already looked: refine from its fine step
+            step = self.warm_step / self._shrink
+        else:
+            step = self.spacing / self._shrink if self._full_lattice else (self.high - self.low) / 8
+        for _ in range(self.settings.refine_iterations):
+            if step < self.settings.duty_tolerance:
+                break
+            trial = np.clip(best[None, :] + step * self._lattice, self.low, self.high)
+            trial_costs = cost(self.expand(trial))
+            self.evaluations += len(trial)
+            self.passes += 1
+            index = int(np.argmin(trial_costs))
+            if trial_costs[index] < best_cost:
+                best, best_cost = trial[index].copy(), float(trial_costs[index])
+                self.best_location = (self.passes - 1, index)
+            step /= self._shrink
+        return self.expand(best[None, :])[0], best_cost
+
+
+class PredictiveController:
+    """Receding-horizon controller on any :class:`Predictor` (NNPC, oracle MPC, mismatched MPC)."""
+
+    def __init__(self, predictor: Predictor, sample_period: float, settings: HorizonSettings = HorizonSettings(),
+                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "NNPC",
+                 nominal_load: float = 6.0):
+        self.predictor = predictor
+        self.sample_period = check_sample_period(sample_period, name)
+        self.duty_limits = check_duty_limits(duty_limits, name)
+        self.settings = settings
+        self.name = name
+        self.nominal_load = nominal_load
+        self.optimizer = HorizonOptimizer(settings, self.duty_limits)
+        weights = settings.discount ** np.arange(settings.horizon)
+        self._weights = weights
+        self.reset()
+
+    def reset(self) -> None:
+        self._history = None  # (delays, 3)
+        self._warm = None
+        self._bias = np.zeros(2)
+        self._predicted = None  # one-step prediction made at the previous sample (without bias)
+        self._previous_duty = 0.0
+        self._load = self.nominal_load
+
+    def _estimate_load(self, m: Measurement) -> float:
+        if math.isfinite(m.load_current) and m.load_current > 1e-6 and m.output_voltage > 1e-3:
+            self._load = m.output_voltage / m.load_current
+        elif math.isfinite(m.inductor_current) and m.inductor_current > 1e-3 and m.output_voltage > 1e-3:
+            self._load = m.output_voltage / m.inductor_current  # steady state: iL = io
+        return self._load
+
+    def step(self, m: Measurement) -> float:
+        if not math.isfinite(m.inductor_current):
+            raise ValueError(f"{self.name} needs the inductor current: the plant binding has no inductor_current role")
+        state = np.array([m.inductor_current, m.output_voltage])
+        delays = self.predictor.delays
+        row = np.array([state[0], state[1], 0.0])
+        if self._history is None:
+            self._history = np.repeat(row[None], delays, axis=0)
+            self._history[:, 2] = self._previous_duty
+        else:
+            if delays > 1:
+                self._history[1:] = self._history[:-1].copy()
+                self._history[1, 2] = self._previous_duty  # the duty applied after that sample
+            self._history[0] = row
+        if self._predicted is not None:
+            alpha = self.settings.bias_filter
+            self._bias = (1 - alpha) * self._bias + alpha * (state - self._predicted)
+        load = self._estimate_load(m)
+        reference = m.reference
+        current_reference = reference / load
+        context = PredictionContext(history=self._history, input_voltage=m.input_voltage if math.isfinite(m.input_voltage)
+                                    else 48.0, load_resistance=load, load_current=m.load_current,
+                                    previous_duty=self._previous_duty)
+        weights = self._weights
+        rollout = self.predictor.rollout
+
+        target = np.array([current_reference, reference])
+        disturbance = self._bias
+        predictions = []
+
+        def cost(duties: np.ndarray) -> np.ndarray:
+            predicted = rollout(context, duties, disturbance)
+            predictions.append(predicted)
+            error = predicted - target
+            error *= error
+            return np.sqrt(error.sum(axis=2)) @ weights
+
+        anchor = reference / context.input_voltage if context.input_voltage > 0 else self._previous_duty
+        sequence, _ = self.optimizer.solve(cost, self._warm, anchor)
+        duty = float(sequence[0])
+        call, row = self.optimizer.best_location
+        # the model's own one-step prediction (the disturbance is added after each step)
+        self._predicted = predictions[call][row, 0] - disturbance
+        self._warm = sequence
+        self._previous_duty = duty
+        return duty
+
+    def describe(self) -> dict:
+        return {
+            "type": "predictive (receding horizon, paper eq. 16 + 23)",
+            "name": self.name,
+            "sample_period_s": self.sample_period,
+            "duty_limits": list(self.duty_limits),
+            "horizon": asdict(self.settings),
+            "predictor": self.predictor.describe(),
+            "offset_free": "state-disturbance estimate from the one-step prediction error, fed back over the horizon",
+        }

@@ -1,0 +1,101 @@
+"""Controllers by name for the command line: PI, NNPC (workbench or paper network), MPC baselines."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
+from controllers.predictors import CircuitParameters
+from cosim.binding import PlantBinding
+from cosim.data_collection import CollectionSettings, collect, save_samples
+from cosim.errors import ConfigError
+from cosim.experiments import NOMINAL, model_mpc, nn_configs, nnpc
+from cosim.pi_tuning import PITuning, load_or_tune
+from cosim.runner import period_label, slug
+
+CONTROLLERS = ("pi", "nnpc", "nnpc-paper", "mpc-oracle", "mpc-nominal")
+DISPLAY = {"pi": "PI", "nnpc": "NNPC", "nnpc-paper": "NNPC-paper", "mpc-oracle": "MPC-oracle",
+           "mpc-nominal": "MPC-nominal"}
+
+
+def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
+    path = out_dir / "tuning" / f"pi__{slug(binding.label)}__{period_label(period)}.json"
+    if not path.is_file():
+        print(f"tuning the PI for {binding.label} at {period * 1e6:.4g} us (saved to {path}) ...", file=sys.stderr)
+    return load_or_tune(path, binding, period, progress=progress)
+
+
+def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path, *, samples: int, seed: int,
+                  model_path: str | None, progress: bool = False) -> NNPlantModel:
+    """Load ``model_path``, or collect data on this plant with its tuned PI and train (cached in out_dir)."""
+    config = nn_configs(period)[name]
+    if model_path:
+        return load_model(Path(model_path), expect_period=period)
+    stem = f"{slug(binding.label)}__{period_label(period)}__{name}"
+    path = out_dir / "models" / f"{stem}.pt"
+    if path.is_file():
+        model = load_model(path, expect_period=period, expect_config=config)
+        if model.metadata.get("plant") == binding.label and model.metadata.get("seed") == seed \
+                and model.metadata.get("training", {}).get("samples") == samples:
+            return model
+    pi = tuned_pi(binding, period, out_dir, progress)
+    print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
+    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
+    data = collect(binding, pi.controller(), CollectionSettings(samples=samples, hold_range=hold, seed=seed),
+                   progress=progress)
+    save_samples(data, out_dir / "data" / f"{slug(binding.label)}__{period_label(period)}.parquet")
+    model = train(data, config, TrainingSettings(seed=seed), progress=progress,
+                  metadata={"control_period_s": period, "plant": binding.label, "seed": seed})
+    save_model(model, path)
+    return model
+
+
+def true_parameters(binding: PlantBinding) -> CircuitParameters:
+    """Circuit parameters of a built-in plant binding (the oracle's model)."""
+    if binding.source is not None:
+        raise ConfigError(f"mpc-oracle needs the plant's circuit parameters, which are known only for the built-in "
+                          f"FMU; {binding.origin} is external (use mpc-nominal or nnpc)")
+    p = binding.parameters
+    fields = ("inductance", "capacitance", "inductor_resistance", "switch_on_resistance", "diode_forward_voltage",
+              "capacitor_esr")
+    return CircuitParameters(**{f: float(p.get(f, getattr(NOMINAL, f))) for f in fields})
+
+
+def make_controllers(names: list[str], binding: PlantBinding, period: float, out_dir: Path, *,
+                     duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
+                     model_path: str | None = None, samples: int = 10_000, seed: int = 0,
+                     progress: bool = False) -> list:
+    from controllers.pi import PIController
+
+    if (kp is None) != (ki is None):
+        raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
+    if model_path and sum(n.startswith("nnpc") for n in names) > 1:
+        raise ConfigError("--model gives one network: run nnpc and nnpc-paper separately when you pass --model")
+    if not (period > 0 and math.isfinite(period)):
+        raise ConfigError(f"control period {period} s is invalid: expected a finite value > 0")
+    controllers = []
+    try:
+        for name in names:
+            if name == "pi":
+                if kp is not None:
+                    controllers.append(PIController(kp, ki, period, duty_limits,
+                                                    tuning={"method": "given on the command line"}))
+                else:
+                    controllers.append(tuned_pi(binding, period, out_dir, progress).controller(duty_limits))
+            elif name in ("nnpc", "nnpc-paper"):
+                if not binding.has("inductor_current"):
+                    raise ConfigError(f"{name} needs the inductor_current role, which {binding.origin} does not bind")
+                model = trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
+                                      model_path=model_path, progress=progress)
+                controllers.append(nnpc(model, period, DISPLAY[name], duty_limits=duty_limits))
+            elif name == "mpc-oracle":
+                controllers.append(model_mpc(true_parameters(binding), period, "MPC-oracle", duty_limits))
+            elif name == "mpc-nominal":
+                controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", duty_limits))
+            else:
+                raise ConfigError(f"controller {name!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
+    except ValueError as error:  # invalid gains, limits or periods from the controller constructors
+        raise ConfigError(str(error)) from None
+    return controllers

@@ -1,0 +1,152 @@
+"""Training data for the NN plant model, collected as in the paper (Section IV).
+
+The PI loop drives the plant FMU while the output-voltage reference and the load take random
+values held for random intervals (some references are 0 V, so the data holds repeated start-ups
+from rest); every control period one sample is kept: the measured
+inductor current and output voltage, and the duty applied until the next sample (the paper's
+3 x 10 000 matrix of iL, vc, d), plus reference, load, supply and load current. A small seeded
+random dither on the PI's duty (``excitation``) widens the data beyond the PI's own trajectories,
+which the optimizer will explore; set it to 0 for the paper's plain PI data.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+
+from controllers.base import Measurement, check_duty_limits
+from cosim.binding import PlantBinding
+from cosim.errors import ConfigError
+from cosim.fmu_plant import FmuPlant
+from cosim.master import run
+from cosim.results import write_parquet
+from cosim.scenarios import Scenario, ScenarioEvent
+
+SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
+                  "load_resistance", "input_voltage", "load_current", "load_conductance", "inductor_current",
+                  "output_voltage")
+
+
+def load_conductance(load_current: np.ndarray, output_voltage: np.ndarray) -> np.ndarray:
+    """io / vo as the controller computes it (1/R); held over samples where vo is too small to divide by."""
+    valid = output_voltage > 0.05
+    conductance = np.full(len(load_current), np.nan)
+    conductance[valid] = load_current[valid] / output_voltage[valid]
+    series = pd.Series(conductance).ffill().bfill()
+    return series.to_numpy() if series.notna().all() else np.zeros(len(load_current))
+
+
+@dataclass(frozen=True)
+class CollectionSettings:
+    samples: int = 10_000
+    reference_range: tuple[float, float] = (0.0, 20.0)  # [V], uniform
+    load_range: tuple[float, float] = (4.0, 10.0)  # [Ohm], log-uniform
+    hold_range: tuple[int, int] = (5, 40)  # control periods a random level is held, uniform
+    excitation: float = 0.01  # standard deviation of the duty dither [1]
+    rest_probability: float = 0.15  # chance that a new reference level is 0 V, so start-ups recur
+    input_voltage: float = 48.0  # [V]
+    seed: int = 0
+
+    def check(self) -> None:
+        if self.samples < 100:
+            raise ConfigError(f"samples = {self.samples} is too few: expected >= 100")
+        lo, hi = self.reference_range
+        if not 0 <= lo < hi:
+            raise ConfigError(f"reference range ({lo}, {hi}) V is invalid: expected 0 <= min < max")
+        lo, hi = self.load_range
+        if not 0 < lo < hi:
+            raise ConfigError(f"load range ({lo}, {hi}) Ohm is invalid: expected 0 < min < max")
+        lo, hi = self.hold_range
+        if not 1 <= lo <= hi:
+            raise ConfigError(f"hold range ({lo}, {hi}) periods is invalid: expected 1 <= min <= max")
+        if not 0 <= self.excitation < 0.5:
+            raise ConfigError(f"excitation = {self.excitation} is invalid: expected 0 <= sigma < 0.5")
+        if not 0 <= self.rest_probability < 1:
+            raise ConfigError(f"rest_probability = {self.rest_probability} is invalid: expected 0 <= p < 1")
+
+
+def random_scenario(settings: CollectionSettings, control_period: float) -> Scenario:
+    """Random references and loads held for random whole numbers of control periods."""
+    rng = np.random.default_rng(settings.seed)
+    duration = (settings.samples - 1) * control_period
+
+    def level(kind: str) -> float:
+        if kind == "reference":
+            value = float(rng.uniform(*settings.reference_range))
+            return 0.0 if rng.random() < settings.rest_probability else value
+        lo, hi = settings.load_range
+        return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+    initial = {"reference": level("reference"), "load_resistance": level("load"),
+               "input_voltage": settings.input_voltage}
+    changes: dict[int, dict[str, float]] = {}
+    for kind, key in (("reference", "reference"), ("load", "load_resistance")):
+        k = 0
+        while True:
+            k += int(rng.integers(settings.hold_range[0], settings.hold_range[1] + 1))
+            if k >= settings.samples - 1:
+                break
+            changes.setdefault(k, {})[key] = level(kind)
+    events = tuple(ScenarioEvent(time=k * control_period, changes=c) for k, c in sorted(changes.items()))
+    return Scenario(name="identification", description="random references and loads (paper Section IV)",
+                    duration=duration, initial=initial, events=events)
+
+
+class DitheredController:
+    """Wraps a controller and adds seeded Gaussian noise to its duty (clipped to the limits)."""
+
+    def __init__(self, inner, sigma: float, seed: int):
+        self.inner = inner
+        self.sigma = sigma
+        self.seed = seed
+        self.name = f"{inner.name}+dither"
+        self.sample_period = inner.sample_period
+        self.duty_limits = check_duty_limits(inner.duty_limits, self.name)
+        self.reset()
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self._rng = np.random.default_rng(self.seed + 1)
+
+    def step(self, measurement: Measurement) -> float:
+        duty = self.inner.step(measurement)
+        if self.sigma:
+            duty += self.sigma * float(self._rng.standard_normal())
+        low, high = self.duty_limits
+        return min(max(duty, low), high)
+
+    def describe(self) -> dict:
+        return {"type": "dithered", "name": self.name, "sigma": self.sigma, "seed": self.seed,
+                "duty_limits": list(self.duty_limits), "inner": self.inner.describe()}
+
+
+def collect(binding: PlantBinding, controller, settings: CollectionSettings = CollectionSettings(),
+            progress: bool = False) -> pd.DataFrame:
+    """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`)."""
+    settings.check()
+    period = controller.sample_period
+    scenario = random_scenario(settings, period)
+    dithered = DitheredController(controller, settings.excitation, settings.seed)
+    with FmuPlant(binding) as plant:
+        result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
+    frame = result.frame[result.frame["control_sample"]].reset_index(drop=True)
+    frame["load_conductance"] = load_conductance(frame["load_current"].to_numpy(),
+                                                 frame["measured_output_voltage"].to_numpy())
+    frame = frame[list(SAMPLE_COLUMNS)]
+    frame.attrs["metadata"] = {
+        "description": "NN identification data: one row per control sample (paper Section IV)",
+        "plant": binding.label,
+        "binding": binding.describe(),
+        "control_period_s": period,
+        "collection": asdict(settings),
+        "controller": dithered.describe(),
+        "units": {**{c: result.metadata["units"].get(c, "") for c in SAMPLE_COLUMNS}, "load_conductance": "S"},
+    }
+    return frame
+
+
+def save_samples(frame: pd.DataFrame, path) -> None:
+    write_parquet(frame, frame.attrs.get("metadata", {}), path)

@@ -1,0 +1,76 @@
+"""Identification data: the paper's experiment, seeded, with the documented statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.base import Measurement
+from controllers.pi import PIController
+from cosim.binding import builtin_binding
+from cosim.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
+from cosim.errors import ConfigError
+from cosim.results import read_parquet
+
+PI = PIController(0.003, 14.0, 1e-3)
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return collect(builtin_binding("averaged"), PI, CollectionSettings(samples=600, seed=4))
+
+
+def test_one_row_per_control_sample_with_the_documented_columns(samples):
+    assert len(samples) == 600 and list(samples.columns) == list(SAMPLE_COLUMNS)
+    assert np.allclose(np.diff(samples["time"]), 1e-3)
+    meta = samples.attrs["metadata"]
+    assert meta["control_period_s"] == 1e-3 and meta["collection"]["seed"] == 4
+    ok = samples["measured_output_voltage"] > 0.05
+    np.testing.assert_allclose(samples.loc[ok, "load_conductance"],
+                               samples.loc[ok, "load_current"] / samples.loc[ok, "measured_output_voltage"])
+
+
+def test_random_levels_are_held_for_the_documented_intervals():
+    settings = CollectionSettings(samples=5000, seed=1, rest_probability=0.2)
+    scenario = random_scenario(settings, 1e-3)
+    for signal, (lo, hi) in (("reference", (0.0, 20.0)), ("load_resistance", (4.0, 10.0))):
+        schedule = scenario.schedule(signal)
+        times = np.array([t for t, _ in schedule])
+        holds = np.round(np.diff(times) / 1e-3).astype(int)
+        assert holds.min() >= 5 and holds.max() <= 40
+        values = np.array([v for _, v in schedule])
+        assert values.min() >= lo and values.max() <= hi
+    references = np.array([v for _, v in scenario.schedule("reference")])
+    assert 0.1 < np.mean(references == 0.0) < 0.3  # repeated start-ups from rest
+
+
+def test_same_seed_same_data_other_seed_other_data(samples):
+    again = collect(builtin_binding("averaged"), PI, CollectionSettings(samples=600, seed=4))
+    assert again.equals(samples)
+    other = collect(builtin_binding("averaged"), PI, CollectionSettings(samples=600, seed=5))
+    assert not other["reference"].equals(samples["reference"])
+
+
+def test_without_dither_the_duty_is_the_pis_own():
+    data = collect(builtin_binding("averaged"), PI, CollectionSettings(samples=300, excitation=0.0))
+    pi = PIController(0.003, 14.0, 1e-3)
+    replay = [pi.step(Measurement(t, r, v)) for t, r, v in
+              zip(data["time"], data["reference"], data["measured_output_voltage"])]
+    np.testing.assert_allclose(data["duty_cycle"], replay, rtol=1e-12)
+
+
+def test_saved_samples_keep_their_metadata(samples, tmp_path):
+    from cosim.data_collection import save_samples
+
+    save_samples(samples, tmp_path / "data.parquet")
+    frame, meta = read_parquet(tmp_path / "data.parquet")
+    assert frame.equals(samples.reset_index(drop=True)) and meta["plant"] == "BuckConverter (built-in, averaged)"
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"samples": 10}, "samples = 10 is too few"), ({"load_range": (5.0, 2.0)}, r"load range \(5.0, 2.0\) Ohm"),
+    ({"hold_range": (0, 3)}, r"hold range \(0, 3\) periods"), ({"excitation": 0.9}, "excitation = 0.9"),
+])
+def test_invalid_settings_are_refused(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        collect(builtin_binding("averaged"), PI, CollectionSettings(**kwargs))

@@ -1,0 +1,161 @@
+"""The NN plant model: datasets, identification of a known system, inference paths, safe files."""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from controllers.nn_model import (NNConfig, TrainingSettings, build_dataset, load_model, save_model, train)
+from cosim.errors import ModelFileError
+
+PHI = np.array([[0.9, -0.05], [0.3, 0.8]])  # a stable linear "plant", sampled
+GAIN = np.array([2.0, 4.0])
+
+
+def linear_plant_frame(n=3000, seed=0):
+    """x(k) = PHI x(k-1) + GAIN d(k-1), with a random duty; columns as the data collector writes."""
+    rng = np.random.default_rng(seed)
+    duty = np.repeat(rng.uniform(0.0, 1.0, n // 10 + 1), 10)[:n]
+    x = np.zeros((n, 2))
+    for k in range(1, n):
+        x[k] = PHI @ x[k - 1] + GAIN * duty[k - 1]
+    return pd.DataFrame({"time": np.arange(n) * 1e-3, "measured_inductor_current": x[:, 0],
+                         "measured_output_voltage": x[:, 1], "duty_cycle": duty,
+                         "load_conductance": np.full(n, 1 / 6), "load_current": x[:, 1] / 6,
+                         "input_voltage": np.full(n, 48.0)})
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return linear_plant_frame()
+
+
+@pytest.fixture(scope="module")
+def model(frame):
+    return train(frame, NNConfig(hidden=(12,)), TrainingSettings(seed=3), metadata={"control_period_s": 1e-3})
+
+
+def test_dataset_pairs_inputs_at_k_minus_1_with_state_at_k(frame):
+    x, y = build_dataset(frame, NNConfig())
+    assert x.shape == (len(frame) - 1, 3) and y.shape == (len(frame) - 1, 2)
+    k = 57
+    assert x[k - 1].tolist() == [frame["measured_inductor_current"][k - 1], frame["measured_output_voltage"][k - 1],
+                                 frame["duty_cycle"][k - 1]]
+    assert y[k - 1].tolist() == [frame["measured_inductor_current"][k], frame["measured_output_voltage"][k]]
+    x2, y2 = build_dataset(frame, NNConfig(delays=2, extra_signals=("load_conductance",)))
+    assert x2.shape == (len(frame) - 2, 7)
+    assert x2[0, 3:6].tolist() == [frame["measured_inductor_current"][0], frame["measured_output_voltage"][0],
+                                   frame["duty_cycle"][0]]
+    assert NNConfig(delays=2, extra_signals=("load_conductance",)).input_names[-1] == "load_conductance[k-1]"
+
+
+def test_training_identifies_a_known_linear_plant(model):
+    rmse = model.metadata["held_out_rmse"]
+    assert rmse["one_step_rmse_current_A"] < 0.01 and rmse["one_step_rmse_voltage_V"] < 0.01
+    assert rmse["10_step_rmse_voltage_V"] < 0.05
+    grid = np.array([[0.5, 2.0, 0.3], [1.0, 3.0, 0.7]])
+    np.testing.assert_allclose(model.predict(grid), (PHI @ grid[:, :2].T).T + np.outer(grid[:, 2], GAIN), atol=0.02)
+    training = model.metadata["training"]
+    assert training["test_samples"] == 600 and training["best_iteration"] <= training["iterations"]
+
+
+def test_training_is_deterministic_for_a_seed(frame):
+    settings = TrainingSettings(seed=5, max_iterations=100)
+    a, b = (train(frame, NNConfig(), settings) for _ in range(2))
+    for (name, pa), pb in zip(a.network.state_dict().items(), b.network.state_dict().values()):
+        assert torch.equal(pa, pb), name
+
+
+def test_numpy_inference_matches_torch_and_shared_rollout_matches_batched(model):
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 5, (50, 3))
+    np.testing.assert_allclose(model.predict(x), model.predict_torch(x), rtol=1e-12, atol=1e-12)
+    history = np.array([[1.0, 2.0, 0.0]])
+    duties = rng.uniform(0, 1, (7, 5))
+    shared = model.rollout_shared(history, duties)
+    batched = model.rollout(np.repeat(history[None], 7, axis=0), duties)
+    np.testing.assert_allclose(shared, batched, rtol=1e-13)
+
+
+@pytest.mark.parametrize("config", [NNConfig(residual=True, extra_signals=("load_conductance",)),
+                                    NNConfig(delays=2, activation="relu")])
+def test_configurable_networks_train_and_roll_out_consistently(frame, config):
+    m = train(frame.iloc[:800], config, TrainingSettings(max_iterations=100))
+    history = np.tile([[1.0, 2.0, 0.4]], (config.delays, 1))
+    extras = np.array([1 / 6]) if config.extra_signals else None
+    duties = np.full((2, 3), 0.4)
+    one = m.rollout_shared(history, duties, extras)
+    x0 = np.concatenate([history.ravel(), extras if extras is not None else []])[None]
+    np.testing.assert_allclose(one[0, 0], m.predict(x0)[0], rtol=1e-12)
+
+
+def test_save_and_load_round_trip(model, tmp_path):
+    path = save_model(model, tmp_path / "model.pt")
+    back = load_model(path, expect_period=1e-3, expect_config=model.config)
+    x = np.random.default_rng(2).uniform(0, 5, (20, 3))
+    assert np.array_equal(back.predict(x), model.predict(x))
+    assert back.metadata["held_out_rmse"] == model.metadata["held_out_rmse"]
+
+
+def test_load_refuses_missing_truncated_and_foreign_files(model, tmp_path):
+    with pytest.raises(ModelFileError, match=r"model file .*nothing.pt does not exist"):
+        load_model(tmp_path / "nothing.pt")
+    path = save_model(model, tmp_path / "model.pt")
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+    with pytest.raises(ModelFileError, match=r"truncated.pt cannot be read"):
+        load_model(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(ModelFileError, match=r"foreign.pt is not a buck-cosim NN plant model"):
+        load_model(foreign)
+
+
+def test_load_detects_changed_weights(model, tmp_path):
+    path = save_model(model, tmp_path / "model.pt")
+    payload = torch.load(path, weights_only=True)
+    first = next(iter(payload["state_dict"]))
+    payload["state_dict"][first][0] += 0.01
+    torch.save(payload, tmp_path / "tampered.pt")
+    with pytest.raises(ModelFileError, match=r"tampered.pt fails its SHA-256 check"):
+        load_model(tmp_path / "tampered.pt")
+
+
+class _Exploit:
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("touch EXPLOITED_MARKER",))
+
+
+def test_load_never_executes_code_from_the_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = tmp_path / "evil.pt"
+    with zipfile.ZipFile(path, "w") as archive:  # the layout torch.save uses, with a hostile pickle
+        archive.writestr("evil/data.pkl", pickle.dumps({"format": _Exploit()}, protocol=2))
+        archive.writestr("evil/version", "3\n")
+    with pytest.raises(ModelFileError, match=r"evil.pt cannot be read"):
+        load_model(path)
+    assert not (tmp_path / "EXPLOITED_MARKER").exists()
+
+
+def test_load_refuses_a_model_made_for_other_inputs_or_rate(model, tmp_path):
+    path = save_model(model, tmp_path / "model.pt")
+    with pytest.raises(ModelFileError, match=r"was trained for inputs 3-12-2 tanh, 1 delay\(s\); expected 4-7-2"):
+        load_model(path, expect_config=NNConfig(extra_signals=("load_conductance",)))
+    with pytest.raises(ModelFileError, match=r"trained at a control period of 1000 us; the controller samples every 13.33 us"):
+        load_model(path, expect_period=1 / 75e3)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"hidden": ()}, "hidden layers"), ({"activation": "swish"}, "activation 'swish' is unknown"),
+    ({"delays": 0}, "delays = 0 is invalid"), ({"extra_signals": ("temperature",)}, "extra signal 'temperature'"),
+])
+def test_invalid_configurations_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        NNConfig(**kwargs)

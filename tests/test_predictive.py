@@ -1,0 +1,146 @@
+"""Predictive control: the optimizer against brute force, the exact model against the FMU, offset-free."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from controllers.base import Measurement
+from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, doubling_blocks
+from controllers.predictors import (AveragedModelPredictor, CircuitParameters, PredictionContext, expm2,
+                                    ripple_free_horizon)
+from cosim.binding import builtin_binding
+from cosim.fmu_plant import FmuPlant
+from cosim.master import simulate
+from cosim.metrics import run_metrics
+from cosim.scenarios import load_scenario
+
+TS = 1 / 75e3
+
+
+def context(il=1.0, vo=8.0, load=6.0, vs=48.0):
+    return PredictionContext(history=np.array([[il, vo, 0.0]]), input_voltage=vs, load_resistance=load,
+                             load_current=vo / load, previous_duty=0.2)
+
+
+def eq23_cost(predictor, ctx, reference, settings):
+    weights = settings.discount ** np.arange(settings.horizon)
+    target = np.array([reference / ctx.load_resistance, reference])
+
+    def cost(duties):
+        e = predictor.rollout(ctx, duties, np.zeros(2)) - target
+        return np.sqrt((e * e).sum(axis=2)) @ weights
+
+    return cost
+
+
+@pytest.mark.parametrize("horizon,blocks,levels", [(2, (1, 1), 9), (3, (1, 1, 1), 5), (6, (1, 2, 3), 5),
+                                                   (12, None, 21)])
+def test_optimizer_matches_brute_force_on_small_problems(horizon, blocks, levels):
+    settings = HorizonSettings(horizon=horizon, blocks=blocks, levels=levels)
+    predictor = AveragedModelPredictor(CircuitParameters(), TS)
+    ctx = context()
+    cost = eq23_cost(predictor, ctx, 12.0, settings)
+    optimizer = HorizonOptimizer(settings, (0.0, 1.0))
+    sequence, best = optimizer.solve(cost, anchor=0.25)
+    nb = len(settings.blocks)
+    fine = np.linspace(0.0, 1.0, {1: 2001, 2: 401, 3: 81, 4: 31}.get(nb, 13))
+    mesh = np.stack([g.ravel() for g in np.meshgrid(*[fine] * nb, indexing="ij")], axis=1)
+    brute = min(cost(optimizer.expand(chunk)).min() for chunk in np.array_split(mesh, max(1, len(mesh) // 20000)))
+    assert best <= brute * (1 + 1e-3) + 1e-9
+    assert cost(sequence[None])[0] == pytest.approx(best)
+    assert optimizer.evaluations < len(mesh) / 20  # a small fraction of the brute-force work
+
+
+def test_optimizer_respects_duty_limits_and_uses_the_warm_start():
+    settings = HorizonSettings(horizon=3, levels=9)
+    predictor = AveragedModelPredictor(CircuitParameters(), 1e-3)
+    optimizer = HorizonOptimizer(settings, (0.1, 0.4))
+    cost = eq23_cost(predictor, context(vo=0.0, il=0.0), 40.0, settings)  # wants more than the limit gives
+    sequence, _ = optimizer.solve(cost)
+    assert np.all(sequence == 0.4)
+    cost = eq23_cost(predictor, context(vo=12.0, il=2.0), 12.0, settings)
+    warm = np.full(3, 0.25)
+    sequence, _ = optimizer.solve(cost, warm=warm)
+    assert optimizer.passes <= 3  # steady operation: the warm lattice wins and little zooming is needed
+    assert sequence[0] == pytest.approx(0.25, abs=2e-4)
+
+
+def test_blocks_and_settings_are_validated():
+    assert doubling_blocks(24) == (1, 1, 2, 4, 8, 8) and sum(doubling_blocks(7)) == 7
+    assert ripple_free_horizon(1e-3) == 3 and ripple_free_horizon(TS) == 23
+    with pytest.raises(ValueError, match=r"blocks \(1, 1\) are invalid"):
+        HorizonSettings(horizon=3, blocks=(1, 1))
+    with pytest.raises(ValueError, match="discount = 1.5 is invalid"):
+        HorizonSettings(discount=1.5)
+
+
+@pytest.mark.parametrize("load", [0.01, 0.5, 6.0, 200.0])
+@pytest.mark.parametrize("period", [1e-3, TS, 1e-9])
+def test_closed_form_expm_matches_scipy(load, period):
+    a = np.array([[-0.05 / 220e-6, -1 / 220e-6], [1 / 10e-6, -1 / (load * 10e-6)]])
+    np.testing.assert_allclose(expm2(a, period), expm(a * period), rtol=1e-10, atol=1e-14)
+
+
+def test_averaged_model_predictor_is_exact_for_the_averaged_plant_in_ccm():
+    """One step of the matrix-exponential model equals one control period of the FMU (CCM)."""
+    binding = builtin_binding("averaged", {"inductor_resistance": 0.1, "capacitor_esr": 0.05,
+                                           "switch_on_resistance": 0.0, "diode_forward_voltage": 0.7})
+    parameters = CircuitParameters(inductor_resistance=0.1, capacitor_esr=0.05, diode_forward_voltage=0.7)
+    predictor = AveragedModelPredictor(parameters, 1e-4)
+    with FmuPlant(binding) as plant:
+        plant.initialize([0.3, 48.0, 6.0])
+        plant.advance_to(2e-3)
+        roles = plant.output_roles
+        y0 = plant.outputs()
+        il, vo = y0[roles.index("inductor_current")], y0[roles.index("output_voltage")]
+        plant.set_inputs([0.35, 48.0, 6.0])
+        plant.advance_to(2e-3 + 1e-4)
+        y1 = plant.outputs()
+    ctx = context(il=il, vo=vo, load=6.0)
+    predicted = predictor.rollout(ctx, np.array([[0.35]]), np.zeros(2))[0, 0]
+    np.testing.assert_allclose(predicted, [y1[roles.index("inductor_current")], y1[roles.index("output_voltage")]],
+                               rtol=1e-9)
+
+
+def test_disturbance_is_fed_back_every_step():
+    predictor = AveragedModelPredictor(CircuitParameters(), 1e-3)
+    ctx = context(vo=12.0, il=2.0)
+    plain = predictor.rollout(ctx, np.full((1, 3), 0.25), np.zeros(2))
+    shifted = predictor.rollout(ctx, np.full((1, 3), 0.25), np.array([0.0, 0.1]))
+    assert shifted[0, 0, 1] - plain[0, 0, 1] == pytest.approx(0.1, rel=1e-6)
+    assert shifted[0, 2, 1] - plain[0, 2, 1] > 0.1  # it accumulates through the dynamics
+
+
+def test_mismatched_model_mpc_is_offset_free_on_the_plant():
+    """MPC with L, C 20 % off and no parasitics still regulates a plant with parasitics exactly."""
+    binding = builtin_binding("averaged", {"inductor_resistance": 0.15, "switch_on_resistance": 0.1,
+                                           "diode_forward_voltage": 0.7, "capacitor_esr": 0.05,
+                                           "inductance": 264e-6, "capacitance": 8e-6})
+    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), 1e-3), 1e-3,
+                               HorizonSettings(horizon=1, levels=33), name="MPC-mismatched")
+    m = run_metrics(simulate(binding, mpc, load_scenario("reference_up")))
+    assert abs(m["steady_state_error_pct"]) < 0.05
+    assert m["settling_time_ms"] < 5.0
+
+
+def test_predictive_controller_refuses_a_plant_without_inductor_current():
+    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), 1e-3), 1e-3)
+    with pytest.raises(ValueError, match="needs the inductor current"):
+        mpc.step(Measurement(0.0, 12.0, 11.0))
+
+
+def test_oracle_mpc_at_the_switching_rate_beats_the_tuned_pi_on_start_up():
+    from controllers.pi import PIController
+
+    binding = builtin_binding("averaged")
+    startup = replace(load_scenario("startup"), duration=0.004)
+    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS,
+                               HorizonSettings(horizon=ripple_free_horizon(TS)), name="MPC-oracle")
+    pi = PIController(0.021, 172.0, TS)
+    iae_mpc = run_metrics(simulate(binding, mpc, startup))["iae_Vs"]
+    iae_pi = run_metrics(simulate(binding, pi, startup))["iae_Vs"]
+    assert iae_mpc < 0.6 * iae_pi
