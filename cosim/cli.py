@@ -56,6 +56,10 @@ def cmd_scenarios(args) -> int:
 
 
 def _plant_binding(args):
+    if getattr(args, "plant", None):
+        from cosim.binding_file import load_binding
+
+        return load_binding(args.plant), f"bound-{Path(args.plant).stem}"
     from cosim.experiments import plant_binding
 
     binding = plant_binding(args.variant, args.mode, args.sensor)
@@ -96,6 +100,11 @@ def cmd_inspect(args) -> int:
     from cosim.inspect_fmu import describe_fmu
 
     print(describe_fmu(args.fmu))
+    if args.draft_binding:
+        from cosim.binding_file import write_draft_binding
+
+        path = write_draft_binding(args.fmu, args.draft_binding)
+        print(f"wrote a draft binding to {path}: the roles are guesses, check every one before use")
     return 0
 
 
@@ -204,8 +213,13 @@ def cmd_reproduce(args) -> int:
         raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
     from cosim.reproduce import FULL, QUICK
 
+    if args.plant:
+        from cosim.binding_file import load_binding
+
+        load_binding(args.plant)  # refuse a bad binding before any work starts
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
-              profile=QUICK if args.quick else FULL)
+              profile=QUICK if args.quick else FULL, binding_file=args.plant,
+              control_periods=tuple(args.control_period or ()))
     return 0
 
 
@@ -236,6 +250,9 @@ def _add_plant_options(parser) -> None:
     parser.add_argument("--sensor", choices=["average", "synchronous"], default="average",
                         help="what controllers measure: the mean over the last PWM period (default), or a point "
                              "sample at mid off-time with centre-aligned PWM")
+    parser.add_argument("--plant", metavar="BINDING.toml",
+                        help="drive an external FMU through a plant-binding file instead of the built-in plant "
+                             "(--mode/--variant/--sensor then do not apply; see README)")
     parser.add_argument("--interface", choices=["cs", "me"], default=None,
                         help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
                              "(default: the binding's choice, else co-simulation)")
@@ -311,10 +328,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("inspect", help="describe any FMU",
+    p = sub.add_parser("inspect", help="describe any FMU (and draft a binding file for it)",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "
                                    "variables (causality, variability, unit, start value).")
     p.add_argument("fmu", help="path to a .fmu file")
+    p.add_argument("--draft-binding", metavar="OUT.toml",
+                   help="also write a draft plant-binding file, roles guessed from names and units")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("export", help="convert a run file between Parquet and CSV",
@@ -352,6 +371,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pipelines an interrupted reproduction finished, and their tuned gains")
     p.add_argument("--quick", action="store_true",
                    help="tiny sizes for a smoke test (400 samples, two scenarios): checks the pipeline, not the paper")
+    p.add_argument("--plant", metavar="BINDING.toml",
+                   help="run the same pipeline (PI tuning, data, NN training, PI/NNPC/MPC-nominal runs) on an "
+                        "external FMU instead of the built-in plants")
+    p.add_argument("--control-period", action="append", type=parse_period, metavar="SECONDS",
+                   help="with --plant: control period(s) to run (repeatable; default 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
     p.set_defaults(func=cmd_reproduce)
 

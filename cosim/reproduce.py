@@ -55,13 +55,23 @@ QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True,
 
 @dataclass(frozen=True)
 class Pipeline:
-    variant: str  # "nominal" or "mismatch"
-    mode: str  # "averaged" or "switched"
+    variant: str  # "nominal", "mismatch", or "bound" (an external FMU through ``binding_file``)
+    mode: str  # "averaged" or "switched" (built-in plants)
     control_period: float
+    binding_file: str | None = None
 
     @property
     def plant_tag(self) -> str:
+        if self.binding_file:
+            return f"bound-{Path(self.binding_file).stem}"
         return f"{self.variant}-{self.mode}"
+
+    def binding(self):
+        if self.binding_file:
+            from cosim.binding_file import load_binding
+
+            return load_binding(self.binding_file)
+        return plant_binding(self.variant, self.mode)
 
     @property
     def tag(self) -> str:
@@ -98,7 +108,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
     torch.set_num_threads(1)  # two pipelines share two cores
     timings: dict[str, float] = {}
     tag, period = pipeline.tag, pipeline.control_period
-    binding = plant_binding(pipeline.variant, pipeline.mode)
+    binding = pipeline.binding()
 
     start = time.perf_counter()
     pi = load_or_tune(out_dir / "tuning" / f"pi__{tag}.json", binding, period, record_period=2e-5,
@@ -129,17 +139,23 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         log(f"  {tag}: {name} {config.label}: one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
             f"{rmse['one_step_rmse_current_A'] * 1e3:.1f} mA ({timings[f'training_{name}_s']:.1f} s)")
 
-    true_parameters = PLANT_VARIANTS[pipeline.variant]
-    wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
-    wrong_name = "MPC-nominal" if pipeline.variant == "mismatch" else "MPC-mismatched"
-    controllers = [
-        pi.controller(),
-        nnpc(models["nnpc"], period, "NNPC"),
-        nnpc(models["nnpc-paper"], period, "NNPC-paper"),
-        model_mpc(true_parameters, period, "MPC-oracle"),
-        model_mpc(wrong_parameters, period, wrong_name),
-    ]
-    scenarios = scenarios_for(period, profile.scenarios)
+    controllers = [pi.controller(), nnpc(models["nnpc"], period, "NNPC"),
+                   nnpc(models["nnpc-paper"], period, "NNPC-paper")]
+    if pipeline.binding_file:  # an external plant: only the Table II model is known
+        controllers.append(model_mpc(NOMINAL, period, "MPC-nominal"))
+    else:
+        true_parameters = PLANT_VARIANTS[pipeline.variant]
+        wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
+        wrong_name = "MPC-nominal" if pipeline.variant == "mismatch" else "MPC-mismatched"
+        controllers += [model_mpc(true_parameters, period, "MPC-oracle"),
+                        model_mpc(wrong_parameters, period, wrong_name)]
+    scenarios = []
+    for scenario in scenarios_for(period, profile.scenarios):
+        missing = scenario.required_roles() - set(binding.roles)
+        if missing:
+            log(f"  {tag}: skipping {scenario.name}: {binding.origin} binds no {', '.join(sorted(missing))}")
+        else:
+            scenarios.append(scenario)
     start = time.perf_counter()
     batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=pipeline.plant_tag, seed=seed,
                       extra_metadata={"pipeline": asdict(pipeline)})
@@ -177,8 +193,13 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
-              profile: Profile = FULL) -> Path:
-    """Run every pipeline and write ``REPORT.md``; returns the report path."""
+              profile: Profile = FULL, binding_file: str | None = None,
+              control_periods: tuple[float, ...] = ()) -> Path:
+    """Run every pipeline and write ``REPORT.md``; returns the report path.
+
+    With ``binding_file``, the pipeline runs on that external plant at ``control_periods``
+    (default 1 ms) instead of the built-in plants.
+    """
     from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
@@ -189,7 +210,11 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
             stale.unlink()
     outputs: dict[Pipeline, PipelineOutput] = {}
     todo = []
-    selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
+    if binding_file:
+        selected = [Pipeline("bound", "", period, str(Path(binding_file).resolve()))
+                    for period in (control_periods or (PAPER_PERIOD,))]
+    else:
+        selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
     for pipeline in selected:
         finished = _load_finished(out_dir, pipeline) if resume else None
         if finished is not None:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cosim.errors import ConfigError
+from cosim.toml_locator import TomlLocator, where as _where
 
 SHIPPED_DIR = Path(__file__).parent / "scenarios"
 EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
@@ -99,37 +100,6 @@ class Scenario:
 # Parsing with messages that name file, key and line
 
 
-class _Locator:
-    """Finds the line of a key in a TOML text (tables, arrays of tables, dotted position)."""
-
-    def __init__(self, text: str):
-        self.lines = text.splitlines()
-
-    def line_of(self, key: str, table: str | None = None, index: int | None = None) -> int | None:
-        current, count = None, -1
-        for number, raw in enumerate(self.lines, start=1):
-            line = raw.split("#", 1)[0].strip()
-            header = re.fullmatch(r"\[\[\s*([\w.-]+)\s*\]\]", line) or re.fullmatch(r"\[\s*([\w.-]+)\s*\]", line)
-            if header:
-                name = header.group(1)
-                if line.startswith("[[") and name == table:
-                    count += 1
-                current = name
-                if key is None and name == table and (index is None or count == index):
-                    return number
-                continue
-            in_place = current == table and (index is None or count == index)
-            if key is not None and in_place and re.match(rf"{re.escape(key)}\s*=", line):
-                return number
-        return None
-
-
-def _where(path: Path | None, locator: _Locator, key: str, table: str | None = None, index: int | None = None) -> str:
-    name = str(path) if path else "<scenario>"
-    line = locator.line_of(key, table, index)
-    return f"{name}:{line}" if line else name
-
-
 def _number(value, path, locator, key, label, table=None, index=None) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(
@@ -148,7 +118,7 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{name_for_errors}: invalid TOML: {error}") from None
-    loc = _Locator(text)
+    loc = TomlLocator(text)
 
     for key in data:
         if key not in TOP_KEYS:

@@ -95,22 +95,34 @@ def _compile(unzipdir: Path, build_dir: Path, log_path: Path) -> None:
         os.environ["PATH"] = path
 
 
+def stage_sources(unzipdir: Path) -> None:
+    """Copy modelDescription.xml and sources/ into an FMU folder layout (to build or to adapt)."""
+    _stage_sources(Path(unzipdir))
+
+
+def compile_fmu(unzipdir: Path, target: Path) -> Path:
+    """Compile a staged FMU folder with fmpy's CMake build and zip it atomically to ``target``."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
+        tmp_path = Path(tmp)
+        _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log")
+        staged = tmp_path / "staged.fmu"
+        fmpy.util.create_zip_archive(staged, unzipdir)
+        os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
+    return target
+
+
 def fmu_path(force: bool = False) -> Path:
     """Path of the compiled BuckConverter FMU (model exchange + co-simulation), building it if needed."""
     target = cache_dir() / f"{MODEL_IDENTIFIER}-{source_digest()}.fmu"
     if target.is_file() and not force:
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
-        tmp_path = Path(tmp)
-        unzipdir = tmp_path / MODEL_IDENTIFIER
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".stage-") as tmp:
+        unzipdir = Path(tmp) / MODEL_IDENTIFIER
         _stage_sources(unzipdir)
-        log_path = target.parent / f"{target.stem}.build.log"
-        _compile(unzipdir, tmp_path / "build", log_path)
-        staged = tmp_path / "staged.fmu"
-        fmpy.util.create_zip_archive(staged, unzipdir)
-        os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
-    return target
+        return compile_fmu(unzipdir, target)
 
 
 def source_fmu_path(force: bool = False) -> Path:

@@ -117,3 +117,33 @@ def raw_slave_factory(buck_fmu):
             slave.close()
         except Exception:
             pass
+
+
+CORPUS = Path(__file__).parent / "corpus"
+
+
+@pytest.fixture(scope="session")
+def python_buck_fmu(tmp_path_factory) -> Path:
+    """An outside-authored plant: built here with pythonfmu (co-simulation only, its own names/units)."""
+    from pythonfmu.builder import FmuBuilder
+
+    out = tmp_path_factory.mktemp("pythonfmu")
+    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck.py", dest=out))
+
+
+@pytest.fixture(scope="session")
+def me_only_fmu(tmp_path_factory) -> Path:
+    """The built-in sources packaged with only the model-exchange interface, under another identifier."""
+    import re
+
+    from plant_fmu.build import compile_fmu, stage_sources
+
+    out = tmp_path_factory.mktemp("me_only")
+    unzipdir = out / "BuckME"
+    stage_sources(unzipdir)
+    xml_path = unzipdir / "modelDescription.xml"
+    xml = xml_path.read_text()
+    xml = re.sub(r"\s*<CoSimulation.*?</CoSimulation>", "", xml, flags=re.S)
+    xml = xml.replace('modelIdentifier="BuckConverter"', 'modelIdentifier="BuckConverterME"')
+    xml_path.write_text(xml)
+    return compile_fmu(unzipdir, out / "BuckConverterME.fmu")

@@ -1,0 +1,260 @@
+"""Plant-binding files: drive an externally authored FMU (Simulink, Modelica, PLECS, pythonfmu...).
+
+A binding is a small TOML file next to (or pointing at) the FMU::
+
+    fmu = "MyBuck.fmu"              # path; relative paths are relative to this file
+    interface = "co-simulation"     # or "model-exchange"; default: what the FMU offers, preferring CS
+    max_step = 1e-5                 # [s] optional: the largest step the FMU accepts; longer ones are split
+    label = "My buck (Modelica)"    # optional: how runs and figures name this plant
+
+    [roles.duty_cycle]              # required; an input
+    variable = "D"
+    scale = 100.0                   # fmu_value = scale * workbench_value + offset: here duty in percent
+    offset = 0.0
+
+    [roles.output_voltage]          # required; an output [V]
+    variable = "Vout"
+
+    [roles.inductor_current]        # needed by NNPC and by the cost of eq. 23; an output [A]
+    variable = "IL_mA"
+    scale = 1000.0                  # the FMU reports mA
+
+    # optional: load_resistance and input_voltage (inputs, needed by load and supply steps),
+    # load_current (output, lets predictive controllers estimate the load), and
+    # measured_output_voltage / measured_inductor_current (what the controller's sensors read)
+
+    [parameters]                    # parameter overrides and start values, set before initialisation
+    L = 220e-6
+
+Everything is checked when the file is loaded -- keys, types, the FMU archive itself, that each
+variable exists with a fitting causality -- and a mistake names the file, key and line.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from pathlib import Path
+
+from cosim.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
+from cosim.errors import ConfigError, FmuArchiveError
+from cosim.fmu_archive import check_fmu
+from cosim.fmu_plant import normalise_interface
+from cosim.results import atomic_write_text
+from cosim.toml_locator import TomlLocator, where
+
+TOP_KEYS = {"fmu", "interface", "max_step", "label", "roles", "parameters"}
+ROLE_KEYS = {"variable", "scale", "offset"}
+
+
+def _number(value, label: str, place: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        raise ConfigError(f"{place}: {label} = {value!r} is invalid: expected a finite number")
+    return float(value)
+
+
+def parse_binding(text: str, path: Path) -> PlantBinding:
+    """Parse and check a binding file's text (``path`` locates the FMU and names errors)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: invalid TOML: {error}") from None
+    loc = TomlLocator(text)
+    for key in data:
+        if key not in TOP_KEYS:
+            raise ConfigError(f"{where(path, loc, key)}: unknown key {key!r}: expected one of {', '.join(sorted(TOP_KEYS))}")
+    if "fmu" not in data:
+        raise ConfigError(f"{path}: missing required key 'fmu' (the FMU file this binding drives)")
+    if not isinstance(data["fmu"], str):
+        raise ConfigError(f"{where(path, loc, 'fmu')}: fmu has the wrong type: expected a path as text")
+    fmu_path = Path(data["fmu"])
+    if not fmu_path.is_absolute():
+        fmu_path = (path.parent / fmu_path).resolve()
+    interface = data.get("interface")
+    if interface is not None:
+        if not isinstance(interface, str):
+            raise ConfigError(f"{where(path, loc, 'interface')}: interface has the wrong type: expected text")
+        try:
+            interface = normalise_interface(interface)
+        except ConfigError as error:
+            raise ConfigError(f"{where(path, loc, 'interface')}: {error}") from None
+    max_step = None
+    if "max_step" in data:
+        max_step = _number(data["max_step"], "max_step", where(path, loc, "max_step"))
+        if max_step <= 0:
+            raise ConfigError(f"{where(path, loc, 'max_step')}: max_step = {max_step} s is invalid: expected > 0")
+    label = data.get("label", f"{fmu_path.stem} (bound by {path.name})")
+    if not isinstance(label, str):
+        raise ConfigError(f"{where(path, loc, 'label')}: label has the wrong type: expected text")
+
+    roles_table = data.get("roles", {})
+    if not isinstance(roles_table, dict):
+        raise ConfigError(f"{where(path, loc, 'roles')}: 'roles' must be a table of [roles.<name>] tables")
+    roles: dict[str, RoleMap] = {}
+    for role, entry in roles_table.items():
+        table = f"roles.{role}"
+        if role not in ROLES:
+            raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}: expected one of "
+                              f"{', '.join(ROLES)}")
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where(path, loc, role, 'roles')}: role {role!r} must be a table with 'variable'")
+        for key in entry:
+            if key not in ROLE_KEYS:
+                raise ConfigError(f"{where(path, loc, key, table)}: unknown key '{table}.{key}': expected one of "
+                                  f"{', '.join(sorted(ROLE_KEYS))}")
+        variable = entry.get("variable")
+        if not isinstance(variable, str) or not variable:
+            raise ConfigError(f"{where(path, loc, 'variable', table)}: '{table}.variable' must name an FMU variable")
+        scale = _number(entry.get("scale", 1.0), f"{table}.scale", where(path, loc, "scale", table))
+        offset = _number(entry.get("offset", 0.0), f"{table}.offset", where(path, loc, "offset", table))
+        if scale == 0:
+            raise ConfigError(f"{where(path, loc, 'scale', table)}: {table}.scale = 0 is invalid: expected a non-zero factor")
+        roles[role] = RoleMap(variable=variable, scale=scale, offset=offset)
+    for role in REQUIRED_ROLES:
+        if role not in roles:
+            raise ConfigError(f"{path}: missing role [roles.{role}] ({ROLE_DESCRIPTIONS[role]})")
+
+    parameters = data.get("parameters", {})
+    if not isinstance(parameters, dict):
+        raise ConfigError(f"{where(path, loc, 'parameters')}: 'parameters' must be a table")
+    for name, value in parameters.items():
+        if not isinstance(value, (bool, int, float, str)):
+            raise ConfigError(f"{where(path, loc, name, 'parameters')}: parameter {name!r} = {value!r} is invalid: "
+                              "expected a number, true/false or text")
+
+    try:
+        checked = check_fmu(fmu_path)  # the archive first: nothing is extracted or loaded before this
+    except FmuArchiveError as error:
+        raise FmuArchiveError(f"{where(path, loc, 'fmu')}: {error}") from None
+    binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
+                           max_step=max_step, source=path, label=label)
+    _check_variables(binding, checked, loc)
+    return binding
+
+
+def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
+    """Each role's variable exists, is Real and has a causality that fits the role."""
+    variables = {v.name: v for v in checked.model_description.modelVariables}
+    path = binding.source
+    for role, mapping in binding.roles.items():
+        place = where(path, loc, "variable", f"roles.{role}")
+        variable = variables.get(mapping.variable)
+        if variable is None:
+            raise ConfigError(f"{place}: role {role!r} names variable {mapping.variable!r}, which "
+                              f"{binding.fmu_path.name} does not have")
+        if variable.type != "Real":
+            raise ConfigError(f"{place}: role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}")
+        wanted = ("input", "parameter") if role in INPUT_ROLES else ("output", "local")
+        if variable.causality not in wanted:
+            raise ConfigError(f"{place}: role {role!r} needs causality {' or '.join(wanted)}, but "
+                              f"{mapping.variable!r} has causality {variable.causality}")
+    for name in binding.parameters:
+        if name not in variables:
+            raise ConfigError(f"{where(path, loc, name, 'parameters')}: parameter {name!r} is not a variable of "
+                              f"{binding.fmu_path.name}")
+    wanted_interface = binding.interface
+    if wanted_interface is not None and wanted_interface not in checked.interfaces:
+        raise ConfigError(f"{where(path, loc, 'interface')}: interface {wanted_interface!r} is not available "
+                          f"(the FMU offers: {', '.join(checked.interfaces)})")
+
+
+def load_binding(path: str | Path) -> PlantBinding:
+    """Read and check a binding file; raise :class:`ConfigError` (one line) on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"binding file {path} does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read binding file ({error})") from None
+    return parse_binding(text, path.resolve())
+
+
+# ---------------------------------------------------------------------------------------------
+# Draft bindings: guess roles from names and units
+
+_PATTERNS = {
+    "duty_cycle": (r"duty|^d$|^dc$|^u$|pwm", ("1", "%", "")),
+    "input_voltage": (r"v_?in|v_?s$|vs\b|v_?source|supply|input_?voltage|vdc|u_?in", ("V", "mV", "")),
+    "load_resistance": (r"r_?load|load_?res|^r$|rl?oad|resistance", ("Ohm", "ohm", "Ω", "")),
+    "output_voltage": (r"v_?out|v_?o$|^vo\b|output_?voltage|v_?c$|vcap|v_?load|u_?out", ("V", "mV", "")),
+    "inductor_current": (r"i_?l\b|i_?l_|^il|inductor.*i|i_?ind|l\.i$|inductor_?current", ("A", "mA", "")),
+    "load_current": (r"i_?out|i_?o$|i_?load|load_?current", ("A", "mA", "")),
+}
+_SCALES = {"%": 100.0, "mV": 1000.0, "mA": 1000.0}
+
+
+def _unit_of(variable) -> str:
+    unit = variable.unit or (getattr(variable.declaredType, "unit", None) if variable.declaredType else None)
+    return unit or ""
+
+
+def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
+    """Role -> (variable, scale, reason) guessed from names, causality and units."""
+    guesses: dict[str, tuple[str, float, str]] = {}
+    taken: set[str] = set()
+    for role, (pattern, units) in _PATTERNS.items():
+        wanted = ("input",) if role in INPUT_ROLES else ("output",)
+        for variable in model_description.modelVariables:
+            if variable.type != "Real" or variable.causality not in wanted or variable.name in taken:
+                continue
+            unit = _unit_of(variable)
+            if re.search(pattern, variable.name, re.IGNORECASE) and (unit in units or not units):
+                scale = _SCALES.get(unit, 1.0)
+                if not unit:  # no declared unit: hints in the name, e.g. IL_mA or duty_pct
+                    if re.search(r"(^|_)mA($|_)", variable.name):
+                        scale = 1000.0
+                    elif re.search(r"pct|percent", variable.name, re.IGNORECASE):
+                        scale = 100.0
+                reason = f"name {variable.name!r}" + (f", unit {unit}" if unit else ", no unit declared")
+                guesses[role] = (variable.name, scale, reason)
+                taken.add(variable.name)
+                break
+    return guesses
+
+
+def draft_binding_text(fmu_path: Path, binding_path: Path) -> str:
+    checked = check_fmu(fmu_path)
+    md = checked.model_description
+    guesses = guess_roles(md)
+    try:
+        relative = Path(fmu_path).resolve().relative_to(binding_path.resolve().parent)
+    except ValueError:
+        relative = Path(fmu_path).resolve()
+    interface = "co-simulation" if "co-simulation" in checked.interfaces else checked.interfaces[0]
+    lines = [
+        f"# Draft plant binding for {Path(fmu_path).name}, written by 'buck-cosim inspect --draft-binding'.",
+        "# Roles were GUESSED from variable names and units: check every one before use.",
+        "# fmu_value = scale * workbench_value + offset (workbench units: V, A, Ohm, duty 0..1).",
+        f'fmu = "{relative.as_posix()}"',
+        f'interface = "{interface}"   # this FMU offers: {", ".join(checked.interfaces)}',
+        f'label = "{md.modelName} (external)"',
+        "",
+    ]
+    for role in ROLES:
+        if role in guesses:
+            name, scale, reason = guesses[role]
+            lines += [f"[roles.{role}]   # guessed from {reason}", f'variable = "{name}"']
+            if scale != 1.0:
+                lines.append(f"scale = {scale}")
+            lines.append("")
+        else:
+            lines += [f"# [roles.{role}]   # not found: {ROLE_DESCRIPTIONS[role]}", '# variable = "..."', ""]
+    parameters = [v for v in md.modelVariables if v.causality == "parameter" and v.start is not None]
+    if parameters:
+        lines.append("[parameters]   # current start values; edit to override")
+        for v in parameters:
+            value = v.start
+            if v.type == "Boolean":
+                value = "true" if str(value).lower() in ("true", "1") else "false"
+            elif v.type == "String":
+                value = f'"{value}"'
+            name = v.name if re.fullmatch(r"[A-Za-z0-9_-]+", v.name) else f'"{v.name}"'
+            lines.append(f"# {name} = {value}")
+    return "\n".join(lines) + "\n"
+
+
+def write_draft_binding(fmu_path: str | Path, out_path: str | Path) -> Path:
+    out_path = Path(out_path)
+    return atomic_write_text(out_path, draft_binding_text(Path(fmu_path), out_path))

@@ -1,0 +1,41 @@
+"""Line numbers for keys of a TOML file, so every configuration error can name file, key and line.
+
+``tomllib`` parses without positions; this scans the text for the table headers and ``key =``
+lines, which is enough for the small, hand-written files the workbench reads.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+
+class TomlLocator:
+    """Finds the line of a key in a TOML text (tables, arrays of tables, dotted position)."""
+
+    def __init__(self, text: str):
+        self.lines = text.splitlines()
+
+    def line_of(self, key: str, table: str | None = None, index: int | None = None) -> int | None:
+        current, count = None, -1
+        for number, raw in enumerate(self.lines, start=1):
+            line = raw.split("#", 1)[0].strip()
+            header = re.fullmatch(r"\[\[\s*([\w.-]+)\s*\]\]", line) or re.fullmatch(r"\[\s*([\w.-]+)\s*\]", line)
+            if header:
+                name = header.group(1)
+                if line.startswith("[[") and name == table:
+                    count += 1
+                current = name
+                if key is None and name == table and (index is None or count == index):
+                    return number
+                continue
+            in_place = current == table and (index is None or count == index)
+            if key is not None and in_place and re.match(rf"{re.escape(key)}\s*=", line):
+                return number
+        return None
+
+
+def where(path: Path | None, locator: TomlLocator, key: str, table: str | None = None, index: int | None = None) -> str:
+    name = str(path) if path else "<text>"
+    line = locator.line_of(key, table, index)
+    return f"{name}:{line}" if line else name

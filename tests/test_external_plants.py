@@ -1,0 +1,242 @@
+"""Externally authored plant FMUs through binding files, and every refusal of a bad FMU or binding."""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from cosim.binding_file import guess_roles, load_binding
+from cosim.cli import main
+from cosim.errors import ConfigError, FmuArchiveError, WorkbenchError
+from cosim.fmu_archive import check_fmu
+from cosim.master import simulate
+from cosim.metrics import run_metrics
+from cosim.results import read_run
+from cosim.scenarios import load_scenario
+
+PYTHON_BINDING = """\
+fmu = "{fmu}"
+label = "PyBuck (pythonfmu)"
+
+[roles.duty_cycle]
+variable = "D"
+scale = 100.0          # the FMU takes percent
+
+[roles.output_voltage]
+variable = "Vout"
+
+[roles.inductor_current]
+variable = "IL_mA"
+scale = 1000.0         # the FMU reports mA
+
+[roles.load_resistance]
+variable = "Rload"
+
+[roles.input_voltage]
+variable = "Vin"
+
+[roles.load_current]
+variable = "Iout"
+
+[parameters]
+rL = 0.15
+"""
+
+ME_BINDING = """\
+fmu = "{fmu}"
+interface = "model-exchange"
+
+[roles.duty_cycle]
+variable = "duty_cycle"
+
+[roles.output_voltage]
+variable = "output_voltage"
+
+[roles.inductor_current]
+variable = "inductor_current"
+
+[parameters]
+plant_mode = 0
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "plant.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture
+def python_binding(tmp_path, python_buck_fmu):
+    shutil.copy(python_buck_fmu, tmp_path / "PyBuck.fmu")
+    return write(tmp_path, PYTHON_BINDING.format(fmu="PyBuck.fmu"))
+
+
+def pi(period=1e-3):
+    from controllers.pi import PIController
+
+    return PIController(0.0, 0.7 / (48 * period), period)
+
+
+# ------------------------------------------------------------------------------------------ running
+
+
+def test_pi_start_up_settles_on_the_pythonfmu_plant(python_binding):
+    binding = load_binding(python_binding)
+    assert binding.interface is None and binding.roles["duty_cycle"].scale == 100.0
+    result = simulate(binding, pi(), load_scenario("startup"))
+    metrics = run_metrics(result)
+    assert abs(metrics["steady_state_error_pct"]) < 0.1 and metrics["settling_time_ms"] < 10
+    assert result.metadata["plant"]["binding_file"] == str(python_binding.resolve())
+    assert result.frame["inductor_current"].iloc[-1] == pytest.approx(2.0, rel=0.01)  # mA converted to A
+
+
+def test_pi_start_up_settles_on_the_model_exchange_only_fmu(tmp_path, me_only_fmu):
+    binding = load_binding(write(tmp_path, ME_BINDING.format(fmu=me_only_fmu)))
+    result = simulate(binding, pi(), load_scenario("startup"))
+    assert result.metadata["plant"]["interface"] == "model-exchange"
+    assert abs(run_metrics(result)["steady_state_error_pct"]) < 0.1
+
+
+def test_nnpc_collects_trains_and_runs_on_the_pythonfmu_plant(python_binding, tmp_path):
+    out = tmp_path / "out"
+    code = main(["--no-progress", "run", "reference_up", "load_change", "--plant", str(python_binding),
+                 "--controller", "pi", "--controller", "nnpc", "--samples", "1500", "--out", str(out), "--no-figures"])
+    assert code == 0
+    assert list((out / "data").glob("*.parquet")) and list((out / "models").glob("*__nnpc.pt"))
+    for scenario in ("reference_up", "load_change"):
+        run = read_run(out / "runs" / f"{scenario}__nnpc__bound-plant__1ms.parquet")
+        assert run.complete and abs(run.frame["output_voltage"].iloc[-1] / run.frame["reference"].iloc[-1] - 1) < 0.01
+
+
+def test_reproduce_runs_its_pipeline_on_a_bound_plant(python_binding, tmp_path):
+    out = tmp_path / "results"
+    assert main(["--no-progress", "reproduce", "--quick", "--plant", str(python_binding), "--out", str(out)]) == 0
+    report = (out / "REPORT.md").read_text()
+    assert "bound-plant__1ms" in report and "MPC-nominal" in report
+    assert (out / "models" / "bound-plant__1ms__nnpc.pt").is_file()
+
+
+def test_draft_binding_guesses_roles_from_names_and_units(python_buck_fmu, buck_fmu, tmp_path):
+    guesses = {role: g[0] for role, g in guess_roles(check_fmu(python_buck_fmu).model_description).items()}
+    assert guesses == {"duty_cycle": "D", "input_voltage": "Vin", "load_resistance": "Rload", "output_voltage": "Vout",
+                       "inductor_current": "IL_mA", "load_current": "Iout"}
+    shutil.copy(buck_fmu, tmp_path / "Buck.fmu")
+    assert main(["inspect", str(tmp_path / "Buck.fmu"), "--draft-binding", str(tmp_path / "draft.toml")]) == 0
+    draft = load_binding(tmp_path / "draft.toml")  # a draft of our own FMU loads as it is
+    assert draft.roles["inductor_current"].variable == "inductor_current"
+    assert draft.roles["duty_cycle"].variable == "duty_cycle"
+
+
+# ------------------------------------------------------------------------------------------ refusals
+
+
+@pytest.mark.parametrize("edit,message", [
+    (("label =", "lable ="), r"plant.toml:2: unknown key 'lable'"),
+    (("[roles.load_current]", "[roles.load_currnt]"), r"plant.toml:\d+: unknown role 'load_currnt'"),
+    (('variable = "D"\nscale = 100.0          # the FMU takes percent\n', ""), r"role 'duty_cycle' must be a table|missing role|variable"),
+    (('variable = "Vout"', 'variable = "V_out"'), r"plant.toml:9: role 'output_voltage' names variable 'V_out', which PyBuck.fmu does not have"),
+    (('variable = "Vin"', 'variable = "Vout"'), r"role 'input_voltage' needs causality input or parameter, but 'Vout' has causality output"),
+    (("scale = 1000.0", "scale = 0"), r"plant.toml:13: roles.inductor_current.scale = 0 is invalid"),
+    (("rL = 0.15", "Lf = 0.15"), r"plant.toml:\d+: parameter 'Lf' is not a variable of PyBuck.fmu"),
+    (('fmu = "PyBuck.fmu"', 'fmu = "Nope.fmu"'), r"plant.toml:1: plant FMU .*Nope.fmu does not exist"),
+    (('label = "PyBuck (pythonfmu)"', 'interface = "model-exchange"'), r"plant.toml:2: interface 'model-exchange' is not available \(the FMU offers: co-simulation\)"),
+    (('label = "PyBuck (pythonfmu)"', 'interface = "cosim"'), r"interface 'cosim' is unknown"),
+])
+def test_binding_mistakes_name_file_key_and_line(python_binding, edit, message):
+    text = python_binding.read_text().replace(*edit, 1)
+    with pytest.raises(WorkbenchError, match=message):
+        load_binding(write(python_binding.parent, text))
+
+
+def test_missing_required_role_is_refused(python_binding):
+    text = python_binding.read_text().replace("[roles.duty_cycle]\nvariable = \"D\"\nscale = 100.0          # the FMU takes percent\n", "")
+    with pytest.raises(ConfigError, match=r"plant.toml: missing role \[roles.duty_cycle\]"):
+        load_binding(write(python_binding.parent, text))
+
+
+def test_a_scenario_needing_a_missing_role_is_refused_before_the_run(tmp_path, me_only_fmu):
+    path = write(tmp_path, ME_BINDING.format(fmu=me_only_fmu))
+    with pytest.raises(ConfigError, match=r"scenario load_change changes load_resistance, but binding file .*plant.toml "
+                                          r"binds no variable to the role 'load_resistance'"):
+        simulate(load_binding(path), pi(), load_scenario("load_change"))
+    done = subprocess.run([sys.executable, "-m", "cosim.cli", "run", "load_change", "--plant", str(path), "--kp", "0",
+                           "--ki", "14", "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert "binds no variable to the role 'load_resistance'" in done.stderr
+    assert not (tmp_path / "out" / "runs").exists()  # nothing ran
+
+
+def _fmu_with(tmp_path: Path, name: str, members: dict[str, bytes]) -> Path:
+    path = tmp_path / name
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        for member, data in members.items():
+            z.writestr(member, data)
+    return path
+
+
+MD = '<?xml version="1.0"?><fmiModelDescription fmiVersion="{v}" modelName="x" guid="{{1}}"/>'
+
+
+def _crafted(tmp_path: Path, buck_fmu: Path, kind: str) -> Path:
+    if kind == "not a zip":
+        path = tmp_path / "text.fmu"
+        path.write_text("this is not an FMU")
+        return path
+    if kind == "truncated":
+        path = tmp_path / "truncated.fmu"
+        path.write_bytes(buck_fmu.read_bytes()[:4000])
+        return path
+    if kind == "absolute member":
+        return _fmu_with(tmp_path, "abs.fmu", {"modelDescription.xml": MD.format(v="2.0"), "/etc/evil": b"x"})
+    if kind == "climbing member":
+        return _fmu_with(tmp_path, "climb.fmu", {"modelDescription.xml": MD.format(v="2.0"), "../../evil.so": b"x"})
+    if kind == "huge":  # a zip bomb's header: the central directory claims 4 GiB uncompressed
+        path = _fmu_with(tmp_path, "huge.fmu", {"modelDescription.xml": MD.format(v="2.0"), "big.bin": b"0" * 100})
+        data = bytearray(path.read_bytes())
+        entry = data.rfind(b"PK\x01\x02")  # central directory header of the last member
+        data[entry + 24:entry + 28] = struct.pack("<I", 0xFFFFFFF0)
+        path.write_bytes(bytes(data))
+        return path
+    if kind == "fmi1":
+        return _fmu_with(tmp_path, "fmi1.fmu", {"modelDescription.xml": MD.format(v="1.0")})
+    if kind == "fmi3":
+        return _fmu_with(tmp_path, "fmi3.fmu", {"modelDescription.xml": MD.format(v="3.0")})
+    if kind == "no binary":
+        from plant_fmu import source_fmu_path
+
+        path = tmp_path / "source.fmu"
+        shutil.copy(source_fmu_path(), path)
+        return path
+    if kind == "no description":
+        return _fmu_with(tmp_path, "nodesc.fmu", {"binaries/linux64/x.so": b"x"})
+    if kind == "malformed description":
+        return _fmu_with(tmp_path, "bad.fmu", {"modelDescription.xml": "<fmiModelDescription fmiVersion='2.0'"})
+    raise ValueError(kind)
+
+
+@pytest.mark.parametrize("kind,message", [
+    ("not a zip", r"text.fmu is not a zip archive"),
+    ("truncated", r"truncated.fmu is (not a zip archive|a damaged zip archive|truncated)"),
+    ("absolute member", r"member '/etc/evil' is an absolute path; refusing to extract it"),
+    ("climbing member", r"member '../../evil.so' climbs out of the archive"),
+    ("huge", r"huge.fmu would expand to 4096 MiB, more than the limit of 1024 MiB"),
+    ("fmi1", r"fmi1.fmu is FMI 1.0; the workbench supports FMI 2.0"),
+    ("fmi3", r"fmi3.fmu is FMI 3.0; the workbench supports FMI 2.0"),
+    ("no binary", r"source.fmu has no linux64 binary for its interfaces \(co-simulation, model-exchange\); binaries present: none"),
+    ("no description", r"nodesc.fmu has no modelDescription.xml"),
+    ("malformed description", r"bad.fmu: modelDescription.xml is not well-formed XML"),
+])
+def test_bad_fmu_archives_are_refused_before_extraction(tmp_path, buck_fmu, kind, message):
+    path = _crafted(tmp_path, buck_fmu, kind)
+    with pytest.raises(FmuArchiveError, match=message):
+        check_fmu(path)
+    done = subprocess.run([sys.executable, "-m", "cosim.cli", "inspect", str(path)], capture_output=True, text=True)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: plant FMU")
