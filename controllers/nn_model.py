@@ -154,11 +154,10 @@ class NNPlantModel:
         self._biases = biases
         self._activation = ACTIVATIONS[self.config.activation][1]
         self._tanh = self.config.activation == "tanh"
-        if len(self._weights) == 2:  # pieces of the one-hidden-layer fast path, per lag
+        if len(self._weights) == 2 and self.config.delays == 1:  # pieces of the fast path
             w1 = self._weights[0]
-            lags = range(self.config.delays)
-            self._fast = ([w1[3 * l:3 * l + 2].copy() for l in lags], [w1[3 * l + 2].copy() for l in lags],
-                          w1[3 * self.config.delays:].copy(), self._biases[0], self._weights[1], self._biases[1])
+            self._fast = (w1[:2].copy(), w1[2].copy(), w1[3:].copy(), self._biases[0], self._weights[1],
+                          self._biases[1])
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Batch prediction in physical units: x (M, n_inputs) -> (M, 2) [iL(k), vc(k)]."""
@@ -212,10 +211,11 @@ class NNPlantModel:
                        disturbance: np.ndarray | None = None) -> np.ndarray:
         """:meth:`rollout` for many duty sequences from one measured history (the controller's case).
 
-        With one hidden layer, the parts of the first layer that come from the measured history are
-        computed once, and each step costs a handful of array operations (the NNPC hot path).
+        For the common network (one delay, one hidden layer) the history's part of the first layer
+        is computed once and each step costs a handful of array operations -- the NNPC hot path.
+        Other networks take :meth:`rollout` on a broadcast history (as fast, measured, for them).
         """
-        if len(self._weights) != 2:
+        if self.config.delays != 1 or len(self._weights) != 2:
             m = duties.shape[0]
             batch = np.empty((m, *history.shape))
             batch[:] = history
@@ -224,30 +224,20 @@ class NNPlantModel:
                 ex = np.empty((m, len(extras)))
                 ex[:] = extras
             return self.rollout(batch, duties, ex, disturbance)
-        w_state, w_duty, w_extra, b1, w2, b2 = self._fast  # per lag: w_state[l] (2, H), w_duty[l] (H,)
+        w_state, w_duty, w_extra, b1, w2, b2 = self._fast
         if disturbance is not None:
             b2 = b2 + disturbance  # added to every predicted state, as in rollout()
         constant = b1 if extras is None or not len(extras) else b1 + extras @ w_extra
-        residual, tanh, delays = self.config.residual, self._tanh, self.config.delays
+        residual, tanh = self.config.residual, self._tanh
         m, n = duties.shape
         out = np.empty((m, n, 2))
+        state = history[0, :2]
+        z = (state @ w_state + constant) + duties[:, :1] * w_duty  # the history's part, once
         for j in range(n):
-            # input lag l is time k+j-l: predicted (t >= 1) or measured (t <= 0) state, candidate
-            # (t >= 0) or applied (t < 0) duty; measured parts go into one shared vector
-            shared = constant
-            z = duties[:, j:j + 1] * w_duty[0]
-            for lag in range(delays):
-                t = j - lag
-                if t >= 1:
-                    z += out[:, t - 1] @ w_state[lag]
-                else:
-                    shared = shared + history[-t, :2] @ w_state[lag]
-                if lag:
-                    if t >= 0:
-                        z += duties[:, t:t + 1] * w_duty[lag]
-                    else:
-                        shared = shared + history[-t, 2] * w_duty[lag]
-            z += shared
+            if j:
+                z = out[:, j - 1] @ w_state
+                z += duties[:, j:j + 1] * w_duty
+                z += constant
             if tanh:
                 np.tanh(z, out=z)
             else:
@@ -255,7 +245,7 @@ class NNPlantModel:
             new = z @ w2
             new += b2
             if residual:
-                new += out[:, j - 1] if j else history[0, :2]
+                new += out[:, j - 1] if j else state
             out[:, j] = new
         return out
 

@@ -196,10 +196,191 @@ def bench_master(quick: bool) -> list[BenchRow]:
 
 
 # ---------------------------------------------------------------------------------------------
+# 3. controller compute per step
+
+
+def _nn_model(name: str, period: float, quick: bool):
+    """The reproduction's model if results/ has it, else one trained here on fresh data."""
+    from controllers.nn_model import TrainingSettings, load_model, train
+    from cosim.data_collection import CollectionSettings, collect
+    from cosim.experiments import nn_configs, plant_binding
+    from cosim.errors import ModelFileError
+    from cosim.runner import period_label
+
+    config = nn_configs(period)[name]
+    path = Path("results") / "models" / f"nominal-switched__{period_label(period)}__{name}.pt"
+    if path.is_file() and not quick:
+        try:
+            return load_model(path, expect_period=period, expect_config=config), str(path)
+        except ModelFileError:
+            pass
+    from controllers.pi import PIController
+
+    pi = PIController(0.0015, 15.6, period) if period >= 0.5e-3 else PIController(0.007, 173.0, period)
+    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
+    data = collect(plant_binding("nominal", "switched"), pi,
+                   CollectionSettings(samples=400 if quick else 3000, hold_range=hold))
+    return train(data, config, TrainingSettings(max_iterations=100 if quick else 3000)), "trained for the benchmark"
+
+
+def _mixed_scenario(period: float, samples: int):
+    """Random references and loads held for random intervals: transients and steady state mixed."""
+    from cosim.data_collection import CollectionSettings, random_scenario
+
+    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
+    return random_scenario(CollectionSettings(samples=samples, hold_range=hold, seed=11), period)
+
+
+def bench_controllers(quick: bool) -> list[BenchRow]:
+    from cosim.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, model_mpc, nnpc, plant_binding
+    from cosim.fmu_plant import FmuPlant
+    from cosim.master import run
+
+    rows = []
+    binding = plant_binding("nominal", "switched")
+    for period, label in ((PAPER_PERIOD, "1 ms"), (SWITCHING_PERIOD, "13.33 us")):
+        samples = 60 if quick else (3000 if period >= 0.5e-3 else 1500)
+        scenario = _mixed_scenario(period, samples)
+        model, origin = _nn_model("nnpc", period, quick)
+        from controllers.pi import PIController
+
+        controllers = [PIController(0.0015, 15.6, period), nnpc(model, period, "NNPC"),
+                       model_mpc(NOMINAL, period, "MPC-oracle"), model_mpc(MISMATCH, period, "MPC-mismatched")]
+        with FmuPlant(binding) as plant:
+            for controller in controllers:
+                frame = run(plant, controller, scenario, record_period=period).frame
+                times = frame.loc[frame["control_sample"], "controller_compute_time"].to_numpy()
+                median, p99 = float(np.median(times)), _p99(times)
+                target, met = "", None
+                if controller.name == "NNPC" and period >= 0.5e-3:
+                    target, met = "p99 <= 100 us", p99 <= 100e-6
+                rows.append(BenchRow(
+                    f"controller compute per step, {controller.name}, {label} ({len(times)} samples, "
+                    f"{100 * median / period:.2g} % / {100 * p99 / period:.2g} % of the period at p50 / p99)",
+                    median * 1e6, p99 * 1e6, "us", target, met,
+                    f"NN: {origin}" if controller.name == "NNPC" else ""))
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. identification cost
+
+
+def bench_training(quick: bool) -> list[BenchRow]:
+    from controllers.nn_model import TrainingSettings, train
+    from controllers.pi import PIController
+    from cosim.data_collection import CollectionSettings, collect
+    from cosim.experiments import nn_configs, plant_binding
+
+    samples = 500 if quick else 10_000
+    start = time.perf_counter()
+    data = collect(plant_binding("nominal", "switched"), PIController(0.0015, 15.6, 1e-3),
+                   CollectionSettings(samples=samples))
+    collection = time.perf_counter() - start
+    rows = [BenchRow(f"data collection, {samples} samples at 1 ms (switched plant, PI loop)", collection, None, "s")]
+    for name, config in nn_configs(1e-3).items():
+        start = time.perf_counter()
+        model = train(data, config, TrainingSettings(max_iterations=100 if quick else 3000))
+        elapsed = time.perf_counter() - start
+        iterations = model.metadata["training"]["iterations"]
+        rows.append(BenchRow(f"NN training, {config.label}, {samples} samples ({iterations} L-BFGS iterations, "
+                             "early stopping)", elapsed, None, "s"))
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. inference alternatives, same run: what the hot-path choices buy
+
+
+def _median_time(function, repeats: int) -> float:
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        function()
+        samples.append(time.perf_counter_ns() - start)
+    return float(np.median(samples)) * 1e-9
+
+
+def bench_inference(quick: bool) -> list[BenchRow]:
+    from scipy.linalg import expm
+
+    from controllers.predictors import expm2
+    from cosim.experiments import PAPER_PERIOD
+
+    repeats = 50 if quick else 3000
+    model, _ = _nn_model("nnpc", PAPER_PERIOD, quick)
+    rng = np.random.default_rng(0)
+    batch = np.column_stack([rng.uniform(0, 3, 50), rng.uniform(0, 15, 50), rng.uniform(0, 1, 50),
+                             np.full(50, 1 / 6)])
+    torch_time = _median_time(lambda: model.predict_torch(batch), repeats)
+    numpy_time = _median_time(lambda: model.predict(batch), repeats)
+    fast_model = model  # one delay: the shared-history fast path applies
+    history = np.array([[2.0, 12.0, 0.25]])
+    duties = rng.uniform(0, 1, (100, 23))
+    extras = np.array([1 / 6])
+    generic = _median_time(lambda: fast_model.rollout(np.repeat(history[None], 100, axis=0), duties,
+                                                      np.repeat(extras[None], 100, axis=0)), repeats // 10 + 1)
+    shared = _median_time(lambda: fast_model.rollout_shared(history, duties, extras), repeats // 10 + 1)
+    a = np.array([[0.0, -1 / 220e-6], [1 / 10e-6, -1 / (6 * 10e-6)]])
+    scipy_time = _median_time(lambda: expm(a * 1e-3), repeats)
+    closed_time = _median_time(lambda: expm2(a, 1e-3), repeats)
+    return [
+        BenchRow("NN batch prediction (50 candidates): torch.inference_mode", torch_time * 1e6, None, "us"),
+        BenchRow("NN batch prediction (50 candidates): numpy, normalisation folded into the weights",
+                 numpy_time * 1e6, None, "us"),
+        BenchRow("speed-up of numpy over torch for the NN hot path", torch_time / numpy_time, None, "ratio"),
+        BenchRow("NN rollout, 100 sequences x 23 steps: generic batched histories", generic * 1e6, None, "us"),
+        BenchRow("NN rollout, 100 sequences x 23 steps: shared-history fast path", shared * 1e6, None, "us"),
+        BenchRow("speed-up of the shared-history rollout", generic / shared, None, "ratio"),
+        BenchRow("2x2 discretisation: scipy.linalg.expm", scipy_time * 1e6, None, "us"),
+        BenchRow("2x2 discretisation: closed form (expm2)", closed_time * 1e6, None, "us"),
+        BenchRow("speed-up of the closed-form matrix exponential", scipy_time / closed_time, None, "ratio"),
+    ]
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. end to end, and the quality ratios of that very run
+
+
+def bench_reproduction(quick: bool) -> list[BenchRow]:
+    import tempfile
+
+    from cosim.reproduce import FULL, QUICK, reproduce
+    from cosim.runner import period_label
+
+    with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
+        start = time.perf_counter()
+        reproduce(Path(tmp), workers=2, profile=QUICK if quick else FULL)
+        elapsed = time.perf_counter() - start
+        metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv")
+    rows = [BenchRow("end-to-end reproduction (buck-cosim reproduce" + (" --quick" if quick else "") + "), 2 workers",
+                     elapsed, None, "s", "<= 120 s on 2 cores", elapsed <= 120.0)]
+    for pipeline in sorted(set(metrics["pipeline"]), key=lambda p: (("13p33us" in p), p)):
+        if not pipeline.startswith("nominal"):
+            continue
+        m = metrics[metrics["pipeline"] == pipeline]
+        for scenario in dict.fromkeys(m["scenario"]):
+            iae = m[m["scenario"] == scenario].set_index("controller")["iae_Vs"]
+            if {"NNPC", "MPC-oracle", "PI"} <= set(iae.index):
+                rate = pipeline.split("__")[1]
+                target = "<= 1.10" if rate == period_label(1e-3) else ""
+                ratio = iae["NNPC"] / iae["MPC-oracle"]
+                rows.append(BenchRow(f"NNPC IAE / oracle-MPC IAE, {scenario}, {pipeline}", ratio, None, "ratio",
+                                     target, ratio <= 1.10 if target else None))
+                ratio = iae["NNPC"] / iae["PI"]
+                target = "<= 0.6" if rate != period_label(1e-3) else ""
+                rows.append(BenchRow(f"NNPC IAE / PI IAE, {scenario}, {pipeline}", ratio, None, "ratio", target,
+                                     ratio <= 0.6 if target else None))
+    return rows
+
 
 BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "plant": bench_plant,
     "master": bench_master,
+    "controllers": bench_controllers,
+    "training": bench_training,
+    "inference": bench_inference,
+    "reproduction": bench_reproduction,
 }
 
 
@@ -241,5 +422,22 @@ def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool, command: 
     notes = [r for r in rows if r.note]
     if notes:
         lines += ["", "Notes:", ""] + [f"- {r.benchmark}: {r.note}" for r in notes]
+    lines += ["", "## What profiling changed", "",
+              "The end-to-end reproduction is dominated by the predictive controllers at one switching period "
+              "(a 23-step horizon, thousands of samples). cProfile showed the time in the NN rollout, the "
+              "optimizer's array set-up and the model discretisation; the rows above measure each fix "
+              "against the code path it replaced, in this run:",
+              "",
+              "- NN inference in numpy with the normalisation folded into the weights, not torch "
+              "(`speed-up of numpy over torch`);",
+              "- a rollout that computes the measured history's share of the first layer once for all "
+              "candidates (`speed-up of the shared-history rollout`);",
+              "- the 2x2 matrix exponential in closed form instead of scipy's Pade (`speed-up of the "
+              "closed-form matrix exponential`);",
+              "- in the optimizer, refinement that starts from the warm start's fine lattice when the warm "
+              "start wins, so steady samples take one or two batched passes (NNPC p50 vs p99 above);",
+              "- in the master, outputs read as Python floats from a reused ctypes buffer and one finiteness "
+              "test per row instead of numpy calls, and outputs not re-read after a duty change the FMU "
+              "declares no feedthrough for (`master overhead ratio`)."]
     md_path = atomic_write_text(out_dir / ("benchmarks-quick.md" if quick else "benchmarks.md"), "\n".join(lines) + "\n")
     return md_path, csv_path

@@ -62,10 +62,23 @@ def _value(metrics, pipeline, controller, scenario, column):
     return float(rows[column].iloc[0]) if len(rows) else math.nan
 
 
+def benchmark_p99(out_dir: Path) -> float | None:
+    """NNPC p99 compute time at 1 ms from the benchmark table, if ``buck-cosim bench`` has run."""
+    path = Path(out_dir) / "benchmarks.csv"
+    if not path.is_file():
+        return None
+    try:
+        table = pd.read_csv(path)
+        row = table[table["benchmark"].str.startswith("controller compute per step, NNPC, 1 ms")]
+        return float(row["p99"].iloc[0]) if len(row) else None
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 class Targets:
     """The issue's targets, each checked against the measured metrics."""
 
-    def __init__(self, metrics: pd.DataFrame, elapsed: float, pipelines: list[str]):
+    def __init__(self, metrics: pd.DataFrame, elapsed: float, pipelines: list[str], out_dir: Path = Path(".")):
         self.rows: list[dict] = []
         m = metrics
         fast = period_label(SWITCHING_PERIOD)
@@ -104,8 +117,14 @@ class Targets:
         slow = m[(m["controller"] == "NNPC") & m["pipeline"].str.endswith(paper)]
         if len(slow):
             p99 = float(slow["controller_p99_us"].max())
-            add("NNPC compute per step p99 <= 100 us at 1 ms", f"worst run p99 {p99:.0f} us", p99 <= 100.0,
-                "per-run p99 over ~45 samples; the benchmark suite measures it over thousands")
+            measured, met, note = f"worst run p99 {p99:.0f} us", p99 <= 100.0, \
+                "per-run p99 over ~45 samples, two pipelines sharing the cores"
+            bench = benchmark_p99(out_dir)
+            if bench is not None:
+                measured += f"; benchmark suite: p99 {bench:.0f} us"
+                met = bench <= 100.0
+                note = "met/not met from the benchmark (3000 samples, one process; results/benchmarks.md)"
+            add("NNPC compute per step p99 <= 100 us at 1 ms", measured, met, note)
         add("Whole reproduction <= 120 s on 2 cores", f"{elapsed:.1f} s", elapsed <= 120.0)
 
     def frame(self) -> pd.DataFrame:
@@ -115,7 +134,7 @@ class Targets:
 def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, *, profile, seed: int,
                  workers: int) -> Path:
     pipelines = [o.pipeline.tag for o in outputs]
-    targets = Targets(metrics, elapsed, pipelines)
+    targets = Targets(metrics, elapsed, pipelines, out_dir)
     target_frame = targets.frame()
     atomic_write(out_dir / "targets.csv", lambda tmp: target_frame.to_csv(tmp, index=False))
     physics = lc_physics()

@@ -14,5 +14,11 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     markdown = (tmp_path / "benchmarks-quick.md").read_text()
     assert len(table) >= len(BENCHMARKS)
     assert (table["median"] > 0).all()
-    assert "master overhead ratio" in markdown and "| benchmark | median | p99 |" in markdown
+    assert "| benchmark | median | p99 |" in markdown and "## What profiling changed" in markdown
+    for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms",
+                "controller compute per step, MPC-mismatched, 13.33 us", "data collection, 500 samples",
+                "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
+                "NNPC IAE / oracle-MPC IAE, startup"):
+        assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
+    assert table["machine"].iloc[0].endswith("cores)")
