@@ -15,6 +15,7 @@ of the weights, and refuses anything else with a one-line :class:`ModelFileError
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -394,7 +395,9 @@ def save_model(model: NNPlantModel, path: Path) -> Path:
         "metadata": model.metadata,
         "checksum": _checksum(state, norm),
     }
-    return atomic_write(Path(path), lambda tmp: torch.save(payload, tmp))
+    buffer = io.BytesIO()  # not the temporary file: torch names the archive's folder after the file
+    torch.save(payload, buffer)
+    return atomic_write(Path(path), lambda tmp: tmp.write_bytes(buffer.getvalue()))
 
 
 def load_model(path: Path, expect_period: float | None = None,

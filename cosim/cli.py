@@ -87,7 +87,11 @@ def cmd_run(args) -> int:
                                    progress=args.progress)
     batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=tag, interface=args.interface,
                       record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
-                      progress=args.progress)
+                      progress=args.progress, stream=args.stream)
+    if args.stream:
+        for result in batch.results:
+            print(f"streamed {result.metadata['rows']} rows to {result.metadata['streamed_to']}")
+        return 0
     files = write_metrics(batch.metrics, out_dir / "metrics" / f"metrics__{tag}")
     columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "settling_time_ms",
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
@@ -297,6 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="output folder (default: results/runs-cli)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
+    p.add_argument("--stream", action="store_true",
+                   help="for long runs: write rows to Parquet while running, in bounded memory (no CSV, metrics "
+                        "or figures)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("collect-data", help="collect NN training data with the tuned PI (paper Section IV)",

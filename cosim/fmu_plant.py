@@ -230,7 +230,10 @@ class FmuPlant:
             self._write_inputs(inputs)
             fmu.exitInitializationMode()
         except FMICallException as error:
-            raise self._fail(error.function, error.status, at=start_time) from None
+            # failing before the first step means the set-up was refused: a parameter, start value
+            # or input the FMU does not accept (its log message names it) -- a configuration error
+            failure = self._fail(error.function, error.status, at=start_time)
+            raise ConfigError(str(failure)) from None
         self.time = start_time
         self._initialized = True
         if self.interface == MODEL_EXCHANGE:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import time as wallclock
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -25,13 +26,16 @@ from controllers.base import Controller, Measurement
 from cosim.binding import PlantBinding
 from cosim.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmu_plant import FmuPlant
-from cosim.results import COLUMNS, RunResult, run_metadata
+from cosim.results import COLUMNS, RunResult, RunStream, run_metadata
 from cosim.scenarios import Scenario
 
 CONTROL, RECORD, EVENT = 1, 2, 4
 #: instants closer than this are one instant [s]; far below any period, far above float rounding
 MERGE_TOLERANCE = 1e-12
-MAX_INSTANTS = 20_000_000
+MAX_INSTANTS = 200_000_000  # a sanity limit; memory stays bounded below it (windows)
+STREAM_CHUNK = 16_384  # rows held in memory between writes when streaming
+WINDOW_INSTANTS = 16_384  # instants generated at a time
+WHOLE_TIMELINE_LIMIT = 5_000_000  # build_timeline() refuses more (the master itself iterates windows)
 
 
 class RunFailed(WorkbenchError):
@@ -56,18 +60,67 @@ class Timeline:
         return len(self.times)
 
 
-def _grid(period: float, end: float) -> np.ndarray:
-    count = int(math.floor(end / period * (1 + 1e-12) + 1e-9))
-    return np.arange(count + 1) * period
+@dataclass(frozen=True)
+class TimelinePlan:
+    """The three grids of a run, generated a window at a time so long runs stay in bounded memory."""
+
+    control_period: float
+    record_period: float
+    settle: float  # [s] plant time of scenario t = 0 (a whole number of control periods)
+    end: float  # [s] plant time at the end
+    control_count: int  # control instants k = 0 .. control_count - 1 at k * control_period
+    record_count: int  # recording instants j = 0 .. record_count - 1 at settle + j * record_period
+    events: np.ndarray  # plant-event times (load, supply)
+
+    @property
+    def instants(self) -> int:
+        return self.control_count + self.record_count
+
+    def _record_index(self, t: float) -> int:
+        """Number of recording instants strictly before t - tolerance (a window's half-open edge)."""
+        if math.isinf(t):
+            return self.record_count
+        return max(0, min(self.record_count, math.ceil((t - MERGE_TOLERANCE - self.settle) / self.record_period)))
+
+    def window(self, k0: int, k1: int) -> Timeline:
+        """Merged instants from control sample k0 up to (not including) sample k1; the last window
+        also holds everything after the last control sample."""
+        last = k1 >= self.control_count
+        k1 = min(k1, self.control_count)
+        lo, hi = k0 * self.control_period, math.inf if last else k1 * self.control_period
+        control = np.arange(k0, k1) * self.control_period
+        record = self.settle + np.arange(self._record_index(lo), self._record_index(hi)) * self.record_period
+        events = self.events[(self.events >= lo - MERGE_TOLERANCE) & (self.events < hi - MERGE_TOLERANCE)]
+        times = np.concatenate([control, record, events])
+        flags = np.concatenate([np.full(len(control), CONTROL), np.full(len(record), RECORD),
+                                np.full(len(events), EVENT)]).astype(np.int8)
+        priority = np.concatenate([np.zeros(len(control)), np.ones(len(record)), np.full(len(events), 2)])
+        order = np.lexsort((priority, times))
+        times, flags = times[order], flags[order]
+        if not len(times):
+            return Timeline(times=times, flags=flags, settle=self.settle)
+        new_group = np.concatenate([[True], np.diff(times) > MERGE_TOLERANCE])
+        group = np.cumsum(new_group) - 1
+        merged_times = times[new_group]  # first of each group: the control instant when there is one
+        merged_flags = np.zeros(len(merged_times), dtype=np.int8)
+        np.bitwise_or.at(merged_flags, group, flags)
+        keep = merged_times <= self.end + MERGE_TOLERANCE
+        return Timeline(times=merged_times[keep], flags=merged_flags[keep], settle=self.settle)
+
+    def windows(self, size: int = WINDOW_INSTANTS):
+        """Consecutive windows of about ``size`` instants covering the run."""
+        per_control = 1 + self.control_period / self.record_period
+        step = max(1, int(size / per_control))
+        for k0 in range(0, self.control_count, step):
+            yield self.window(k0, k0 + step)
 
 
-def build_timeline(scenario: Scenario, control_period: float, record_period: float) -> Timeline:
-    """Merge control samples, recording points and plant events into one sorted grid."""
+def plan_timeline(scenario: Scenario, control_period: float, record_period: float) -> TimelinePlan:
+    """Validate the periods and lay out the grids of a run (see :class:`TimelinePlan`)."""
     for label, value in (("control period", control_period), ("record period", record_period)):
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{label} = {value} s is invalid: expected a finite value > 0")
-    settle_periods = math.ceil(scenario.settle / control_period - 1e-9)
-    settle = settle_periods * control_period
+    settle = math.ceil(scenario.settle / control_period - 1e-9) * control_period
     end = settle + scenario.duration
     expected = end / control_period + scenario.duration / record_period
     if expected > MAX_INSTANTS:
@@ -75,23 +128,20 @@ def build_timeline(scenario: Scenario, control_period: float, record_period: flo
             f"scenario {scenario.name}: {expected:.3g} instants for {scenario.duration} s at control period "
             f"{control_period} s and record period {record_period} s; the limit is {MAX_INSTANTS:.0e}"
         )
-    control = _grid(control_period, end)
-    record = settle + _grid(record_period, scenario.duration)
-    events = np.array([settle + e.time for e in scenario.events
-                       if any(k != "reference" for k in e.changes)], dtype=float)
-    times = np.concatenate([control, record, events])
-    flags = np.concatenate([np.full(len(control), CONTROL), np.full(len(record), RECORD),
-                            np.full(len(events), EVENT)]).astype(np.int8)
-    priority = np.concatenate([np.zeros(len(control)), np.ones(len(record)), np.full(len(events), 2)])
-    order = np.lexsort((priority, times))
-    times, flags = times[order], flags[order]
-    new_group = np.concatenate([[True], np.diff(times) > MERGE_TOLERANCE])
-    group = np.cumsum(new_group) - 1
-    merged_times = times[new_group]  # first of each group: the control instant when there is one
-    merged_flags = np.zeros(len(merged_times), dtype=np.int8)
-    np.bitwise_or.at(merged_flags, group, flags)
-    keep = merged_times <= end + MERGE_TOLERANCE
-    return Timeline(times=merged_times[keep], flags=merged_flags[keep], settle=settle)
+    control_count = int(math.floor(end / control_period * (1 + 1e-12) + 1e-9)) + 1
+    record_count = int(math.floor(scenario.duration / record_period * (1 + 1e-12) + 1e-9)) + 1
+    events = np.array([settle + e.time for e in scenario.events if any(k != "reference" for k in e.changes)],
+                      dtype=float)
+    return TimelinePlan(control_period, record_period, settle, end, control_count, record_count, events)
+
+
+def build_timeline(scenario: Scenario, control_period: float, record_period: float) -> Timeline:
+    """All merged instants of a run at once (fine for short runs; long runs iterate windows)."""
+    plan = plan_timeline(scenario, control_period, record_period)
+    if plan.instants > WHOLE_TIMELINE_LIMIT:
+        raise ConfigError(f"scenario {scenario.name}: {plan.instants:.3g} instants are too many to hold at once; "
+                          "iterate plan_timeline(...).windows() instead")
+    return plan.window(0, plan.control_count)
 
 
 def _signal_at(timeline: Timeline, schedule: list[tuple[float, float]]) -> np.ndarray:
@@ -101,6 +151,27 @@ def _signal_at(timeline: Timeline, schedule: list[tuple[float, float]]) -> np.nd
     index = np.searchsorted(event_times, timeline.times + MERGE_TOLERANCE, side="right") - 1
     index[index < 0] = 0  # the settle interval runs at the initial values
     return values[index]
+
+
+def check_step_sizes(plant: FmuPlant, plan: TimelinePlan) -> None:
+    """Refuse a non-uniform grid for a co-simulation FMU that cannot vary its communication step."""
+    cs = plant.model_description.coSimulation
+    if plant.interface != "co-simulation" or cs is None or cs.canHandleVariableCommunicationStepSize:
+        return
+    low, high, previous = math.inf, 0.0, None
+    for window in plan.windows():
+        times = window.times if previous is None else np.concatenate([[previous], window.times])
+        if len(times) > 1:
+            steps = np.diff(times)
+            low, high = min(low, steps.min()), max(high, steps.max())
+        previous = window.times[-1] if len(window.times) else previous
+    if high - low > 1e-9 * high:
+        raise ConfigError(
+            f"{plant.binding.origin}: the FMU cannot change its communication step size, but control period "
+            f"{plan.control_period:.6g} s, record period {plan.record_period:.6g} s and the scenario's events give "
+            f"steps from {low:.6g} s to {high:.6g} s: use a record period that divides the control period and "
+            "events on that grid"
+        )
 
 
 def check_plant_supports(binding: PlantBinding, scenario: Scenario) -> None:
@@ -114,19 +185,23 @@ def check_plant_supports(binding: PlantBinding, scenario: Scenario) -> None:
 
 
 def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float = 1e-5,
-        seed: int | None = None, progress: bool = False, extra_metadata: dict | None = None) -> RunResult:
+        seed: int | None = None, progress: bool = False, extra_metadata: dict | None = None,
+        stream_to: Path | None = None) -> RunResult:
     """Run one closed-loop scenario; return every recorded row as a :class:`RunResult`.
 
     The plant instance is reset and re-initialised here, so one instance serves many runs.
     On a plant or controller fault, or Ctrl-C, raises :class:`RunFailed` / :class:`RunInterrupted`
     carrying the rows recorded so far.
+
+    ``stream_to``: write the rows to this Parquet file in chunks while running (memory stays
+    bounded however long the run); the returned result then has an empty frame and the file's
+    metadata, complete or not.
     """
     check_plant_supports(plant.binding, scenario)
     control_period = controller.sample_period
-    timeline = build_timeline(scenario, control_period, record_period)
-    reference = _signal_at(timeline, scenario.schedule("reference"))
-    load = _signal_at(timeline, scenario.schedule("load_resistance"))
-    supply = _signal_at(timeline, scenario.schedule("input_voltage"))
+    plan = plan_timeline(scenario, control_period, record_period)
+    check_step_sizes(plant, plan)
+    schedules = [scenario.schedule(s) for s in ("reference", "load_resistance", "input_voltage")]
 
     roles_in = plant.input_roles
     roles_out = plant.output_roles
@@ -136,84 +211,96 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     # the controller reads its sensors: the measured roles where bound, else the plain outputs
     i_mv = roles_out.index("measured_output_voltage") if "measured_output_voltage" in roles_out else i_vo
     i_mi = roles_out.index("measured_inductor_current") if "measured_inductor_current" in roles_out else i_il
-    inputs = {"duty_cycle": 0.0, "input_voltage": supply[0], "load_resistance": load[0]}
+    inputs = {"duty_cycle": 0.0, "input_voltage": schedules[2][0][1], "load_resistance": schedules[1][0][1]}
     # after a duty change alone, outputs need re-reading only if the FMU declares a feedthrough
     duty_feedthrough = plant.feedthrough.get("duty_cycle", True)
 
-    recorded = (timeline.flags & RECORD) != 0
-    recorded |= ((timeline.flags & CONTROL) != 0) & (timeline.times >= timeline.settle - MERGE_TOLERANCE)
     rows: list[tuple] = []
     metadata = run_metadata(scenario=scenario, controller=controller, plant=plant, control_period=control_period,
                             record_period=record_period, seed=seed, extra=extra_metadata)
     nan = math.nan
+    stream = RunStream(stream_to) if stream_to is not None else None
+
+    def flush() -> None:
+        stream.write(np.array(rows, dtype=float).reshape(len(rows), len(COLUMNS)))
+        rows.clear()
 
     def result(complete: bool, error: str | None = None) -> RunResult:
         data = np.array(rows, dtype=float).reshape(len(rows), len(COLUMNS))
-        return RunResult.from_array(data, metadata, complete=complete, error=error)
+        if stream is None:
+            return RunResult.from_array(data, metadata, complete=complete, error=error)
+        flush()
+        empty = RunResult.from_array(np.empty((0, len(COLUMNS))), metadata, complete=complete, error=error)
+        stream.close(empty.metadata)
+        empty.metadata.update({"rows": stream.rows, "streamed_to": str(stream_to)})
+        return empty
 
     if plant._initialized:
         plant.reset()
-    bar = _progress_bar(progress, timeline.size, f"{scenario.name} / {controller.name}")
+    bar = _progress_bar(progress, plan.instants, f"{scenario.name} / {controller.name}")
     t = 0.0
-    settle = timeline.settle
+    settle = plan.settle
     try:
         plant.initialize([inputs[r] for r in roles_in], start_time=0.0)
         controller.reset()
         duty = 0.0
-        # plain lists: indexing them is several times cheaper than numpy scalars in this loop
-        times, flags = timeline.times.tolist(), timeline.flags.tolist()
-        references, loads, supplies, record_flags = reference.tolist(), load.tolist(), supply.tolist(), recorded.tolist()
-        last_load, last_supply = loads[0], supplies[0]
+        last_load, last_supply = inputs["load_resistance"], inputs["input_voltage"]
         advance, outputs, set_inputs, step = plant.advance_to, plant.outputs, plant.set_inputs, controller.step
         append, clock = rows.append, wallclock.perf_counter_ns
-        for i in range(timeline.size):
-            t = times[i]
-            flag = flags[i]
-            advance(t)
-            y = None
-            if loads[i] != last_load or supplies[i] != last_supply:
-                last_load, last_supply = loads[i], supplies[i]
-                inputs["load_resistance"], inputs["input_voltage"] = last_load, last_supply
-                set_inputs([inputs[r] for r in roles_in])
-            compute = nan
-            if flag & CONTROL:
-                y = outputs()
-                _check_finite(y, roles_out, t - settle)
-                measurement = Measurement(t - settle, references[i], y[i_mv], y[i_mi] if i_mi >= 0 else nan,
-                                          y[i_io] if i_io >= 0 else nan, last_supply)
-                start = clock()
-                try:
-                    duty = step(measurement)
-                except WorkbenchError:
-                    raise
-                except Exception as error:
-                    raise ControllerError(
-                        f"controller {controller.name} raised {type(error).__name__} at t = {t - settle:.9g} s: {error}"
-                    ) from None
-                compute = (clock() - start) * 1e-9
-                if not (isinstance(duty, (int, float, np.floating)) and math.isfinite(duty)):
-                    raise ControllerError(
-                        f"controller {controller.name} returned duty cycle {duty!r} at t = {t - settle:.9g} s: "
-                        "expected a finite number"
-                    )
-                duty = float(duty)
-                inputs["duty_cycle"] = duty
-                set_inputs([inputs[r] for r in roles_in])
-                if duty_feedthrough:
-                    y = None
-            if record_flags[i]:
-                if y is None:
+        for window in plan.windows():
+            # plain lists: indexing them is several times cheaper than numpy scalars in this loop
+            times, flags = window.times.tolist(), window.flags.tolist()
+            references, loads, supplies = (_signal_at(window, schedule).tolist() for schedule in schedules)
+            recorded = (window.flags & RECORD) != 0
+            recorded |= ((window.flags & CONTROL) != 0) & (window.times >= settle - MERGE_TOLERANCE)
+            record_flags = recorded.tolist()
+            for i in range(window.size):
+                t = times[i]
+                flag = flags[i]
+                advance(t)
+                y = None
+                if loads[i] != last_load or supplies[i] != last_supply:
+                    last_load, last_supply = loads[i], supplies[i]
+                    inputs["load_resistance"], inputs["input_voltage"] = last_load, last_supply
+                    set_inputs([inputs[r] for r in roles_in])
+                compute = nan
+                if flag & CONTROL:
                     y = outputs()
-                    _check_finite(y, roles_out, t - settle)
-                append((t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan, y[i_mv],
-                        y[i_mi] if i_mi >= 0 else nan, y[i_io] if i_io >= 0 else nan, duty, last_load,
-                        last_supply, 1.0 if flag & CONTROL else 0.0, compute))
-            if bar is not None and i % 2048 == 0:
-                bar.update(min(2048, timeline.size - bar.n))
+                    _check_finite(y, roles_out, t - settle, plant.binding.origin)
+                    measurement = Measurement(t - settle, references[i], y[i_mv], y[i_mi] if i_mi >= 0 else nan,
+                                              y[i_io] if i_io >= 0 else nan, last_supply)
+                    start = clock()
+                    try:
+                        duty = step(measurement)
+                    except WorkbenchError:
+                        raise
+                    except Exception as error:
+                        raise ControllerError(f"controller {controller.name} raised {type(error).__name__} at "
+                                              f"t = {t - settle:.9g} s: {error}") from None
+                    compute = (clock() - start) * 1e-9
+                    if not (isinstance(duty, (int, float, np.floating)) and math.isfinite(duty)):
+                        raise ControllerError(f"controller {controller.name} returned duty cycle {duty!r} at "
+                                              f"t = {t - settle:.9g} s: expected a finite number")
+                    duty = float(duty)
+                    inputs["duty_cycle"] = duty
+                    set_inputs([inputs[r] for r in roles_in])
+                    if duty_feedthrough:
+                        y = None
+                if record_flags[i]:
+                    if y is None:
+                        y = outputs()
+                        _check_finite(y, roles_out, t - settle, plant.binding.origin)
+                    append((t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan, y[i_mv],
+                            y[i_mi] if i_mi >= 0 else nan, y[i_io] if i_io >= 0 else nan, duty, last_load,
+                            last_supply, 1.0 if flag & CONTROL else 0.0, compute))
+            if stream is not None and len(rows) >= STREAM_CHUNK:
+                flush()
+            if bar is not None:
+                bar.update(window.size)
     except KeyboardInterrupt:
-        partial = result(False, f"interrupted at t = {t - timeline.settle:.9g} s")
+        partial = result(False, f"interrupted at t = {t - settle:.9g} s")
         raise RunInterrupted(f"run {scenario.name} / {controller.name} interrupted at t = "
-                             f"{t - timeline.settle:.6g} s; {len(rows)} rows kept", partial) from None
+                             f"{t - settle:.6g} s; {partial.metadata['rows']} rows kept", partial) from None
     except (PlantError, ControllerError) as error:
         partial = result(False, str(error))
         raise RunFailed(str(error), partial, error) from None
@@ -223,10 +310,10 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     return result(True)
 
 
-def _check_finite(values: list[float], roles: tuple[str, ...], t: float) -> None:
+def _check_finite(values: list[float], roles: tuple[str, ...], t: float, origin: str) -> None:
     if sum(values) * 0.0 != 0.0:  # NaN or +-inf anywhere (cheaper than a per-element test)
         bad = [f"{r} = {v}" for r, v in zip(roles, values) if not math.isfinite(v)]
-        raise PlantError(f"plant output became non-finite at t = {t:.9g} s ({', '.join(bad)})")
+        raise PlantError(f"{origin}: plant output became non-finite at t = {t:.9g} s ({', '.join(bad)})")
 
 
 def _progress_bar(enabled: bool, total: int, label: str):

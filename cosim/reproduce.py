@@ -18,9 +18,10 @@ so an interrupted reproduction keeps what finished, and ``--resume`` skips finis
 from __future__ import annotations
 
 import json
+import multiprocessing
+import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -181,6 +182,22 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
     return output
 
 
+def _worker_signals() -> None:
+    """Workers leave Ctrl-C to the main process and die quietly when it terminates them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _run_job(job) -> PipelineOutput:
+    return run_pipeline(*job)
+
+
+def _remove_partial_files(out_dir: Path) -> None:
+    """Delete temporary files of writes that a terminated worker left unfinished."""
+    for stale in Path(out_dir).rglob(".*.tmp-*"):
+        stale.unlink(missing_ok=True)
+
+
 def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
     """A pipeline whose summary and metrics were written by an earlier (interrupted) run."""
     summary = out_dir / "pipelines" / f"{pipeline.tag}.json"
@@ -228,15 +245,21 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
         for done, p in enumerate(todo, start=1):
             outputs[p] = run_pipeline(p, out_dir, profile, seed)
             log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            # longest first (the fast-rate pipelines), so the two workers finish together
-            ordered_todo = sorted(todo, key=lambda p: p.control_period)
-            futures = {pool.submit(run_pipeline, p, out_dir, profile, seed): p for p in ordered_todo}
-            for done, future in enumerate(as_completed(futures), start=1):
-                output = future.result()
+    elif todo:
+        # longest first (the fast-rate pipelines), so the workers finish together
+        jobs = [(p, out_dir, profile, seed) for p in sorted(todo, key=lambda p: p.control_period)]
+        pool = multiprocessing.get_context("fork").Pool(min(workers, len(jobs)), initializer=_worker_signals)
+        try:
+            for done, output in enumerate(pool.imap_unordered(_run_job, jobs), start=1):
                 outputs[output.pipeline] = output
                 log(f"[{done}/{len(todo)}] {output.pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
+            pool.close()
+        except BaseException:
+            pool.terminate()  # stop unfinished pipelines now; finished ones are on disk
+            pool.join()
+            _remove_partial_files(out_dir)
+            raise
+        pool.join()
     ordered = [outputs[p] for p in selected]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")

@@ -200,6 +200,51 @@ def write_run(result: RunResult, directory: Path, stem: str) -> dict[str, Path]:
     return paths
 
 
+class RunStream:
+    """Writes a run's rows to Parquet in chunks as they come, for runs too long to hold in memory.
+
+    ``<stem>.parquet`` (deterministic columns) and ``<stem>.timing.parquet`` (wall clock) grow
+    under temporary names; :meth:`close` stores the final metadata (complete or not) in the
+    Parquet footer and a JSON sidecar, and renames both into place.
+    """
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._timing_path = self.path.with_name(f"{self.path.stem}.timing.parquet")
+        self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        self._tmp_timing = self._timing_path.with_name(f".{self._timing_path.name}.tmp-{os.getpid()}")
+        self._writers = None
+        self.rows = 0
+
+    @staticmethod
+    def _tables(data: np.ndarray) -> tuple[pa.Table, pa.Table]:
+        frame = RunResult.from_array(data, {}, complete=False).frame
+        return (pa.Table.from_pandas(_deterministic_part(frame), preserve_index=False),
+                pa.Table.from_pandas(frame[["time", *WALLCLOCK_COLUMNS]], preserve_index=False))
+
+    def write(self, data: np.ndarray) -> None:
+        main, timing = self._tables(data)
+        if self._writers is None:
+            self._writers = (pq.ParquetWriter(self._tmp, main.schema), pq.ParquetWriter(self._tmp_timing, timing.schema))
+        if len(data):
+            self._writers[0].write_table(main)
+            self._writers[1].write_table(timing)
+            self.rows += len(data)
+
+    def close(self, metadata: dict) -> Path:
+        if self._writers is None:  # nothing was recorded: still leave a valid, empty table
+            self.write(np.empty((0, len(COLUMNS))))
+        meta = {**metadata, "rows": self.rows, "streamed": True}
+        self._writers[0].add_key_value_metadata({METADATA_KEY: json.dumps(meta, sort_keys=True).encode()})
+        for writer in self._writers:
+            writer.close()
+        os.replace(self._tmp, self.path)
+        os.replace(self._tmp_timing, self._timing_path)
+        atomic_write_text(self.path.with_suffix(".json"), json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        return self.path
+
+
 def read_run(path: Path) -> RunResult:
     """Read a run written by :func:`write_run` from its ``.parquet`` or ``.csv`` file."""
     path = Path(path)
@@ -211,8 +256,10 @@ def read_run(path: Path) -> RunResult:
     else:
         raise ValueError(f"{path}: expected a .parquet or .csv run file")
     timing_path = path.with_name(f"{path.stem}.timing.csv")
-    if timing_path.is_file():
-        timing = pd.read_csv(timing_path)
+    timing_parquet = path.with_name(f"{path.stem}.timing.parquet")
+    timing = pd.read_csv(timing_path) if timing_path.is_file() else \
+        pq.read_table(timing_parquet).to_pandas() if timing_parquet.is_file() else None
+    if timing is not None:
         for column in WALLCLOCK_COLUMNS:
             if column in timing:
                 frame[column] = timing[column].to_numpy()

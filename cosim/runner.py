@@ -51,8 +51,12 @@ class BatchOutput:
 def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenarios: Iterable[Scenario], out_dir: Path,
               *, plant_tag: str, interface: str | None = None, record_period: float = 1e-5, seed: int | None = None,
               figures: bool = True, progress: bool = False, extra_metadata: dict | None = None,
-              on_run: Callable[[RunResult], None] | None = None) -> BatchOutput:
-    """Run every controller on every scenario with one reused plant instance; write runs, metrics, figures."""
+              on_run: Callable[[RunResult], None] | None = None, stream: bool = False) -> BatchOutput:
+    """Run every controller on every scenario with one reused plant instance; write runs, metrics, figures.
+
+    ``stream``: write each run's rows to Parquet while it runs (bounded memory for long runs); no
+    CSV, metrics or figures then -- the returned results carry metadata only.
+    """
     out_dir = Path(out_dir)
     controllers, scenarios = list(controllers), list(scenarios)
     for scenario in scenarios:  # refuse before running anything
@@ -64,23 +68,28 @@ def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenario
             per_scenario: list[RunResult] = []
             for controller in controllers:
                 stem = run_stem(scenario, controller, plant_tag)
+                target = out_dir / "runs" / f"{stem}.parquet" if stream else None
                 try:
                     result = run(plant, controller, scenario, record_period=record_period, seed=seed,
-                                 progress=progress, extra_metadata=extra_metadata)
+                                 progress=progress, extra_metadata=extra_metadata, stream_to=target)
                 except (RunFailed, RunInterrupted) as error:
-                    if error.partial is not None:
+                    if error.partial is not None and not stream:  # a streamed run wrote its rows already
                         files.extend(write_run(error.partial, out_dir / "runs", stem).values())
                     raise
-                files.extend(write_run(result, out_dir / "runs", stem).values())
+                if stream:
+                    files.append(target)
+                else:
+                    files.extend(write_run(result, out_dir / "runs", stem).values())
                 per_scenario.append(result)
                 if on_run is not None:
                     on_run(result)
             results.extend(per_scenario)
-            if figures:
+            if figures and not stream:
                 files.extend(plot_scenario(per_scenario, out_dir / "figures" / f"{scenario.name}__{plant_tag}__"
                                            f"{period_label(controllers[0].sample_period)}"))
-    table = metrics_table(results)
-    table.insert(2, "plant_tag", plant_tag)
+    table = metrics_table(results) if not stream else pd.DataFrame()
+    if len(table):
+        table.insert(2, "plant_tag", plant_tag)
     return BatchOutput(results=results, metrics=table, files=files)
 
 

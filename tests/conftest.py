@@ -147,3 +147,28 @@ def me_only_fmu(tmp_path_factory) -> Path:
     xml = xml.replace('modelIdentifier="BuckConverter"', 'modelIdentifier="BuckConverterME"')
     xml_path.write_text(xml)
     return compile_fmu(unzipdir, out / "BuckConverterME.fmu")
+
+
+@pytest.fixture(scope="session")
+def faulty_fmu(tmp_path_factory) -> Path:
+    """A pythonfmu plant that fails on purpose at fault_time (discard, error or NaN by fault_kind)."""
+    from pythonfmu.builder import FmuBuilder
+
+    out = tmp_path_factory.mktemp("faulty")
+    return Path(FmuBuilder.build_FMU(CORPUS / "faulty_buck.py", dest=out))
+
+
+@pytest.fixture(scope="session")
+def fixed_step_fmu(tmp_path_factory, buck_fmu) -> Path:
+    """The built-in FMU declaring canHandleVariableCommunicationStepSize="false"."""
+    import zipfile
+
+    out = tmp_path_factory.mktemp("fixed_step") / "FixedStep.fmu"
+    with zipfile.ZipFile(buck_fmu) as source, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as target:
+        for info in source.infolist():
+            data = source.read(info.filename)
+            if info.filename == "modelDescription.xml":
+                data = data.replace(b'canHandleVariableCommunicationStepSize="true"',
+                                    b'canHandleVariableCommunicationStepSize="false"')
+            target.writestr(info, data)
+    return out

@@ -216,3 +216,15 @@ def test_role_scaling_converts_units(averaged):
         plant.advance_to(0.01)
         scaled = plant.outputs()
     assert scaled[0] == pytest.approx(direct[0] / 1000.0, rel=1e-15)
+
+
+def test_windows_partition_the_timeline_exactly():
+    from cosim.master import plan_timeline
+
+    s = load_scenario("load_change")
+    for control, record in ((1e-3, 1e-5), (1 / 75e3, 1e-5), (1e-3, 3e-6)):
+        whole = build_timeline(s, control, record)
+        parts = list(plan_timeline(s, control, record).windows(size=1000))
+        assert len(parts) > 3
+        assert np.array_equal(np.concatenate([w.times for w in parts]), whole.times)
+        assert np.array_equal(np.concatenate([w.flags for w in parts]), whole.flags)
