@@ -100,44 +100,44 @@ def stage_sources(unzipdir: Path) -> None:
     _stage_sources(Path(unzipdir))
 
 
-def compile_fmu(unzipdir: Path, target: Path) -> Path:
-    """Compile a staged FMU folder with fmpy's CMake build and zip it atomically to ``target``."""
+def _zip_into(unzipdir: Path, target: Path, compile_first: bool) -> Path:
+    """Optionally compile a staged FMU folder (fmpy's CMake build), then zip it atomically to ``target``."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
         tmp_path = Path(tmp)
-        _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log")
+        if compile_first:
+            _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log")
         staged = tmp_path / "staged.fmu"
         fmpy.util.create_zip_archive(staged, unzipdir)
         os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
     return target
 
 
-def fmu_path(force: bool = False) -> Path:
-    """Path of the compiled BuckConverter FMU (model exchange + co-simulation), building it if needed."""
-    target = cache_dir() / f"{MODEL_IDENTIFIER}-{source_digest()}.fmu"
+def compile_fmu(unzipdir: Path, target: Path) -> Path:
+    """Compile a staged FMU folder with fmpy's CMake build and zip it atomically to ``target``."""
+    return _zip_into(unzipdir, target, compile_first=True)
+
+
+def _cached(suffix: str, compile_first: bool, force: bool) -> Path:
+    target = cache_dir() / f"{MODEL_IDENTIFIER}-{source_digest()}{suffix}.fmu"
     if target.is_file() and not force:
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".stage-") as tmp:
         unzipdir = Path(tmp) / MODEL_IDENTIFIER
         _stage_sources(unzipdir)
-        return compile_fmu(unzipdir, target)
+        return _zip_into(unzipdir, target, compile_first)
+
+
+def fmu_path(force: bool = False) -> Path:
+    """Path of the compiled BuckConverter FMU (model exchange + co-simulation), building it if needed."""
+    return _cached("", compile_first=True, force=force)
 
 
 def source_fmu_path(force: bool = False) -> Path:
     """Path of a source-only FMU (modelDescription.xml + sources/) that other tools can compile."""
-    target = cache_dir() / f"{MODEL_IDENTIFIER}-{source_digest()}-source.fmu"
-    if target.is_file() and not force:
-        return target
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
-        unzipdir = Path(tmp) / MODEL_IDENTIFIER
-        _stage_sources(unzipdir)
-        staged = Path(tmp) / "staged.fmu"
-        fmpy.util.create_zip_archive(staged, unzipdir)
-        os.replace(staged, target)
-    return target
+    return _cached("-source", compile_first=False, force=force)
 
 
 def export_fmus(output_dir: Path, force: bool = False) -> tuple[Path, Path]:
