@@ -283,13 +283,13 @@ def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = Tra
           metadata: dict | None = None, progress: bool = False) -> NNPlantModel:
     """Identify the network from a sample table (time order); RMSEs on the held-out tail in metadata."""
     n = len(frame)
+    if n < 100:
+        raise ValueError(f"{n} samples are too few to train on: expected at least 100")
     test_start = int(round(n * (1 - settings.test_fraction)))
     train_frame, test_frame = frame.iloc[:test_start], frame.iloc[test_start:]
     x, y = build_dataset(train_frame, config)
     if config.residual:
         y = y - x[:, :2]  # the network learns the change over one sample
-    if len(x) < 20:
-        raise ValueError(f"{len(frame)} samples are too few to train on: expected at least 100")
     rng = np.random.default_rng(settings.seed)
     order = rng.permutation(len(x))
     n_val = max(1, int(round(len(x) * settings.validation_fraction)))

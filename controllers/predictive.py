@@ -85,8 +85,8 @@ class HorizonOptimizer:
     * few blocks: a full lattice of offsets -h..h steps per block (17 points for one block, 5 per
       block for three), the step shrinking by 2h per pass so each lattice spans the previous cell;
     * many blocks: a pattern search (moves of -4..4 steps along each block, one step along each
-      pair of blocks in all four sign combinations, and all blocks together) from a step of 1/8 of
-      the duty range, divided by three per pass.
+      pair of blocks in all four sign combinations, and 1, 2, 4 or 8 steps of all blocks together)
+      from a step of 1/8 of the duty range, divided by three per pass.
     Refinement starts from the warm lattice's fine step when the warm start won stage 1, so steady
     operation needs few passes; passes stop at ``duty_tolerance`` or after ``refine_iterations``.
     """
@@ -129,7 +129,7 @@ class HorizonOptimizer:
                         row = np.zeros((1, nb))
                         row[0, i], row[0, j] = a, b
                         moves.append(row)
-            moves += [np.ones((1, nb)), -np.ones((1, nb))]
+            moves += [v * np.ones((1, nb)) for v in (-8.0, -4.0, -2.0, -1.0, 1.0, 2.0, 4.0, 8.0)]
             self._lattice = np.vstack(moves)
             self._shrink = 3.0
             self._full_lattice = False
@@ -207,7 +207,8 @@ class HorizonOptimizer:
         index = int(np.argmin(costs))
         best, best_cost = candidates[index].copy(), float(costs[index])
         self.best_location = (0, index)
-        near_warm = n_warm and np.max(np.abs(best - self._warm_center)) <= self.warm_span
+        # strictly inside the warm lattice: on its edge the optimum may lie further out
+        near_warm = n_warm and np.max(np.abs(best - self._warm_center)) < self.warm_span - 0.5 * self.warm_step
         if near_warm:  # the best lies where the warm lattice already looked: refine from its fine step
             step = self.warm_step / self._shrink
         else:

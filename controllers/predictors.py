@@ -118,7 +118,8 @@ class AveragedModelPredictor:
 
     In CCM: L diL/dt = d (Vs + V_F) - V_F - (d R_on + R_L + k R_esr) iL - k vC, C dvC/dt = k iL - vC/(R + R_esr),
     vo = k (vC + R_esr iL), k = R / (R + R_esr). The d R_on term is frozen at the previous duty so the
-    model stays linear; a predicted negative current is clipped to zero (the diode). Matrices are
+    model stays linear; a predicted negative current is clipped to zero (the diode) before the
+    disturbance estimate is added. Matrices are
     cached per load estimate.
     """
 
@@ -165,8 +166,8 @@ class AveragedModelPredictor:
         for j in range(n):
             node = duties[:, j] * drive - p.diode_forward_voltage
             y = y @ phi_y_t + node[:, None] * gamma_y[None, :]
-            y += disturbance
-            np.maximum(y[:, 0], 0.0, out=y[:, 0])
+            np.maximum(y[:, 0], 0.0, out=y[:, 0])  # the diode, on the model's own prediction
+            y += disturbance  # so prediction - disturbance is the model alone, as for the NN
             out[:, j] = y
         return out
 

@@ -8,6 +8,7 @@ failed, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from pathlib import Path
@@ -22,6 +23,33 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def output_dir(text: str | None) -> Path | None:
+    """A folder results go to: refused at once if it cannot be one (not after hours of work)."""
+    if text is None:
+        return None
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create output folder {path}: {error.strerror}") from None
+    if not os.access(path, os.W_OK):
+        raise ConfigError(f"output folder {path} is not writable")
+    return path
+
+
+def output_file(text: str | None) -> Path | None:
+    """A file a result goes to: its folder must be creatable and writable, and it must not be a folder."""
+    if text is None:
+        return None
+    path = Path(text)
+    if path.is_dir():
+        raise ConfigError(f"output file {path} is a folder: expected a file name")
+    output_dir(str(path.parent))
+    return path
 
 
 def parse_period(text: str) -> float:
@@ -73,9 +101,9 @@ def cmd_run(args) -> int:
 
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    out_dir = output_dir(args.out)
     scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
     binding, tag = _plant_binding(args)
-    out_dir = Path(args.out)
     from cosim.controller_factory import make_controllers
     from cosim.master import check_plant_supports
 
@@ -123,7 +151,7 @@ def cmd_export(args) -> int:
         result = read_run(source)
     except (ValueError, OSError) as error:
         raise ConfigError(f"{source}: cannot read run ({error})") from None
-    out_dir = Path(args.out) if args.out else source.parent
+    out_dir = output_dir(args.out) if args.out else source.parent
     frame = result.frame.drop(columns=["controller_compute_time"], errors="ignore")
     if args.to == "csv":
         import json
@@ -142,7 +170,7 @@ def cmd_build_fmu(args) -> int:
     from plant_fmu import export_fmus, fmu_path, source_fmu_path
 
     if args.output:
-        binary, source = export_fmus(Path(args.output), force=args.force)
+        binary, source = export_fmus(output_dir(args.output), force=args.force)
     else:
         binary, source = fmu_path(force=args.force), source_fmu_path(force=args.force)
     print(f"co-simulation + model exchange FMU: {binary}")
@@ -154,6 +182,7 @@ def cmd_tune_pi(args) -> int:
     from cosim.pi_tuning import tune_pi
     from cosim.results import atomic_write_text
 
+    output_file(args.out)
     binding, _ = _plant_binding(args)
     tuning = tune_pi(binding, args.control_period, progress=args.progress)
     print(f"Kp = {tuning.kp:.6g} 1/V, Ki = {tuning.ki:.6g} 1/(V s) at Ts = {args.control_period * 1e6:.4g} us "
@@ -169,8 +198,10 @@ def cmd_collect(args) -> int:
     from cosim.controller_factory import tuned_pi
     from cosim.data_collection import CollectionSettings, collect, save_samples
 
+    output_file(args.out)
+    work_dir = output_dir(args.work_dir)
     binding, _ = _plant_binding(args)
-    pi = tuned_pi(binding, args.control_period, Path(args.work_dir), args.progress)
+    pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
     settings = CollectionSettings(samples=args.samples, seed=args.seed, excitation=args.excitation,
                                   hold_range=(5, 40) if args.control_period >= 0.5e-3 else (20, 200))
     data = collect(binding, pi.controller(), settings, progress=args.progress)
@@ -188,6 +219,7 @@ def cmd_train(args) -> int:
                           extra_signals=tuple(args.extra or ()), residual=args.residual)
     except ValueError as error:
         raise ConfigError(str(error)) from None
+    output_file(args.out)
     source = Path(args.data)
     if not source.is_file():
         raise ConfigError(f"data file {source} does not exist (write one with buck-cosim collect-data)")
@@ -199,9 +231,12 @@ def cmd_train(args) -> int:
     missing = [c for c in needed if c not in frame.columns]
     if missing:
         raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
-    model = train(frame, config, TrainingSettings(seed=args.seed), progress=args.progress,
-                  metadata={"control_period_s": metadata.get("control_period_s"), "plant": metadata.get("plant"),
-                            "data_file": str(source), "seed": args.seed})
+    try:
+        model = train(frame, config, TrainingSettings(seed=args.seed), progress=args.progress,
+                      metadata={"control_period_s": metadata.get("control_period_s"), "plant": metadata.get("plant"),
+                                "data_file": str(source), "seed": args.seed})
+    except ValueError as error:
+        raise ConfigError(f"{source}: {error}") from None
     save_model(model, Path(args.out))
     rmse = model.metadata["held_out_rmse"]
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
@@ -215,6 +250,7 @@ def cmd_reproduce(args) -> int:
 
     if args.workers < 1:
         raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
+    output_dir(args.out)
     from cosim.reproduce import FULL, QUICK
 
     if args.plant:
@@ -233,6 +269,7 @@ def cmd_bench(args) -> int:
     unknown = [name for name in args.only or [] if name not in BENCHMARKS]
     if unknown:
         raise ConfigError(f"unknown benchmark(s) {', '.join(unknown)}: expected {', '.join(BENCHMARKS)}")
+    output_dir(args.out)
     command = "buck-cosim bench" + "".join(f" --only {n}" for n in args.only or [])
     md_path, csv_path = run_benchmarks(Path(args.out), quick=args.quick, only=args.only, command=command)
     print(md_path.read_text())
@@ -415,6 +452,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted; completed results were kept", file=sys.stderr)
         return 130
+    except OSError as error:  # a file system refusal (disk full, permissions): one line, not a traceback
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
     except Exception as error:
         from plant_fmu import PlantBuildError
 

@@ -68,8 +68,11 @@ class CollectionSettings:
             raise ConfigError(f"rest_probability = {self.rest_probability} is invalid: expected 0 <= p < 1")
 
 
-def random_scenario(settings: CollectionSettings, control_period: float) -> Scenario:
-    """Random references and loads held for random whole numbers of control periods."""
+def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True) -> Scenario:
+    """Random references and loads held for random whole numbers of control periods.
+
+    ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value.
+    """
     rng = np.random.default_rng(settings.seed)
     duration = (settings.samples - 1) * control_period
 
@@ -83,7 +86,8 @@ def random_scenario(settings: CollectionSettings, control_period: float) -> Scen
     initial = {"reference": level("reference"), "load_resistance": level("load"),
                "input_voltage": settings.input_voltage}
     changes: dict[int, dict[str, float]] = {}
-    for kind, key in (("reference", "reference"), ("load", "load_resistance")):
+    signals = (("reference", "reference"), ("load", "load_resistance")) if vary_load else (("reference", "reference"),)
+    for kind, key in signals:
         k = 0
         while True:
             k += int(rng.integers(settings.hold_range[0], settings.hold_range[1] + 1))
@@ -128,7 +132,7 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`)."""
     settings.check()
     period = controller.sample_period
-    scenario = random_scenario(settings, period)
+    scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"))
     dithered = DitheredController(controller, settings.excitation, settings.seed)
     with FmuPlant(binding) as plant:
         result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)

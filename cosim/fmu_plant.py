@@ -32,6 +32,8 @@ from cosim.errors import ConfigError, PlantError
 from cosim.fmu_archive import check_fmu
 
 STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
+FATAL_STATUS = 4
+_ABANDONED_AFTER_FATAL: list = []  # FMU objects that reported fmi2Fatal; never called or unloaded again
 CO_SIMULATION = "co-simulation"
 MODEL_EXCHANGE = "model-exchange"
 INTERFACE_ALIASES = {"cs": CO_SIMULATION, "co-simulation": CO_SIMULATION,
@@ -89,6 +91,7 @@ class FmuPlant:
         self._callbacks = self._make_callbacks()
         self._fmu = None
         self._initialized = False
+        self._fatal = False
         self._solver = None
         self._inputs_changed = False
         self._next_event_time: float | None = None
@@ -214,6 +217,8 @@ class FmuPlant:
 
     def _fail(self, call: str, status: int | None = None, at: float | None = None) -> PlantError:
         when = self.time if at is None else at
+        if status == FATAL_STATUS:
+            self._fatal = True  # FMI 2.0: after fmi2Fatal no other function of the FMU may be called
         label = f" ({STATUS_NAMES[status]})" if status is not None and 0 <= status < len(STATUS_NAMES) else ""
         return PlantError(f"{self.binding.origin}: {call} failed{label} at t = {when:.9g} s{self._last_log_suffix()}")
 
@@ -221,6 +226,7 @@ class FmuPlant:
     def initialize(self, inputs: Sequence[float], start_time: float = 0.0,
                    start_values: Mapping[str, float] | None = None) -> None:
         """Set parameters, start values and the first inputs, and leave initialization mode at ``start_time``."""
+        self._refuse_if_fatal()
         fmu = self._fmu
         extra = [self._resolve_parameter(n, v, self._variables) for n, v in (start_values or {}).items()]
         try:
@@ -251,8 +257,19 @@ class FmuPlant:
             else:
                 fmu.setString([vr], [str(value)])
 
+    @property
+    def fatal(self) -> bool:
+        """True once the FMU has returned ``fmi2Fatal``: the standard allows no further call to it."""
+        return self._fatal
+
+    def _refuse_if_fatal(self) -> None:
+        if self._fatal:
+            raise PlantError(f"{self.binding.origin}: the FMU reported fmi2Fatal earlier and cannot be used "
+                             "again (FMI 2.0 forbids any further call)")
+
     def reset(self) -> None:
         """Return to the instantiated state (fmi2Reset) so the same instance serves another run."""
+        self._refuse_if_fatal()
         try:
             self._fmu.reset()
         except FMICallException as error:
@@ -263,10 +280,18 @@ class FmuPlant:
         self.log.clear()
 
     def close(self) -> None:
-        """Terminate, free the instance and delete the extracted files. Safe to call twice."""
+        """Terminate, free the instance and delete the extracted files. Safe to call twice.
+
+        After an ``fmi2Fatal`` status the standard forbids any further call, so the instance and
+        its library are abandoned (not freed) rather than risking a crash inside the FMU.
+        """
         if self._fmu is not None:
             fmu, self._fmu = self._fmu, None
             self._solver = None
+            if self._fatal:
+                _ABANDONED_AFTER_FATAL.append(fmu)  # keep it alive: its library must stay loaded
+                self._remove_unzipdir()
+                return
             if self._initialized:
                 try:
                     fmu.terminate()
@@ -431,11 +456,14 @@ class FmuPlant:
         return self._fmu.getFMUstate()
 
     def set_state(self, state, time: float) -> None:
+        """Restore a snapshot taken at ``time``. In model exchange the discrete part (the next
+        PWM edge) is re-derived by an event update and the solver restarts there."""
         self._fmu.setFMUstate(state)
         self.time = time
         if self._solver is not None:
             self._fmu.setTime(time)
-            self._solver.reset(time)
+            self._handle_event(time)
+            self._inputs_changed = False
 
     def free_state(self, state) -> None:
         self._fmu.freeFMUstate(state)

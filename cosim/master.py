@@ -44,7 +44,11 @@ class RunFailed(WorkbenchError):
     def __init__(self, message: str, partial: RunResult, cause: WorkbenchError):
         super().__init__(message)
         self.partial = partial
+        self.cause = cause
         self.exit_code = cause.exit_code
+
+    def __reduce__(self):  # so a failure crosses from a worker process to the reproduction
+        return RunFailed, (str(self), self.partial, self.cause)
 
 
 @dataclass(frozen=True)
@@ -240,9 +244,9 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     bar = _progress_bar(progress, plan.instants, f"{scenario.name} / {controller.name}")
     t = 0.0
     settle = plan.settle
+    plant.initialize([inputs[r] for r in roles_in], start_time=0.0)  # a refusal here is a configuration error
+    controller.reset()
     try:
-        plant.initialize([inputs[r] for r in roles_in], start_time=0.0)
-        controller.reset()
         duty = 0.0
         last_load, last_supply = inputs["load_resistance"], inputs["input_voltage"]
         advance, outputs, set_inputs, step = plant.advance_to, plant.outputs, plant.set_inputs, controller.step
@@ -272,8 +276,9 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
                     start = clock()
                     try:
                         duty = step(measurement)
-                    except WorkbenchError:
-                        raise
+                    except WorkbenchError as error:
+                        raise ControllerError(f"controller {controller.name} failed at t = {t - settle:.9g} s: "
+                                              f"{error}") from None
                     except Exception as error:
                         raise ControllerError(f"controller {controller.name} raised {type(error).__name__} at "
                                               f"t = {t - settle:.9g} s: {error}") from None
@@ -301,9 +306,16 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
         partial = result(False, f"interrupted at t = {t - settle:.9g} s")
         raise RunInterrupted(f"run {scenario.name} / {controller.name} interrupted at t = "
                              f"{t - settle:.6g} s; {partial.metadata['rows']} rows kept", partial) from None
-    except (PlantError, ControllerError) as error:
+    except WorkbenchError as error:  # plant or controller faults: keep the rows, name the cause
         partial = result(False, str(error))
         raise RunFailed(str(error), partial, error) from None
+    except BaseException as error:  # anything else (a bug, a full disk): no stream left half-written
+        if stream is not None:
+            try:
+                result(False, f"{type(error).__name__}: {error}")
+            except Exception:
+                pass
+        raise
     finally:
         if bar is not None:
             bar.close()

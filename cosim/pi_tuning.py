@@ -103,7 +103,9 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
                 try:
                     metrics = run_metrics(run(plant, controller, scenario, record_period=record_period))
                 except WorkbenchError:
-                    return 1e6
+                    if plant.fatal:
+                        raise  # the FMU is unusable: no later evaluation could succeed
+                    return 1e6  # these gains drove the plant into a failure: a very bad score
                 if not math.isfinite(metrics["ise_V2s"]):
                     return 1e6
                 excess = max(metrics["overshoot_pct"], metrics["undershoot_pct"]) - OVERSHOOT_LIMIT_PCT

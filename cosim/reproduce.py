@@ -22,12 +22,15 @@ import multiprocessing
 import signal
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import pandas as pd
 
 from cosim.data_collection import CollectionSettings, collect, save_samples
+from cosim.errors import PlantError
 from cosim.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD,
                                model_mpc, nn_configs, nnpc, plant_binding, scenarios_for)
 from cosim.pi_tuning import load_or_tune
@@ -192,6 +195,18 @@ def _run_job(job) -> PipelineOutput:
     return run_pipeline(*job)
 
 
+def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
+    """Terminate the pool's workers at once and delete what their unfinished writes left behind."""
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    executor.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(timeout=10)
+    _remove_partial_files(out_dir)
+
+
 def _remove_partial_files(out_dir: Path) -> None:
     """Delete temporary files of writes that a terminated worker left unfinished."""
     for stale in Path(out_dir).rglob(".*.tmp-*"):
@@ -248,18 +263,24 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     elif todo:
         # longest first (the fast-rate pipelines), so the workers finish together
         jobs = [(p, out_dir, profile, seed) for p in sorted(todo, key=lambda p: p.control_period)]
-        pool = multiprocessing.get_context("fork").Pool(min(workers, len(jobs)), initializer=_worker_signals)
+        # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
+        # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
+        executor = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
+                                       initializer=_worker_signals)
         try:
-            for done, output in enumerate(pool.imap_unordered(_run_job, jobs), start=1):
+            futures = [executor.submit(_run_job, job) for job in jobs]
+            for done, future in enumerate(as_completed(futures), start=1):
+                output = future.result()
                 outputs[output.pipeline] = output
                 log(f"[{done}/{len(todo)}] {output.pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
-            pool.close()
+        except BrokenProcessPool:
+            _stop_workers(executor, out_dir)
+            raise PlantError("a reproduction worker process died (a plant FMU crashed it?); pipelines that "
+                                 f"finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
         except BaseException:
-            pool.terminate()  # stop unfinished pipelines now; finished ones are on disk
-            pool.join()
-            _remove_partial_files(out_dir)
+            _stop_workers(executor, out_dir)  # stop unfinished pipelines now; finished ones are on disk
             raise
-        pool.join()
+        executor.shutdown()
     ordered = [outputs[p] for p in selected]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")

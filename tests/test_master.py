@@ -228,3 +228,27 @@ def test_windows_partition_the_timeline_exactly():
         assert len(parts) > 3
         assert np.array_equal(np.concatenate([w.times for w in parts]), whole.times)
         assert np.array_equal(np.concatenate([w.flags for w in parts]), whole.flags)
+
+
+def test_a_run_failure_crosses_process_boundaries_intact(averaged):
+    """The reproduction runs pipelines in worker processes: a failure must unpickle there."""
+    import pickle
+
+    with pytest.raises(RunFailed) as info:
+        simulate(averaged, Probe(duty=lambda k: math.nan), scenario())
+    again = pickle.loads(pickle.dumps(info.value))
+    assert str(again) == str(info.value) and again.exit_code == 3
+    assert again.partial.metadata["complete"] is False
+
+
+def test_model_exchange_state_restore_replays_exactly():
+    with FmuPlant(builtin_binding("switched"), interface="me") as plant:
+        plant.initialize([0.25, VS, R])
+        plant.advance_to(1e-3 + 0.1 / 75e3)
+        state, saved = plant.get_state(), plant.time
+        plant.advance_to(1e-3 + 5.5 / 75e3)
+        first = list(plant.outputs())
+        plant.set_state(state, saved)
+        plant.advance_to(1e-3 + 5.5 / 75e3)
+        np.testing.assert_allclose(plant.outputs(), first, rtol=1e-7)
+        plant.free_state(state)

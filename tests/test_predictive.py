@@ -144,3 +144,15 @@ def test_oracle_mpc_at_the_switching_rate_beats_the_tuned_pi_on_start_up():
     iae_mpc = run_metrics(simulate(binding, mpc, startup))["iae_Vs"]
     iae_pi = run_metrics(simulate(binding, pi, startup))["iae_Vs"]
     assert iae_mpc < 0.6 * iae_pi
+
+
+def test_warm_start_does_not_trap_the_optimizer_near_the_previous_solution():
+    """A long horizon whose optimum moved just beyond the warm lattice: warm and cold starts agree."""
+    settings = HorizonSettings(horizon=23, levels=21)
+    optimizer = HorizonOptimizer(settings, (0.0, 1.0))
+    for target in (0.2537, 0.262, 0.27):
+        def cost(d, target=target):
+            return np.sqrt(((d - target) ** 2).sum(axis=1))
+
+        warm, _ = optimizer.solve(cost, warm=np.full(23, 0.25))
+        assert warm[0] == pytest.approx(target, abs=1e-3)

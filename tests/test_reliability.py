@@ -57,6 +57,14 @@ def one_line_error(done, code: int, message: str) -> None:
     assert "Traceback" not in done.stderr
 
 
+def ends_in_one_line_error(done, code: int, message: str) -> None:
+    """Progress lines may come first; the failure itself is one ``error:`` line, and the last."""
+    assert done.returncode == code, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert [line for line in lines if line.startswith("error: ")] == lines[-1:], done.stderr
+    assert message in lines[-1] and "Traceback" not in done.stderr, done.stderr
+
+
 def no_temporary_files(folder: Path) -> None:
     assert not list(Path(folder).rglob(".*.tmp-*")), list(Path(folder).rglob(".*.tmp-*"))
 
@@ -140,6 +148,48 @@ def test_a_failing_plant_stops_the_run_and_keeps_the_rows(tmp_path, faulty_fmu, 
     assert run.metadata["complete"] is False
     assert 0.0095 < run.frame["time"].max() < 0.0104  # the rows up to the fault
     no_temporary_files(tmp_path / "out")
+
+
+FATAL_REUSE = """
+import gc, sys
+from controllers.pi import PIController
+from cosim.binding_file import load_binding
+from cosim.errors import PlantError
+from cosim.fmu_plant import FmuPlant
+from cosim.master import RunFailed, run
+from cosim.scenarios import parse_scenario
+
+plant = FmuPlant(load_binding(sys.argv[1]))
+scenario = parse_scenario('name = "s"\\nduration = 0.02\\n[initial]\\nreference = 12.0\\n')
+try:
+    run(plant, PIController(0.0, 14.0, 1e-3), scenario)
+except RunFailed as error:
+    print("run:", error)
+try:
+    plant.reset()
+except PlantError as error:
+    print("reset:", error)
+plant.close()
+gc.collect()
+print("closed")
+"""
+
+
+def test_an_fmu_that_reported_fatal_is_never_called_again(tmp_path, faulty_fmu):
+    """FMI 2.0 forbids any call after fmi2Fatal; calling fmi2FreeInstance anyway corrupts pythonfmu's heap."""
+    binding = tmp_path / "faulty.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2))
+    done = subprocess.run([sys.executable, "-c", FATAL_REUSE, str(binding)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert "fmi2DoStep failed (fatal) at t = 0.0103" in lines[0]
+    assert lines[1].endswith("the FMU reported fmi2Fatal earlier and cannot be used again "
+                             "(FMI 2.0 forbids any further call)")
+    assert lines[2] == "closed"
+    # PI tuning scores failing gains as bad, but a fatal plant ends the tuning at once
+    tuned = cli("run", "startup", "--plant", str(binding), "--out", str(tmp_path / "out"), "--no-figures")
+    ends_in_one_line_error(tuned, 3, "fmi2DoStep failed (fatal) at t = 0.0103 s")
 
 
 def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
@@ -233,14 +283,59 @@ def test_sigterm_during_training_writes_no_model_file(tmp_path):
 def test_sigterm_during_reproduction_keeps_finished_pipelines_and_resume_completes(tmp_path):
     out = tmp_path / "results"
     process = _start("reproduce", "--quick", "--out", str(out))
-    code, err = _terminate_after(process, 9.0)
+    deadline = time.time() + 120
+    while not list((out / "pipelines").glob("*.json")) and time.time() < deadline:
+        time.sleep(0.2)  # interrupt once a pipeline has finished and others still run
+    code, err = _terminate_after(process, 0.0)
     assert code == 130 and "Traceback" not in err
     no_temporary_files(out)
-    finished = sorted(p.stem for p in (out / "pipelines").glob("*.json")) if (out / "pipelines").exists() else []
+    finished = sorted(p.stem for p in (out / "pipelines").glob("*.json"))
+    assert 1 <= len(finished) < 4
     done = cli("reproduce", "--quick", "--resume", "--out", str(out))
     assert done.returncode == 0, done.stderr
     assert done.stderr.count("finished earlier, kept (--resume)") == len(finished)
     assert (out / "REPORT.md").is_file()
+
+
+def test_a_failing_pipeline_stops_a_parallel_reproduction(tmp_path, faulty_fmu):
+    binding = tmp_path / "faulty.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2))
+    done = cli("reproduce", "--quick", "--plant", str(binding), "--control-period", "1e-3", "--control-period",
+               "2e-3", "--workers", "2", "--out", str(tmp_path / "out"), timeout=300)
+    ends_in_one_line_error(done, 3, "fmi2DoStep failed (fatal)")
+    no_temporary_files(tmp_path / "out")
+
+
+def _die_like_a_crashing_fmu(job):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path, monkeypatch):
+    import cosim.reproduce as reproduce_module
+    from cosim.errors import PlantError
+
+    monkeypatch.setattr(reproduce_module, "_run_job", _die_like_a_crashing_fmu)  # forked workers inherit it
+    started = time.monotonic()
+    with pytest.raises(PlantError, match="a reproduction worker process died"):
+        reproduce_module.reproduce(tmp_path / "out", workers=2, profile=reproduce_module.QUICK)
+    assert time.monotonic() - started < 120  # not a hang waiting for a result that never comes
+
+
+@pytest.mark.parametrize("args,message", [
+    (["run", "startup", "--kp", "0", "--ki", "14", "--out", "afile"], "output folder afile is an existing file"),
+    (["tune-pi", "--out", "."], "output file . is a folder"),
+    (["train", "small.parquet", "--out", "m.pt"], "small.parquet: 50 samples are too few to train on"),
+])
+def test_output_and_size_mistakes_are_caught_before_the_work(tmp_path, args, message):
+    import numpy as np
+    import pandas as pd
+
+    from cosim.results import write_parquet
+
+    (tmp_path / "afile").write_text("x")
+    write_parquet(pd.DataFrame({"measured_inductor_current": np.zeros(50), "measured_output_voltage": np.zeros(50),
+                                "duty_cycle": np.zeros(50)}), {}, tmp_path / "small.parquet")
+    one_line_error(cli(*args, cwd=tmp_path), 2, message)
 
 
 # ------------------------------------------------------------------------------------------ determinism

@@ -13,16 +13,19 @@
 /* A time within this fraction of a PWM period of an edge is "on" the edge. It absorbs the
  * rounding of importer clocks (t = n*h accumulates ~1e-16 relative per step). */
 #define PHASE_TOLERANCE 1e-9
-/* Model exchange event update: an inductor current below this counts as zero [A]. */
+/* Model exchange event update: an inductor current below this counts as zero [A]; a drive
+ * within this fraction of the input voltage of zero counts as reached. */
 #define EVENT_CURRENT_TOLERANCE 1e-9
+#define EVENT_VOLTAGE_TOLERANCE 1e-9
 /* Averaged DCM integrator (Dormand-Prince 5(4)) tolerances. */
 #define DCM_RELATIVE_TOLERANCE 1e-11
 #define DCM_ABSOLUTE_TOLERANCE_CURRENT 1e-12 /* [A] */
 #define DCM_ABSOLUTE_TOLERANCE_VOLTAGE 1e-10 /* [V] */
 #define DCM_FIRST_STEP 1e-7                  /* [s] */
 #define MAX_GUARD_SAMPLES 1000000
-/* A call makes at most this many consecutive regime changes without time advancing. */
-#define MAX_STALLED_TRANSITIONS 16
+/* A call makes at most this many consecutive regime changes without time advancing (by more than
+ * a few clock resolutions) before it gives up and reports the step as failed. */
+#define MAX_STALLED_TRANSITIONS 64
 
 typedef enum { TOPOLOGY_SWITCH_ON, TOPOLOGY_SWITCH_OFF, TOPOLOGY_AVERAGED } Topology;
 
@@ -171,7 +174,9 @@ static double averaged_current_rate(const BuckModel *m, double current, double c
     double on_voltage = m->u.input_voltage - (m->p.switch_on_resistance + m->p.inductor_resistance) * current - vo;
     double off_voltage = m->p.diode_forward_voltage + m->p.inductor_resistance * current + vo;
     double d2 = 1.0 - d1;
-    if (d1 > 0.0 && on_voltage > 0.0) {
+    if (current <= 0.0) {
+        d2 = 0.0; /* no current, nothing for the diode to carry: the rate is d1 (Vs - vo) / L */
+    } else if (d1 > 0.0 && on_voltage > 0.0) {
         double d2_dcm = 2.0 * L * m->p.switching_frequency * current / (on_voltage * d1) - d1;
         if (d2_dcm < d2) d2 = d2_dcm > 0.0 ? d2_dcm : 0.0;
     }
@@ -352,6 +357,14 @@ static Guard continuous_conduction_guard(const BuckModel *m) {
 
 static Conduction classify_conducting(const BuckModel *m, Topology topology) {
     if (topology != TOPOLOGY_AVERAGED) return CONDUCTION_CONTINUOUS;
+    if (m->inductor_current <= 0.0) {
+        /* Leaving the blocked state (or starting) at zero current: whenever the switch can drive
+         * current (d > 0, Vs > vo) this is DCM, whose rate d (Vs - vo) / L is never negative. The
+         * guard below is only ~0 here and rounding must not pick CCM, which would block at once. */
+        double vo = esr_divider(m) * m->capacitor_voltage;
+        return m->u.duty_cycle > 0.0 && m->u.input_voltage - vo >= 0.0 ? CONDUCTION_DISCONTINUOUS
+                                                                       : CONDUCTION_CONTINUOUS;
+    }
     Guard g = continuous_conduction_guard(m);
     double x[2] = {m->inductor_current, m->capacitor_voltage};
     return guard_value(&g, x) >= 0.0 ? CONDUCTION_CONTINUOUS : CONDUCTION_DISCONTINUOUS;
@@ -418,13 +431,16 @@ static void advance_discontinuous(BuckModel *m, double t_end) {
             h = step * factor;
             continue;
         }
-        if (guard_value(&ccm, xn) >= 0.0) { /* back in CCM within this step: locate by bisection */
+        int to_ccm = guard_value(&ccm, xn) >= 0.0;
+        int to_blocked = !to_ccm && xn[0] < 0.0; /* possible only if vo rose above Vs meanwhile */
+        if (to_ccm || to_blocked) { /* the regime ends within this step: locate the end by bisection */
             double lo = 0.0, hi = step;
             double resolution = 4.0 * DBL_EPSILON * (fabs(t_end) + step);
             while (hi - lo > resolution) {
                 double mid = 0.5 * (lo + hi), xm[2];
                 dopri_step(m, x, mid, xm);
-                if (guard_value(&ccm, xm) >= 0.0) {
+                int crossed = to_ccm ? guard_value(&ccm, xm) >= 0.0 : xm[0] < 0.0;
+                if (crossed) {
                     hi = mid;
                     xn[0] = xm[0];
                     xn[1] = xm[1];
@@ -433,9 +449,9 @@ static void advance_discontinuous(BuckModel *m, double t_end) {
                 }
             }
             m->time = hi == remaining ? t_end : m->time + hi;
-            m->inductor_current = xn[0];
+            m->inductor_current = to_ccm ? xn[0] : 0.0;
             m->capacitor_voltage = xn[1];
-            m->conduction = CONDUCTION_CONTINUOUS;
+            m->conduction = to_ccm ? CONDUCTION_CONTINUOUS : CONDUCTION_BLOCKED;
             m->dcm_step = h;
             return;
         }
@@ -450,7 +466,7 @@ static void advance_discontinuous(BuckModel *m, double t_end) {
 /* ------------------------------------------------------------------------------------------ */
 /* Piecewise-exact advance with a fixed circuit topology                                      */
 
-static void advance_topology(BuckModel *m, Topology topology, double t_end) {
+static bool advance_topology(BuckModel *m, Topology topology, double t_end) {
     Flow flow;
     int flow_ready = 0;
     int stalls = 0;
@@ -470,6 +486,8 @@ static void advance_topology(BuckModel *m, Topology topology, double t_end) {
                 if (!(dt >= 0.0 && dt < h)) dt = h;
                 double v0 = m->capacitor_voltage;
                 m->capacitor_voltage *= exp(-dt / tau);
+                /* land exactly on the threshold, never a rounding error above it: the drive is >= 0 */
+                m->capacitor_voltage = fmin(m->capacitor_voltage, threshold / esr_divider(m));
                 accumulate(m, 0.0, tau * (v0 - m->capacitor_voltage));
                 m->time = dt < h ? m->time + dt : t_end;
                 m->conduction = classify_conducting(m, topology);
@@ -509,9 +527,10 @@ static void advance_topology(BuckModel *m, Topology topology, double t_end) {
         } else {
             advance_discontinuous(m, t_end);
         }
-        stalls = m->time > start ? 0 : stalls + 1;
+        double resolution = 64.0 * DBL_EPSILON * fmax(fabs(t_end), 1e-9);
+        stalls = m->time - start > resolution ? 0 : stalls + 1;
     }
-    if (m->time < t_end) m->time = t_end; /* unreachable for valid inputs; never loop forever */
+    return m->time >= t_end; /* false: regimes kept alternating without progress (never jump ahead) */
 }
 
 /* ------------------------------------------------------------------------------------------ */
@@ -551,7 +570,7 @@ static int pwm_switch_on(const BuckModel *m, double t, double *next_edge) {
     return 0;
 }
 
-static void advance_switched(BuckModel *m, double t_end) {
+static bool advance_switched(BuckModel *m, double t_end) {
     double edge_tolerance = PHASE_TOLERANCE / m->p.switching_frequency;
     while (m->time < t_end) {
         latch_period(m, m->time);
@@ -560,10 +579,11 @@ static void advance_switched(BuckModel *m, double t_end) {
         /* An edge within tolerance of t_end belongs to the next step, so the importer's new
          * duty is latched when the next period starts. */
         double segment_end = edge > t_end - edge_tolerance ? t_end : edge;
-        advance_topology(m, on ? TOPOLOGY_SWITCH_ON : TOPOLOGY_SWITCH_OFF, segment_end);
+        if (!advance_topology(m, on ? TOPOLOGY_SWITCH_ON : TOPOLOGY_SWITCH_OFF, segment_end)) return false;
         double period_end = ((double)m->pwm_period + 1.0) / m->p.switching_frequency;
         if (fabs(m->time - period_end) <= edge_tolerance) finish_period(m);
     }
+    return true;
 }
 
 /* ------------------------------------------------------------------------------------------ */
@@ -597,15 +617,17 @@ void buck_start(BuckModel *m, double t) {
     }
 }
 
-void buck_advance(BuckModel *m, double t_end) {
+bool buck_advance(BuckModel *m, double t_end) {
+    bool ok;
     if (m->p.plant_mode == MODE_SWITCHED) {
-        advance_switched(m, t_end);
+        ok = advance_switched(m, t_end);
     } else {
         /* inputs may have changed since the last step: re-decide CCM versus DCM */
         if (m->conduction != CONDUCTION_BLOCKED) m->conduction = classify_conducting(m, TOPOLOGY_AVERAGED);
-        advance_topology(m, TOPOLOGY_AVERAGED, t_end);
+        ok = advance_topology(m, TOPOLOGY_AVERAGED, t_end);
     }
-    m->time = t_end;
+    if (ok) m->time = t_end;
+    return ok;
 }
 
 void buck_derivatives(const BuckModel *m, double dx[BUCK_STATES]) {
@@ -664,7 +686,10 @@ bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_even
     Topology topology = current_topology(m);
     double drive = unblock_threshold(m, topology) - esr_divider(m) * m->capacitor_voltage;
     if (m->conduction == CONDUCTION_BLOCKED) {
-        if (drive > 0.0) m->conduction = CONDUCTION_CONTINUOUS;
+        /* The solver stops on the crossing itself, where the drive is zero to rounding; waiting for
+         * it to turn positive would wait forever (the indicator no longer changes sign). */
+        double tolerance = EVENT_VOLTAGE_TOLERANCE * fmax(1.0, fabs(m->u.input_voltage));
+        if (drive > -tolerance) m->conduction = CONDUCTION_CONTINUOUS;
     } else if (m->inductor_current <= EVENT_CURRENT_TOLERANCE && drive <= 0.0) {
         m->conduction = CONDUCTION_BLOCKED;
         m->inductor_current = 0.0;

@@ -76,8 +76,9 @@ const char *buck_check(const BuckModel *m, char *buffer, size_t size);
 /* Classify the conduction state and latch the PWM at time t (after initialization). */
 void buck_start(BuckModel *m, double t);
 
-/* Co-simulation: advance exactly from m->time to t_end with the current inputs. */
-void buck_advance(BuckModel *m, double t_end);
+/* Co-simulation: advance exactly from m->time to t_end with the current inputs. Returns false
+ * (with m->time where it got stuck) if the conduction regimes alternated without progress. */
+bool buck_advance(BuckModel *m, double t_end);
 
 /* Model exchange: dx has BUCK_STATES entries. */
 void buck_derivatives(const BuckModel *m, double dx[BUCK_STATES]);

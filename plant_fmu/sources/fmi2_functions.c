@@ -612,7 +612,12 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint, fmi2R
         return fmi2Error;
     }
     m->time = currentCommunicationPoint; /* the importer's clock is the reference */
-    buck_advance(m, currentCommunicationPoint + communicationStepSize);
+    if (!buck_advance(m, currentCommunicationPoint + communicationStepSize)) {
+        inst->state = STATE_ERROR;
+        log_message(inst, fmi2Error, "logStatusError",
+                    "fmi2DoStep: no progress at t = %.17g s (conduction regimes kept alternating)", m->time);
+        return fmi2Error;
+    }
     if (!isfinite(m->inductor_current) || !isfinite(m->capacitor_voltage)) {
         inst->state = STATE_ERROR;
         log_message(inst, fmi2Error, "logStatusError", "fmi2DoStep: the state became non-finite at t = %g s",
