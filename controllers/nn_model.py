@@ -34,6 +34,14 @@ ACTIVATIONS = {"tanh": (torch.nn.Tanh, np.tanh),
 #: extra measured inputs: the load conductance io / vo (= 1/R, constant while the load is) tells the
 #: network the load; the load current and the input voltage are offered too
 EXTRA_SIGNALS = ("load_conductance", "load_current", "input_voltage")
+#: the data column of each extra signal: what the controller's sensors read, as it will at run time
+EXTRA_COLUMNS = {"load_conductance": "load_conductance", "load_current": "measured_load_current",
+                 "input_voltage": "input_voltage"}
+
+
+def extra_columns(config: "NNConfig") -> list[str]:
+    """Data-frame columns that feed ``config.extra_signals``."""
+    return [EXTRA_COLUMNS[s] for s in config.extra_signals]
 
 
 @dataclass(frozen=True)
@@ -98,7 +106,7 @@ def build_dataset(frame, config: NNConfig) -> tuple[np.ndarray, np.ndarray]:
     """
     states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
     duty = frame["duty_cycle"].to_numpy(dtype=float)
-    extras = frame[list(config.extra_signals)].to_numpy(dtype=float) if config.extra_signals else None
+    extras = frame[extra_columns(config)].to_numpy(dtype=float) if config.extra_signals else None
     first = config.delays
     rows = []
     for lag in range(1, config.delays + 1):
@@ -258,7 +266,7 @@ class NNPlantModel:
                   "one_step_rmse_voltage_V": float(np.sqrt(np.mean(one[:, 1] ** 2)))}
         states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
         duty = frame["duty_cycle"].to_numpy(dtype=float)
-        extras = frame[list(self.config.extra_signals)].to_numpy(dtype=float) if self.config.extra_signals else None
+        extras = frame[extra_columns(self.config)].to_numpy(dtype=float) if self.config.extra_signals else None
         d = self.config.delays
         starts = np.arange(d - 1, len(frame) - horizon - 1)
         if len(starts) == 0:
@@ -271,7 +279,7 @@ class NNPlantModel:
         error = predicted - actual
         report[f"{horizon}_step_rmse_current_A"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
         report[f"{horizon}_step_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
-        report[f"horizon_mean_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
+        report["horizon_mean_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
         return report
 
 

@@ -79,8 +79,9 @@ class HorizonOptimizer:
 
     Stage 1 (one batched evaluation): a fine lattice around the previous solution shifted by one
     sample (warm start) and a global search -- the full grid over all blocks when that is small,
-    else constant sequences, a grid over the first move and a coarse one over the first two
-    (then the steady-state duty), and bang-bang profiles (accelerate, brake, hold).
+    else constant sequences (coarse, and finely around the last move), a grid over the first move
+    and a coarse one over the first two (then the steady-state duty), and bang-bang profiles
+    (accelerate, brake, hold).
     Then refinement passes, each one batched evaluation around the best:
     * few blocks: a full lattice of offsets -h..h steps per block (17 points for one block, 5 per
       block for three), the step shrinking by 2h per pass so each lattice spans the previous cell;
@@ -134,6 +135,7 @@ class HorizonOptimizer:
             self._shrink = 3.0
             self._full_lattice = False
         self.evaluations = 0
+        self._near_offsets = self.spacing / 20 * np.arange(-10.0, 11.0)  # +-half a grid cell
         # the warm lattice spans about one tenth of a grid cell around the previous solution
         self.warm_step = self.spacing / (10 * self._shrink)
         self.warm_span = self.warm_step * float(np.max(np.abs(self._lattice)))
@@ -166,6 +168,11 @@ class HorizonOptimizer:
             lattice = np.clip(shifted[None, :] + self._warm_offsets, self.low, self.high)
             candidates.append(lattice)
             n_warm = len(lattice)
+            # constant sequences finely around the last move: when a model error shifts the
+            # steady-state duty between grid points, a warm start that merely reproduces itself
+            # must not keep the output off its reference
+            near = np.clip(warm[0] + self._near_offsets, self.low, self.high)
+            candidates.append(np.repeat(near[:, None], self.n_blocks, axis=1))
         candidates.append(self._global)
         candidates.append(self._openings(anchor))
         return np.vstack(candidates), n_warm

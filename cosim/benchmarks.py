@@ -202,8 +202,8 @@ def bench_master(quick: bool) -> list[BenchRow]:
 def _nn_model(name: str, period: float, quick: bool):
     """The reproduction's model if results/ has it, else one trained here on fresh data."""
     from controllers.nn_model import TrainingSettings, load_model, train
-    from cosim.data_collection import CollectionSettings, collect
-    from cosim.experiments import nn_configs, plant_binding
+    from cosim.data_collection import collect
+    from cosim.experiments import collection_settings, nn_configs, plant_binding
     from cosim.errors import ModelFileError
     from cosim.runner import period_label
 
@@ -217,18 +217,16 @@ def _nn_model(name: str, period: float, quick: bool):
     from controllers.pi import PIController
 
     pi = PIController(0.0015, 15.6, period) if period >= 0.5e-3 else PIController(0.007, 173.0, period)
-    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
-    data = collect(plant_binding("nominal", "switched"), pi,
-                   CollectionSettings(samples=400 if quick else 3000, hold_range=hold))
+    data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000))
     return train(data, config, TrainingSettings(max_iterations=100 if quick else 3000)), "trained for the benchmark"
 
 
 def _mixed_scenario(period: float, samples: int):
     """Random references and loads held for random intervals: transients and steady state mixed."""
-    from cosim.data_collection import CollectionSettings, random_scenario
+    from cosim.data_collection import random_scenario
+    from cosim.experiments import collection_settings
 
-    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
-    return random_scenario(CollectionSettings(samples=samples, hold_range=hold, seed=11), period)
+    return random_scenario(collection_settings(period, samples, seed=11), period)
 
 
 def bench_controllers(quick: bool) -> list[BenchRow]:
@@ -245,7 +243,8 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
         from controllers.pi import PIController
 
         controllers = [PIController(0.0015, 15.6, period), nnpc(model, period, "NNPC"),
-                       model_mpc(NOMINAL, period, "MPC-oracle"), model_mpc(MISMATCH, period, "MPC-mismatched")]
+                       model_mpc(NOMINAL, period, "MPC-oracle", binding=binding),
+                       model_mpc(MISMATCH, period, "MPC-mismatched", binding=binding)]
         with FmuPlant(binding) as plant:
             for controller in controllers:
                 frame = run(plant, controller, scenario, record_period=period).frame

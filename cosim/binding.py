@@ -15,7 +15,7 @@ from typing import Mapping
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
 OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
-                "measured_inductor_current")
+                "measured_inductor_current", "measured_load_current")
 ROLES = INPUT_ROLES + OUTPUT_ROLES
 REQUIRED_ROLES = ("duty_cycle", "output_voltage")
 ROLE_UNITS = {
@@ -27,6 +27,7 @@ ROLE_UNITS = {
     "load_current": "A",
     "measured_output_voltage": "V",
     "measured_inductor_current": "A",
+    "measured_load_current": "A",
 }
 ROLE_DESCRIPTIONS = {
     "duty_cycle": "duty cycle command, 0..1 (input, required)",
@@ -39,6 +40,8 @@ ROLE_DESCRIPTIONS = {
                                "(output, optional: default output_voltage)",
     "measured_inductor_current": "what the controller's current sensor reads (output, optional: default "
                                  "inductor_current)",
+    "measured_load_current": "what the controller's load-current sensor reads (output, optional: default "
+                             "load_current)",
 }
 
 PLANT_MODES = {"averaged": 0, "switched": 1}
@@ -116,6 +119,7 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
     # switching ripple a point sample would alias into a DC error (equal to the state when averaged).
     roles["measured_output_voltage"] = RoleMap("average_output_voltage")
     roles["measured_inductor_current"] = RoleMap("average_inductor_current")
+    roles["measured_load_current"] = RoleMap("average_load_current")
     return PlantBinding(
         fmu_path=fmu_path(),
         roles=roles,

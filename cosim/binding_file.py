@@ -21,7 +21,8 @@ A binding is a small TOML file next to (or pointing at) the FMU::
 
     # optional: load_resistance and input_voltage (inputs, needed by load and supply steps),
     # load_current (output, lets predictive controllers estimate the load), and
-    # measured_output_voltage / measured_inductor_current (what the controller's sensors read)
+    # measured_output_voltage / measured_inductor_current / measured_load_current (what the
+    # controller's sensors read; sample all three alike, or the load estimate io/vo is skewed)
 
     [parameters]                    # parameter overrides and start values, set before initialisation
     L = 220e-6

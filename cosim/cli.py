@@ -196,14 +196,14 @@ def cmd_tune_pi(args) -> int:
 
 def cmd_collect(args) -> int:
     from cosim.controller_factory import tuned_pi
-    from cosim.data_collection import CollectionSettings, collect, save_samples
+    from cosim.data_collection import collect, save_samples
+    from cosim.experiments import collection_settings
 
     output_file(args.out)
     work_dir = output_dir(args.work_dir)
     binding, _ = _plant_binding(args)
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
-    settings = CollectionSettings(samples=args.samples, seed=args.seed, excitation=args.excitation,
-                                  hold_range=(5, 40) if args.control_period >= 0.5e-3 else (20, 200))
+    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
     save_samples(data, Path(args.out))
     print(f"wrote {len(data)} samples ({', '.join(data.columns)}) to {args.out}")
@@ -211,7 +211,7 @@ def cmd_collect(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from controllers.nn_model import NNConfig, TrainingSettings, save_model, train
+    from controllers.nn_model import NNConfig, TrainingSettings, extra_columns, save_model, train
     from cosim.results import read_parquet
 
     try:  # arguments first, before any file is read
@@ -227,7 +227,7 @@ def cmd_train(args) -> int:
         frame, metadata = read_parquet(source)
     except Exception as error:
         raise ConfigError(f"{source}: cannot read samples ({str(error).splitlines()[0]})") from None
-    needed = ["measured_inductor_current", "measured_output_voltage", "duty_cycle", *config.extra_signals]
+    needed = ["measured_inductor_current", "measured_output_voltage", "duty_cycle", *extra_columns(config)]
     missing = [c for c in needed if c not in frame.columns]
     if missing:
         raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
@@ -350,8 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
                    help="sample period in s (default: 1e-3)")
     p.add_argument("--samples", type=int, default=10_000, help="number of samples (default: 10000, the paper's)")
-    p.add_argument("--excitation", type=float, default=0.01,
-                   help="standard deviation of the duty dither added to the PI (default: 0.01; 0 = plain PI)")
+    p.add_argument("--excitation", type=float, default=None,
+                   help="standard deviation of the duty dither added to the PI (default: 0.01 at control periods >= 0.5 ms, 0.1 faster; 0 = plain PI)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="where tuned PI gains are cached (default: results/runs-cli)")

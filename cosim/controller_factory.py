@@ -9,9 +9,9 @@ from pathlib import Path
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
 from cosim.binding import PlantBinding
-from cosim.data_collection import CollectionSettings, collect, save_samples
+from cosim.data_collection import collect, save_samples
 from cosim.errors import ConfigError
-from cosim.experiments import NOMINAL, model_mpc, nn_configs, nnpc
+from cosim.experiments import NOMINAL, collection_settings, model_mpc, nn_configs, nnpc
 from cosim.pi_tuning import PITuning, load_or_tune
 from cosim.runner import period_label, slug
 
@@ -42,8 +42,7 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
             return model
     pi = tuned_pi(binding, period, out_dir, progress)
     print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
-    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
-    data = collect(binding, pi.controller(), CollectionSettings(samples=samples, hold_range=hold, seed=seed),
+    data = collect(binding, pi.controller(), collection_settings(period, samples, seed),
                    progress=progress)
     save_samples(data, out_dir / "data" / f"{slug(binding.label)}__{period_label(period)}.parquet")
     model = train(data, config, TrainingSettings(seed=seed), progress=progress,
@@ -91,9 +90,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                       model_path=model_path, progress=progress)
                 controllers.append(nnpc(model, period, DISPLAY[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
-                controllers.append(model_mpc(true_parameters(binding), period, "MPC-oracle", duty_limits))
+                controllers.append(model_mpc(true_parameters(binding), period, "MPC-oracle", duty_limits, binding))
             elif name == "mpc-nominal":
-                controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", duty_limits))
+                controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", duty_limits, binding))
             else:
                 raise ConfigError(f"controller {name!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
     except ValueError as error:  # invalid gains, limits or periods from the controller constructors

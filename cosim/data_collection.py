@@ -26,8 +26,8 @@ from cosim.results import write_parquet
 from cosim.scenarios import Scenario, ScenarioEvent
 
 SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
-                  "load_resistance", "input_voltage", "load_current", "load_conductance", "inductor_current",
-                  "output_voltage")
+                  "load_resistance", "input_voltage", "load_current", "measured_load_current", "load_conductance",
+                  "inductor_current", "output_voltage")
 
 
 def load_conductance(load_current: np.ndarray, output_voltage: np.ndarray) -> np.ndarray:
@@ -137,7 +137,7 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     with FmuPlant(binding) as plant:
         result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
     frame = result.frame[result.frame["control_sample"]].reset_index(drop=True)
-    frame["load_conductance"] = load_conductance(frame["load_current"].to_numpy(),
+    frame["load_conductance"] = load_conductance(frame["measured_load_current"].to_numpy(),
                                                  frame["measured_output_voltage"].to_numpy())
     frame = frame[list(SAMPLE_COLUMNS)]
     frame.attrs["metadata"] = {

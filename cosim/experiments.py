@@ -11,13 +11,16 @@ from dataclasses import replace
 
 from controllers.nn_model import NNConfig, NNPlantModel
 from controllers.predictive import HorizonSettings, PredictiveController
-from controllers.predictors import AveragedModelPredictor, CircuitParameters, NNPredictor, ripple_free_horizon
-from cosim.binding import PlantBinding, RoleMap, builtin_binding
+from controllers.predictors import (AveragedModelPredictor, CircuitParameters, NNPredictor, SwitchedModelPredictor,
+                                    ripple_free_horizon)
+from cosim.binding import PLANT_MODES, PlantBinding, RoleMap, builtin_binding
+from cosim.data_collection import CollectionSettings
 from cosim.errors import ConfigError
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 
 PAPER_PERIOD = 1e-3  # [s]
-SWITCHING_PERIOD = 1 / 75e3  # [s]
+SWITCHING_FREQUENCY = 75e3  # [Hz], Table II
+SWITCHING_PERIOD = 1 / SWITCHING_FREQUENCY  # [s]
 
 NOMINAL = CircuitParameters()
 #: the mismatch-study plant: L +20 %, C -20 % and realistic parasitics
@@ -38,6 +41,20 @@ def nn_configs(control_period: float) -> dict[str, NNConfig]:
     network then also sees the sample before (two delays), still with 7 hidden neurons."""
     workbench = WORKBENCH_NN if control_period >= 0.5e-3 else replace(WORKBENCH_NN, delays=2)
     return {"nnpc": workbench, "nnpc-paper": PAPER_NN}
+
+
+def collection_settings(control_period: float, samples: int = 10_000, seed: int = 0,
+                        excitation: float | None = None) -> CollectionSettings:
+    """Identification settings per rate (paper Section IV, random levels held for random intervals).
+
+    At 1 ms levels are held 5-40 samples and the PI's duty is dithered with sigma 0.01. At faster
+    rates levels are held 20-200 samples (the loop needs longer to settle in samples) and the dither
+    is 0.1: the NNPC there plans 23-sample duty sequences (full and zero duty, then braking) far
+    from the PI's own trajectories, and the network must have seen such moves.
+    """
+    slow = control_period >= 0.5e-3
+    return CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
+                              excitation=excitation if excitation is not None else (0.01 if slow else 0.1))
 
 
 SENSORS = ("average", "synchronous")
@@ -64,6 +81,7 @@ def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBind
         roles = dict(binding.roles)
         roles["measured_output_voltage"] = RoleMap("output_voltage")
         roles["measured_inductor_current"] = RoleMap("inductor_current")
+        roles["measured_load_current"] = RoleMap("load_current")
         binding = replace(binding, roles=roles, parameters={**binding.parameters, "pwm_carrier": 1})
     suffix = "" if sensor == "average" else ", synchronous sampling"
     return replace(binding, label=f"BuckConverter ({variant}, {mode}{suffix})")
@@ -83,9 +101,33 @@ def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon
                                 duty_limits, name=name)
 
 
+def model_predictor(parameters: CircuitParameters, control_period: float, name: str,
+                    binding: PlantBinding | None = None):
+    """The circuit model an MPC baseline predicts with, believing ``parameters``.
+
+    For the built-in *switched* plant: the switched converter solved exactly per PWM period and seen
+    through the binding's sensor (the averaging ADC's period mean with the sawtooth carrier, or the
+    synchronous sample with the triangle one), when the control period is a whole number of PWM
+    periods. Otherwise -- the averaged plant, an external FMU, other periods -- the averaged model
+    (eq. 3 with parasitics), which is exact for the averaged plant.
+    """
+    p = binding.parameters if binding is not None else {}
+    if binding is not None and binding.source is None and p.get("plant_mode") == PLANT_MODES["switched"]:
+        synchronous = binding.roles["measured_output_voltage"].variable == "output_voltage"
+        try:
+            return SwitchedModelPredictor(parameters, control_period, float(p.get("switching_frequency",
+                                                                                  SWITCHING_FREQUENCY)),
+                                          carrier="triangle" if p.get("pwm_carrier") == 1 else "sawtooth",
+                                          sensor="period_start" if synchronous else "period_average", name=name)
+        except ValueError:  # not a whole number of PWM periods: the averaged model is the best there is
+            pass
+    return AveragedModelPredictor(parameters, control_period, name=name)
+
+
 def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
-              duty_limits: tuple[float, float] = (0.0, 1.0)) -> PredictiveController:
-    return PredictiveController(AveragedModelPredictor(parameters, control_period, name=name), control_period,
+              duty_limits: tuple[float, float] = (0.0, 1.0), binding: PlantBinding | None = None) -> PredictiveController:
+    """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant."""
+    return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,
                                 horizon_settings(control_period), duty_limits, name=name)
 
 

@@ -215,6 +215,7 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     # the controller reads its sensors: the measured roles where bound, else the plain outputs
     i_mv = roles_out.index("measured_output_voltage") if "measured_output_voltage" in roles_out else i_vo
     i_mi = roles_out.index("measured_inductor_current") if "measured_inductor_current" in roles_out else i_il
+    i_mo = roles_out.index("measured_load_current") if "measured_load_current" in roles_out else i_io
     inputs = {"duty_cycle": 0.0, "input_voltage": schedules[2][0][1], "load_resistance": schedules[1][0][1]}
     # after a duty change alone, outputs need re-reading only if the FMU declares a feedthrough
     duty_feedthrough = plant.feedthrough.get("duty_cycle", True)
@@ -272,7 +273,7 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
                     y = outputs()
                     _check_finite(y, roles_out, t - settle, plant.binding.origin)
                     measurement = Measurement(t - settle, references[i], y[i_mv], y[i_mi] if i_mi >= 0 else nan,
-                                              y[i_io] if i_io >= 0 else nan, last_supply)
+                                              y[i_mo] if i_mo >= 0 else nan, last_supply)
                     start = clock()
                     try:
                         duty = step(measurement)
@@ -296,7 +297,8 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
                         y = outputs()
                         _check_finite(y, roles_out, t - settle, plant.binding.origin)
                     append((t - settle, references[i], y[i_vo], y[i_il] if i_il >= 0 else nan, y[i_mv],
-                            y[i_mi] if i_mi >= 0 else nan, y[i_io] if i_io >= 0 else nan, duty, last_load,
+                            y[i_mi] if i_mi >= 0 else nan, y[i_io] if i_io >= 0 else nan,
+                            y[i_mo] if i_mo >= 0 else nan, duty, last_load,
                             last_supply, 1.0 if flag & CONTROL else 0.0, compute))
             if stream is not None and len(rows) >= STREAM_CHUNK:
                 flush()

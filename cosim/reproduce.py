@@ -29,9 +29,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from cosim.data_collection import CollectionSettings, collect, save_samples
+from cosim.data_collection import collect, save_samples
 from cosim.errors import PlantError
-from cosim.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD,
+from cosim.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD, collection_settings,
                                model_mpc, nn_configs, nnpc, plant_binding, scenarios_for)
 from cosim.pi_tuning import load_or_tune
 from cosim.report import write_report
@@ -46,7 +46,7 @@ class Profile:
 
     samples: int = 10_000
     scenarios: tuple[str, ...] = PAPER_SCENARIOS
-    ablations: bool = True  # horizon N = 3 at 1 ms; synchronous sampling at 13.33 us
+    ablations: bool = True  # horizon N = 3 at 1 ms; at 13.33 us the oracle with eq. 3, and a synchronous sample
     quick: bool = False
     pipelines: tuple[str, ...] | None = None  # tags to run (default: all)
 
@@ -122,8 +122,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         f"{timings['pi_tuning_s']:.1f} s)")
 
     start = time.perf_counter()
-    hold = (5, 40) if period >= 0.5e-3 else (20, 200)
-    data = collect(binding, pi.controller(), CollectionSettings(samples=profile.samples, hold_range=hold, seed=seed))
+    data = collect(binding, pi.controller(), collection_settings(period, profile.samples, seed))
     data.attrs["metadata"]["seed"] = seed
     data_path = out_dir / "data" / f"{tag}.parquet"
     save_samples(data, data_path)
@@ -146,13 +145,13 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
     controllers = [pi.controller(), nnpc(models["nnpc"], period, "NNPC"),
                    nnpc(models["nnpc-paper"], period, "NNPC-paper")]
     if pipeline.binding_file:  # an external plant: only the Table II model is known
-        controllers.append(model_mpc(NOMINAL, period, "MPC-nominal"))
+        controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", binding=binding))
     else:
         true_parameters = PLANT_VARIANTS[pipeline.variant]
         wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
         wrong_name = "MPC-nominal" if pipeline.variant == "mismatch" else "MPC-mismatched"
-        controllers += [model_mpc(true_parameters, period, "MPC-oracle"),
-                        model_mpc(wrong_parameters, period, wrong_name)]
+        controllers += [model_mpc(true_parameters, period, "MPC-oracle", binding=binding),
+                        model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
     scenarios = []
     for scenario in scenarios_for(period, profile.scenarios):
         missing = scenario.required_roles() - set(binding.roles)
@@ -168,11 +167,15 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         if period >= 0.5e-3:  # does a longer horizon change anything at 1 ms?
             ablation = run_batch(binding, [nnpc(models["nnpc"], period, "NNPC (N=3)", horizon=3)], scenarios,
                                  out_dir, plant_tag=pipeline.plant_tag, seed=seed, figures=False)
-        else:  # the averaging sensor's lag against a synchronous point sample, with the oracle model
+        else:  # the oracle blind to the sensor (eq. 3), and a synchronous point sample instead of the mean
+            blind = run_batch(binding, [model_mpc(true_parameters, period, "MPC-oracle (averaged model)")],
+                              scenarios, out_dir, plant_tag=pipeline.plant_tag, seed=seed, figures=False)
             synchronous = plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous")
-            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, "MPC-oracle (sync. sample)")],
+            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, "MPC-oracle (sync. sample)",
+                                                         binding=synchronous)],
                                  scenarios, out_dir, plant_tag=f"{pipeline.plant_tag}-sync", seed=seed,
                                  figures=False)
+            ablation.metrics = pd.concat([blind.metrics, ablation.metrics], ignore_index=True)
         ablation.metrics["plant_tag"] = pipeline.plant_tag
         metrics = pd.concat([metrics, ablation.metrics], ignore_index=True)
     timings["runs_s"] = time.perf_counter() - start

@@ -27,7 +27,7 @@ def test_one_row_per_control_sample_with_the_documented_columns(samples):
     assert meta["control_period_s"] == 1e-3 and meta["collection"]["seed"] == 4
     ok = samples["measured_output_voltage"] > 0.05
     np.testing.assert_allclose(samples.loc[ok, "load_conductance"],
-                               samples.loc[ok, "load_current"] / samples.loc[ok, "measured_output_voltage"])
+                               samples.loc[ok, "measured_load_current"] / samples.loc[ok, "measured_output_voltage"])
 
 
 def test_random_levels_are_held_for_the_documented_intervals():

@@ -26,7 +26,7 @@ def linear_plant_frame(n=3000, seed=0):
         x[k] = PHI @ x[k - 1] + GAIN * duty[k - 1]
     return pd.DataFrame({"time": np.arange(n) * 1e-3, "measured_inductor_current": x[:, 0],
                          "measured_output_voltage": x[:, 1], "duty_cycle": duty,
-                         "load_conductance": np.full(n, 1 / 6), "load_current": x[:, 1] / 6,
+                         "load_conductance": np.full(n, 1 / 6), "load_current": x[:, 1] / 6, "measured_load_current": x[:, 1] / 6,
                          "input_voltage": np.full(n, 48.0)})
 
 

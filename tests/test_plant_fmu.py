@@ -192,7 +192,8 @@ def test_communication_step_size_does_not_change_the_result(buck_fmu, mode, star
 
 @pytest.mark.parametrize("mode", [AVERAGED, SWITCHED])
 def test_model_exchange_with_cvode_agrees_with_co_simulation(buck_fmu, mode):
-    names = ("inductor_current", "output_voltage", "average_inductor_current", "average_output_voltage")
+    names = ("inductor_current", "output_voltage", "average_inductor_current", "average_output_voltage",
+             "average_load_current")
     signals = np.array([(0.0, 0.25, VS, R), (0.005, 0.25, VS, R), (0.005, 0.3, VS, R), (0.01, 0.3, VS, R)],
                        dtype=[("time", float), ("duty_cycle", float), ("input_voltage", float),
                               ("load_resistance", float)])
@@ -349,6 +350,29 @@ def test_period_averages_are_the_exact_means_of_the_last_period(buck_fmu, carrie
     assert abs(instant[1] - 12.0) > 5 * abs(averages[1] - 12.0)  # the instantaneous sample carries ripple
 
 
+def test_period_mean_load_current_stays_exact_across_a_load_step_inside_the_period(buck_fmu):
+    """io = vo / R with R stepping 6 -> 4 Ohm 40 % into a period: the mean load current over that
+    period is (flux before / 6 + flux after / 4) / T, and matches a fine sampling of io."""
+    slave = RawSlave(buck_fmu, {"plant_mode": SWITCHED, "duty_cycle": 0.25, "load_resistance": R})
+    try:
+        k0 = 1500
+        slave.step_to(k0 / FSW)
+        fine = []
+        for i in range(1, 2001):
+            if i == 801:
+                flux_before = slave.get("period_flux")[0]
+                slave.set({"load_resistance": 4.0})
+            slave.step_to((k0 + i / 2000) / FSW)
+            fine.append(slave.get("load_current")[0])
+        mean_voltage, mean_load = slave.get("average_output_voltage", "average_load_current")
+    finally:
+        slave.close()
+    expected = (flux_before / R + (mean_voltage / FSW - flux_before) / 4.0) * FSW
+    assert mean_load == pytest.approx(expected, rel=1e-12)
+    assert mean_load == pytest.approx(np.mean(fine), rel=2e-4)
+    assert 12.0 / R < mean_load < 12.0 / 4.0
+
+
 def test_period_averages_do_not_depend_on_the_communication_step(buck_fmu):
     outputs = ("average_inductor_current", "average_output_voltage")
     _, coarse = simulate_raw(buck_fmu, 0.004, 1e-3, {"plant_mode": SWITCHED, "duty_cycle": 0.3}, outputs=outputs)
@@ -360,8 +384,8 @@ def test_period_averages_do_not_depend_on_the_communication_step(buck_fmu):
 def test_averaged_mode_average_outputs_are_the_state(raw_slave_factory):
     slave = raw_slave_factory({"plant_mode": AVERAGED, "duty_cycle": 0.25})
     slave.step_to(3e-3)
-    assert np.array_equal(slave.get("average_inductor_current", "average_output_voltage"),
-                          slave.get("inductor_current", "output_voltage"))
+    assert np.array_equal(slave.get("average_inductor_current", "average_output_voltage", "average_load_current"),
+                          slave.get("inductor_current", "output_voltage", "load_current"))
 
 
 @pytest.mark.parametrize("start,duty,resistance,esr", [

@@ -10,8 +10,8 @@ from scipy.linalg import expm
 
 from controllers.base import Measurement
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, doubling_blocks
-from controllers.predictors import (AveragedModelPredictor, CircuitParameters, PredictionContext, expm2,
-                                    ripple_free_horizon)
+from controllers.predictors import (CARRIERS, AveragedModelPredictor, CircuitParameters, PredictionContext,
+                                    SwitchedModelPredictor, expm2, ripple_free_horizon)
 from cosim.binding import builtin_binding
 from cosim.fmu_plant import FmuPlant
 from cosim.master import simulate
@@ -156,3 +156,96 @@ def test_warm_start_does_not_trap_the_optimizer_near_the_previous_solution():
 
         warm, _ = optimizer.solve(cost, warm=np.full(23, 0.25))
         assert warm[0] == pytest.approx(target, abs=1e-3)
+
+
+# ------------------------------------------------------------------------------------------ switched model
+
+PARASITICS = {"inductor_resistance": 0.1, "capacitor_esr": 0.05, "switch_on_resistance": 0.08,
+              "diode_forward_voltage": 0.7}
+
+
+@pytest.mark.parametrize("carrier,sensor", [("sawtooth", "period_average"), ("triangle", "period_start")])
+@pytest.mark.parametrize("period", [TS, 1e-3])
+def test_switched_model_predicts_what_the_sensor_of_the_switched_fmu_reads(carrier, sensor, period):
+    """Four control periods of duty steps (CCM, with parasitics): the switched-model predictor,
+    started from one sensor reading and the duty before it, matches the FMU's later readings."""
+    binding = builtin_binding("switched", {**PARASITICS, "pwm_carrier": CARRIERS.index(carrier)})
+    predictor = SwitchedModelPredictor(CircuitParameters(**PARASITICS), period, carrier=carrier, sensor=sensor)
+    duties = [0.3, 0.28, 0.33, 0.25]
+    with FmuPlant(binding) as plant:
+        plant.initialize([0.27, 48.0, 6.0])
+        t = 3e-3 if period > 1e-4 else 150 * period
+        plant.advance_to(t)
+
+        def reading():
+            y = plant.outputs()
+            return [y[plant.output_roles.index(r)] for r in ("measured_inductor_current", "measured_output_voltage")] \
+                if sensor == "period_average" else [y[plant.output_roles.index(r)] for r in ("inductor_current",
+                                                                                              "output_voltage")]
+        start = reading()
+        readings = []
+        for duty in duties:
+            plant.set_inputs([duty, 48.0, 6.0])
+            t += period
+            plant.advance_to(t)
+            readings.append(reading())
+    ctx = PredictionContext(history=np.array([[start[0], start[1], 0.0]]), input_voltage=48.0, load_resistance=6.0,
+                            load_current=start[1] / 6.0, previous_duty=0.27)
+    predicted = predictor.rollout(ctx, np.array([duties]), np.zeros(2))[0]
+    np.testing.assert_allclose(predicted, readings, rtol=2e-6, atol=2e-5)  # duty-grid interpolation
+
+
+def test_switched_model_needs_whole_pwm_periods():
+    with pytest.raises(ValueError, match=r"control period 0.0001 s is not a whole number of switching periods"):
+        SwitchedModelPredictor(CircuitParameters(), 1e-4)
+
+
+def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_switching_rate():
+    """With the exact switched model and consistent period-mean sensors (iL, vo and io), the oracle
+    reaches 12 V within about 0.1 ms and overshoots less than 1 % -- the averaged model, blind to the
+    sensor's half-period lag and the sawtooth's timing, overshoots several times more."""
+    from cosim.experiments import horizon_settings, model_mpc
+
+    binding = builtin_binding("switched")
+    startup = replace(load_scenario("startup"), duration=0.001)
+    oracle = model_mpc(CircuitParameters(), TS, "MPC-oracle", binding=binding)
+    assert isinstance(oracle.predictor, SwitchedModelPredictor)
+    m = run_metrics(simulate(binding, oracle, startup))
+    assert m["overshoot_pct"] < 1.0 and abs(m["steady_state_error_pct"]) < 0.05
+    averaged = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS, horizon_settings(TS))
+    assert run_metrics(simulate(binding, averaged, startup))["overshoot_pct"] > 3 * max(m["overshoot_pct"], 1.0)
+
+
+def test_a_self_reproducing_warm_start_does_not_hold_the_output_off_its_reference():
+    """Regression: the NNPC trained on the mismatch plant at 13.33 us once settled at 12.70 V for a
+    12 V reference. Its warm start (the last solution shifted) reproduced itself, the coarse
+    constant grid (0.25, 0.30) missed the right duty (~0.27) and the fine refinement around the
+    warm start found nothing better. The state, disturbance estimate and warm start of that run
+    are replayed here with that network (tests/fixtures)."""
+    from pathlib import Path
+
+    from controllers.nn_model import load_model
+    from controllers.predictors import NNPredictor
+
+    model = load_model(Path(__file__).parent / "fixtures" / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    predictor = NNPredictor(model)
+    history = np.array([[2.1172424944982042, 12.703454460706737, 0.0],
+                        [2.1172424747000966, 12.703454315797627, 0.28297668038408774]])
+    bias = np.array([-0.0018530089423268196, 0.0036338815685323864])
+    warm = np.array([0.28297668038408774] + [0.2926063100137174] * 3 + [0.25141289437585734] * 4
+                    + [0.27548010973936904] * 8 + [0.2547462277091907] * 7)
+    ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_current=12.7 / 6.0,
+                            previous_duty=warm[0])
+    settings = HorizonSettings(horizon=23, levels=21)
+    weights = settings.discount ** np.arange(23)
+    target = np.array([2.0, 12.0])
+
+    def cost(duties):
+        e = predictor.rollout(ctx, duties, bias) - target
+        return np.sqrt((e * e).sum(axis=2)) @ weights
+
+    stale = cost(np.concatenate([warm[1:], warm[-1:]])[None])[0]
+    sequence, best = HorizonOptimizer(settings, (0.0, 1.0)).solve(cost, warm=warm, anchor=0.25)
+    assert best < 0.7 * stale
+    assert best <= cost(np.full((1, 23), 0.27))[0]  # at least as good as holding the right duty
+    assert sequence[0] < 0.28  # and it moves the output towards 12 V

@@ -32,8 +32,8 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     metrics = pd.read_csv(reproduction / "metrics" / "metrics_all.csv")
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
-            "MPC-oracle (sync. sample)"} <= controllers
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2
+            "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)"} <= controllers
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2  # + the ablations: N = 3 at 1 ms; eq. 3 and sync. sample at 13.33 us
 
 
 def test_report_has_every_section_and_checks_the_targets(reproduction):

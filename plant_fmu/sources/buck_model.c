@@ -120,6 +120,19 @@ double buck_average_inductor_current(const BuckModel *m) {
     return m->inductor_current;
 }
 
+double buck_average_load_current(const BuckModel *m) {
+    if (m->p.plant_mode == MODE_SWITCHED && m->have_average) return m->average_load_current;
+    return buck_output_voltage(m) / m->u.load_resistance;
+}
+
+void buck_set_load_resistance(BuckModel *m, double resistance) {
+    if (m->p.plant_mode == MODE_SWITCHED && resistance != m->u.load_resistance && m->u.load_resistance > 0.0) {
+        m->load_charge_before_change += (m->period_flux - m->flux_at_load_change) / m->u.load_resistance;
+        m->flux_at_load_change = m->period_flux;
+    }
+    m->u.load_resistance = resistance;
+}
+
 double buck_applied_duty(const BuckModel *m) {
     if (m->p.plant_mode == MODE_SWITCHED && m->pwm_period >= 0) return m->pwm_duty;
     return m->u.duty_cycle;
@@ -259,10 +272,14 @@ static void finish_period(BuckModel *m) {
     if (span > 0.0) {
         m->average_current = m->period_charge / span;
         m->average_voltage = m->period_flux / span;
+        m->average_load_current = (m->load_charge_before_change
+                                   + (m->period_flux - m->flux_at_load_change) / m->u.load_resistance) / span;
         m->have_average = true;
     }
     m->period_charge = 0.0;
     m->period_flux = 0.0;
+    m->load_charge_before_change = 0.0;
+    m->flux_at_load_change = 0.0;
     m->period_start = m->time;
 }
 
@@ -600,6 +617,8 @@ void buck_start(BuckModel *m, double t) {
     m->dcm_step = 0.0;
     m->period_charge = 0.0;
     m->period_flux = 0.0;
+    m->load_charge_before_change = 0.0;
+    m->flux_at_load_change = 0.0;
     m->period_start = t;
     m->have_average = false;
     if (m->p.plant_mode == MODE_SWITCHED) {

@@ -63,6 +63,11 @@ typedef struct {
     double period_start;      /* [s] */
     double average_current;   /* mean i_L over the last completed period [A] */
     double average_voltage;   /* mean v_o over the last completed period [V] */
+    /* the load current i_o = v_o / R is integrated from period_flux: R is constant between load
+     * changes, so each change closes a piece (flux_at_load_change marks where it began) */
+    double load_charge_before_change; /* integral of i_o from period_start to the last load change [A s] */
+    double flux_at_load_change;       /* period_flux at the last load change in this period [V s] */
+    double average_load_current;      /* mean i_o over the last completed period [A] */
     bool have_average;
 } BuckModel;
 
@@ -86,11 +91,15 @@ void buck_event_indicators(const BuckModel *m, double z[2]);
 /* Event update at m->time; returns true if the continuous states were changed. */
 bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_event_defined);
 
+/* Set the load resistance (an input), keeping the period's load-current integral exact. */
+void buck_set_load_resistance(BuckModel *m, double resistance);
+
 /* Outputs. */
 double buck_output_voltage(const BuckModel *m);
 double buck_applied_duty(const BuckModel *m);
 /* Mean over the last completed PWM period (switched mode); the averaged model's own state otherwise. */
 double buck_average_output_voltage(const BuckModel *m);
 double buck_average_inductor_current(const BuckModel *m);
+double buck_average_load_current(const BuckModel *m);
 
 #endif

@@ -34,7 +34,8 @@ typedef enum {
     VR_PERIOD_CHARGE = 24,
     VR_PERIOD_FLUX = 25,
     VR_DER_PERIOD_CHARGE = 26,
-    VR_DER_PERIOD_FLUX = 27
+    VR_DER_PERIOD_FLUX = 27,
+    VR_AVERAGE_LOAD_CURRENT = 28
 } ValueReference;
 
 #endif

@@ -14,7 +14,7 @@
 #include "buck_variables.h"
 
 /* Must equal the guid attribute of modelDescription.xml. */
-#define MODEL_GUID "{5d0c2f1e-48a2-4c1b-9b7e-3a1c0b0c4802}"
+#define MODEL_GUID "{1fc7eec8-9895-4c05-9356-993203d5c731}"
 #define NUMBER_OF_STATES BUCK_STATES
 #define NUMBER_OF_EVENT_INDICATORS 2
 #define SNAPSHOT_MAGIC 0x4255434bu /* "BUCK" */
@@ -111,6 +111,7 @@ static fmi2Status get_real(Instance *inst, fmi2ValueReference vr, fmi2Real *valu
     case VR_CAPACITOR_ESR: *value = m->p.capacitor_esr; break;
     case VR_AVERAGE_OUTPUT_VOLTAGE: *value = buck_average_output_voltage(m); break;
     case VR_AVERAGE_INDUCTOR_CURRENT: *value = buck_average_inductor_current(m); break;
+    case VR_AVERAGE_LOAD_CURRENT: *value = buck_average_load_current(m); break;
     case VR_PERIOD_CHARGE: *value = m->period_charge; break;
     case VR_PERIOD_FLUX: *value = m->period_flux; break;
     case VR_DER_PERIOD_CHARGE: buck_derivatives(m, dx); *value = dx[2]; break;
@@ -174,7 +175,7 @@ static fmi2Status set_real(Instance *inst, fmi2ValueReference vr, fmi2Real value
         break;
     }
     case VR_INPUT_VOLTAGE: m->u.input_voltage = value; break;
-    case VR_LOAD_RESISTANCE: m->u.load_resistance = value; break;
+    case VR_LOAD_RESISTANCE: buck_set_load_resistance(m, value); break;
     case VR_INDUCTANCE: m->p.inductance = value; break;
     case VR_CAPACITANCE: m->p.capacitance = value; break;
     case VR_SWITCHING_FREQUENCY: m->p.switching_frequency = value; break;
