@@ -79,7 +79,8 @@ class HorizonOptimizer:
 
     Stage 1 (one batched evaluation): a fine lattice around the previous solution shifted by one
     sample (warm start) and a global search -- the full grid over all blocks when that is small,
-    else constant sequences (coarse, and finely around the last move), a grid over the first move
+    else constant sequences (coarse, and finely around the last move, so a warm start that merely
+    reproduces itself cannot hold the output off its reference), a grid over the first move
     and a coarse one over the first two (then the steady-state duty), and bang-bang profiles
     (accelerate, brake, hold).
     Then refinement passes, each one batched evaluation around the best:

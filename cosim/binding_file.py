@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 import tomllib
 from pathlib import Path
 
@@ -115,6 +116,10 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     for role in REQUIRED_ROLES:
         if role not in roles:
             raise ConfigError(f"{path}: missing role [roles.{role}] ({ROLE_DESCRIPTIONS[role]})")
+    if "measured_output_voltage" in roles and "load_current" in roles and "measured_load_current" not in roles:
+        print(f"warning: {path}: [roles.measured_output_voltage] is bound but [roles.measured_load_current] is not: "
+              "predictive controllers will estimate the load from a measured vo and the plain load_current; "
+              "bind both alike", file=sys.stderr)
 
     parameters = data.get("parameters", {})
     if not isinstance(parameters, dict):

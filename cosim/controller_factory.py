@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import math
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
@@ -35,18 +37,19 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
         return load_model(Path(model_path), expect_period=period)
     stem = f"{slug(binding.label)}__{period_label(period)}__{name}"
     path = out_dir / "models" / f"{stem}.pt"
+    settings = collection_settings(period, samples, seed)
+    collection = json.loads(json.dumps(asdict(settings)))  # as the model file stores it
     if path.is_file():
         model = load_model(path, expect_period=period, expect_config=config)
-        if model.metadata.get("plant") == binding.label and model.metadata.get("seed") == seed \
-                and model.metadata.get("training", {}).get("samples") == samples:
-            return model
+        if model.metadata.get("plant") == binding.label and model.metadata.get("collection") == collection:
+            return model  # same plant, identification settings (samples, seed, dither) and network
     pi = tuned_pi(binding, period, out_dir, progress)
     print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
-    data = collect(binding, pi.controller(), collection_settings(period, samples, seed),
-                   progress=progress)
+    data = collect(binding, pi.controller(), settings, progress=progress)
     save_samples(data, out_dir / "data" / f"{slug(binding.label)}__{period_label(period)}.parquet")
     model = train(data, config, TrainingSettings(seed=seed), progress=progress,
-                  metadata={"control_period_s": period, "plant": binding.label, "seed": seed})
+                  metadata={"control_period_s": period, "plant": binding.label, "seed": seed,
+                            "collection": collection})
     save_model(model, path)
     return model
 

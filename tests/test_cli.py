@@ -132,3 +132,21 @@ def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):
     assert done.returncode == 2, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0], done.stderr
+
+
+def test_a_cached_network_is_reused_only_for_the_same_identification_settings(tmp_path, monkeypatch):
+    """trained_model caches per plant, rate and network; a changed seed (or sample count, or dither
+    rule) must retrain instead of silently reusing a model identified differently."""
+    import cosim.controller_factory as factory
+    from cosim.binding import builtin_binding
+
+    calls = []
+    real_collect = factory.collect
+    monkeypatch.setattr(factory, "collect", lambda *a, **k: calls.append(a[2]) or real_collect(*a, **k))
+    binding = builtin_binding("averaged")
+    first = factory.trained_model("nnpc", binding, 1e-3, tmp_path, samples=300, seed=1, model_path=None)
+    again = factory.trained_model("nnpc", binding, 1e-3, tmp_path, samples=300, seed=1, model_path=None)
+    assert len(calls) == 1 and again.metadata["collection"] == first.metadata["collection"]
+    other = factory.trained_model("nnpc", binding, 1e-3, tmp_path, samples=300, seed=2, model_path=None)
+    assert len(calls) == 2 and other.metadata["collection"]["seed"] == 2
+    assert calls[0].excitation == 0.01 and calls[0].hold_range == (5, 40)  # the 1 ms identification rule

@@ -64,7 +64,9 @@ typedef struct {
     double average_current;   /* mean i_L over the last completed period [A] */
     double average_voltage;   /* mean v_o over the last completed period [V] */
     /* the load current i_o = v_o / R is integrated from period_flux: R is constant between load
-     * changes, so each change closes a piece (flux_at_load_change marks where it began) */
+     * changes, so each change closes a piece (flux_at_load_change marks where it began). Exact when
+     * R is set at communication points (co-simulation; model exchange between accepted steps, as
+     * fmpy does); an importer setting R inside its solver's trial evaluations would need a state. */
     double load_charge_before_change; /* integral of i_o from period_start to the last load change [A s] */
     double flux_at_load_change;       /* period_flux at the last load change in this period [V s] */
     double average_load_current;      /* mean i_o over the last completed period [A] */
