@@ -33,6 +33,8 @@ class BenchRow:
     meets_target: bool | None = None
     note: str = ""
     extra: dict = field(default_factory=dict)
+    group: str = ""  # the BENCHMARKS entry that measured it
+    command: str = ""  # the command line that measured it
 
 
 def machine_info() -> dict[str, str]:
@@ -385,27 +387,63 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
 
 def run_benchmarks(out_dir: Path, quick: bool = False, only: list[str] | None = None,
                    command: str = "buck-cosim bench") -> tuple[Path, Path]:
+    """Run the benchmarks (``only``: some of them) and write the table. With ``only``, the other
+    groups' rows of the existing table are kept as they were measured, each with its own command."""
+    command += " --quick" if quick else ""
     rows: list[BenchRow] = []
     for name, function in BENCHMARKS.items():
         if only and name not in only:
             continue
         print(f"benchmark: {name} ...", file=sys.stderr)
-        rows.extend(function(quick))
-    return write_benchmarks(rows, Path(out_dir), quick, command)
+        for row in function(quick):
+            row.group, row.command = name, command
+            rows.append(row)
+    out_dir = Path(out_dir)
+    if only:
+        kept = [r for r in _read_rows(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"))
+                if r.group not in only]
+        order = list(BENCHMARKS)
+        rows = sorted(kept + rows, key=lambda r: order.index(r.group))  # stable: measured order kept
+    return write_benchmarks(rows, out_dir, quick)
 
 
-def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool, command: str) -> tuple[Path, Path]:
+def _read_rows(path: Path) -> list[BenchRow]:
+    """Rows of an earlier table that can be merged (those with a known group), else none."""
+    try:
+        frame = pd.read_csv(path, keep_default_na=False)
+    except (OSError, ValueError):
+        return []
+    if not {"group", "command", "benchmark", "median"} <= set(frame.columns):
+        return []
+
+    def optional(value, kind):
+        return None if value in ("", None) else kind(value)
+
+    rows = []
+    for r in frame.to_dict("records"):
+        if r["group"] not in BENCHMARKS:
+            continue
+        met = r.get("meets_target")
+        rows.append(BenchRow(str(r["benchmark"]), float(r["median"]), optional(r.get("p99"), float), str(r["unit"]),
+                             str(r.get("target", "")), None if met in ("", None) else str(met) == "True",
+                             str(r.get("note", "")), group=r["group"], command=str(r["command"])))
+    return rows
+
+
+def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool) -> tuple[Path, Path]:
     machine = machine_info()
     versions = package_versions()
     frame = pd.DataFrame([{k: v for k, v in asdict(r).items() if k != "extra"} for r in rows])
     frame["machine"] = f"{machine['cpu']} ({machine['cores']} cores)"
-    frame["command"] = command + (" --quick" if quick else "")
     csv_path = atomic_write(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"),
                             lambda tmp: frame.to_csv(tmp, index=False))
+    commands = list(dict.fromkeys(r.command for r in rows))
     lines = [
         "# Benchmarks" + (" (quick smoke run: sizes too small to mean anything)" if quick else ""),
         "",
-        f"Command: `{command}{' --quick' if quick else ''}`  ",
+        (f"Command: `{commands[0]}`  " if len(commands) == 1 else
+         "Commands: " + "; ".join(f"`{c}` ({', '.join(dict.fromkeys(r.group for r in rows if r.command == c))})"
+                                  for c in commands) + " -- ratios only within one command's rows  "),
         f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['system']}, Python {machine['python']}  ",
         "Packages: " + ", ".join(f"{k} {v}" for k, v in versions.items() if k != "python"),
         "",

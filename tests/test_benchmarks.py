@@ -22,3 +22,14 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
         assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
     assert table["machine"].iloc[0].endswith("cores)")
+    # rerunning one group replaces only its rows; the others keep their values and their command
+    assert main(["bench", "--quick", "--only", "plant", "--out", str(tmp_path)]) == 0
+    merged = pd.read_csv(tmp_path / "benchmarks-quick.csv")
+    assert list(merged["benchmark"]) == list(table["benchmark"])
+    plant = merged["group"] == "plant"
+    assert set(merged.loc[plant, "command"]) == {"buck-cosim bench --only plant --quick"}
+    pd.testing.assert_frame_equal(merged[~plant].reset_index(drop=True),
+                                  table[table["group"] != "plant"].reset_index(drop=True))
+    header = (tmp_path / "benchmarks-quick.md").read_text().splitlines()[2]
+    assert header.startswith("Commands: ") and "`buck-cosim bench --only plant --quick` (plant)" in header
+    assert "`buck-cosim bench --quick` (master, controllers," in header

@@ -11,7 +11,7 @@ from scipy.linalg import expm
 from controllers.base import Measurement
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, doubling_blocks
 from controllers.predictors import (CARRIERS, AveragedModelPredictor, CircuitParameters, PredictionContext,
-                                    SwitchedModelPredictor, expm2, ripple_free_horizon)
+                                    SwitchedModelPredictor, expm2, expm2_many, ripple_free_horizon)
 from cosim.binding import builtin_binding
 from cosim.fmu_plant import FmuPlant
 from cosim.master import simulate
@@ -83,6 +83,9 @@ def test_blocks_and_settings_are_validated():
 def test_closed_form_expm_matches_scipy(load, period):
     a = np.array([[-0.05 / 220e-6, -1 / 220e-6], [1 / 10e-6, -1 / (load * 10e-6)]])
     np.testing.assert_allclose(expm2(a, period), expm(a * period), rtol=1e-10, atol=1e-14)
+    times = np.array([0.0, 1e-9, period / 3, period])  # the vectorised form, mixing series and closed form
+    for t, matrix in zip(times, expm2_many(a, times)):
+        np.testing.assert_allclose(matrix, expm(a * t), rtol=1e-10, atol=1e-14)
 
 
 def test_averaged_model_predictor_is_exact_for_the_averaged_plant_in_ccm():
