@@ -56,6 +56,12 @@ def _ratio_table(metrics: pd.DataFrame, pipeline: str, numerator: str, denominat
     return (a / b).rename(f"{numerator}/{denominator}")
 
 
+def _seed_study(metrics, pipeline) -> list[str]:
+    """Names of the seed-study NNPCs of a pipeline ("NNPC (seed 1)", ...)."""
+    names = metrics.loc[metrics["pipeline"] == pipeline, "controller"]
+    return sorted(n for n in set(names) if n.startswith("NNPC (seed "))
+
+
 def _value(metrics, pipeline, controller, scenario, column):
     rows = metrics[(metrics["pipeline"] == pipeline) & (metrics["controller"] == controller)
                    & (metrics["scenario"] == scenario)]
@@ -104,10 +110,15 @@ class Targets:
             tag = f"nominal-{mode}__{fast}"
             if tag in pipelines:
                 overshoot = _value(m, tag, "NNPC", "startup", "overshoot_pct")
-                add(f"NNPC start-up overshoot <= 5 % at 1/fsw, {mode}", f"{overshoot:.2f} %", overshoot <= 5.0)
+                seeds = _seed_study(m, tag)
+                note = ("NNPC identified from other seeds' data: " + "; ".join(
+                    f"{name}: {_value(m, tag, name, 'startup', 'overshoot_pct'):.2f} %" for name in seeds)) if seeds else ""
+                add(f"NNPC start-up overshoot <= 5 % at 1/fsw, {mode}", f"{overshoot:.2f} %", overshoot <= 5.0, note)
                 r = _ratio_table(m, tag, "NNPC", "PI")
+                note = ("other seeds, worst scenario: " + "; ".join(
+                    f"{name}: {_ratio_table(m, tag, name, 'PI').max():.3f}" for name in seeds)) if seeds else ""
                 add(f"NNPC IAE <= 0.6 x PI IAE at 1/fsw, {mode}", "; ".join(f"{s}: {v:.3f}" for s, v in r.items()),
-                    bool((r <= 0.6).all()))
+                    bool((r <= 0.6).all()), note)
         for rate in (paper, fast):
             tag = f"mismatch-switched__{rate}"
             if tag in pipelines:
@@ -263,6 +274,18 @@ def _ablations(metrics: pd.DataFrame) -> list[str]:
                   "the ripple crest and leaves a DC error of about half the 91 mV ripple.", ""]
         lines += _table(rows, ["scenario", "controller", "iae_Vs", "overshoot_pct", "steady_state_error_pct"],
                         ["scenario", "controller", "IAE [V s]", "overshoot [%]", "SS error [%]"])
+        lines.append("")
+    seeds = _seed_study(metrics, tag)
+    if seeds:
+        rows = metrics[(metrics["pipeline"] == tag) & metrics["controller"].isin(["NNPC", *seeds])].copy()
+        pi = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == "PI")].set_index("scenario")["iae_Vs"]
+        rows["iae_over_pi"] = rows["iae_Vs"].to_numpy() / pi.reindex(rows["scenario"]).to_numpy()
+        lines += ["**Seed sensitivity at 13.33 us** (nominal switched plant): the NNPC identified again from data "
+                  "collected and a network trained with other seeds (same tuned PI, same settings). The spread is "
+                  "the uncertainty of the NNPC numbers above; the MPC baselines have none.", ""]
+        lines += _table(rows, ["scenario", "controller", "iae_Vs", "iae_over_pi", "overshoot_pct",
+                               "steady_state_error_pct"],
+                        ["scenario", "controller", "IAE [V s]", "IAE / PI IAE", "overshoot [%]", "SS error [%]"])
     return lines
 
 
@@ -288,10 +311,13 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
         r_pi = _ratio_table(metrics, tag, "NNPC", "PI")
         r_or = _ratio_table(metrics, tag, "NNPC", "MPC-oracle")
         os_nn = _value(metrics, tag, "NNPC", "startup", "overshoot_pct")
+        seeds = _seed_study(metrics, tag)
+        spread = (" (NNPCs identified from other seeds' data: " + ", ".join(
+            f"{_value(metrics, tag, name, 'startup', 'overshoot_pct'):.1f} %" for name in seeds) + ")") if seeds else ""
         lines.append(
             "- **At one switching period the controllers can shape the transient**: NNPC IAE / PI IAE = "
             + ", ".join(f"{s} {v:.2f}" for s, v in r_pi.items())
-            + f"; start-up overshoot {os_nn:.1f} %; NNPC / oracle MPC = "
+            + f"; start-up overshoot {os_nn:.1f} %{spread}; NNPC / oracle MPC = "
             + ", ".join(f"{s} {v:.2f}" for s, v in r_or.items()) + ".")
     paper_nn = metrics[metrics["controller"] == "NNPC-paper"]
     if len(paper_nn):
@@ -330,7 +356,6 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
 
 
 def _discussion(metrics, pipelines, physics) -> list[str]:
-    paper, fast = period_label(PAPER_PERIOD), period_label(SWITCHING_PERIOD)
     text = [
         "**Which of the paper's claims hold, and at which rate.** The paper claims that the NNPC 'optimally "
         "regulates' the converter while the PI shows 'voltage and current oscillations' in start-up, load "
@@ -361,9 +386,9 @@ def _discussion(metrics, pipelines, physics) -> list[str]:
         "**Limits of this reproduction.** The NNPC's quality depends on the identification data (seeded; "
         "the PI-driven random references and loads of the paper, with a duty dither -- sigma 0.01 at 1 ms, "
         "0.1 at 13.33 us -- and repeated start-ups from rest) and on training; results for other seeds and "
-        "dither levels differ, at 13.33 us by several per cent of overshoot, because the network's "
-        "multi-step predictions (see the 10-step RMSEs) are poor wherever the data is thin. The MPC "
-        "baselines have no such dependence. Compute times are Python/numpy on a shared 2-core machine: "
+        "dither levels differ, at 13.33 us by several per cent of overshoot (the seed-sensitivity table "
+        "above), because the network's multi-step predictions (see the 10-step RMSEs) are poor wherever the "
+        "data is thin. The MPC baselines have no such dependence. Compute times are Python/numpy on a shared 2-core machine: "
         "the predictive controllers at 13.33 us are far from real time.",
     ]
     return text

@@ -32,8 +32,12 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     metrics = pd.read_csv(reproduction / "metrics" / "metrics_all.csv")
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
-            "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)"} <= controllers
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2  # + the ablations: N = 3 at 1 ms; eq. 3 and sync. sample at 13.33 us
+            "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)"} <= controllers
+    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2
+    seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
+    assert set(seed_study["pipeline"]) == {"nominal-switched__13p33us"}
+    assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
 
 
 def test_report_has_every_section_and_checks_the_targets(reproduction):
@@ -48,6 +52,9 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     timing = targets[targets["target"].str.contains("Whole reproduction")]
     assert timing["met"].tolist() == ["yes"]  # the quick profile is far below 120 s
     assert targets["target"].str.contains("NNPC IAE <= 1.10 x oracle-MPC IAE").any()
+    overshoot = targets[targets["target"] == "NNPC start-up overshoot <= 5 % at 1/fsw, switched"]
+    assert overshoot["note"].iloc[0].startswith("NNPC identified from other seeds' data: NNPC (seed 1): ")
+    assert "**Seed sensitivity at 13.33 us**" in report
     for figure in report.split("](figures/")[1:]:
         assert (reproduction / "figures" / figure.split(")")[0]).is_file()
 
