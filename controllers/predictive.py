@@ -84,8 +84,9 @@ class HorizonOptimizer:
     and a coarse one over the first two (then the steady-state duty), and bang-bang profiles
     (accelerate, brake, hold).
     Then refinement passes, each one batched evaluation around the best:
-    * few blocks: a full lattice of offsets -h..h steps per block (17 points for one block, 5 per
-      block for three), the step shrinking by 2h per pass so each lattice spans the previous cell;
+    * few blocks: a full lattice of offsets -h..h steps per block (33 points for one block, so two
+      passes zoom from the grid to 1e-4; 11 per block for two, 5 for three), the step shrinking by
+      2h per pass so each lattice spans the previous cell;
     * many blocks: a pattern search (moves of -4..4 steps along each block, one step along each
       pair of blocks in all four sign combinations, and 1, 2, 4 or 8 steps of all blocks together)
       from a step of 1/8 of the duty range, divided by three per pass.
@@ -112,9 +113,9 @@ class HorizonOptimizer:
         else:
             self._global = np.repeat(grid[:, None], nb, axis=1)  # constant sequences
             self._global_is_full = False
-        # zoom lattice: the most points per block (odd, at most 17) a full lattice can afford;
+        # zoom lattice: the most points per block (odd, at most 33) a full lattice can afford;
         # offsets -h..h steps, and the step shrinks by 2h so each lattice spans the previous cell
-        per_axis = max((p for p in range(3, 18, 2) if p ** nb <= FULL_GRID_LIMIT), default=0)
+        per_axis = max((p for p in range(3, 34, 2) if p ** nb <= FULL_GRID_LIMIT), default=0)
         if per_axis:
             half = (per_axis - 1) // 2
             offsets = np.arange(-half, half + 1, dtype=float)

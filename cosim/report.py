@@ -248,44 +248,48 @@ def _setup(physics: dict) -> list[str]:
     ]
 
 
+def _ablation(text: str, rows: pd.DataFrame, columns: dict[str, str]) -> list[str]:
+    """One ablation: its explanation and its table (metric column -> heading), or nothing without rows."""
+    if not len(rows):
+        return []
+    return [text, "", *_table(rows, list(columns), list(columns.values())), ""]
+
+
 def _ablations(metrics: pd.DataFrame) -> list[str]:
     paper, fast = period_label(PAPER_PERIOD), period_label(SWITCHING_PERIOD)
-    lines = []
-    tag = f"nominal-switched__{paper}"
-    rows = metrics[(metrics["pipeline"] == tag) & metrics["controller"].isin(["NNPC", "NNPC (N=3)"])]
-    if len(rows):
-        lines += ["**Horizon at 1 ms** (nominal switched plant): the NNPC with one step of prediction against "
-                  "three. The LC transient is over within a sample, so the first move -- the only one applied -- "
-                  "is the same.", ""]
-        lines += _table(rows, ["scenario", "controller", "iae_Vs", "overshoot_pct", "settling_time_ms",
-                               "controller_p50_us"],
-                        ["scenario", "controller", "IAE [V s]", "overshoot [%]", "settling [ms]", "ctrl p50 [us]"])
-        lines.append("")
+
+    def runs(tag, controllers):
+        return metrics[(metrics["pipeline"] == tag) & metrics["controller"].isin(controllers)].copy()
+
+    lines = _ablation(
+        "**Horizon at 1 ms** (nominal switched plant): the NNPC with one step of prediction against three. The LC "
+        "transient is over within a sample, so the first move -- the only one applied -- is the same.",
+        runs(f"nominal-switched__{paper}", ["NNPC", "NNPC (N=3)"]),
+        {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
+         "settling_time_ms": "settling [ms]", "controller_p50_us": "ctrl p50 [us]"})
     tag = f"nominal-switched__{fast}"
-    rows = metrics[(metrics["pipeline"] == tag) & metrics["controller"].isin(
-        ["MPC-oracle", "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)"])]
-    if len(rows):
-        lines += ["**Model and sensor at 13.33 us** (nominal switched plant, oracle parameters): *MPC-oracle* "
-                  "predicts the averaging sensor's reading (mean over the last PWM period) with the switched "
-                  "circuit solved per PWM period; *(averaged model)* predicts the same reading with eq. 3, "
-                  "blind to the sensor's half-sample lag and to the sawtooth putting the on-time at the start "
-                  "of the period, so the aggressive optimum of eq. 23 overshoots; *(sync. sample)* reads a "
-                  "point sample at mid off-time with centre-aligned PWM, predicted exactly too, but regulates "
-                  "the ripple crest and leaves a DC error of about half the 91 mV ripple.", ""]
-        lines += _table(rows, ["scenario", "controller", "iae_Vs", "overshoot_pct", "steady_state_error_pct"],
-                        ["scenario", "controller", "IAE [V s]", "overshoot [%]", "SS error [%]"])
-        lines.append("")
+    lines += _ablation(
+        "**Model and sensor at 13.33 us** (nominal switched plant, oracle parameters): *MPC-oracle* predicts the "
+        "averaging sensor's reading (mean over the last PWM period) with the switched circuit solved per PWM "
+        "period; *(averaged model)* predicts the same reading with eq. 3, blind to the sensor's half-sample lag "
+        "and to the sawtooth putting the on-time at the start of the period, so the aggressive optimum of eq. 23 "
+        "overshoots; *(sync. sample)* reads a point sample at mid off-time with centre-aligned PWM, predicted "
+        "exactly too, but regulates the ripple crest and leaves a DC error of about half the 91 mV ripple.",
+        runs(tag, ["MPC-oracle", "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)"]),
+        {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
+         "steady_state_error_pct": "SS error [%]"})
     seeds = _seed_study(metrics, tag)
     if seeds:
-        rows = metrics[(metrics["pipeline"] == tag) & metrics["controller"].isin(["NNPC", *seeds])].copy()
-        pi = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == "PI")].set_index("scenario")["iae_Vs"]
+        rows = runs(tag, ["NNPC", *seeds])
+        pi = runs(tag, ["PI"]).set_index("scenario")["iae_Vs"]
         rows["iae_over_pi"] = rows["iae_Vs"].to_numpy() / pi.reindex(rows["scenario"]).to_numpy()
-        lines += ["**Seed sensitivity at 13.33 us** (nominal switched plant): the NNPC identified again from data "
-                  "collected and a network trained with other seeds (same tuned PI, same settings). The spread is "
-                  "the uncertainty of the NNPC numbers above; the MPC baselines have none.", ""]
-        lines += _table(rows, ["scenario", "controller", "iae_Vs", "iae_over_pi", "overshoot_pct",
-                               "steady_state_error_pct"],
-                        ["scenario", "controller", "IAE [V s]", "IAE / PI IAE", "overshoot [%]", "SS error [%]"])
+        lines += _ablation(
+            "**Seed sensitivity at 13.33 us** (nominal switched plant): the NNPC identified again from data "
+            "collected and a network trained with other seeds (same tuned PI, same settings). The spread is the "
+            "uncertainty of the NNPC numbers above; the MPC baselines have none.",
+            rows, {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]",
+                   "iae_over_pi": "IAE / PI IAE", "overshoot_pct": "overshoot [%]",
+                   "steady_state_error_pct": "SS error [%]"})
     return lines
 
 

@@ -37,8 +37,8 @@ def eq23_cost(predictor, ctx, reference, settings):
     return cost
 
 
-@pytest.mark.parametrize("horizon,blocks,levels", [(2, (1, 1), 9), (3, (1, 1, 1), 5), (6, (1, 2, 3), 5),
-                                                   (12, None, 21)])
+@pytest.mark.parametrize("horizon,blocks,levels", [(1, None, 33), (2, (1, 1), 9), (3, (1, 1, 1), 5),
+                                                   (6, (1, 2, 3), 5), (12, None, 21)])
 def test_optimizer_matches_brute_force_on_small_problems(horizon, blocks, levels):
     settings = HorizonSettings(horizon=horizon, blocks=blocks, levels=levels)
     predictor = AveragedModelPredictor(CircuitParameters(), TS)
