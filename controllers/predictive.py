@@ -145,6 +145,11 @@ class HorizonOptimizer:
         if self._global_is_full:
             self._stage_buffer = np.vstack([np.zeros_like(self._lattice), self._global])
 
+    def _clip(self, duties: np.ndarray) -> np.ndarray:
+        """Clip to the duty limits in place (two ufuncs: np.clip's dispatch costs more at this size)."""
+        np.maximum(duties, self.low, out=duties)
+        return np.minimum(duties, self.high, out=duties)
+
     def expand(self, moves: np.ndarray) -> np.ndarray:
         """Block values (K, blocks) -> per-step duties (K, horizon)."""
         return moves if self._unblocked else np.repeat(moves, self.blocks, axis=1)
@@ -161,19 +166,19 @@ class HorizonOptimizer:
             center = np.concatenate([warm[1:], warm[-1:]])[self.block_starts]
             self._warm_center = center
             np.add(center, self._warm_offsets, out=buffer[:n_warm])
-            np.clip(buffer[:n_warm], self.low, self.high, out=buffer[:n_warm])
+            self._clip(buffer[:n_warm])
             return buffer, n_warm
         candidates, n_warm = [], 0
         if warm is not None:  # first, so that ties go to the warm start
             shifted = np.concatenate([warm[1:], warm[-1:]])[self.block_starts]
             self._warm_center = shifted
-            lattice = np.clip(shifted[None, :] + self._warm_offsets, self.low, self.high)
+            lattice = self._clip(shifted[None, :] + self._warm_offsets)
             candidates.append(lattice)
             n_warm = len(lattice)
             # constant sequences finely around the last move: when a model error shifts the
             # steady-state duty between grid points, a warm start that merely reproduces itself
             # must not keep the output off its reference
-            near = np.clip(warm[0] + self._near_offsets, self.low, self.high)
+            near = self._clip(warm[0] + self._near_offsets)
             candidates.append(np.repeat(near[:, None], self.n_blocks, axis=1))
         candidates.append(self._global)
         candidates.append(self._openings(anchor))
@@ -213,11 +218,11 @@ class HorizonOptimizer:
         costs = cost(self.expand(candidates))
         self.evaluations = len(candidates)
         self.passes = 1
-        index = int(np.argmin(costs))
+        index = int(costs.argmin())
         best, best_cost = candidates[index].copy(), float(costs[index])
         self.best_location = (0, index)
         # strictly inside the warm lattice: on its edge the optimum may lie further out
-        near_warm = n_warm and np.max(np.abs(best - self._warm_center)) < self.warm_span - 0.5 * self.warm_step
+        near_warm = n_warm and abs(best - self._warm_center).max() < self.warm_span - 0.5 * self.warm_step
         if near_warm:  # the best lies where the warm lattice already looked: refine from its fine step
             step = self.warm_step / self._shrink
         else:
@@ -225,11 +230,11 @@ class HorizonOptimizer:
         for _ in range(self.settings.refine_iterations):
             if step < self.settings.duty_tolerance:
                 break
-            trial = np.clip(best[None, :] + step * self._lattice, self.low, self.high)
+            trial = self._clip(best[None, :] + step * self._lattice)
             trial_costs = cost(self.expand(trial))
             self.evaluations += len(trial)
             self.passes += 1
-            index = int(np.argmin(trial_costs))
+            index = int(trial_costs.argmin())
             if trial_costs[index] < best_cost:
                 best, best_cost = trial[index].copy(), float(trial_costs[index])
                 self.best_location = (self.passes - 1, index)
@@ -272,20 +277,22 @@ class PredictiveController:
     def step(self, m: Measurement) -> float:
         if not math.isfinite(m.inductor_current):
             raise ValueError(f"{self.name} needs the inductor current: the plant binding has no inductor_current role")
-        state = np.array([m.inductor_current, m.output_voltage])
+        current, voltage = m.inductor_current, m.output_voltage
         delays = self.predictor.delays
-        row = np.array([state[0], state[1], 0.0])
+        row = (current, voltage, 0.0)
         if self._history is None:
-            self._history = np.repeat(row[None], delays, axis=0)
+            self._history = np.repeat(np.array([row]), delays, axis=0)
             self._history[:, 2] = self._previous_duty
         else:
             if delays > 1:
                 self._history[1:] = self._history[:-1].copy()
                 self._history[1, 2] = self._previous_duty  # the duty applied after that sample
             self._history[0] = row
-        if self._predicted is not None:
+        if self._predicted is not None:  # in floats: numpy's per-call cost dominates on 2-vectors
             alpha = self.settings.bias_filter
-            self._bias = (1 - alpha) * self._bias + alpha * (state - self._predicted)
+            (b_current, b_voltage), (p_current, p_voltage) = self._bias.tolist(), self._predicted.tolist()
+            self._bias = np.array([(1 - alpha) * b_current + alpha * (current - p_current),
+                                   (1 - alpha) * b_voltage + alpha * (voltage - p_voltage)])
         load = self._estimate_load(m)
         reference = m.reference
         current_reference = reference / load
