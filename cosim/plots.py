@@ -66,9 +66,9 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
             ax.set_ylim(low - margin, high + margin)
     if clipped:
         title += f"\n(axes scaled to the settled runs; {', '.join(clipped)} {'leaves' if len(clipped) == 1 else 'leave'} the plot)"
-    mean = " (PWM-period mean)" if period_means else ""
-    ax_v.set_ylabel(f"output voltage $v_o${mean} [V]")
-    ax_i.set_ylabel(f"inductor current $i_L${mean} [A]")
+    mean = "\n(PWM-period mean)" if period_means else ""  # two short lines: the panels' labels must not overlap
+    ax_v.set_ylabel(f"output voltage $v_o$ [V]{mean}")
+    ax_i.set_ylabel(f"inductor current $i_L$ [A]{mean}")
     ax_i.set_xlabel("time [ms]")
     ax_v.set_title(title, fontsize=10)
     for ax in (ax_v, ax_i):
