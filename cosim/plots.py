@@ -50,14 +50,17 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
         if not reference_drawn:
             ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
             reference_drawn = True
-        ax_v.plot(t_ms, frame[v_column], color=color, linestyle=style, linewidth=1.2, label=name)
-        ax_i.plot(t_ms, frame[i_column], color=color, linestyle=style, linewidth=1.2, label=name)
+        lines = [ax_v.plot(t_ms, frame[v_column], color=color, linestyle=style, linewidth=1.2, label=name)[0],
+                 ax_i.plot(t_ms, frame[i_column], color=color, linestyle=style, linewidth=1.2, label=name)[0]]
         final_error = abs(frame[v_column].iloc[-1] - frame["reference"].iloc[-1])
         if final_error <= DIVERGED * max(abs(frame["reference"].iloc[-1]), 1.0):
             limits_v.append((frame[v_column].min(), frame[v_column].max()))
             limits_i.append((frame[i_column].min(), frame[i_column].max()))
-        else:
+        else:  # a run that never settles: faint, so it does not hide the others
             clipped.append(name)
+            for line in lines:
+                line.set_alpha(0.35)
+                line.set_linewidth(0.8)
     # a diverging controller must not squash the others into a line: scale to the settled runs
     for ax, limits in ((ax_v, limits_v), (ax_i, limits_i)):
         if limits and clipped:
