@@ -36,7 +36,6 @@ from __future__ import annotations
 import math
 import re
 import sys
-import tomllib
 from pathlib import Path
 
 from cosim.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
@@ -44,7 +43,7 @@ from cosim.errors import ConfigError, FmuArchiveError
 from cosim.fmu_archive import check_fmu
 from cosim.fmu_plant import normalise_interface
 from cosim.results import atomic_write_text
-from cosim.toml_locator import TomlLocator, where
+from cosim.toml_locator import TomlLocator, parse_toml, where
 
 TOP_KEYS = {"fmu", "interface", "max_step", "label", "roles", "parameters"}
 ROLE_KEYS = {"variable", "scale", "offset"}
@@ -58,14 +57,7 @@ def _number(value, label: str, place: str) -> float:
 
 def parse_binding(text: str, path: Path) -> PlantBinding:
     """Parse and check a binding file's text (``path`` locates the FMU and names errors)."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: invalid TOML: {error}") from None
-    loc = TomlLocator(text)
-    for key in data:
-        if key not in TOP_KEYS:
-            raise ConfigError(f"{where(path, loc, key)}: unknown key {key!r}: expected one of {', '.join(sorted(TOP_KEYS))}")
+    data, loc = parse_toml(text, path, TOP_KEYS)
     if "fmu" not in data:
         raise ConfigError(f"{path}: missing required key 'fmu' (the FMU file this binding drives)")
     if not isinstance(data["fmu"], str):

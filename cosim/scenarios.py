@@ -30,12 +30,11 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from cosim.errors import ConfigError
-from cosim.toml_locator import TomlLocator, where as _where
+from cosim.toml_locator import parse_toml, where as _where
 
 SHIPPED_DIR = Path(__file__).parent / "scenarios"
 EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
@@ -114,17 +113,7 @@ def _number(value, path, locator, key, label, table=None, index=None) -> float:
 def parse_scenario(text: str, path: Path | None = None) -> Scenario:
     """Parse and validate scenario TOML; raise :class:`ConfigError` naming file, key and line."""
     name_for_errors = str(path) if path else "<scenario>"
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{name_for_errors}: invalid TOML: {error}") from None
-    loc = TomlLocator(text)
-
-    for key in data:
-        if key not in TOP_KEYS:
-            raise ConfigError(
-                f"{_where(path, loc, key)}: unknown key {key!r}: expected one of {', '.join(sorted(TOP_KEYS))}"
-            )
+    data, loc = parse_toml(text, path, TOP_KEYS, unnamed=name_for_errors)
     for key in ("name", "duration", "initial"):
         if key not in data:
             raise ConfigError(f"{name_for_errors}: missing required key {key!r}")

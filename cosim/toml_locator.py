@@ -7,7 +7,10 @@ lines, which is enough for the small, hand-written files the workbench reads.
 from __future__ import annotations
 
 import re
+import tomllib
 from pathlib import Path
+
+from cosim.errors import ConfigError
 
 
 class TomlLocator:
@@ -39,3 +42,18 @@ def where(path: Path | None, locator: TomlLocator, key: str, table: str | None =
     name = str(path) if path else "<text>"
     line = locator.line_of(key, table, index)
     return f"{name}:{line}" if line else name
+
+
+def parse_toml(text: str, path: Path | None, allowed_keys: set[str], unnamed: str = "<text>") -> tuple[dict, TomlLocator]:
+    """Parse a configuration file's text; invalid TOML or an unknown top-level key is a
+    :class:`ConfigError` naming the file (``unnamed`` for text without one) and the key's line."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path if path else unnamed}: invalid TOML: {error}") from None
+    locator = TomlLocator(text)
+    for key in data:
+        if key not in allowed_keys:
+            raise ConfigError(f"{where(path, locator, key)}: unknown key {key!r}: expected one of "
+                              f"{', '.join(sorted(allowed_keys))}")
+    return data, locator
