@@ -163,8 +163,8 @@ def _raw_floor(step: float, count: int) -> float:
 
 
 def _master_step(step: float, count: int) -> float:
-    from cosim.binding import builtin_binding
-    from cosim.fmu_plant import FmuPlant
+    from cosim.fmi.binding import builtin_binding
+    from cosim.fmi.plant import FmuPlant
     from cosim.master import run
     from cosim.scenarios import parse_scenario
 
@@ -204,10 +204,10 @@ def bench_master(quick: bool) -> list[BenchRow]:
 def _nn_model(name: str, period: float, quick: bool):
     """The reproduction's model if results/ has it, else one trained here on fresh data."""
     from controllers.nn_model import TrainingSettings, load_model, train
-    from cosim.data_collection import collect
-    from cosim.experiments import collection_settings, nn_configs, plant_binding
+    from cosim.study.data_collection import collect
+    from cosim.study.experiments import collection_settings, nn_configs, plant_binding
     from cosim.errors import ModelFileError
-    from cosim.runner import period_label
+    from cosim.batch import period_label
 
     config = nn_configs(period)[name]
     path = Path("results") / "models" / f"nominal-switched__{period_label(period)}__{name}.pt"
@@ -225,15 +225,15 @@ def _nn_model(name: str, period: float, quick: bool):
 
 def _mixed_scenario(period: float, samples: int):
     """Random references and loads held for random intervals: transients and steady state mixed."""
-    from cosim.data_collection import random_scenario
-    from cosim.experiments import collection_settings
+    from cosim.study.data_collection import random_scenario
+    from cosim.study.experiments import collection_settings
 
     return random_scenario(collection_settings(period, samples, seed=11), period)
 
 
 def bench_controllers(quick: bool) -> list[BenchRow]:
-    from cosim.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, model_mpc, nnpc, plant_binding
-    from cosim.fmu_plant import FmuPlant
+    from cosim.study.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, model_mpc, nnpc, plant_binding
+    from cosim.fmi.plant import FmuPlant
     from cosim.master import run
 
     rows = []
@@ -270,8 +270,8 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
 def bench_training(quick: bool) -> list[BenchRow]:
     from controllers.nn_model import TrainingSettings, train
     from controllers.pi import PIController
-    from cosim.data_collection import CollectionSettings, collect
-    from cosim.experiments import nn_configs, plant_binding
+    from cosim.study.data_collection import CollectionSettings, collect
+    from cosim.study.experiments import nn_configs, plant_binding
 
     samples = 500 if quick else 10_000
     start = time.perf_counter()
@@ -306,7 +306,7 @@ def bench_inference(quick: bool) -> list[BenchRow]:
     from scipy.linalg import expm
 
     from controllers.predictors import expm2
-    from cosim.experiments import PAPER_PERIOD
+    from cosim.study.experiments import PAPER_PERIOD
 
     repeats = 50 if quick else 3000
     model, _ = _nn_model("nnpc", PAPER_PERIOD, quick)
@@ -346,8 +346,8 @@ def bench_inference(quick: bool) -> list[BenchRow]:
 def bench_reproduction(quick: bool) -> list[BenchRow]:
     import tempfile
 
-    from cosim.reproduce import FULL, QUICK, reproduce
-    from cosim.runner import period_label
+    from cosim.study.reproduce import FULL, QUICK, reproduce
+    from cosim.batch import period_label
 
     with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
         start = time.perf_counter()

@@ -85,10 +85,10 @@ def cmd_scenarios(args) -> int:
 
 def _plant_binding(args):
     if getattr(args, "plant", None):
-        from cosim.binding_file import load_binding
+        from cosim.fmi.binding_file import load_binding
 
         return load_binding(args.plant), f"bound-{Path(args.plant).stem}"
-    from cosim.experiments import plant_binding
+    from cosim.study.experiments import plant_binding
 
     binding = plant_binding(args.variant, args.mode, args.sensor)
     tag = f"{args.variant}-{args.mode}" + ("" if args.sensor == "average" else "-sync")
@@ -96,7 +96,7 @@ def _plant_binding(args):
 
 
 def cmd_run(args) -> int:
-    from cosim.runner import run_batch, write_metrics
+    from cosim.batch import run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
@@ -104,7 +104,7 @@ def cmd_run(args) -> int:
     out_dir = output_dir(args.out)
     scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
     binding, tag = _plant_binding(args)
-    from cosim.controller_factory import make_controllers
+    from cosim.study.controller_factory import make_controllers
     from cosim.master import check_plant_supports
 
     for scenario in scenarios:  # refuse before any tuning or training
@@ -129,11 +129,11 @@ def cmd_run(args) -> int:
 
 
 def cmd_inspect(args) -> int:
-    from cosim.inspect_fmu import describe_fmu
+    from cosim.fmi.inspect import describe_fmu
 
     print(describe_fmu(args.fmu))
     if args.draft_binding:
-        from cosim.binding_file import write_draft_binding
+        from cosim.fmi.binding_file import write_draft_binding
 
         path = write_draft_binding(args.fmu, args.draft_binding)
         print(f"wrote a draft binding to {path}: the roles are guesses, check every one before use")
@@ -179,7 +179,7 @@ def cmd_build_fmu(args) -> int:
 
 
 def cmd_tune_pi(args) -> int:
-    from cosim.pi_tuning import tune_pi
+    from cosim.study.pi_tuning import tune_pi
     from cosim.results import atomic_write_text
 
     output_file(args.out)
@@ -195,9 +195,9 @@ def cmd_tune_pi(args) -> int:
 
 
 def cmd_collect(args) -> int:
-    from cosim.controller_factory import tuned_pi
-    from cosim.data_collection import collect, save_samples
-    from cosim.experiments import collection_settings
+    from cosim.study.controller_factory import tuned_pi
+    from cosim.study.data_collection import collect, save_samples
+    from cosim.study.experiments import collection_settings
 
     output_file(args.out)
     work_dir = output_dir(args.work_dir)
@@ -246,15 +246,15 @@ def cmd_train(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from cosim.reproduce import reproduce
+    from cosim.study.reproduce import reproduce
 
     if args.workers < 1:
         raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
     output_dir(args.out)
-    from cosim.reproduce import FULL, QUICK
+    from cosim.study.reproduce import FULL, QUICK
 
     if args.plant:
-        from cosim.binding_file import load_binding
+        from cosim.fmi.binding_file import load_binding
 
         load_binding(args.plant)  # refuse a bad binding before any work starts
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
@@ -396,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_build_fmu)
 
     p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",
-                       description="Tune Kp, Ki by the repeatable method in cosim/pi_tuning.py.")
+                       description="Tune Kp, Ki by the repeatable method in cosim/study/pi_tuning.py.")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3)")

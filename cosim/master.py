@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from controllers.base import Controller, Measurement
-from cosim.binding import PlantBinding
+from cosim.fmi.binding import PlantBinding
 from cosim.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.results import COLUMNS, RunResult, RunStream, run_metadata
 from cosim.scenarios import Scenario
 

@@ -137,8 +137,8 @@ def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):
 def test_a_cached_network_is_reused_only_for_the_same_identification_settings(tmp_path, monkeypatch):
     """trained_model caches per plant, rate and network; a changed seed (or sample count, or dither
     rule) must retrain instead of silently reusing a model identified differently."""
-    import cosim.controller_factory as factory
-    from cosim.binding import builtin_binding
+    import cosim.study.controller_factory as factory
+    from cosim.fmi.binding import builtin_binding
 
     calls = []
     real_collect = factory.collect

@@ -7,8 +7,8 @@ import pytest
 
 from controllers.base import Measurement
 from controllers.pi import PIController
-from cosim.binding import builtin_binding
-from cosim.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
+from cosim.fmi.binding import builtin_binding
+from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
 from cosim.errors import ConfigError
 from cosim.results import read_parquet
 
@@ -60,7 +60,7 @@ def test_without_dither_the_duty_is_the_pis_own():
 
 
 def test_saved_samples_keep_their_metadata(samples, tmp_path):
-    from cosim.data_collection import save_samples
+    from cosim.study.data_collection import save_samples
 
     save_samples(samples, tmp_path / "data.parquet")
     frame, meta = read_parquet(tmp_path / "data.parquet")

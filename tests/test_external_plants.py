@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from cosim.binding_file import guess_roles, load_binding
+from cosim.fmi.binding_file import guess_roles, load_binding
 from cosim.cli import main
 from cosim.errors import ConfigError, FmuArchiveError, WorkbenchError
-from cosim.fmu_archive import check_fmu
+from cosim.fmi.archive import check_fmu
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.results import read_run

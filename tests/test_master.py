@@ -12,9 +12,9 @@ from scipy.linalg import expm
 from conftest import C, L, R, VS
 from controllers.base import Measurement
 from controllers.pi import PIController
-from cosim.binding import RoleMap, builtin_binding
+from cosim.fmi.binding import RoleMap, builtin_binding
 from cosim.errors import ConfigError
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.master import CONTROL, EVENT, RECORD, RunFailed, build_timeline, run, simulate
 from cosim.scenarios import load_scenario, parse_scenario
 

@@ -12,8 +12,8 @@ from controllers.base import Measurement
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, doubling_blocks
 from controllers.predictors import (CARRIERS, AveragedModelPredictor, CircuitParameters, PredictionContext,
                                     SwitchedModelPredictor, expm2, expm2_many, ripple_free_horizon)
-from cosim.binding import builtin_binding
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.binding import builtin_binding
+from cosim.fmi.plant import FmuPlant
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
@@ -207,7 +207,7 @@ def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_swi
     """With the exact switched model and consistent period-mean sensors (iL, vo and io), the oracle
     reaches 12 V within about 0.1 ms and overshoots less than 1 % -- the averaged model, blind to the
     sensor's half-period lag and the sawtooth's timing, overshoots several times more."""
-    from cosim.experiments import horizon_settings, model_mpc
+    from cosim.study.experiments import horizon_settings, model_mpc
 
     binding = builtin_binding("switched")
     startup = replace(load_scenario("startup"), duration=0.001)

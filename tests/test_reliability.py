@@ -153,9 +153,9 @@ def test_a_failing_plant_stops_the_run_and_keeps_the_rows(tmp_path, faulty_fmu, 
 FATAL_REUSE = """
 import gc, sys
 from controllers.pi import PIController
-from cosim.binding_file import load_binding
+from cosim.fmi.binding_file import load_binding
 from cosim.errors import PlantError
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.master import RunFailed, run
 from cosim.scenarios import parse_scenario
 
@@ -195,9 +195,9 @@ def test_an_fmu_that_reported_fatal_is_never_called_again(tmp_path, faulty_fmu):
 def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
     import math
 
-    from cosim.binding import builtin_binding
+    from cosim.fmi.binding import builtin_binding
     from cosim.master import RunFailed
-    from cosim.runner import run_batch
+    from cosim.batch import run_batch
     from cosim.scenarios import load_scenario
 
     class Broken:
@@ -249,8 +249,8 @@ def test_sigterm_during_a_run_keeps_the_rows_marked_incomplete(tmp_path):
 
 
 def test_sigterm_during_data_collection_writes_no_data_file(tmp_path):
-    from cosim.controller_factory import tuned_pi
-    from cosim.experiments import plant_binding
+    from cosim.study.controller_factory import tuned_pi
+    from cosim.study.experiments import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached, so the run goes straight to collecting
     process = _start("collect-data", "--samples", "20000000", "--work-dir", str(tmp_path), "--out",
@@ -311,7 +311,7 @@ def _die_like_a_crashing_fmu(job):
 
 
 def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path, monkeypatch):
-    import cosim.reproduce as reproduce_module
+    import cosim.study.reproduce as reproduce_module
     from cosim.errors import PlantError
 
     monkeypatch.setattr(reproduce_module, "_run_job", _die_like_a_crashing_fmu)  # forked workers inherit it
@@ -364,8 +364,8 @@ def test_the_same_command_twice_gives_byte_identical_tables(tmp_path):
 MEMORY_SCRIPT = """
 import os, sys
 from controllers.pi import PIController
-from cosim.binding import builtin_binding
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.binding import builtin_binding
+from cosim.fmi.plant import FmuPlant
 from cosim.master import run
 from cosim.scenarios import parse_scenario
 

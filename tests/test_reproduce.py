@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from cosim.cli import main
-from cosim.reproduce import QUICK
+from cosim.study.reproduce import QUICK
 
 
 @pytest.fixture(scope="module")

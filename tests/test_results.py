@@ -9,7 +9,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from controllers.pi import PIController
-from cosim.binding import builtin_binding
+from cosim.fmi.binding import builtin_binding
 from cosim.master import simulate
 from cosim.results import COLUMNS, read_run, write_run
 from cosim.scenarios import load_scenario

@@ -20,9 +20,9 @@ import numpy as np
 from scipy.optimize import minimize
 
 from controllers.pi import PIController
-from cosim.binding import PlantBinding
+from cosim.fmi.binding import PlantBinding
 from cosim.errors import WorkbenchError
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.master import run
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario

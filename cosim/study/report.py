@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from cosim.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, horizon_settings, period_text
-from cosim.pi_tuning import METHOD as PI_METHOD
+from cosim.study.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, horizon_settings, period_text
+from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.results import atomic_write, atomic_write_text, package_versions
-from cosim.runner import period_label
+from cosim.batch import period_label
 
 FIGURE_CONTROLLERS = ("PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal")
 

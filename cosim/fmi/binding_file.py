@@ -38,10 +38,10 @@ import re
 import sys
 from pathlib import Path
 
-from cosim.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
+from cosim.fmi.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
 from cosim.errors import ConfigError, FmuArchiveError
-from cosim.fmu_archive import check_fmu
-from cosim.fmu_plant import normalise_interface
+from cosim.fmi.archive import check_fmu
+from cosim.fmi.plant import normalise_interface
 from cosim.results import atomic_write_text
 from cosim.toml_locator import TomlLocator, parse_toml, where
 

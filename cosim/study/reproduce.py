@@ -3,8 +3,8 @@
 One pipeline per plant (nominal averaged, nominal switched, mismatch-study switched) and control
 rate (1 ms, one switching period). Each pipeline, all seeded:
 
-1. tunes the PI on that plant at that rate (:mod:`cosim.pi_tuning`);
-2. collects the NN training data with that PI (:mod:`cosim.data_collection`, 10 000 samples);
+1. tunes the PI on that plant at that rate (:mod:`cosim.study.pi_tuning`);
+2. collects the NN training data with that PI (:mod:`cosim.study.data_collection`, 10 000 samples);
 3. trains the paper's 3-7-2 network and the workbench's NNPC network (+ load conductance);
 4. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
    averaged model of that plant) and the mismatched MPC (nominal model on the mismatch plant;
@@ -29,14 +29,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from cosim.data_collection import collect, save_samples
+from cosim.study.data_collection import collect, save_samples
 from cosim.errors import PlantError
-from cosim.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD, collection_settings,
+from cosim.study.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD, collection_settings,
                                model_mpc, nn_configs, nnpc, plant_binding, scenarios_for)
-from cosim.pi_tuning import load_or_tune
-from cosim.report import write_report
+from cosim.study.pi_tuning import load_or_tune
+from cosim.study.report import write_report
 from cosim.results import atomic_write_text
-from cosim.runner import period_label, run_batch, write_metrics
+from cosim.batch import period_label, run_batch, write_metrics
 from cosim.scenarios import PAPER_SCENARIOS
 
 
@@ -74,7 +74,7 @@ class Pipeline:
 
     def binding(self):
         if self.binding_file:
-            from cosim.binding_file import load_binding
+            from cosim.fmi.binding_file import load_binding
 
             return load_binding(self.binding_file)
         return plant_binding(self.variant, self.mode)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from cosim.fmu_archive import check_fmu
+from cosim.fmi.archive import check_fmu
 
 
 def _unit(variable) -> str:

@@ -16,9 +16,9 @@ from typing import Callable, Iterable
 import pandas as pd
 
 from controllers.base import Controller
-from cosim.binding import PlantBinding
+from cosim.fmi.binding import PlantBinding
 from cosim.errors import RunInterrupted
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.master import RunFailed, check_plant_supports, run
 from cosim.metrics import metrics_table
 from cosim.plots import plot_scenario

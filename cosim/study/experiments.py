@@ -13,8 +13,8 @@ from controllers.nn_model import NNConfig, NNPlantModel
 from controllers.predictive import HorizonSettings, PredictiveController
 from controllers.predictors import (AveragedModelPredictor, CircuitParameters, NNPredictor, SwitchedModelPredictor,
                                     ripple_free_horizon)
-from cosim.binding import PLANT_MODES, PlantBinding, RoleMap, builtin_binding
-from cosim.data_collection import CollectionSettings
+from cosim.fmi.binding import PLANT_MODES, PlantBinding, RoleMap, builtin_binding
+from cosim.study.data_collection import CollectionSettings
 from cosim.errors import ConfigError
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 

@@ -3,7 +3,7 @@
 The workbench speaks SI units and six role names. A binding maps each role onto a variable of a
 particular FMU, with ``fmu_value = scale * workbench_value + offset`` (e.g. a duty cycle in percent
 has ``scale = 100``; a current in mA has ``scale = 1000``). The built-in BuckConverter FMU binds
-every role to the variable of the same name; :mod:`cosim.binding_file` reads user bindings.
+every role to the variable of the same name; :mod:`cosim.fmi.binding_file` reads user bindings.
 """
 
 from __future__ import annotations

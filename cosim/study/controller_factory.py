@@ -10,12 +10,12 @@ from pathlib import Path
 
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
-from cosim.binding import PlantBinding
-from cosim.data_collection import collect, save_samples
+from cosim.fmi.binding import PlantBinding
+from cosim.study.data_collection import collect, save_samples
 from cosim.errors import ConfigError
-from cosim.experiments import NOMINAL, collection_settings, model_mpc, nn_configs, nnpc
-from cosim.pi_tuning import PITuning, load_or_tune
-from cosim.runner import period_label, slug
+from cosim.study.experiments import NOMINAL, collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.pi_tuning import PITuning, load_or_tune
+from cosim.batch import period_label, slug
 
 CONTROLLERS = ("pi", "nnpc", "nnpc-paper", "mpc-oracle", "mpc-nominal")
 DISPLAY = {"pi": "PI", "nnpc": "NNPC", "nnpc-paper": "NNPC-paper", "mpc-oracle": "MPC-oracle",

@@ -18,9 +18,9 @@ import numpy as np
 import pandas as pd
 
 from controllers.base import Measurement, check_duty_limits
-from cosim.binding import PlantBinding
+from cosim.fmi.binding import PlantBinding
 from cosim.errors import ConfigError
-from cosim.fmu_plant import FmuPlant
+from cosim.fmi.plant import FmuPlant
 from cosim.master import run
 from cosim.results import write_parquet
 from cosim.scenarios import Scenario, ScenarioEvent
