@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cosim.errors import ModelFileError
+from cosim.base.errors import ModelFileError
 
 FORMAT = "buck-cosim NN plant model"
 VERSION = 1
@@ -387,7 +387,7 @@ def _checksum(state_dict: dict, extra: list[np.ndarray]) -> str:
 
 def save_model(model: NNPlantModel, path: Path) -> Path:
     """Write the model atomically; only tensors, numbers, strings, lists and dicts go in."""
-    from cosim.results import atomic_write
+    from cosim.base.files import atomic_write
 
     state = {k: v.detach().clone() for k, v in model.network.state_dict().items()}
     norm = [model.input_mean, model.input_std, model.output_mean, model.output_std]

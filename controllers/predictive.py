@@ -246,14 +246,17 @@ class PredictiveController:
     """Receding-horizon controller on any :class:`Predictor` (NNPC, oracle MPC, mismatched MPC)."""
 
     def __init__(self, predictor: Predictor, sample_period: float, settings: HorizonSettings = HorizonSettings(),
-                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "NNPC",
-                 nominal_load: float = 6.0):
+                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "NNPC", *,
+                 nominal_load: float, nominal_input_voltage: float):
+        """``nominal_load`` [Ohm] is the load assumed until the sensors give an estimate;
+        ``nominal_input_voltage`` [V] stands in for a supply voltage the measurement lacks."""
         self.predictor = predictor
         self.sample_period = check_sample_period(sample_period, name)
         self.duty_limits = check_duty_limits(duty_limits, name)
         self.settings = settings
         self.name = name
         self.nominal_load = nominal_load
+        self.nominal_input_voltage = nominal_input_voltage
         self.optimizer = HorizonOptimizer(settings, self.duty_limits)
         weights = settings.discount ** np.arange(settings.horizon)
         self._weights = weights
@@ -297,7 +300,7 @@ class PredictiveController:
         reference = m.reference
         current_reference = reference / load
         context = PredictionContext(history=self._history, input_voltage=m.input_voltage if math.isfinite(m.input_voltage)
-                                    else 48.0, load_resistance=load, load_current=m.load_current,
+                                    else self.nominal_input_voltage, load_resistance=load, load_current=m.load_current,
                                     previous_duty=self._previous_duty)
         weights = self._weights
         rollout = self.predictor.rollout

@@ -6,18 +6,25 @@ which model it drives, so NNPC and the MPC baselines share one code path:
 
 * :class:`NNPredictor` -- the identified network (the NNPC);
 * :class:`AveragedModelPredictor` -- eq. 3 (plus parasitics) discretised exactly with the matrix
-  exponential at the control period (zero-order hold). With the plant's true parameters this is
-  the *oracle* MPC; with nominal parameters on a different plant, the *mismatched* MPC.
+  exponential at the control period (zero-order hold): exact for the averaged plant;
+* :class:`SwitchedModelPredictor` -- the switched converter solved exactly per PWM period and
+  seen through the controller's sensor (period mean or synchronous sample): exact for the
+  switched plant in CCM.
+
+With the plant's true parameters the circuit models are the *oracle* MPC; with other parameters
+(e.g. nominal ones on the mismatch plant) the *mismatched* MPC.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from controllers.nn_model import NNPlantModel
+
+if TYPE_CHECKING:  # the NN predictor takes a trained model; importing torch is not needed for the others
+    from controllers.nn_model import NNPlantModel
 
 
 def expm2_many(a: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -122,22 +129,19 @@ class NNPredictor:
 
 @dataclass(frozen=True)
 class CircuitParameters:
-    """Parameters an averaged-model predictor believes the plant has (SI units)."""
+    """Parameters a circuit-model predictor believes the plant has (SI units; parasitics 0 = ideal).
 
-    inductance: float = 220e-6
-    capacitance: float = 10e-6
+    No default L and C: the study's nominal circuit (``cosim.study.vocabulary.NOMINAL``) is built
+    from Table II (:mod:`plant_fmu.table_ii`), the one place those values live.
+    """
+
+    inductance: float
+    capacitance: float
     inductor_resistance: float = 0.0
     switch_on_resistance: float = 0.0
     diode_forward_voltage: float = 0.0
     capacitor_esr: float = 0.0
 
-    def scaled(self, inductance: float = 1.0, capacitance: float = 1.0) -> "CircuitParameters":
-        from dataclasses import replace
-
-        return replace(self, inductance=self.inductance * inductance, capacitance=self.capacitance * capacitance)
-
-
-NOMINAL = CircuitParameters()
 
 
 def circuit_matrix(p: CircuitParameters, load: float, switch_resistance: float) -> np.ndarray:
@@ -259,7 +263,7 @@ class SwitchedModelPredictor:
     diode's blocking (DCM) is approximated by clipping the predicted current at 0.
     """
 
-    def __init__(self, parameters: CircuitParameters, sample_period: float, switching_frequency: float = 75e3,
+    def __init__(self, parameters: CircuitParameters, sample_period: float, switching_frequency: float,
                  carrier: str = "sawtooth", sensor: str = "period_average", name: str = "switched model",
                  grid_points: int = 257):
         periods = sample_period * switching_frequency
@@ -384,6 +388,6 @@ class SwitchedModelPredictor:
                 "switching_frequency_Hz": self.switching_frequency}
 
 
-def ripple_free_horizon(control_period: float, lc_period: float = 2 * math.pi * math.sqrt(220e-6 * 10e-6)) -> int:
+def ripple_free_horizon(control_period: float, lc_period: float) -> int:
     """Prediction steps that span about one LC ringing period (at least 3, at most 24)."""
     return int(min(24, max(3, math.ceil(lc_period / control_period))))

@@ -7,8 +7,6 @@ interrupted run is written too, with ``complete = false`` in its metadata.
 
 from __future__ import annotations
 
-import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -16,29 +14,26 @@ from typing import Callable, Iterable
 import pandas as pd
 
 from controllers.base import Controller
+from cosim.base.errors import RunInterrupted
+from cosim.base.files import atomic_write
+from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding
-from cosim.errors import RunInterrupted
 from cosim.fmi.plant import FmuPlant
 from cosim.master import RunFailed, check_plant_supports, run
 from cosim.metrics import metrics_table
-from cosim.plots import plot_scenario
-from cosim.results import RunResult, atomic_write, write_parquet, write_run
+from cosim.plots import Styles, plot_scenario
+from cosim.results import RunResult, write_parquet, write_run
 from cosim.scenarios import Scenario
 
 
-def period_label(period: float) -> str:
-    """Short file-name label of a control period: ``1ms``, ``13.33us``."""
-    if period >= 1e-3 and math.isclose(period * 1e3, round(period * 1e3), rel_tol=1e-9):
-        return f"{round(period * 1e3)}ms"
-    return f"{period * 1e6:.4g}us".replace(".", "p")
-
-
-def slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9]+", "-", text).strip("-").lower()
-
-
 def run_stem(scenario: Scenario, controller: Controller, plant_tag: str) -> str:
+    """File stem of a run: ``<scenario>__<controller slug>__<plant tag>__<period label>``."""
     return f"{scenario.name}__{slug(controller.name)}__{plant_tag}__{period_label(controller.sample_period)}"
+
+
+def figure_stem(scenario: Scenario, binding: PlantBinding, control_period: float) -> str:
+    """File stem of a scenario's figure: ``<scenario>__<plant tag>__<period label>``."""
+    return f"{scenario.name}__{binding.tag}__{period_label(control_period)}"
 
 
 @dataclass
@@ -49,15 +44,20 @@ class BatchOutput:
 
 
 def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenarios: Iterable[Scenario], out_dir: Path,
-              *, plant_tag: str, interface: str | None = None, record_period: float = 1e-5, seed: int | None = None,
-              figures: bool = True, progress: bool = False, extra_metadata: dict | None = None,
-              on_run: Callable[[RunResult], None] | None = None, stream: bool = False) -> BatchOutput:
+              *, interface: str | None = None, record_period: float = 1e-5, seed: int | None = None,
+              figures: bool = True, styles: Styles | None = None, progress: bool = False,
+              extra_metadata: dict | None = None, on_run: Callable[[RunResult], None] | None = None,
+              stream: bool = False) -> BatchOutput:
     """Run every controller on every scenario with one reused plant instance; write runs, metrics, figures.
+
+    Files are named ``<scenario>__<controller>__<plant tag>__<period label>`` (the plant tag is
+    :attr:`PlantBinding.tag`); ``styles`` gives figure colours and line styles per controller name.
 
     ``stream``: write each run's rows to Parquet while it runs (bounded memory for long runs); no
     CSV, metrics or figures then -- the returned results carry metadata only.
     """
     out_dir = Path(out_dir)
+    plant_tag = binding.tag
     controllers, scenarios = list(controllers), list(scenarios)
     for scenario in scenarios:  # refuse before running anything
         check_plant_supports(binding, scenario)
@@ -85,8 +85,9 @@ def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenario
                     on_run(result)
             results.extend(per_scenario)
             if figures and not stream:
-                files.extend(plot_scenario(per_scenario, out_dir / "figures" / f"{scenario.name}__{plant_tag}__"
-                                           f"{period_label(controllers[0].sample_period)}"))
+                files.extend(plot_scenario(per_scenario, out_dir / "figures" / figure_stem(scenario, binding,
+                                                                                           controllers[0].sample_period),
+                                           styles=styles))
     table = metrics_table(results) if not stream else pd.DataFrame()
     if len(table):
         table.insert(2, "plant_tag", plant_tag)

@@ -20,7 +20,20 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from cosim.results import atomic_write, atomic_write_text, package_versions
+from cosim.base.files import atomic_write, atomic_write_text
+from cosim.results import package_versions
+from cosim.study.vocabulary import (
+    MISMATCH,
+    MPC_MISMATCHED,
+    MPC_ORACLE,
+    NNPC,
+    NOMINAL,
+    PAPER_PERIOD,
+    PI,
+    SWITCHING_PERIOD,
+    transient_within_sample,
+)
+from plant_fmu.table_ii import TABLE_II
 
 
 @dataclass
@@ -109,9 +122,9 @@ def _time_do_steps(mode: int, step: float, count: int) -> np.ndarray:
 def bench_plant(quick: bool) -> list[BenchRow]:
     n = 3 if quick else 400
     periods_per_ms = 75
-    switched = _time_do_steps(1, 1e-3, n) / periods_per_ms
-    single = _time_do_steps(1, 1 / 75e3, n * 10)
-    averaged = _time_do_steps(0, 1e-3, n)
+    switched = _time_do_steps(1, PAPER_PERIOD, n) / periods_per_ms
+    single = _time_do_steps(1, SWITCHING_PERIOD, n * 10)
+    averaged = _time_do_steps(0, PAPER_PERIOD, n)
     return [
         BenchRow("plant doStep, switched mode, per simulated switching period (1 ms steps / 75)",
                  float(np.median(switched)) * 1e6, _p99(switched) * 1e6, "us",
@@ -204,23 +217,32 @@ def bench_master(quick: bool) -> list[BenchRow]:
 def _nn_model(name: str, period: float, quick: bool):
     """The reproduction's model if results/ has it, else one trained here on fresh data."""
     from controllers.nn_model import TrainingSettings, load_model, train
+    from cosim.base.errors import ModelFileError
     from cosim.study.data_collection import collect
     from cosim.study.experiments import collection_settings, nn_configs, plant_binding
-    from cosim.errors import ModelFileError
-    from cosim.batch import period_label
+    from cosim.study.vocabulary import pipeline_tag, plant_tag
 
     config = nn_configs(period)[name]
-    path = Path("results") / "models" / f"nominal-switched__{period_label(period)}__{name}.pt"
+    path = Path("results") / "models" / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
     if path.is_file() and not quick:
         try:
             return load_model(path, expect_period=period, expect_config=config), str(path)
         except ModelFileError:
             pass
-    from controllers.pi import PIController
 
-    pi = PIController(0.0015, 15.6, period) if period >= 0.5e-3 else PIController(0.007, 173.0, period)
+    pi = _benchmark_pi(period)
     data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000))
     return train(data, config, TrainingSettings(max_iterations=100 if quick else 3000)), "trained for the benchmark"
+
+
+def _benchmark_pi(period: float):
+    """A PI with gains near the tuned ones at this rate, in the normalised gains a = Kp Vs and
+    b = Ki Ts Vs of :mod:`cosim.study.pi_tuning` (the benchmarks time it; they do not tune it)."""
+    from controllers.pi import PIController
+
+    a, b = (0.072, 0.75) if transient_within_sample(period) else (0.336, 0.111)
+    vs = TABLE_II.input_voltage
+    return PIController(a / vs, b / (period * vs), period)
 
 
 def _mixed_scenario(period: float, samples: int):
@@ -232,34 +254,32 @@ def _mixed_scenario(period: float, samples: int):
 
 
 def bench_controllers(quick: bool) -> list[BenchRow]:
-    from cosim.study.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, model_mpc, nnpc, plant_binding
     from cosim.fmi.plant import FmuPlant
     from cosim.master import run
+    from cosim.study.experiments import model_mpc, nnpc, plant_binding
 
     rows = []
     binding = plant_binding("nominal", "switched")
     for period, label in ((PAPER_PERIOD, "1 ms"), (SWITCHING_PERIOD, "13.33 us")):
-        samples = 60 if quick else (3000 if period >= 0.5e-3 else 1500)
+        samples = 60 if quick else (3000 if transient_within_sample(period) else 1500)
         scenario = _mixed_scenario(period, samples)
         model, origin = _nn_model("nnpc", period, quick)
-        from controllers.pi import PIController
-
-        controllers = [PIController(0.0015, 15.6, period), nnpc(model, period, "NNPC"),
-                       model_mpc(NOMINAL, period, "MPC-oracle", binding=binding),
-                       model_mpc(MISMATCH, period, "MPC-mismatched", binding=binding)]
+        controllers = [_benchmark_pi(period), nnpc(model, period, NNPC),
+                       model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding),
+                       model_mpc(MISMATCH, period, MPC_MISMATCHED, binding=binding)]
         with FmuPlant(binding) as plant:
             for controller in controllers:
                 frame = run(plant, controller, scenario, record_period=period).frame
                 times = frame.loc[frame["control_sample"], "controller_compute_time"].to_numpy()
                 median, p99 = float(np.median(times)), _p99(times)
                 target, met = "", None
-                if controller.name == "NNPC" and period >= 0.5e-3:
+                if controller.name == NNPC and transient_within_sample(period):
                     target, met = "p99 <= 100 us", p99 <= 100e-6
                 rows.append(BenchRow(
                     f"controller compute per step, {controller.name}, {label} ({len(times)} samples, "
                     f"{100 * median / period:.2g} % / {100 * p99 / period:.2g} % of the period at p50 / p99)",
                     median * 1e6, p99 * 1e6, "us", target, met,
-                    f"NN: {origin}" if controller.name == "NNPC" else ""))
+                    f"NN: {origin}" if controller.name == NNPC else ""))
     return rows
 
 
@@ -269,17 +289,16 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
 
 def bench_training(quick: bool) -> list[BenchRow]:
     from controllers.nn_model import TrainingSettings, train
-    from controllers.pi import PIController
     from cosim.study.data_collection import CollectionSettings, collect
     from cosim.study.experiments import nn_configs, plant_binding
 
     samples = 500 if quick else 10_000
     start = time.perf_counter()
-    data = collect(plant_binding("nominal", "switched"), PIController(0.0015, 15.6, 1e-3),
+    data = collect(plant_binding("nominal", "switched"), _benchmark_pi(PAPER_PERIOD),
                    CollectionSettings(samples=samples))
     collection = time.perf_counter() - start
     rows = [BenchRow(f"data collection, {samples} samples at 1 ms (switched plant, PI loop)", collection, None, "s")]
-    for name, config in nn_configs(1e-3).items():
+    for name, config in nn_configs(PAPER_PERIOD).items():
         start = time.perf_counter()
         model = train(data, config, TrainingSettings(max_iterations=100 if quick else 3000))
         elapsed = time.perf_counter() - start
@@ -305,8 +324,7 @@ def _median_time(function, repeats: int) -> float:
 def bench_inference(quick: bool) -> list[BenchRow]:
     from scipy.linalg import expm
 
-    from controllers.predictors import expm2
-    from cosim.study.experiments import PAPER_PERIOD
+    from controllers.predictors import circuit_matrix, expm2
 
     repeats = 50 if quick else 3000
     model, _ = _nn_model("nnpc", PAPER_PERIOD, quick)
@@ -322,9 +340,9 @@ def bench_inference(quick: bool) -> list[BenchRow]:
     generic = _median_time(lambda: fast_model.rollout(np.repeat(history[None], 100, axis=0), duties,
                                                       np.repeat(extras[None], 100, axis=0)), repeats // 10 + 1)
     shared = _median_time(lambda: fast_model.rollout_shared(history, duties, extras), repeats // 10 + 1)
-    a = np.array([[0.0, -1 / 220e-6], [1 / 10e-6, -1 / (6 * 10e-6)]])
-    scipy_time = _median_time(lambda: expm(a * 1e-3), repeats)
-    closed_time = _median_time(lambda: expm2(a, 1e-3), repeats)
+    a = circuit_matrix(NOMINAL, TABLE_II.load_resistance, 0.0)
+    scipy_time = _median_time(lambda: expm(a * PAPER_PERIOD), repeats)
+    closed_time = _median_time(lambda: expm2(a, PAPER_PERIOD), repeats)
     return [
         BenchRow("NN batch prediction (50 candidates): torch.inference_mode", torch_time * 1e6, None, "us"),
         BenchRow("NN batch prediction (50 candidates): numpy, normalisation folded into the weights",
@@ -346,8 +364,8 @@ def bench_inference(quick: bool) -> list[BenchRow]:
 def bench_reproduction(quick: bool) -> list[BenchRow]:
     import tempfile
 
+    from cosim.base.labels import period_label
     from cosim.study.reproduce import FULL, QUICK, reproduce
-    from cosim.batch import period_label
 
     with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
         start = time.perf_counter()
@@ -362,14 +380,15 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
         m = metrics[metrics["pipeline"] == pipeline]
         for scenario in dict.fromkeys(m["scenario"]):
             iae = m[m["scenario"] == scenario].set_index("controller")["iae_Vs"]
-            if {"NNPC", "MPC-oracle", "PI"} <= set(iae.index):
+            if {NNPC, MPC_ORACLE, PI} <= set(iae.index):
                 rate = pipeline.split("__")[1]
-                target = "<= 1.10" if rate == period_label(1e-3) else ""
-                ratio = iae["NNPC"] / iae["MPC-oracle"]
+                slow = rate == period_label(PAPER_PERIOD)
+                target = "<= 1.10" if slow else ""
+                ratio = iae[NNPC] / iae[MPC_ORACLE]
                 rows.append(BenchRow(f"NNPC IAE / oracle-MPC IAE, {scenario}, {pipeline}", ratio, None, "ratio",
                                      target, ratio <= 1.10 if target else None))
-                ratio = iae["NNPC"] / iae["PI"]
-                target = "<= 0.6" if rate != period_label(1e-3) else ""
+                ratio = iae[NNPC] / iae[PI]
+                target = "<= 0.6" if not slow else ""
                 rows.append(BenchRow(f"NNPC IAE / PI IAE, {scenario}, {pipeline}", ratio, None, "ratio", target,
                                      ratio <= 0.6 if target else None))
     return rows

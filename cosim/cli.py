@@ -13,7 +13,17 @@ import signal
 import sys
 from pathlib import Path
 
-from cosim.errors import ConfigError, WorkbenchError
+from cosim.base.errors import ConfigError, WorkbenchError
+from cosim.fmi.binding import PLANT_MODE_CODES
+from cosim.study.vocabulary import (
+    CONTROLLERS,
+    DITHER_FAST,
+    DITHER_SLOW,
+    PAPER_PERIOD,
+    PLANT_VARIANTS,
+    SENSORS,
+    TRANSIENT_WITHIN_SAMPLE_PERIOD,
+)
 
 DEFAULT_RESULTS = Path("results")
 
@@ -87,25 +97,24 @@ def _plant_binding(args):
     if getattr(args, "plant", None):
         from cosim.fmi.binding_file import load_binding
 
-        return load_binding(args.plant), f"bound-{Path(args.plant).stem}"
+        return load_binding(args.plant)
     from cosim.study.experiments import plant_binding
 
-    binding = plant_binding(args.variant, args.mode, args.sensor)
-    tag = f"{args.variant}-{args.mode}" + ("" if args.sensor == "average" else "-sync")
-    return binding, tag
+    return plant_binding(args.variant, args.mode, args.sensor)
 
 
 def cmd_run(args) -> int:
     from cosim.batch import run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+    from cosim.study.vocabulary import CONTROLLER_STYLES
 
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
     out_dir = output_dir(args.out)
     scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
-    binding, tag = _plant_binding(args)
-    from cosim.study.controller_factory import make_controllers
+    binding = _plant_binding(args)
     from cosim.master import check_plant_supports
+    from cosim.study.controller_factory import make_controllers
 
     for scenario in scenarios:  # refuse before any tuning or training
         check_plant_supports(binding, scenario)
@@ -113,14 +122,14 @@ def cmd_run(args) -> int:
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,
                                    progress=args.progress)
-    batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=tag, interface=args.interface,
+    batch = run_batch(binding, controllers, scenarios, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
                       record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
                       progress=args.progress, stream=args.stream)
     if args.stream:
         for result in batch.results:
             print(f"streamed {result.metadata['rows']} rows to {result.metadata['streamed_to']}")
         return 0
-    files = write_metrics(batch.metrics, out_dir / "metrics" / f"metrics__{tag}")
+    files = write_metrics(batch.metrics, out_dir / "metrics" / f"metrics__{binding.tag}")
     columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "settling_time_ms",
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
     print(batch.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
@@ -141,8 +150,8 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from cosim.base.files import atomic_write
     from cosim.results import read_run, write_parquet
-    from cosim.results import atomic_write
 
     source = Path(args.run_file)
     if not source.is_file():
@@ -179,11 +188,11 @@ def cmd_build_fmu(args) -> int:
 
 
 def cmd_tune_pi(args) -> int:
+    from cosim.base.files import atomic_write_text
     from cosim.study.pi_tuning import tune_pi
-    from cosim.results import atomic_write_text
 
     output_file(args.out)
-    binding, _ = _plant_binding(args)
+    binding = _plant_binding(args)
     tuning = tune_pi(binding, args.control_period, progress=args.progress)
     print(f"Kp = {tuning.kp:.6g} 1/V, Ki = {tuning.ki:.6g} 1/(V s) at Ts = {args.control_period * 1e6:.4g} us "
           f"(cost {tuning.cost:.4g} V^2 s, worst overshoot {tuning.worst_overshoot_pct:.3g} %, "
@@ -201,7 +210,7 @@ def cmd_collect(args) -> int:
 
     output_file(args.out)
     work_dir = output_dir(args.work_dir)
-    binding, _ = _plant_binding(args)
+    binding = _plant_binding(args)
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
     settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
@@ -282,13 +291,13 @@ def cmd_bench(args) -> int:
 
 
 def _add_plant_options(parser) -> None:
-    parser.add_argument("--mode", choices=["averaged", "switched"], default="averaged",
+    parser.add_argument("--mode", choices=list(PLANT_MODE_CODES), default="averaged",
                         help="built-in plant: averaged model (eq. 3, with DCM) or switched (PWM, ideal switch and "
                              "diode) (default: averaged)")
-    parser.add_argument("--variant", choices=["nominal", "mismatch"], default="nominal",
+    parser.add_argument("--variant", choices=list(PLANT_VARIANTS), default="nominal",
                         help="built-in plant parameters: Table II, or L +20 %%, C -20 %% with parasitics "
                              "(default: nominal)")
-    parser.add_argument("--sensor", choices=["average", "synchronous"], default="average",
+    parser.add_argument("--sensor", choices=list(SENSORS), default="average",
                         help="what controllers measure: the mean over the last PWM period (default), or a point "
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
@@ -319,11 +328,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                    help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
     p.add_argument("--controller", action="append",
-                   choices=["pi", "nnpc", "nnpc-paper", "mpc-oracle", "mpc-nominal"],
+                   choices=list(CONTROLLERS),
                    help="controller(s) to run; repeat to overlay several (default: pi). nnpc trains its network "
                         "on demand (data collected with the tuned PI) unless --model is given")
     _add_plant_options(p)
-    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+    p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
                         "(default: 1e-3)")
     p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
@@ -347,11 +356,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Drive the plant with the tuned PI under random references and loads held for "
                                    "random intervals; write one row per control sample (iL, vo, d, ...) as Parquet.")
     _add_plant_options(p)
-    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+    p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="sample period in s (default: 1e-3)")
     p.add_argument("--samples", type=int, default=10_000, help="number of samples (default: 10000, the paper's)")
     p.add_argument("--excitation", type=float, default=None,
-                   help="standard deviation of the duty dither added to the PI (default: 0.01 at control periods >= 0.5 ms, 0.1 faster; 0 = plain PI)")
+                   help=f"standard deviation of the duty dither added to the PI (default: {DITHER_SLOW} at control "
+                        f"periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, {DITHER_FAST} faster; 0 = plain PI)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="where tuned PI gains are cached (default: results/runs-cli)")
@@ -398,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",
                        description="Tune Kp, Ki by the repeatable method in cosim/study/pi_tuning.py.")
     _add_plant_options(p)
-    p.add_argument("--control-period", type=parse_period, default=1e-3, metavar="SECONDS",
+    p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3)")
     p.add_argument("--out", metavar="FILE.json", help="write the gains as JSON")
     p.set_defaults(func=cmd_tune_pi)

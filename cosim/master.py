@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from controllers.base import Controller, Measurement
+from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.binding import PlantBinding
-from cosim.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.plant import FmuPlant
 from cosim.results import COLUMNS, RunResult, RunStream, run_metadata
 from cosim.scenarios import Scenario

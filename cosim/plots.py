@@ -7,20 +7,23 @@ so the same results give the same file.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Mapping
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from cosim.results import RunResult, atomic_write  # noqa: E402
+from cosim.base.files import atomic_write  # noqa: E402
+from cosim.base.labels import period_text  # noqa: E402
+from cosim.results import RunResult  # noqa: E402
 
 plt.rcParams["svg.hashsalt"] = "buck-cosim"
-COLORS = {"PI": "tab:blue", "NNPC": "tab:red", "NNPC-paper": "tab:orange", "MPC-oracle": "tab:green",
-          "MPC-mismatched": "tab:purple", "MPC-nominal": "tab:purple"}
-STYLES = {"NNPC-paper": (0, (4, 2)), "MPC-mismatched": (0, (1, 1)), "MPC-nominal": (0, (1, 1))}
+#: controller name -> (colour, line style); controllers not named get matplotlib's colour cycle
+Styles = Mapping[str, tuple[str, object]]
 #: a run whose output ends this far from the reference (relative) does not set the axis limits
 DIVERGED = 0.05
+ZOOM_BEFORE, ZOOM_AFTER = 1e-3, 10e-3  # [s] the zoom window around a long run's main event
 
 
 def _label(result: RunResult) -> str:
@@ -28,7 +31,7 @@ def _label(result: RunResult) -> str:
 
 
 def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, float] | None = None,
-                    period_means: bool = False):
+                    period_means: bool = False, styles: Styles | None = None):
     """Two stacked panels (output voltage, inductor current) against time in ms.
 
     ``period_means``: draw the PWM-period means (the ``measured_*`` columns) instead of the
@@ -45,8 +48,7 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
             frame = frame[(frame["time"] >= zoom[0]) & (frame["time"] <= zoom[1])]
         t_ms = frame["time"].to_numpy() * 1e3
         name = _label(result)
-        color = COLORS.get(name)
-        style = STYLES.get(name, "-")
+        color, style = (styles or {}).get(name, (None, "-"))
         if not reference_drawn:
             ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
             reference_drawn = True
@@ -94,18 +96,18 @@ def save_figure(fig, stem: Path) -> list[Path]:
 
 
 def default_zoom(result: RunResult) -> tuple[float, float] | None:
-    """Around the scenario's main event: from a little before it to when a 1 ms loop has settled."""
+    """Around the scenario's main event when the run is long: from 1 ms before it to 10 ms after
+    (a 1 ms loop has settled by then); short runs (the fast-rate ones) are shown whole."""
     meta = result.metadata
     t0 = float(meta.get("scenario", {}).get("metrics_start_s", 0.0))
     end = float(result.frame["time"].iloc[-1])
-    period = float(meta.get("rates", {}).get("control_period_s", 0.0))
-    if period < 0.5e-3:
-        return None  # fast-rate runs are short already
-    return max(0.0, t0 - 1e-3), min(end, t0 + 10e-3)
+    if end - t0 <= ZOOM_AFTER:
+        return None
+    return max(0.0, t0 - ZOOM_BEFORE), min(end, t0 + ZOOM_AFTER)
 
 
 def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None,
-                  zoom: tuple[float, float] | None = None) -> list[Path]:
+                  zoom: tuple[float, float] | None = None, styles: Styles | None = None) -> list[Path]:
     """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths.
 
     Switched plants are drawn as PWM-period means (the ripple is 0.55 A / 91 mV peak to peak and
@@ -118,7 +120,6 @@ def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None
     zoom = zoom if zoom is not None else default_zoom(results[0])
     if title is None:
         period = meta.get("rates", {}).get("control_period_s", float("nan"))
-        shown = f"{period * 1e3:.4g} ms" if period >= 1e-3 else f"{period * 1e6:.4g} µs"
         title = (f"{meta.get('scenario', {}).get('description', '')}\n{meta.get('plant', {}).get('label', '')}, "
-                 f"control period {shown}")
-    return save_figure(scenario_figure(results, title, zoom, period_means=switched), stem)
+                 f"control period {period_text(period)}")
+    return save_figure(scenario_figure(results, title, zoom, period_means=switched, styles=styles), stem)

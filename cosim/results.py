@@ -27,6 +27,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cosim.base.files import atomic_write, atomic_write_text, temporary_name
+
 COLUMNS = (
     "time",
     "reference",
@@ -142,28 +144,6 @@ def _jsonable(value):
 
 
 # ---------------------------------------------------------------------------------------------
-# Atomic file writing
-
-
-def atomic_write(path: Path, write) -> Path:
-    """Call ``write(tmp_path)`` and rename the result onto ``path`` (same folder, so the rename is atomic)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def atomic_write_text(path: Path, text: str) -> Path:
-    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
-
-
-# ---------------------------------------------------------------------------------------------
 # Export and import
 
 
@@ -214,8 +194,8 @@ class RunStream:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._timing_path = self.path.with_name(f"{self.path.stem}.timing.parquet")
-        self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
-        self._tmp_timing = self._timing_path.with_name(f".{self._timing_path.name}.tmp-{os.getpid()}")
+        self._tmp = temporary_name(self.path)
+        self._tmp_timing = temporary_name(self._timing_path)
         self._writers = None
         self.rows = 0
 
@@ -270,4 +250,4 @@ def read_run(path: Path) -> RunResult:
 
 
 __all__ = ["RunResult", "COLUMNS", "UNITS", "write_run", "read_run", "write_parquet", "read_parquet",
-           "atomic_write", "atomic_write_text", "run_metadata", "package_versions"]
+           "run_metadata", "package_versions"]

@@ -19,7 +19,8 @@ Example (``cosim/scenarios/load_change.toml``)::
 Top-level keys: ``name`` (text), ``description`` (text), ``duration`` (> 0 s), ``settle`` (>= 0 s,
 default 0, rounded to whole control periods), ``analysis_start`` (s, default: the first event
 time, or 0 without events; metrics start here). ``[initial]`` keys: ``reference`` (>= 0 V),
-``load_resistance`` (> 0 Ohm, default 6), ``input_voltage`` (> 0 V, default 48). Each
+``load_resistance`` (> 0 Ohm, default: Table II's 6 Ohm), ``input_voltage`` (> 0 V, default: Table II's
+48 V). Each
 ``[[events]]`` entry has ``time`` (0 <= time < duration) and at least one of ``reference``,
 ``load_resistance``, ``input_voltage``. The plant starts at rest (zero current and voltage) at
 the beginning of the settle interval. Reference changes reach the controller at its next sample;
@@ -33,8 +34,10 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from cosim.errors import ConfigError
-from cosim.toml_locator import parse_toml, where as _where
+from cosim.base.errors import ConfigError
+from cosim.base.toml_files import parse_toml
+from cosim.base.toml_files import where as _where
+from plant_fmu.table_ii import TABLE_II
 
 SHIPPED_DIR = Path(__file__).parent / "scenarios"
 EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
@@ -143,7 +146,7 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
             )
     if "reference" not in initial_table:
         raise ConfigError(f"{_where(path, loc, None, 'initial')}: missing required key 'initial.reference'")
-    initial = {"reference": None, "load_resistance": 6.0, "input_voltage": 48.0}
+    initial = {"reference": None, "load_resistance": TABLE_II.load_resistance, "input_voltage": TABLE_II.input_voltage}
     for key in INITIAL_KEYS:
         if key in initial_table:
             initial[key] = _number(initial_table[key], path, loc, key, f"initial.{key}", "initial")

@@ -11,8 +11,11 @@ import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+from plant_fmu.table_ii import TABLE_II  # noqa: E402
+
 # Params of the paper's Table II
-VS, L, C, R, FSW = 48.0, 220e-6, 10e-6, 6.0, 75e3
+VS, L, C, R, FSW = (TABLE_II.input_voltage, TABLE_II.inductance, TABLE_II.capacitance, TABLE_II.load_resistance,
+                    TABLE_II.switching_frequency)
 
 
 @pytest.fixture(scope="session")
@@ -27,10 +30,16 @@ class RawSlave:
 
     def __init__(self, fmu: Path, start_values: dict | None = None, instance_name: str = "raw",
                  log: list | None = None):
-        import fmpy
-        from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
-        from fmpy.fmi2 import fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE
         from ctypes import byref
+
+        import fmpy
+        from fmpy.fmi2 import (
+            FMU2Slave,
+            fmi2CallbackAllocateMemoryTYPE,
+            fmi2CallbackFreeMemoryTYPE,
+            fmi2CallbackFunctions,
+            fmi2CallbackLoggerTYPE,
+        )
 
         self.md = fmpy.read_model_description(str(fmu))
         self.vr = {v.name: v.valueReference for v in self.md.modelVariables}

@@ -7,10 +7,10 @@ import pytest
 
 from controllers.base import Measurement
 from controllers.pi import PIController
+from cosim.base.errors import ConfigError
 from cosim.fmi.binding import builtin_binding
-from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
-from cosim.errors import ConfigError
 from cosim.results import read_parquet
+from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
 
 PI = PIController(0.003, 14.0, 1e-3)
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from cosim.fmi.binding_file import guess_roles, load_binding
+from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.cli import main
-from cosim.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.fmi.archive import check_fmu
+from cosim.fmi.binding_file import guess_roles, load_binding
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.results import read_run

@@ -7,13 +7,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import VS, C, L, R
 from scipy.linalg import expm
 
-from conftest import C, L, R, VS
 from controllers.base import Measurement
 from controllers.pi import PIController
+from cosim.base.errors import ConfigError
 from cosim.fmi.binding import RoleMap, builtin_binding
-from cosim.errors import ConfigError
 from cosim.fmi.plant import FmuPlant
 from cosim.master import CONTROL, EVENT, RECORD, RunFailed, build_timeline, run, simulate
 from cosim.scenarios import load_scenario, parse_scenario

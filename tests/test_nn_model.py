@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 import torch
 
-from controllers.nn_model import (NNConfig, TrainingSettings, build_dataset, load_model, save_model, train)
-from cosim.errors import ModelFileError
+from controllers.nn_model import NNConfig, TrainingSettings, build_dataset, load_model, save_model, train
+from cosim.base.errors import ModelFileError
 
 PHI = np.array([[0.9, -0.05], [0.3, 0.8]])  # a stable linear "plant", sampled
 GAIN = np.array([2.0, 4.0])

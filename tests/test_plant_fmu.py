@@ -8,11 +8,11 @@ import zipfile
 import fmpy
 import numpy as np
 import pytest
+from conftest import FSW, VS, C, L, R, RawSlave, simulate_raw
 from fmpy.fmi1 import FMICallException
 from fmpy.validation import validate_fmu
 from scipy.linalg import expm
 
-from conftest import FSW, C, L, R, VS, RawSlave, simulate_raw
 from plant_fmu import build as plant_build
 
 AVERAGED, SWITCHED = 0, 1

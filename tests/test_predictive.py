@@ -10,15 +10,26 @@ from scipy.linalg import expm
 
 from controllers.base import Measurement
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, doubling_blocks
-from controllers.predictors import (CARRIERS, AveragedModelPredictor, CircuitParameters, PredictionContext,
-                                    SwitchedModelPredictor, expm2, expm2_many, ripple_free_horizon)
+from controllers.predictors import (
+    CARRIERS,
+    AveragedModelPredictor,
+    PredictionContext,
+    SwitchedModelPredictor,
+    expm2,
+    expm2_many,
+    ripple_free_horizon,
+)
 from cosim.fmi.binding import builtin_binding
 from cosim.fmi.plant import FmuPlant
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
+from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.study.vocabulary import LC_PERIOD, NOMINAL, SWITCHING_PERIOD
+from plant_fmu.table_ii import TABLE_II
 
-TS = 1 / 75e3
+TS = SWITCHING_PERIOD
+FSW = TABLE_II.switching_frequency
 
 
 def context(il=1.0, vo=8.0, load=6.0, vs=48.0):
@@ -41,7 +52,7 @@ def eq23_cost(predictor, ctx, reference, settings):
                                                    (6, (1, 2, 3), 5), (12, None, 21)])
 def test_optimizer_matches_brute_force_on_small_problems(horizon, blocks, levels):
     settings = HorizonSettings(horizon=horizon, blocks=blocks, levels=levels)
-    predictor = AveragedModelPredictor(CircuitParameters(), TS)
+    predictor = AveragedModelPredictor(NOMINAL, TS)
     ctx = context()
     cost = eq23_cost(predictor, ctx, 12.0, settings)
     optimizer = HorizonOptimizer(settings, (0.0, 1.0))
@@ -57,7 +68,7 @@ def test_optimizer_matches_brute_force_on_small_problems(horizon, blocks, levels
 
 def test_optimizer_respects_duty_limits_and_uses_the_warm_start():
     settings = HorizonSettings(horizon=3, levels=9)
-    predictor = AveragedModelPredictor(CircuitParameters(), 1e-3)
+    predictor = AveragedModelPredictor(NOMINAL, 1e-3)
     optimizer = HorizonOptimizer(settings, (0.1, 0.4))
     cost = eq23_cost(predictor, context(vo=0.0, il=0.0), 40.0, settings)  # wants more than the limit gives
     sequence, _ = optimizer.solve(cost)
@@ -71,7 +82,7 @@ def test_optimizer_respects_duty_limits_and_uses_the_warm_start():
 
 def test_blocks_and_settings_are_validated():
     assert doubling_blocks(24) == (1, 1, 2, 4, 8, 8) and sum(doubling_blocks(7)) == 7
-    assert ripple_free_horizon(1e-3) == 3 and ripple_free_horizon(TS) == 23
+    assert ripple_free_horizon(1e-3, LC_PERIOD) == 3 and ripple_free_horizon(TS, LC_PERIOD) == 23
     with pytest.raises(ValueError, match=r"blocks \(1, 1\) are invalid"):
         HorizonSettings(horizon=3, blocks=(1, 1))
     with pytest.raises(ValueError, match="discount = 1.5 is invalid"):
@@ -92,7 +103,7 @@ def test_averaged_model_predictor_is_exact_for_the_averaged_plant_in_ccm():
     """One step of the matrix-exponential model equals one control period of the FMU (CCM)."""
     binding = builtin_binding("averaged", {"inductor_resistance": 0.1, "capacitor_esr": 0.05,
                                            "switch_on_resistance": 0.0, "diode_forward_voltage": 0.7})
-    parameters = CircuitParameters(inductor_resistance=0.1, capacitor_esr=0.05, diode_forward_voltage=0.7)
+    parameters = replace(NOMINAL, inductor_resistance=0.1, capacitor_esr=0.05, diode_forward_voltage=0.7)
     predictor = AveragedModelPredictor(parameters, 1e-4)
     with FmuPlant(binding) as plant:
         plant.initialize([0.3, 48.0, 6.0])
@@ -110,7 +121,7 @@ def test_averaged_model_predictor_is_exact_for_the_averaged_plant_in_ccm():
 
 
 def test_disturbance_is_fed_back_every_step():
-    predictor = AveragedModelPredictor(CircuitParameters(), 1e-3)
+    predictor = AveragedModelPredictor(NOMINAL, 1e-3)
     ctx = context(vo=12.0, il=2.0)
     plain = predictor.rollout(ctx, np.full((1, 3), 0.25), np.zeros(2))
     shifted = predictor.rollout(ctx, np.full((1, 3), 0.25), np.array([0.0, 0.1]))
@@ -123,15 +134,15 @@ def test_mismatched_model_mpc_is_offset_free_on_the_plant():
     binding = builtin_binding("averaged", {"inductor_resistance": 0.15, "switch_on_resistance": 0.1,
                                            "diode_forward_voltage": 0.7, "capacitor_esr": 0.05,
                                            "inductance": 264e-6, "capacitance": 8e-6})
-    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), 1e-3), 1e-3,
-                               HorizonSettings(horizon=1, levels=33), name="MPC-mismatched")
+    mpc = PredictiveController(AveragedModelPredictor(NOMINAL, 1e-3), 1e-3,
+                               HorizonSettings(horizon=1, levels=33), name="MPC-mismatched", **OPERATING_POINT)
     m = run_metrics(simulate(binding, mpc, load_scenario("reference_up")))
     assert abs(m["steady_state_error_pct"]) < 0.05
     assert m["settling_time_ms"] < 5.0
 
 
 def test_predictive_controller_refuses_a_plant_without_inductor_current():
-    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), 1e-3), 1e-3)
+    mpc = PredictiveController(AveragedModelPredictor(NOMINAL, 1e-3), 1e-3, **OPERATING_POINT)
     with pytest.raises(ValueError, match="needs the inductor current"):
         mpc.step(Measurement(0.0, 12.0, 11.0))
 
@@ -141,8 +152,9 @@ def test_oracle_mpc_at_the_switching_rate_beats_the_tuned_pi_on_start_up():
 
     binding = builtin_binding("averaged")
     startup = replace(load_scenario("startup"), duration=0.004)
-    mpc = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS,
-                               HorizonSettings(horizon=ripple_free_horizon(TS)), name="MPC-oracle")
+    mpc = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS,
+                               HorizonSettings(horizon=ripple_free_horizon(TS, LC_PERIOD)), name="MPC-oracle",
+                               **OPERATING_POINT)
     pi = PIController(0.021, 172.0, TS)
     iae_mpc = run_metrics(simulate(binding, mpc, startup))["iae_Vs"]
     iae_pi = run_metrics(simulate(binding, pi, startup))["iae_Vs"]
@@ -173,7 +185,7 @@ def test_switched_model_predicts_what_the_sensor_of_the_switched_fmu_reads(carri
     """Four control periods of duty steps (CCM, with parasitics): the switched-model predictor,
     started from one sensor reading and the duty before it, matches the FMU's later readings."""
     binding = builtin_binding("switched", {**PARASITICS, "pwm_carrier": CARRIERS.index(carrier)})
-    predictor = SwitchedModelPredictor(CircuitParameters(**PARASITICS), period, carrier=carrier, sensor=sensor)
+    predictor = SwitchedModelPredictor(replace(NOMINAL, **PARASITICS), period, FSW, carrier=carrier, sensor=sensor)
     duties = [0.3, 0.28, 0.33, 0.25]
     with FmuPlant(binding) as plant:
         plant.initialize([0.27, 48.0, 6.0])
@@ -200,7 +212,7 @@ def test_switched_model_predicts_what_the_sensor_of_the_switched_fmu_reads(carri
 
 def test_switched_model_needs_whole_pwm_periods():
     with pytest.raises(ValueError, match=r"control period 0.0001 s is not a whole number of switching periods"):
-        SwitchedModelPredictor(CircuitParameters(), 1e-4)
+        SwitchedModelPredictor(NOMINAL, 1e-4, FSW)
 
 
 def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_switching_rate():
@@ -211,11 +223,11 @@ def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_swi
 
     binding = builtin_binding("switched")
     startup = replace(load_scenario("startup"), duration=0.001)
-    oracle = model_mpc(CircuitParameters(), TS, "MPC-oracle", binding=binding)
+    oracle = model_mpc(NOMINAL, TS, "MPC-oracle", binding=binding)
     assert isinstance(oracle.predictor, SwitchedModelPredictor)
     m = run_metrics(simulate(binding, oracle, startup))
     assert m["overshoot_pct"] < 1.0 and abs(m["steady_state_error_pct"]) < 0.05
-    averaged = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS, horizon_settings(TS))
+    averaged = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, horizon_settings(TS), **OPERATING_POINT)
     assert run_metrics(simulate(binding, averaged, startup))["overshoot_pct"] > 3 * max(m["overshoot_pct"], 1.0)
 
 

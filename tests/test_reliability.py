@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -154,7 +155,7 @@ FATAL_REUSE = """
 import gc, sys
 from controllers.pi import PIController
 from cosim.fmi.binding_file import load_binding
-from cosim.errors import PlantError
+from cosim.base.errors import PlantError
 from cosim.fmi.plant import FmuPlant
 from cosim.master import RunFailed, run
 from cosim.scenarios import parse_scenario
@@ -195,9 +196,9 @@ def test_an_fmu_that_reported_fatal_is_never_called_again(tmp_path, faulty_fmu):
 def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
     import math
 
+    from cosim.batch import run_batch
     from cosim.fmi.binding import builtin_binding
     from cosim.master import RunFailed
-    from cosim.batch import run_batch
     from cosim.scenarios import load_scenario
 
     class Broken:
@@ -214,7 +215,8 @@ def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
             return {"type": "broken", "name": self.name, "duty_limits": [0.0, 1.0]}
 
     with pytest.raises(RunFailed, match=r"controller broken returned duty cycle inf at t = 0.004 s"):
-        run_batch(builtin_binding("averaged"), [Broken()], [load_scenario("startup")], tmp_path, plant_tag="x")
+        run_batch(replace(builtin_binding("averaged"), tag_override="x"), [Broken()], [load_scenario("startup")],
+                  tmp_path)
     meta = json.loads((tmp_path / "runs" / "startup__broken__x__1ms.json").read_text())
     assert meta["complete"] is False and meta["rows"] > 300
     no_temporary_files(tmp_path)
@@ -312,7 +314,7 @@ def _die_like_a_crashing_fmu(job):
 
 def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path, monkeypatch):
     import cosim.study.reproduce as reproduce_module
-    from cosim.errors import PlantError
+    from cosim.base.errors import PlantError
 
     monkeypatch.setattr(reproduce_module, "_run_job", _die_like_a_crashing_fmu)  # forked workers inherit it
     started = time.monotonic()

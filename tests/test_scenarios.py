@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from cosim.errors import ConfigError
+from cosim.base.errors import ConfigError
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario, parse_scenario, shipped_scenarios
 
 GOOD = """\

@@ -15,7 +15,7 @@ from xml.etree import ElementTree
 import fmpy
 from fmpy.model_description import ModelDescription
 
-from cosim.errors import FmuArchiveError
+from cosim.base.errors import FmuArchiveError
 
 MAX_UNCOMPRESSED_BYTES = 1 << 30  # 1 GiB: far above any plant model, far below a zip bomb
 SUPPORTED = "FMI 2.0 (model exchange or co-simulation)"

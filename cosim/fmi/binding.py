@@ -13,6 +13,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Mapping
 
+from cosim.base.labels import slug
+
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
 OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
                 "measured_inductor_current", "measured_load_current")
@@ -44,7 +46,8 @@ ROLE_DESCRIPTIONS = {
                              "load_current)",
 }
 
-PLANT_MODES = {"averaged": 0, "switched": 1}
+#: the built-in FMU's Integer parameter ``plant_mode`` per mode name
+PLANT_MODE_CODES = {"averaged": 0, "switched": 1}
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,7 @@ class PlantBinding:
     max_step: float | None = None  # largest step the FMU accepts [s]; the master subdivides longer ones
     source: Path | None = None  # the binding file, named in error messages
     label: str = "BuckConverter (built-in)"
+    tag_override: str | None = None  # short name for file names (see :attr:`tag`)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
@@ -80,6 +84,16 @@ class PlantBinding:
 
     def has(self, role: str) -> bool:
         return role in self.roles
+
+    @property
+    def tag(self) -> str:
+        """Short name in file and table names: ``bound-<binding file stem>`` for a binding file,
+        else the name the caller gave (the study's ``nominal-switched``), else the label's slug."""
+        if self.tag_override:
+            return self.tag_override
+        if self.source is not None:
+            return f"bound-{Path(self.source).stem}"
+        return slug(self.label)
 
     @property
     def origin(self) -> str:
@@ -108,11 +122,11 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
     """
     from plant_fmu import fmu_path
 
-    if mode not in PLANT_MODES:
-        from cosim.errors import ConfigError
+    if mode not in PLANT_MODE_CODES:
+        from cosim.base.errors import ConfigError
 
-        raise ConfigError(f"plant mode {mode!r} is unknown: expected one of {', '.join(PLANT_MODES)}")
-    values: dict[str, float | int] = {"plant_mode": PLANT_MODES[mode]}
+        raise ConfigError(f"plant mode {mode!r} is unknown: expected one of {', '.join(PLANT_MODE_CODES)}")
+    values: dict[str, float | int] = {"plant_mode": PLANT_MODE_CODES[mode]}
     values.update(parameters or {})
     roles = {role: RoleMap(role) for role in ROLES}
     # The controller measures like an averaging ADC: the mean over the last PWM period, free of the

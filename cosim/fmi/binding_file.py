@@ -38,12 +38,12 @@ import re
 import sys
 from pathlib import Path
 
-from cosim.fmi.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
-from cosim.errors import ConfigError, FmuArchiveError
+from cosim.base.errors import ConfigError, FmuArchiveError
+from cosim.base.files import atomic_write_text
+from cosim.base.toml_files import TomlLocator, parse_toml, where
 from cosim.fmi.archive import check_fmu
+from cosim.fmi.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
 from cosim.fmi.plant import normalise_interface
-from cosim.results import atomic_write_text
-from cosim.toml_locator import TomlLocator, parse_toml, where
 
 TOP_KEYS = {"fmu", "interface", "max_step", "label", "roles", "parameters"}
 ROLE_KEYS = {"variable", "scale", "offset"}

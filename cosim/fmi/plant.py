@@ -27,9 +27,9 @@ from fmpy.fmi2 import (
     fmi2True,
 )
 
-from cosim.fmi.binding import INPUT_ROLES, OUTPUT_ROLES, PlantBinding
-from cosim.errors import ConfigError, PlantError
+from cosim.base.errors import ConfigError, PlantError
 from cosim.fmi.archive import check_fmu
+from cosim.fmi.binding import INPUT_ROLES, OUTPUT_ROLES, PlantBinding
 
 STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
 FATAL_STATUS = 4

@@ -10,20 +10,16 @@ from pathlib import Path
 
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
+from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
-from cosim.errors import ConfigError
-from cosim.study.experiments import NOMINAL, collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc
 from cosim.study.pi_tuning import PITuning, load_or_tune
-from cosim.batch import period_label, slug
-
-CONTROLLERS = ("pi", "nnpc", "nnpc-paper", "mpc-oracle", "mpc-nominal")
-DISPLAY = {"pi": "PI", "nnpc": "NNPC", "nnpc-paper": "NNPC-paper", "mpc-oracle": "MPC-oracle",
-           "mpc-nominal": "MPC-nominal"}
+from cosim.study.vocabulary import CONTROLLERS, MPC_NOMINAL, MPC_ORACLE, NETWORKS, NOMINAL, pipeline_tag
 
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
-    path = out_dir / "tuning" / f"pi__{slug(binding.label)}__{period_label(period)}.json"
+    path = out_dir / "tuning" / f"pi__{pipeline_tag(binding.tag, period)}.json"
     if not path.is_file():
         print(f"tuning the PI for {binding.label} at {period * 1e6:.4g} us (saved to {path}) ...", file=sys.stderr)
     return load_or_tune(path, binding, period, progress=progress)
@@ -35,8 +31,7 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     config = nn_configs(period)[name]
     if model_path:
         return load_model(Path(model_path), expect_period=period)
-    stem = f"{slug(binding.label)}__{period_label(period)}__{name}"
-    path = out_dir / "models" / f"{stem}.pt"
+    path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__{name}.pt"
     settings = collection_settings(period, samples, seed)
     collection = json.loads(json.dumps(asdict(settings)))  # as the model file stores it
     if path.is_file():
@@ -46,7 +41,7 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     pi = tuned_pi(binding, period, out_dir, progress)
     print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
     data = collect(binding, pi.controller(), settings, progress=progress)
-    save_samples(data, out_dir / "data" / f"{slug(binding.label)}__{period_label(period)}.parquet")
+    save_samples(data, out_dir / "data" / f"{pipeline_tag(binding.tag, period)}.parquet")
     model = train(data, config, TrainingSettings(seed=seed), progress=progress,
                   metadata={"control_period_s": period, "plant": binding.label, "seed": seed,
                             "collection": collection})
@@ -73,7 +68,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
 
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
-    if model_path and sum(n.startswith("nnpc") for n in names) > 1:
+    if model_path and sum(n in NETWORKS for n in names) > 1:
         raise ConfigError("--model gives one network: run nnpc and nnpc-paper separately when you pass --model")
     if not (period > 0 and math.isfinite(period)):
         raise ConfigError(f"control period {period} s is invalid: expected a finite value > 0")
@@ -86,16 +81,16 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                                     tuning={"method": "given on the command line"}))
                 else:
                     controllers.append(tuned_pi(binding, period, out_dir, progress).controller(duty_limits))
-            elif name in ("nnpc", "nnpc-paper"):
+            elif name in NETWORKS:
                 if not binding.has("inductor_current"):
                     raise ConfigError(f"{name} needs the inductor_current role, which {binding.origin} does not bind")
                 model = trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
                                       model_path=model_path, progress=progress)
-                controllers.append(nnpc(model, period, DISPLAY[name], duty_limits=duty_limits))
+                controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
-                controllers.append(model_mpc(true_parameters(binding), period, "MPC-oracle", duty_limits, binding))
+                controllers.append(model_mpc(true_parameters(binding), period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":
-                controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", duty_limits, binding))
+                controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
             else:
                 raise ConfigError(f"controller {name!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
     except ValueError as error:  # invalid gains, limits or periods from the controller constructors

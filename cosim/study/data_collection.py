@@ -18,12 +18,13 @@ import numpy as np
 import pandas as pd
 
 from controllers.base import Measurement, check_duty_limits
+from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
-from cosim.errors import ConfigError
 from cosim.fmi.plant import FmuPlant
 from cosim.master import run
 from cosim.results import write_parquet
 from cosim.scenarios import Scenario, ScenarioEvent
+from plant_fmu.table_ii import TABLE_II
 
 SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
                   "load_resistance", "input_voltage", "load_current", "measured_load_current", "load_conductance",
@@ -47,7 +48,7 @@ class CollectionSettings:
     hold_range: tuple[int, int] = (5, 40)  # control periods a random level is held, uniform
     excitation: float = 0.01  # standard deviation of the duty dither [1]
     rest_probability: float = 0.15  # chance that a new reference level is 0 V, so start-ups recur
-    input_voltage: float = 48.0  # [V]
+    input_voltage: float = TABLE_II.input_voltage  # [V]
     seed: int = 0
 
     def check(self) -> None:

@@ -1,32 +1,38 @@
 """The experiment definitions shared by the command line and the reproduction.
 
-Plants (nominal Table II, or the mismatch-study plant), controller factories with their
-rate-dependent settings, NN configurations, and the scenarios adapted to a control rate.
+The built-in plants (nominal Table II or the mismatch-study circuit, averaged or switched, with
+either sensor), the controllers with their rate-dependent settings, the NN configurations, the
+identification settings, and the paper's scenarios adapted to a control rate. Names and numbers
+come from :mod:`cosim.study.vocabulary`.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 from controllers.nn_model import NNConfig, NNPlantModel
 from controllers.predictive import HorizonSettings, PredictiveController
-from controllers.predictors import (AveragedModelPredictor, CircuitParameters, NNPredictor, SwitchedModelPredictor,
-                                    ripple_free_horizon)
-from cosim.fmi.binding import PLANT_MODES, PlantBinding, RoleMap, builtin_binding
-from cosim.study.data_collection import CollectionSettings
-from cosim.errors import ConfigError
+from controllers.predictors import (
+    AveragedModelPredictor,
+    CircuitParameters,
+    NNPredictor,
+    SwitchedModelPredictor,
+    ripple_free_horizon,
+)
+from cosim.base.errors import ConfigError
+from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding, RoleMap, builtin_binding
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
-
-PAPER_PERIOD = 1e-3  # [s]
-SWITCHING_FREQUENCY = 75e3  # [Hz], Table II
-SWITCHING_PERIOD = 1 / SWITCHING_FREQUENCY  # [s]
-
-NOMINAL = CircuitParameters()
-#: the mismatch-study plant: L +20 %, C -20 % and realistic parasitics
-MISMATCH = CircuitParameters(inductance=264e-6, capacitance=8e-6, inductor_resistance=0.15,
-                             switch_on_resistance=0.1, diode_forward_voltage=0.7, capacitor_esr=0.05)
-PLANT_VARIANTS = {"nominal": NOMINAL, "mismatch": MISMATCH}
+from cosim.study.data_collection import CollectionSettings
+from cosim.study.vocabulary import (
+    FAST_RATE_COMPRESSION,
+    LC_PERIOD,
+    PLANT_VARIANTS,
+    SENSORS,
+    identification_dither,
+    plant_tag,
+    transient_within_sample,
+)
+from plant_fmu.table_ii import TABLE_II
 
 #: the paper's network: [iL, vc, d](k-1) -> [iL, vc](k), 7 tanh neurons
 PAPER_NN = NNConfig()
@@ -39,7 +45,7 @@ def nn_configs(control_period: float) -> dict[str, NNConfig]:
     """Networks trained per rate. At a sample per switching period the averaging sensor lags by
     half a sample, which makes the previous duty and state part of the dynamics: the workbench's
     network then also sees the sample before (two delays), still with 7 hidden neurons."""
-    workbench = WORKBENCH_NN if control_period >= 0.5e-3 else replace(WORKBENCH_NN, delays=2)
+    workbench = WORKBENCH_NN if transient_within_sample(control_period) else replace(WORKBENCH_NN, delays=2)
     return {"nnpc": workbench, "nnpc-paper": PAPER_NN}
 
 
@@ -52,12 +58,9 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
     is 0.1: the NNPC there plans 23-sample duty sequences (full and zero duty, then braking) far
     from the PI's own trajectories, and the network must have seen such moves.
     """
-    slow = control_period >= 0.5e-3
+    slow = transient_within_sample(control_period)
     return CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
-                              excitation=excitation if excitation is not None else (0.01 if slow else 0.1))
-
-
-SENSORS = ("average", "synchronous")
+                              excitation=excitation if excitation is not None else identification_dither(control_period))
 
 
 def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBinding:
@@ -84,21 +87,26 @@ def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBind
         roles["measured_load_current"] = RoleMap("load_current")
         binding = replace(binding, roles=roles, parameters={**binding.parameters, "pwm_carrier": 1})
     suffix = "" if sensor == "average" else ", synchronous sampling"
-    return replace(binding, label=f"BuckConverter ({variant}, {mode}{suffix})")
+    return replace(binding, label=f"BuckConverter ({variant}, {mode}{suffix})", tag_override=plant_tag(variant, mode, sensor))
 
 
 def horizon_settings(control_period: float, horizon: int | None = None) -> HorizonSettings:
     """Optimizer settings per rate. At 1 ms the LC transient (~0.5 ms) is over within one sample,
     so one step of prediction decides the move (the reproduction's ablation checks N = 3 against
     N = 1); at faster rates the horizon spans one LC ringing period."""
-    n = horizon if horizon is not None else (1 if control_period >= 0.5e-3 else ripple_free_horizon(control_period))
+    n = horizon if horizon is not None else \
+        (1 if transient_within_sample(control_period) else ripple_free_horizon(control_period, LC_PERIOD))
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
+
+
+#: what the predictive controllers assume before their sensors tell them (Table II)
+NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_input_voltage": TABLE_II.input_voltage}
 
 
 def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon: int | None = None,
          duty_limits: tuple[float, float] = (0.0, 1.0)) -> PredictiveController:
     return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
-                                duty_limits, name=name)
+                                duty_limits, name=name, **NOMINAL_OPERATING_POINT)
 
 
 def model_predictor(parameters: CircuitParameters, control_period: float, name: str,
@@ -112,11 +120,11 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
     (eq. 3 with parasitics), which is exact for the averaged plant.
     """
     p = binding.parameters if binding is not None else {}
-    if binding is not None and binding.source is None and p.get("plant_mode") == PLANT_MODES["switched"]:
+    if binding is not None and binding.source is None and p.get("plant_mode") == PLANT_MODE_CODES["switched"]:
         synchronous = binding.roles["measured_output_voltage"].variable == "output_voltage"
         try:
             return SwitchedModelPredictor(parameters, control_period, float(p.get("switching_frequency",
-                                                                                  SWITCHING_FREQUENCY)),
+                                                                                  TABLE_II.switching_frequency)),
                                           carrier="triangle" if p.get("pwm_carrier") == 1 else "sawtooth",
                                           sensor="period_start" if synchronous else "period_average", name=name)
         except ValueError:  # not a whole number of PWM periods: the averaged model is the best there is
@@ -128,25 +136,21 @@ def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
               duty_limits: tuple[float, float] = (0.0, 1.0), binding: PlantBinding | None = None) -> PredictiveController:
     """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant."""
     return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,
-                                horizon_settings(control_period), duty_limits, name=name)
+                                horizon_settings(control_period), duty_limits, name=name, **NOMINAL_OPERATING_POINT)
 
 
 def scenarios_for(control_period: float, names=PAPER_SCENARIOS) -> list[Scenario]:
-    """The paper's scenarios at a control rate. The shipped files suit 1 ms; at a faster rate the
-    controllers settle within about a millisecond, so the run is compressed (settle 3 ms, events
-    at 1.5 ms, 6 ms recorded: still 675 samples at 13.33 us) to keep the runs affordable."""
+    """The paper's scenarios at a control rate. The shipped files suit 1 ms; where the transient is
+    shaped within a sample the controllers settle within about a millisecond, so the runs are
+    compressed (:data:`~cosim.study.vocabulary.FAST_RATE_COMPRESSION`: still 675 samples at
+    13.33 us) to keep them affordable."""
     scenarios = [load_scenario(name) for name in names]
-    if control_period >= 0.5e-3:
+    if transient_within_sample(control_period):
         return scenarios
+    c = FAST_RATE_COMPRESSION
     compressed = []
     for s in scenarios:
-        events = tuple(replace(e, time=0.0015) for e in s.events)
-        compressed.append(replace(s, duration=0.006, settle=0.003 if s.settle else 0.0, events=events,
+        events = tuple(replace(e, time=c.event_time) for e in s.events)
+        compressed.append(replace(s, duration=c.duration, settle=c.settle if s.settle else 0.0, events=events,
                                   description=s.description + " [time-compressed for the fast rate]"))
     return compressed
-
-
-def period_text(period: float) -> str:
-    if period >= 1e-3 and math.isclose(period * 1e3, round(period * 1e3), rel_tol=1e-9):
-        return f"{round(period * 1e3)} ms"
-    return f"{period * 1e6:.4g} µs"

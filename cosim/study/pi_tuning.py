@@ -20,12 +20,13 @@ import numpy as np
 from scipy.optimize import minimize
 
 from controllers.pi import PIController
+from cosim.base.errors import WorkbenchError
 from cosim.fmi.binding import PlantBinding
-from cosim.errors import WorkbenchError
 from cosim.fmi.plant import FmuPlant
 from cosim.master import run
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
+from plant_fmu.table_ii import TABLE_II
 
 TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
 OVERSHOOT_LIMIT_PCT = 5.0
@@ -76,7 +77,7 @@ def _tuning_scenarios():
 
 
 def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
-            input_voltage: float = 48.0, progress: bool = False, quick: bool = False) -> PITuning:
+            input_voltage: float = TABLE_II.input_voltage, progress: bool = False, quick: bool = False) -> PITuning:
     """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring.
 
     ``quick`` (smoke tests only) searches a 2 x 2 grid and 6 Nelder-Mead evaluations.
@@ -137,7 +138,7 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
 
 def load_or_tune(path: Path, binding: PlantBinding, control_period: float, **kwargs) -> PITuning:
     """Read tuned gains from ``path`` if they match plant and period; else tune and save them there."""
-    from cosim.results import atomic_write_text
+    from cosim.base.files import atomic_write_text
 
     path = Path(path)
     if path.is_file():

@@ -11,17 +11,34 @@ from pathlib import Path
 
 import pandas as pd
 
-from cosim.study.experiments import MISMATCH, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, horizon_settings, period_text
+from cosim.base.files import atomic_write, atomic_write_text
+from cosim.base.labels import period_label, period_text
+from cosim.results import package_versions
+from cosim.study.experiments import horizon_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
-from cosim.results import atomic_write, atomic_write_text, package_versions
-from cosim.batch import period_label
+from cosim.study.vocabulary import (
+    DITHER_FAST,
+    DITHER_SLOW,
+    FAST_RATE_COMPRESSION,
+    MISMATCH,
+    MPC_NOMINAL,
+    MPC_ORACLE,
+    MPC_ORACLE_AVERAGED,
+    MPC_ORACLE_SYNC,
+    NNPC,
+    NNPC_PAPER,
+    PAPER_PERIOD,
+    PI,
+    SWITCHING_PERIOD,
+    horizon_variant,
+    is_seed_variant,
+)
+from plant_fmu.table_ii import TABLE_II
 
-FIGURE_CONTROLLERS = ("PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal")
 
-
-def lc_physics(resistance: float = 6.0) -> dict[str, float]:
+def lc_physics(resistance: float = TABLE_II.load_resistance) -> dict[str, float]:
     """Natural frequency, damping, overshoot and 2 % settling of the open-loop LC step (Table II)."""
-    l, c = NOMINAL.inductance, NOMINAL.capacitance
+    l, c = TABLE_II.inductance, TABLE_II.capacitance
     wn = 1 / math.sqrt(l * c)
     zeta = math.sqrt(l / c) / (2 * resistance)
     return {"f0_Hz": wn / (2 * math.pi), "zeta": zeta,
@@ -59,7 +76,7 @@ def _ratio_table(metrics: pd.DataFrame, pipeline: str, numerator: str, denominat
 def _seed_study(metrics, pipeline) -> list[str]:
     """Names of the seed-study NNPCs of a pipeline ("NNPC (seed 1)", ...)."""
     names = metrics.loc[metrics["pipeline"] == pipeline, "controller"]
-    return sorted(n for n in set(names) if n.startswith("NNPC (seed "))
+    return sorted(n for n in set(names) if is_seed_variant(n))
 
 
 def _value(metrics, pipeline, controller, scenario, column):
@@ -97,10 +114,10 @@ class Targets:
         for mode in ("averaged", "switched"):
             tag = f"nominal-{mode}__{paper}"
             if tag in pipelines:
-                r = _ratio_table(m, tag, "NNPC", "MPC-oracle")
+                r = _ratio_table(m, tag, NNPC, MPC_ORACLE)
                 add(f"NNPC IAE <= 1.10 x oracle-MPC IAE, every scenario, 1 ms, {mode}",
                     "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= 1.10).all()))
-        nnpc = m[(m["controller"] == "NNPC") & m["pipeline"].str.startswith("nominal")]
+        nnpc = m[(m["controller"] == NNPC) & m["pipeline"].str.startswith("nominal")]
         if len(nnpc):
             worst = nnpc.loc[nnpc["steady_state_error_pct"].abs().idxmax()]
             add("NNPC steady-state error <= 0.2 % of the reference, every scenario (nominal plants, both rates)",
@@ -109,12 +126,12 @@ class Targets:
         for mode in ("averaged", "switched"):
             tag = f"nominal-{mode}__{fast}"
             if tag in pipelines:
-                overshoot = _value(m, tag, "NNPC", "startup", "overshoot_pct")
+                overshoot = _value(m, tag, NNPC, "startup", "overshoot_pct")
                 seeds = _seed_study(m, tag)
                 note = ("NNPC identified from other seeds' data: " + "; ".join(
                     f"{name}: {_value(m, tag, name, 'startup', 'overshoot_pct'):.2f} %" for name in seeds)) if seeds else ""
                 add(f"NNPC start-up overshoot <= 5 % at 1/fsw, {mode}", f"{overshoot:.2f} %", overshoot <= 5.0, note)
-                r = _ratio_table(m, tag, "NNPC", "PI")
+                r = _ratio_table(m, tag, NNPC, PI)
                 note = ("other seeds, worst scenario: " + "; ".join(
                     f"{name}: {_ratio_table(m, tag, name, 'PI').max():.3f}" for name in seeds)) if seeds else ""
                 add(f"NNPC IAE <= 0.6 x PI IAE at 1/fsw, {mode}", "; ".join(f"{s}: {v:.3f}" for s, v in r.items()),
@@ -122,10 +139,10 @@ class Targets:
         for rate in (paper, fast):
             tag = f"mismatch-switched__{rate}"
             if tag in pipelines:
-                r = _ratio_table(m, tag, "NNPC", "MPC-nominal")
+                r = _ratio_table(m, tag, NNPC, MPC_NOMINAL)
                 add(f"Under mismatch: NNPC IAE <= 0.8 x nominal-model MPC IAE, {rate}",
                     "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= 0.8).all()))
-        slow = m[(m["controller"] == "NNPC") & m["pipeline"].str.endswith(paper)]
+        slow = m[(m["controller"] == NNPC) & m["pipeline"].str.endswith(paper)]
         if len(slow):
             p99 = float(slow["controller_p99_us"].max())
             measured, met, note = f"worst run p99 {p99:.0f} us", p99 <= 100.0, \
@@ -216,9 +233,11 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, 
 
 def _setup(physics: dict) -> list[str]:
     slow, fast = horizon_settings(PAPER_PERIOD), horizon_settings(SWITCHING_PERIOD)
+    t = TABLE_II
     return [
         "- **Plant**: the project's BuckConverter FMU (FMI 2.0, co-simulation, exact piecewise steps), "
-        "Table II: Vs 48 V, L 220 uH, C 10 uF, R 6 Ohm, f_sw 75 kHz; *averaged* (eq. 3 with DCM) and "
+        f"Table II: Vs {t.input_voltage:g} V, L {t.inductance * 1e6:g} uH, C {t.capacitance * 1e6:g} uF, "
+        f"R {t.load_resistance:g} Ohm, f_sw {t.switching_frequency / 1e3:g} kHz; *averaged* (eq. 3 with DCM) and "
         "*switched* (ideal switch and diode, sawtooth PWM). The *mismatch* plant has L +20 % "
         f"({MISMATCH.inductance * 1e6:.0f} uH), C -20 % ({MISMATCH.capacitance * 1e6:.0f} uF), DCR "
         f"{MISMATCH.inductor_resistance} Ohm, switch {MISMATCH.switch_on_resistance} Ohm, diode "
@@ -232,7 +251,7 @@ def _setup(physics: dict) -> list[str]:
         "steps; a load step at a sample instant is seen one sample later, which dominates the 1 ms one-step "
         "current RMSE of the switched plants below.",
         "- **Rates**: the paper's 1 ms, and one switching period (13.33 us), where the scenarios are "
-        "time-compressed (settle 3 ms, events at 1.5 ms, 6 ms recorded) since every controller settles "
+        f"time-compressed ({FAST_RATE_COMPRESSION.describe()}) since every controller settles "
         "within about a millisecond.",
         "- **NNPC**: receding horizon with the paper's cost (eq. 23, discounted sum eq. 16, gamma "
         f"{slow.discount}); horizon {slow.horizon} sample at 1 ms (the LC transient is over within one "
@@ -264,7 +283,7 @@ def _ablations(metrics: pd.DataFrame) -> list[str]:
     lines = _ablation(
         "**Horizon at 1 ms** (nominal switched plant): the NNPC with one step of prediction against three. The LC "
         "transient is over within a sample, so the first move -- the only one applied -- is the same.",
-        runs(f"nominal-switched__{paper}", ["NNPC", "NNPC (N=3)"]),
+        runs(f"nominal-switched__{paper}", [NNPC, horizon_variant(NNPC, 3)]),
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
          "settling_time_ms": "settling [ms]", "controller_p50_us": "ctrl p50 [us]"})
     tag = f"nominal-switched__{fast}"
@@ -275,13 +294,13 @@ def _ablations(metrics: pd.DataFrame) -> list[str]:
         "and to the sawtooth putting the on-time at the start of the period, so the aggressive optimum of eq. 23 "
         "overshoots; *(sync. sample)* reads a point sample at mid off-time with centre-aligned PWM, predicted "
         "exactly too, but regulates the ripple crest and leaves a DC error of about half the 91 mV ripple.",
-        runs(tag, ["MPC-oracle", "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)"]),
+        runs(tag, [MPC_ORACLE, MPC_ORACLE_AVERAGED, MPC_ORACLE_SYNC]),
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
          "steady_state_error_pct": "SS error [%]"})
     seeds = _seed_study(metrics, tag)
     if seeds:
-        rows = runs(tag, ["NNPC", *seeds])
-        pi = runs(tag, ["PI"]).set_index("scenario")["iae_Vs"]
+        rows = runs(tag, [NNPC, *seeds])
+        pi = runs(tag, [PI]).set_index("scenario")["iae_Vs"]
         rows["iae_over_pi"] = rows["iae_Vs"].to_numpy() / pi.reindex(rows["scenario"]).to_numpy()
         lines += _ablation(
             "**Seed sensitivity at 13.33 us** (nominal switched plant): the NNPC identified again from data "
@@ -298,10 +317,10 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
     lines = []
     tag = f"nominal-switched__{paper}"
     if tag in pipelines:
-        os_pi = _value(metrics, tag, "PI", "startup", "overshoot_pct")
-        os_nn = _value(metrics, tag, "NNPC", "startup", "overshoot_pct")
-        r_pi = _ratio_table(metrics, tag, "NNPC", "PI")
-        r_or = _ratio_table(metrics, tag, "NNPC", "MPC-oracle")
+        os_pi = _value(metrics, tag, PI, "startup", "overshoot_pct")
+        os_nn = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
+        r_pi = _ratio_table(metrics, tag, NNPC, PI)
+        r_or = _ratio_table(metrics, tag, NNPC, MPC_ORACLE)
         lines.append(
             f"- **At 1 ms the LC transient is over before the next sample** ({physics['settling_ms']:.2f} ms). "
             f"No controller can shape it: a predictive controller moves the output in one sample and the "
@@ -312,9 +331,9 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             + "; NNPC / oracle MPC: " + ", ".join(f"{s} {v:.3f}" for s, v in r_or.items()) + ".")
     tag = f"nominal-switched__{fast}"
     if tag in pipelines:
-        r_pi = _ratio_table(metrics, tag, "NNPC", "PI")
-        r_or = _ratio_table(metrics, tag, "NNPC", "MPC-oracle")
-        os_nn = _value(metrics, tag, "NNPC", "startup", "overshoot_pct")
+        r_pi = _ratio_table(metrics, tag, NNPC, PI)
+        r_or = _ratio_table(metrics, tag, NNPC, MPC_ORACLE)
+        os_nn = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
         seeds = _seed_study(metrics, tag)
         spread = (" (NNPCs identified from other seeds' data: " + ", ".join(
             f"{_value(metrics, tag, name, 'startup', 'overshoot_pct'):.1f} %" for name in seeds) + ")") if seeds else ""
@@ -323,7 +342,7 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             + ", ".join(f"{s} {v:.2f}" for s, v in r_pi.items())
             + f"; start-up overshoot {os_nn:.1f} %{spread}; NNPC / oracle MPC = "
             + ", ".join(f"{s} {v:.2f}" for s, v in r_or.items()) + ".")
-    paper_nn = metrics[metrics["controller"] == "NNPC-paper"]
+    paper_nn = metrics[metrics["controller"] == NNPC_PAPER]
     if len(paper_nn):
         slow = paper_nn[paper_nn["pipeline"].str.endswith(paper)]
         quick = paper_nn[paper_nn["pipeline"].str.endswith(fast)]
@@ -333,12 +352,12 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             f"error {quick['steady_state_error_pct'].abs().max():.1f} %): within one switching period the output "
             "voltage moves by (iL - io) Ts / C, and without the load the network cannot know io.")
     tag = f"nominal-switched__{fast}"
-    sync = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == "MPC-oracle (sync. sample)")]
+    sync = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == MPC_ORACLE_SYNC)]
     if len(sync):
-        averaged = _value(metrics, tag, "MPC-oracle", "startup", "overshoot_pct")
-        synchronous = _value(metrics, tag, "MPC-oracle (sync. sample)", "startup", "overshoot_pct")
-        learned = _value(metrics, tag, "NNPC", "startup", "overshoot_pct")
-        blind = _value(metrics, tag, "MPC-oracle (averaged model)", "startup", "overshoot_pct")
+        averaged = _value(metrics, tag, MPC_ORACLE, "startup", "overshoot_pct")
+        synchronous = _value(metrics, tag, MPC_ORACLE_SYNC, "startup", "overshoot_pct")
+        learned = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
+        blind = _value(metrics, tag, MPC_ORACLE_AVERAGED, "startup", "overshoot_pct")
         lines.append(
             f"- **On the switched plant at 13.33 us the model must contain the sensor**: the oracle MPC, which "
             f"predicts the averaging sensor's reading with the switched circuit, overshoots {averaged:.1f} % at "
@@ -348,7 +367,7 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             f"measurement and sees two past samples, overshoots {learned:.1f} %.")
     tag = f"mismatch-switched__{fast}"
     if tag in pipelines:
-        r = _ratio_table(metrics, tag, "NNPC", "MPC-nominal")
+        r = _ratio_table(metrics, tag, NNPC, MPC_NOMINAL)
         lines.append("- **Model mismatch** (L +20 %, C -20 %, parasitics): NNPC IAE / nominal-model MPC IAE at "
                      "13.33 us = " + ", ".join(f"{s} {v:.2f}" for s, v in r.items())
                      + ". The disturbance estimate makes the nominal-model MPC offset-free, so mismatch costs it "
@@ -388,8 +407,8 @@ def _discussion(metrics, pipelines, physics) -> list[str]:
         "allows. The mismatch tables above give the numbers for each rate.",
         "",
         "**Limits of this reproduction.** The NNPC's quality depends on the identification data (seeded; "
-        "the PI-driven random references and loads of the paper, with a duty dither -- sigma 0.01 at 1 ms, "
-        "0.1 at 13.33 us -- and repeated start-ups from rest) and on training; results for other seeds and "
+        f"the PI-driven random references and loads of the paper, with a duty dither -- sigma {DITHER_SLOW} at 1 ms, "
+        f"{DITHER_FAST} at 13.33 us -- and repeated start-ups from rest) and on training; results for other seeds and "
         "dither levels differ, at 13.33 us by several per cent of overshoot (the seed-sensitivity table "
         "above), because the network's multi-step predictions (see the 10-step RMSEs) are poor wherever the "
         "data is thin. The MPC baselines have no such dependence. Compute times are Python/numpy on a shared 2-core machine: "

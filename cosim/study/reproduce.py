@@ -29,15 +29,34 @@ from pathlib import Path
 
 import pandas as pd
 
+from cosim.base.errors import PlantError
+from cosim.base.files import atomic_write_text, remove_temporary_files
+from cosim.batch import run_batch, write_metrics
+from cosim.scenarios import PAPER_SCENARIOS
 from cosim.study.data_collection import collect, save_samples
-from cosim.errors import PlantError
-from cosim.study.experiments import (MISMATCH, NOMINAL, PAPER_PERIOD, PLANT_VARIANTS, SWITCHING_PERIOD, collection_settings,
-                               model_mpc, nn_configs, nnpc, plant_binding, scenarios_for)
+from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc, plant_binding, scenarios_for
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
-from cosim.results import atomic_write_text
-from cosim.batch import period_label, run_batch, write_metrics
-from cosim.scenarios import PAPER_SCENARIOS
+from cosim.study.vocabulary import (
+    CONTROLLER_STYLES,
+    MISMATCH,
+    MPC_MISMATCHED,
+    MPC_NOMINAL,
+    MPC_ORACLE,
+    MPC_ORACLE_AVERAGED,
+    MPC_ORACLE_SYNC,
+    NNPC,
+    NNPC_PAPER,
+    NOMINAL,
+    PAPER_PERIOD,
+    PLANT_VARIANTS,
+    STUDY_PERIODS,
+    horizon_variant,
+    pipeline_tag,
+    plant_tag,
+    seed_variant,
+    transient_within_sample,
+)
 
 
 @dataclass(frozen=True)
@@ -68,9 +87,7 @@ class Pipeline:
 
     @property
     def plant_tag(self) -> str:
-        if self.binding_file:
-            return f"bound-{Path(self.binding_file).stem}"
-        return f"{self.variant}-{self.mode}"
+        return self.binding().tag if self.binding_file else plant_tag(self.variant, self.mode)
 
     def binding(self):
         if self.binding_file:
@@ -81,11 +98,11 @@ class Pipeline:
 
     @property
     def tag(self) -> str:
-        return f"{self.plant_tag}__{period_label(self.control_period)}"
+        return pipeline_tag(self.plant_tag, self.control_period)
 
 
 PIPELINES = tuple(Pipeline(variant, mode, period)
-                  for period in (PAPER_PERIOD, SWITCHING_PERIOD)
+                  for period in STUDY_PERIODS
                   for variant, mode in (("nominal", "averaged"), ("nominal", "switched"), ("mismatch", "switched")))
 
 
@@ -144,15 +161,15 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         log(f"  {tag}: {name} {config.label}: one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
             f"{rmse['one_step_rmse_current_A'] * 1e3:.1f} mA ({timings[f'training_{name}_s']:.1f} s)")
 
-    controllers = [pi.controller(), nnpc(models["nnpc"], period, "NNPC"),
-                   nnpc(models["nnpc-paper"], period, "NNPC-paper")]
+    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC),
+                   nnpc(models["nnpc-paper"], period, NNPC_PAPER)]
     if pipeline.binding_file:  # an external plant: only the Table II model is known
-        controllers.append(model_mpc(NOMINAL, period, "MPC-nominal", binding=binding))
+        controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, binding=binding))
     else:
         true_parameters = PLANT_VARIANTS[pipeline.variant]
         wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
-        wrong_name = "MPC-nominal" if pipeline.variant == "mismatch" else "MPC-mismatched"
-        controllers += [model_mpc(true_parameters, period, "MPC-oracle", binding=binding),
+        wrong_name = MPC_NOMINAL if pipeline.variant == "mismatch" else MPC_MISMATCHED
+        controllers += [model_mpc(true_parameters, period, MPC_ORACLE, binding=binding),
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
     scenarios = []
     for scenario in scenarios_for(period, profile.scenarios):
@@ -162,29 +179,28 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         else:
             scenarios.append(scenario)
     start = time.perf_counter()
-    batch = run_batch(binding, controllers, scenarios, out_dir, plant_tag=pipeline.plant_tag, seed=seed,
+    batch = run_batch(binding, controllers, scenarios, out_dir, seed=seed, styles=CONTROLLER_STYLES,
                       extra_metadata={"pipeline": asdict(pipeline)})
     metrics = batch.metrics
     if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
-        if period >= 0.5e-3:  # does a longer horizon change anything at 1 ms?
-            ablation = run_batch(binding, [nnpc(models["nnpc"], period, "NNPC (N=3)", horizon=3)], scenarios,
-                                 out_dir, plant_tag=pipeline.plant_tag, seed=seed, figures=False)
+        if transient_within_sample(period):  # does a longer horizon change anything at 1 ms?
+            ablation = run_batch(binding, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
+                                 scenarios, out_dir, seed=seed, figures=False)
         else:  # the oracle blind to the sensor (eq. 3), and a synchronous point sample instead of the mean
-            blind = run_batch(binding, [model_mpc(true_parameters, period, "MPC-oracle (averaged model)")],
-                              scenarios, out_dir, plant_tag=pipeline.plant_tag, seed=seed, figures=False)
+            blind = run_batch(binding, [model_mpc(true_parameters, period, MPC_ORACLE_AVERAGED)],
+                              scenarios, out_dir, seed=seed, figures=False)
             synchronous = plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous")
-            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, "MPC-oracle (sync. sample)",
+            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, MPC_ORACLE_SYNC,
                                                          binding=synchronous)],
-                                 scenarios, out_dir, plant_tag=f"{pipeline.plant_tag}-sync", seed=seed,
-                                 figures=False)
+                                 scenarios, out_dir, seed=seed, figures=False)
             studies = [blind.metrics, ablation.metrics]
             for offset in profile.seed_study:  # the same NNPC identified from other seeded data
                 other = seed + offset
                 data = collect(binding, pi.controller(), collection_settings(period, profile.samples, other))
                 model = train(data, nn_configs(period)["nnpc"], TrainingSettings(seed=other),
                               metadata={"control_period_s": period, "plant": binding.label, "seed": other})
-                studies.append(run_batch(binding, [nnpc(model, period, f"NNPC (seed {other})")], scenarios, out_dir,
-                                         plant_tag=pipeline.plant_tag, seed=other, figures=False).metrics)
+                studies.append(run_batch(binding, [nnpc(model, period, seed_variant(NNPC, other))], scenarios,
+                                         out_dir, seed=other, figures=False).metrics)
             ablation.metrics = pd.concat(studies, ignore_index=True)
         ablation.metrics["plant_tag"] = pipeline.plant_tag
         metrics = pd.concat([metrics, ablation.metrics], ignore_index=True)
@@ -217,13 +233,7 @@ def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
             process.terminate()
     for process in processes:
         process.join(timeout=10)
-    _remove_partial_files(out_dir)
-
-
-def _remove_partial_files(out_dir: Path) -> None:
-    """Delete temporary files of writes that a terminated worker left unfinished."""
-    for stale in Path(out_dir).rglob(".*.tmp-*"):
-        stale.unlink(missing_ok=True)
+    remove_temporary_files(out_dir)
 
 
 def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:

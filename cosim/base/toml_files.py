@@ -10,7 +10,7 @@ import re
 import tomllib
 from pathlib import Path
 
-from cosim.errors import ConfigError
+from cosim.base.errors import ConfigError
 
 
 class TomlLocator:

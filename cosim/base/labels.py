@@ -1,0 +1,34 @@
+"""How the workbench names things in file names and in prose: the one definition of each label.
+
+* :func:`period_label` -- a control period in file names: ``1ms``, ``13p33us``;
+* :func:`period_text` -- the same period in tables, titles and text: ``1 ms``, ``13.33 µs``;
+* :func:`slug` -- any label reduced to lower-case letters, digits and dashes for file names.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+
+def _whole_milliseconds(period: float) -> int | None:
+    """The period in ms if it is a whole number of them (>= 1 ms), else None."""
+    if period >= 1e-3 and math.isclose(period * 1e3, round(period * 1e3), rel_tol=1e-9):
+        return round(period * 1e3)
+    return None
+
+
+def period_label(period: float) -> str:
+    """Short file-name label of a control period [s]: ``1ms``, ``13p33us``."""
+    ms = _whole_milliseconds(period)
+    return f"{ms}ms" if ms is not None else f"{period * 1e6:.4g}us".replace(".", "p")
+
+
+def period_text(period: float) -> str:
+    """A control period [s] as text: ``1 ms``, ``2.5 ms``, ``13.33 µs``."""
+    return f"{period * 1e3:.4g} ms" if period >= 1e-3 else f"{period * 1e6:.4g} µs"
+
+
+def slug(text: str) -> str:
+    """``"MPC-oracle (sync. sample)"`` -> ``"mpc-oracle-sync-sample"``."""
+    return re.sub(r"[^A-Za-z0-9]+", "-", text).strip("-").lower()

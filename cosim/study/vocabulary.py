@@ -1,0 +1,140 @@
+"""The study's vocabulary: the one definition of every name and number the paper study shares.
+
+Everything in the study, the command line, the benchmarks and the tests imports these instead of
+typing them again:
+
+* **rates** -- the paper's 1 ms, one switching period, and the regime test
+  :func:`transient_within_sample` that decides every rate-dependent setting;
+* **plants** -- the nominal circuit (Table II, from :mod:`plant_fmu.table_ii`) and the
+  mismatch-study circuit, the sensor choices, and :func:`plant_tag` (how files and tables name a
+  built-in plant);
+* **controllers** -- the command-line keys and the names runs carry, with their plot styles;
+* **time compression** -- how the paper's scenarios are shortened at the fast rate.
+
+Labels of periods (``1ms``, ``13.33 µs``) are the core's (:mod:`cosim.base.labels`): run files are
+named with them outside the study too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from controllers.predictors import CircuitParameters
+from cosim.base.labels import period_label
+from plant_fmu.table_ii import TABLE_II
+
+# ---------------------------------------------------------------------------------------------
+# Rates
+
+PAPER_PERIOD = 1e-3  # [s] the paper's sample period
+SWITCHING_PERIOD = TABLE_II.switching_period  # [s] one PWM period, 13.33 us
+STUDY_PERIODS = (PAPER_PERIOD, SWITCHING_PERIOD)
+#: at control periods this long or longer the LC transient (about 0.48 ms at Table II) is over
+#: within one sample, so one step of prediction decides the move ("the paper's regime")
+TRANSIENT_WITHIN_SAMPLE_PERIOD = 0.5e-3  # [s]
+
+
+def transient_within_sample(control_period: float) -> bool:
+    """True when the LC transient settles within one control period (1 ms: yes; 13.33 us: no)."""
+    return control_period >= TRANSIENT_WITHIN_SAMPLE_PERIOD
+
+
+#: identification: the duty dither (standard deviation) added to the PI where the transient is
+#: over within a sample, and where it is not (the NNPC there plans full-duty and braking moves
+#: far from the PI's own trajectories, which the network must have seen)
+DITHER_SLOW, DITHER_FAST = 0.01, 0.1
+
+
+def identification_dither(control_period: float) -> float:
+    return DITHER_SLOW if transient_within_sample(control_period) else DITHER_FAST
+
+
+# ---------------------------------------------------------------------------------------------
+# Plants
+
+#: the circuit of Table II, ideal (no parasitics)
+NOMINAL = CircuitParameters(inductance=TABLE_II.inductance, capacitance=TABLE_II.capacitance)
+#: the mismatch-study plant: L +20 %, C -20 % and realistic parasitics
+MISMATCH = CircuitParameters(inductance=264e-6, capacitance=8e-6, inductor_resistance=0.15,
+                             switch_on_resistance=0.1, diode_forward_voltage=0.7, capacitor_esr=0.05)
+PLANT_VARIANTS = {"nominal": NOMINAL, "mismatch": MISMATCH}
+#: what the controllers' sensors read: the mean over the last PWM period, or a synchronous sample
+SENSORS = ("average", "synchronous")
+#: one LC ringing period of the nominal circuit [s] (about 0.295 ms)
+LC_PERIOD = 2 * math.pi * math.sqrt(TABLE_II.inductance * TABLE_II.capacitance)
+
+
+def pipeline_tag(plant: str, control_period: float) -> str:
+    """One plant at one rate, as files name it: ``nominal-switched__13p33us`` (tuned gains, data,
+    models, pipeline summaries, metrics tables)."""
+    return f"{plant}__{period_label(control_period)}"
+
+
+def plant_tag(variant: str, mode: str, sensor: str = "average") -> str:
+    """How files and tables name a built-in plant: ``nominal-switched``, ``nominal-switched-sync``
+    (an external plant is ``bound-<binding file stem>``: :attr:`cosim.fmi.binding.PlantBinding.tag`)."""
+    return f"{variant}-{mode}" + ("" if sensor == "average" else "-sync")
+
+
+# ---------------------------------------------------------------------------------------------
+# Controllers
+
+PI = "PI"
+NNPC = "NNPC"
+NNPC_PAPER = "NNPC-paper"
+MPC_ORACLE = "MPC-oracle"
+MPC_NOMINAL = "MPC-nominal"
+MPC_MISMATCHED = "MPC-mismatched"
+#: command-line key -> the name a run, a metrics row and a figure legend carry
+CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-paper": NNPC_PAPER, "mpc-oracle": MPC_ORACLE,
+               "mpc-nominal": MPC_NOMINAL}
+#: the NN plant models per rate, by command-line key
+NETWORKS = ("nnpc", "nnpc-paper")
+#: ablation variants (reproduction only)
+MPC_ORACLE_AVERAGED = f"{MPC_ORACLE} (averaged model)"
+MPC_ORACLE_SYNC = f"{MPC_ORACLE} (sync. sample)"
+
+
+def horizon_variant(name: str, horizon: int) -> str:
+    """``NNPC (N=3)``: a controller run with another prediction horizon."""
+    return f"{name} (N={horizon})"
+
+
+def seed_variant(name: str, seed: int) -> str:
+    """``NNPC (seed 2)``: a controller identified from another seed's data."""
+    return f"{name} (seed {seed})"
+
+
+def is_seed_variant(name: str, base: str = NNPC) -> bool:
+    return name.startswith(f"{base} (seed ")
+
+
+#: figure colour and line style per controller name
+CONTROLLER_STYLES = {
+    PI: ("tab:blue", "-"),
+    NNPC: ("tab:red", "-"),
+    NNPC_PAPER: ("tab:orange", (0, (4, 2))),
+    MPC_ORACLE: ("tab:green", "-"),
+    MPC_MISMATCHED: ("tab:purple", (0, (1, 1))),
+    MPC_NOMINAL: ("tab:purple", (0, (1, 1))),
+}
+
+# ---------------------------------------------------------------------------------------------
+# Scenarios at the fast rate
+
+
+@dataclass(frozen=True)
+class TimeCompression:
+    """How the paper's scenarios are shortened where every controller settles within ~1 ms."""
+
+    settle: float = 3e-3  # [s] closed-loop operation before t = 0 (for scenarios that settle at all)
+    event_time: float = 1.5e-3  # [s] every event moves here
+    duration: float = 6e-3  # [s] recorded
+
+    def describe(self) -> str:
+        return (f"settle {self.settle * 1e3:g} ms, events at {self.event_time * 1e3:g} ms, "
+                f"{self.duration * 1e3:g} ms recorded")
+
+
+FAST_RATE_COMPRESSION = TimeCompression()
