@@ -18,8 +18,8 @@ from cosim.base.errors import RunInterrupted
 from cosim.base.files import atomic_write
 from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding
-from cosim.fmi.plant import FmuPlant
-from cosim.master import RunFailed, check_plant_supports, run
+from cosim.fmi.plant import open_plant
+from cosim.master import RunFailed, check_plant_supports, run_checked
 from cosim.metrics import metrics_table
 from cosim.plots import Styles, plot_scenario
 from cosim.results import RunResult, write_parquet, write_run
@@ -36,6 +36,20 @@ def figure_stem(scenario: Scenario, binding: PlantBinding, control_period: float
     return f"{scenario.name}__{binding.tag}__{period_label(control_period)}"
 
 
+@dataclass(frozen=True)
+class Batch:
+    """A plant and the scenarios to run on it, checked against each other once, when made
+    (every scenario's events need roles the binding has), so a batch refuses before any run."""
+
+    binding: PlantBinding
+    scenarios: tuple[Scenario, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scenarios", tuple(self.scenarios))
+        for scenario in self.scenarios:
+            check_plant_supports(self.binding, scenario)
+
+
 @dataclass
 class BatchOutput:
     results: list[RunResult]
@@ -43,12 +57,12 @@ class BatchOutput:
     files: list[Path]
 
 
-def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenarios: Iterable[Scenario], out_dir: Path,
-              *, interface: str | None = None, record_period: float = 1e-5, seed: int | None = None,
-              figures: bool = True, styles: Styles | None = None, progress: bool = False,
-              extra_metadata: dict | None = None, on_run: Callable[[RunResult], None] | None = None,
-              stream: bool = False) -> BatchOutput:
-    """Run every controller on every scenario with one reused plant instance; write runs, metrics, figures.
+def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *, interface: str | None = None,
+              record_period: float = 1e-5, seed: int | None = None, figures: bool = True,
+              styles: Styles | None = None, progress: bool = False, extra_metadata: dict | None = None,
+              on_run: Callable[[RunResult], None] | None = None, stream: bool = False) -> BatchOutput:
+    """Run every controller on every scenario of ``batch`` with one reused plant instance; write
+    runs, metrics and figures under ``out_dir``.
 
     Files are named ``<scenario>__<controller>__<plant tag>__<period label>`` (the plant tag is
     :attr:`PlantBinding.tag`); ``styles`` gives figure colours and line styles per controller name.
@@ -57,21 +71,20 @@ def run_batch(binding: PlantBinding, controllers: Iterable[Controller], scenario
     CSV, metrics or figures then -- the returned results carry metadata only.
     """
     out_dir = Path(out_dir)
+    binding = batch.binding
     plant_tag = binding.tag
-    controllers, scenarios = list(controllers), list(scenarios)
-    for scenario in scenarios:  # refuse before running anything
-        check_plant_supports(binding, scenario)
+    controllers = list(controllers)
     results: list[RunResult] = []
     files: list[Path] = []
-    with FmuPlant(binding, interface=interface) as plant:
-        for scenario in scenarios:
+    with open_plant(binding, interface=interface) as plant:
+        for scenario in batch.scenarios:
             per_scenario: list[RunResult] = []
             for controller in controllers:
                 stem = run_stem(scenario, controller, plant_tag)
                 target = out_dir / "runs" / f"{stem}.parquet" if stream else None
                 try:
-                    result = run(plant, controller, scenario, record_period=record_period, seed=seed,
-                                 progress=progress, extra_metadata=extra_metadata, stream_to=target)
+                    result = run_checked(plant, controller, scenario, record_period=record_period, seed=seed,
+                                         progress=progress, extra_metadata=extra_metadata, stream_to=target)
                 except (RunFailed, RunInterrupted) as error:
                     if error.partial is not None and not stream:  # a streamed run wrote its rows already
                         files.extend(write_run(error.partial, out_dir / "runs", stem).values())

@@ -177,12 +177,12 @@ def _raw_floor(step: float, count: int) -> float:
 
 def _master_step(step: float, count: int) -> float:
     from cosim.fmi.binding import builtin_binding
-    from cosim.fmi.plant import FmuPlant
+    from cosim.fmi.plant import open_plant
     from cosim.master import run
     from cosim.scenarios import parse_scenario
 
     scenario = parse_scenario(f'name = "bench"\nduration = {count * step!r}\n[initial]\nreference = 12.0\n')
-    with FmuPlant(builtin_binding("averaged")) as plant:
+    with open_plant(builtin_binding("averaged")) as plant:
         start = time.perf_counter()
         result = run(plant, _Constant(step), scenario, record_period=step)
         elapsed = time.perf_counter() - start
@@ -254,7 +254,7 @@ def _mixed_scenario(period: float, samples: int):
 
 
 def bench_controllers(quick: bool) -> list[BenchRow]:
-    from cosim.fmi.plant import FmuPlant
+    from cosim.fmi.plant import open_plant
     from cosim.master import run
     from cosim.study.experiments import model_mpc, nnpc, plant_binding
 
@@ -267,7 +267,7 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
         controllers = [_benchmark_pi(period), nnpc(model, period, NNPC),
                        model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding),
                        model_mpc(MISMATCH, period, MPC_MISMATCHED, binding=binding)]
-        with FmuPlant(binding) as plant:
+        with open_plant(binding) as plant:
             for controller in controllers:
                 frame = run(plant, controller, scenario, record_period=period).frame
                 times = frame.loc[frame["control_sample"], "controller_compute_time"].to_numpy()

@@ -104,36 +104,32 @@ def _plant_binding(args):
 
 
 def cmd_run(args) -> int:
-    from cosim.batch import run_batch, write_metrics
+    from cosim.batch import Batch, run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+    from cosim.study.controller_factory import make_controllers
     from cosim.study.vocabulary import CONTROLLER_STYLES
 
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
     out_dir = output_dir(args.out)
-    scenarios = [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)]
-    binding = _plant_binding(args)
-    from cosim.master import check_plant_supports
-    from cosim.study.controller_factory import make_controllers
-
-    for scenario in scenarios:  # refuse before any tuning or training
-        check_plant_supports(binding, scenario)
-    controllers = make_controllers(args.controller, binding, args.control_period, out_dir,
+    batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
+    # the batch is checked: now the (possibly long) tuning and training
+    controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,
                                    progress=args.progress)
-    batch = run_batch(binding, controllers, scenarios, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
-                      record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
-                      progress=args.progress, stream=args.stream)
+    output = run_batch(batch, controllers, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
+                       record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
+                       progress=args.progress, stream=args.stream)
     if args.stream:
-        for result in batch.results:
-            print(f"streamed {result.metadata['rows']} rows to {result.metadata['streamed_to']}")
+        for result in output.results:
+            print(f"streamed {result.rows} rows to {result.streamed_to}")
         return 0
-    files = write_metrics(batch.metrics, out_dir / "metrics" / f"metrics__{binding.tag}")
+    files = write_metrics(output.metrics, out_dir / "metrics" / f"metrics__{batch.binding.tag}")
     columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "settling_time_ms",
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
-    print(batch.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    print(f"wrote {len(batch.files) + len(files)} files under {out_dir}/")
+    print(output.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print(f"wrote {len(output.files) + len(files)} files under {out_dir}/")
     return 0
 
 

@@ -120,19 +120,18 @@ def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0,
 
 def run_metrics(result: RunResult) -> dict[str, float]:
     """All metrics of one run (see the module docstring for the definitions)."""
-    frame = result.frame
-    t0 = float(result.metadata.get("scenario", {}).get("metrics_start_s", 0.0))
+    frame, info = result.frame, result.info
+    t0 = info.metrics_start
     t = frame["time"].to_numpy()
-    record_period = float(result.metadata.get("rates", {}).get("record_period_s", 0.0) or 0.0)
     regular = None
-    if record_period > 0:
-        phase = t / record_period
+    if info.record_period > 0:
+        phase = t / info.record_period
         regular = np.abs(phase - np.round(phase)) < 1e-6
     out = signal_metrics(t, frame["output_voltage"].to_numpy(), frame["reference"].to_numpy(), t0, regular)
     window = t >= t0 - 1e-12
     current = frame["inductor_current"].to_numpy()[window]
     out["peak_inductor_current_A"] = float(np.nanmax(current)) if np.isfinite(current).any() else math.nan
-    low, high = result.metadata.get("controller", {}).get("duty_limits", [0.0, 1.0])
+    low, high = info.duty_limits
     duty = frame["duty_cycle"].to_numpy()[window]
     tw = t[window]
     saturated = (duty <= low + 1e-9) | (duty >= high - 1e-9)
@@ -147,13 +146,13 @@ def run_metrics(result: RunResult) -> dict[str, float]:
 
 def run_label(result: RunResult) -> dict[str, object]:
     """Identifying columns of a run for metrics tables."""
-    meta = result.metadata
+    info = result.info
     return {
-        "scenario": meta.get("scenario", {}).get("name"),
-        "controller": meta.get("controller", {}).get("name"),
-        "plant": meta.get("plant", {}).get("label"),
-        "interface": meta.get("plant", {}).get("interface"),
-        "control_period_us": meta.get("rates", {}).get("control_period_s", math.nan) * 1e6,
+        "scenario": info.scenario,
+        "controller": info.controller,
+        "plant": info.plant,
+        "interface": info.interface,
+        "control_period_us": info.control_period * 1e6,
         "complete": result.complete,
     }
 

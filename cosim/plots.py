@@ -26,8 +26,6 @@ DIVERGED = 0.05
 ZOOM_BEFORE, ZOOM_AFTER = 1e-3, 10e-3  # [s] the zoom window around a long run's main event
 
 
-def _label(result: RunResult) -> str:
-    return str(result.metadata.get("controller", {}).get("name", "controller"))
 
 
 def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, float] | None = None,
@@ -47,7 +45,7 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
         if zoom is not None:
             frame = frame[(frame["time"] >= zoom[0]) & (frame["time"] <= zoom[1])]
         t_ms = frame["time"].to_numpy() * 1e3
-        name = _label(result)
+        name = result.info.controller
         color, style = (styles or {}).get(name, (None, "-"))
         if not reference_drawn:
             ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
@@ -98,8 +96,7 @@ def save_figure(fig, stem: Path) -> list[Path]:
 def default_zoom(result: RunResult) -> tuple[float, float] | None:
     """Around the scenario's main event when the run is long: from 1 ms before it to 10 ms after
     (a 1 ms loop has settled by then); short runs (the fast-rate ones) are shown whole."""
-    meta = result.metadata
-    t0 = float(meta.get("scenario", {}).get("metrics_start_s", 0.0))
+    t0 = result.info.metrics_start
     end = float(result.frame["time"].iloc[-1])
     if end - t0 <= ZOOM_AFTER:
         return None
@@ -111,15 +108,13 @@ def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None
     """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths.
 
     Switched plants are drawn as PWM-period means (the ripple is 0.55 A / 91 mV peak to peak and
-    would hide the controllers behind one another); 1 ms runs are zoomed on their event.
+    would hide the controllers behind one another); long runs are zoomed on their event.
     """
     if not results:
         raise ValueError("plot_scenario needs at least one run")
-    meta = results[0].metadata
-    switched = meta.get("plant", {}).get("parameters", {}).get("plant_mode") == 1
+    info = results[0].info
     zoom = zoom if zoom is not None else default_zoom(results[0])
     if title is None:
-        period = meta.get("rates", {}).get("control_period_s", float("nan"))
-        title = (f"{meta.get('scenario', {}).get('description', '')}\n{meta.get('plant', {}).get('label', '')}, "
-                 f"control period {period_text(period)}")
-    return save_figure(scenario_figure(results, title, zoom, period_means=switched, styles=styles), stem)
+        title = f"{info.description}\n{info.plant}, control period {period_text(info.control_period)}"
+    return save_figure(scenario_figure(results, title, zoom, period_means=info.plant_mode == "switched",
+                                       styles=styles), stem)

@@ -1,4 +1,11 @@
-"""Run results: one pandas DataFrame per run plus its metadata, exported to CSV and Parquet.
+"""Run results: one pandas DataFrame per run, typed facts about it, and its metadata; CSV and Parquet.
+
+A :class:`RunResult` holds the table (columns of :data:`cosim.recorder.SCHEMA`), a
+:class:`RunInfo` with the typed facts metrics, plots and tables read (scenario timing, controller,
+rates, duty limits, plant and its mode), whether the run completed (and why not), and the
+descriptions that make the run repeatable (scenario, controller settings, plant binding, seed,
+package versions). :attr:`RunResult.metadata` derives the JSON metadata from all of these on
+export; :func:`read_run` parses it back.
 
 Files written for a run ``<stem>`` (each written to a temporary name and renamed, so a crash never
 leaves a half-written file behind):
@@ -9,16 +16,19 @@ leaves a half-written file behind):
 * ``<stem>.timing.csv`` -- wall-clock columns (controller compute time), kept apart so the two
   tables above are byte-identical when the same command runs twice.
 
-:func:`read_run` reads either form back into the same frame.
+A streamed run (:class:`RunStream`) writes ``<stem>.parquet`` in chunks, its metadata in the
+Parquet footer and the JSON sidecar, and ``<stem>.timing.parquet``. :func:`read_run` reads every
+form back into the same frame and metadata, ``complete`` and ``error`` included.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import platform
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
@@ -28,62 +38,95 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from cosim.base.files import atomic_write, atomic_write_text, temporary_name
+from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, UNITS, WALLCLOCK_COLUMNS
 
-COLUMNS = (
-    "time",
-    "reference",
-    "output_voltage",
-    "inductor_current",
-    "measured_output_voltage",
-    "measured_inductor_current",
-    "load_current",
-    "measured_load_current",
-    "duty_cycle",
-    "load_resistance",
-    "input_voltage",
-    "control_sample",
-    "controller_compute_time",
-)
-UNITS = {
-    "time": "s",
-    "reference": "V",
-    "output_voltage": "V",
-    "inductor_current": "A",
-    "measured_output_voltage": "V (what the controller's sensor reads)",
-    "measured_inductor_current": "A (what the controller's sensor reads)",
-    "load_current": "A",
-    "measured_load_current": "A (what the controller's sensor reads)",
-    "duty_cycle": "1",
-    "load_resistance": "Ohm",
-    "input_voltage": "V",
-    "control_sample": "bool (a controller sample at this instant)",
-    "controller_compute_time": "s (wall clock, NaN between samples)",
-}
-WALLCLOCK_COLUMNS = ("controller_compute_time",)
 METADATA_KEY = b"buck_cosim"
+RUN_FORMAT = "buck-cosim run 1"
 PACKAGES = ("buck-cosim", "fmpy", "numpy", "scipy", "pandas", "pyarrow", "torch", "matplotlib")
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """The typed facts of a run that metrics, plots and tables read (SI units)."""
+
+    scenario: str
+    description: str
+    metrics_start: float  # [s] where the metrics window starts
+    controller: str
+    control_period: float  # [s]
+    record_period: float  # [s]
+    duty_limits: tuple[float, float]
+    plant: str  # the plant's label
+    plant_mode: str | None  # "averaged" or "switched" for the built-in FMU, None for an external one
+    interface: str  # "co-simulation" or "model-exchange"
+
+    @classmethod
+    def from_metadata(cls, meta: dict) -> "RunInfo":
+        """Parse the facts out of run metadata written by :attr:`RunResult.metadata`."""
+        scenario, controller, plant = meta.get("scenario", {}), meta.get("controller", {}), meta.get("plant", {})
+        rates = meta.get("rates", {})
+        low, high = controller.get("duty_limits", (0.0, 1.0))
+        return cls(scenario=scenario.get("name", ""), description=scenario.get("description", ""),
+                   metrics_start=float(scenario.get("metrics_start_s", 0.0)),
+                   controller=str(controller.get("name", "controller")),
+                   control_period=float(rates.get("control_period_s", math.nan)),
+                   record_period=float(rates.get("record_period_s", math.nan)),
+                   duty_limits=(float(low), float(high)), plant=plant.get("label", ""),
+                   plant_mode=plant_mode_of(plant), interface=plant.get("interface", ""))
+
+
+def plant_mode_of(plant_description: dict) -> str | None:
+    """The built-in FMU's mode from a plant description (its ``plant_mode`` parameter), else None."""
+    if plant_description.get("binding_file"):
+        return None
+    code = plant_description.get("parameters", {}).get("plant_mode")
+    return {0: "averaged", 1: "switched"}.get(code)
 
 
 @dataclass
 class RunResult:
-    """A run's table (one row per recorded instant) and its metadata."""
+    """A run's table (one row per recorded instant), its facts, its ending and its descriptions."""
 
     frame: pd.DataFrame
-    metadata: dict
+    info: RunInfo
+    complete: bool
+    error: str | None = None
+    #: everything else that makes the run repeatable: JSON-ready descriptions of the scenario,
+    #: controller, plant, rates, seed, versions, and what the caller added (e.g. the pipeline)
+    details: dict = field(default_factory=dict)
+    rows: int | None = None  # rows written when the table was streamed to a file (the frame is empty)
+    streamed_to: str | None = None
 
     @property
-    def complete(self) -> bool:
-        return bool(self.metadata.get("complete", False))
+    def metadata(self) -> dict:
+        """The JSON metadata written beside the table (derived: the details plus the ending)."""
+        meta = {**self.details, "complete": self.complete, "error": self.error,
+                "rows": self.rows if self.rows is not None else len(self.frame)}
+        if self.streamed_to is not None:
+            meta.update({"streamed": True, "streamed_to": self.streamed_to})
+        return meta
 
     @classmethod
-    def from_array(cls, data: np.ndarray, metadata: dict, complete: bool, error: str | None = None) -> "RunResult":
-        frame = pd.DataFrame(np.array(data, copy=True), columns=list(COLUMNS))
-        frame["control_sample"] = frame["control_sample"].astype(bool)
-        meta = dict(metadata)
-        meta["complete"] = complete
-        meta["error"] = error
-        meta["rows"] = len(frame)
-        return cls(frame=frame, metadata=meta)
+    def from_table(cls, data: np.ndarray, info: RunInfo, details: dict, complete: bool,
+                   error: str | None = None) -> "RunResult":
+        return cls(frame=frame_of(data), info=info, complete=complete, error=error, details=details)
+
+    @classmethod
+    def from_metadata(cls, frame: pd.DataFrame, metadata: dict) -> "RunResult":
+        details = {k: v for k, v in metadata.items() if k not in ("complete", "error", "rows", "streamed",
+                                                                   "streamed_to")}
+        rows = metadata.get("rows")
+        return cls(frame=frame, info=RunInfo.from_metadata(metadata), complete=bool(metadata.get("complete", False)),
+                   error=metadata.get("error"), details=details,
+                   rows=rows if metadata.get("streamed") else None, streamed_to=metadata.get("streamed_to"))
+
+
+def frame_of(data: np.ndarray) -> pd.DataFrame:
+    """A recorded table (rows, len(COLUMNS)) as a DataFrame with the schema's columns and types."""
+    frame = pd.DataFrame(data, columns=list(COLUMNS), copy=False)
+    for column in BOOLEAN_COLUMNS:
+        frame[column] = frame[column].astype(bool)
+    return frame
 
 
 @functools.lru_cache(maxsize=1)
@@ -102,12 +145,12 @@ def package_versions() -> dict[str, str]:
     return dict(_package_versions())
 
 
-def run_metadata(*, scenario, controller, plant, control_period: float, record_period: float,
-                 seed: int | None, extra: dict | None = None) -> dict:
+def run_details(*, scenario, controller, plant, control_period: float, record_period: float,
+                seed: int | None, extra: dict | None = None) -> dict:
     """Everything needed to understand and repeat a run (no wall-clock fields: runs compare byte for byte)."""
     md = plant.model_description
     meta = {
-        "format": "buck-cosim run 1",
+        "format": RUN_FORMAT,
         "scenario": scenario.describe(),
         "controller": controller.describe(),
         "plant": {
@@ -125,10 +168,10 @@ def run_metadata(*, scenario, controller, plant, control_period: float, record_p
     }
     if extra:
         meta.update(extra)
-    return _json_ready(meta)
+    return json_ready(meta)
 
 
-def _json_ready(value):
+def json_ready(value):
     """Round-trip through JSON so metadata written and read back compare equal."""
     return json.loads(json.dumps(value, default=_jsonable, sort_keys=True))
 
@@ -163,20 +206,25 @@ def write_parquet(frame: pd.DataFrame, metadata: dict, path: Path, units: dict |
 
 
 def read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
+    """A Parquet file's table and the workbench metadata: from the schema, or from the file
+    footer where a streamed run stores it (the metadata is known only when the stream closes)."""
     table = pq.read_table(path)
     raw = (table.schema.metadata or {}).get(METADATA_KEY)
+    if raw is None:
+        raw = (pq.read_metadata(path).metadata or {}).get(METADATA_KEY)
     return table.to_pandas(), json.loads(raw) if raw else {}
 
 
 def write_run(result: RunResult, directory: Path, stem: str) -> dict[str, Path]:
     """Write ``<stem>.parquet``, ``<stem>.csv``, ``<stem>.json`` and ``<stem>.timing.csv`` atomically."""
     directory = Path(directory)
+    metadata = result.metadata
     table = _deterministic_part(result.frame)
     timing = result.frame[["time", *[c for c in WALLCLOCK_COLUMNS if c in result.frame.columns]]]
     paths = {
-        "parquet": write_parquet(table, result.metadata, directory / f"{stem}.parquet"),
+        "parquet": write_parquet(table, metadata, directory / f"{stem}.parquet"),
         "csv": atomic_write(directory / f"{stem}.csv", lambda tmp: table.to_csv(tmp, index=False)),
-        "json": atomic_write_text(directory / f"{stem}.json", json.dumps(result.metadata, indent=2, sort_keys=True) + "\n"),
+        "json": atomic_write_text(directory / f"{stem}.json", json.dumps(metadata, indent=2, sort_keys=True) + "\n"),
         "timing": atomic_write(directory / f"{stem}.timing.csv", lambda tmp: timing.to_csv(tmp, index=False)),
     }
     return paths
@@ -201,7 +249,7 @@ class RunStream:
 
     @staticmethod
     def _tables(data: np.ndarray) -> tuple[pa.Table, pa.Table]:
-        frame = RunResult.from_array(data, {}, complete=False).frame
+        frame = frame_of(data)
         return (pa.Table.from_pandas(_deterministic_part(frame), preserve_index=False),
                 pa.Table.from_pandas(frame[["time", *WALLCLOCK_COLUMNS]], preserve_index=False))
 
@@ -215,6 +263,7 @@ class RunStream:
             self.rows += len(data)
 
     def close(self, metadata: dict) -> Path:
+        """Finish both files with ``metadata`` (``rows`` and ``streamed`` are added)."""
         if self._writers is None:  # nothing was recorded: still leave a valid, empty table
             self.write(np.empty((0, len(COLUMNS))))
         meta = {**metadata, "rows": self.rows, "streamed": True}
@@ -228,7 +277,7 @@ class RunStream:
 
 
 def read_run(path: Path) -> RunResult:
-    """Read a run written by :func:`write_run` from its ``.parquet`` or ``.csv`` file."""
+    """Read a run written by :func:`write_run` or :class:`RunStream` from its ``.parquet`` or ``.csv`` file."""
     path = Path(path)
     if path.suffix == ".parquet":
         frame, metadata = read_parquet(path)
@@ -246,8 +295,8 @@ def read_run(path: Path) -> RunResult:
             if column in timing:
                 frame[column] = timing[column].to_numpy()
     frame = frame[[c for c in COLUMNS if c in frame.columns] + [c for c in frame.columns if c not in COLUMNS]]
-    return RunResult(frame=frame, metadata=metadata)
+    return RunResult.from_metadata(frame, metadata)
 
 
-__all__ = ["RunResult", "COLUMNS", "UNITS", "write_run", "read_run", "write_parquet", "read_parquet",
-           "run_metadata", "package_versions"]
+__all__ = ["RunResult", "RunInfo", "COLUMNS", "UNITS", "write_run", "read_run", "write_parquet", "read_parquet",
+           "run_details", "package_versions", "json_ready"]

@@ -14,9 +14,10 @@ from controllers.base import Measurement
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import RoleMap, builtin_binding
-from cosim.fmi.plant import FmuPlant
-from cosim.master import CONTROL, EVENT, RECORD, RunFailed, build_timeline, run, simulate
+from cosim.fmi.plant import open_plant
+from cosim.master import RunFailed, run, simulate
 from cosim.scenarios import load_scenario, parse_scenario
+from cosim.timeline import CONTROL, EVENT, RECORD, build_timeline
 
 DEADBEAT_KI = 0.7 / (VS * 1e-3)  # integral pole 0.3 at 1 ms
 
@@ -196,7 +197,7 @@ def test_scenario_needing_a_missing_role_is_refused_before_the_run(averaged):
 def test_one_plant_instance_serves_many_runs_identically(averaged):
     pi = PIController(0.0, DEADBEAT_KI, 1e-3)
     s = load_scenario("reference_up")
-    with FmuPlant(averaged) as plant:
+    with open_plant(averaged) as plant:
         first = run(plant, pi, s).frame
         second = run(plant, pi, s).frame
     cols = [c for c in first.columns if c != "controller_compute_time"]
@@ -206,12 +207,12 @@ def test_one_plant_instance_serves_many_runs_identically(averaged):
 def test_role_scaling_converts_units(averaged):
     roles = dict(averaged.roles)
     roles["inductor_current"] = RoleMap("inductor_current", scale=1.0, offset=0.0)
-    with FmuPlant(replace(averaged, roles=roles)) as plant:
+    with open_plant(replace(averaged, roles=roles)) as plant:
         plant.initialize([0.25, VS, R])
         plant.advance_to(0.01)
         direct = plant.outputs()
     roles["output_voltage"] = RoleMap("output_voltage", scale=1000.0)  # pretend the FMU reports mV
-    with FmuPlant(replace(averaged, roles=roles)) as plant:
+    with open_plant(replace(averaged, roles=roles)) as plant:
         plant.initialize([0.25, VS, R])
         plant.advance_to(0.01)
         scaled = plant.outputs()
@@ -219,7 +220,7 @@ def test_role_scaling_converts_units(averaged):
 
 
 def test_windows_partition_the_timeline_exactly():
-    from cosim.master import plan_timeline
+    from cosim.timeline import plan_timeline
 
     s = load_scenario("load_change")
     for control, record in ((1e-3, 1e-5), (1 / 75e3, 1e-5), (1e-3, 3e-6)):
@@ -242,7 +243,7 @@ def test_a_run_failure_crosses_process_boundaries_intact(averaged):
 
 
 def test_model_exchange_state_restore_replays_exactly():
-    with FmuPlant(builtin_binding("switched"), interface="me") as plant:
+    with open_plant(builtin_binding("switched"), interface="me") as plant:
         plant.initialize([0.25, VS, R])
         plant.advance_to(1e-3 + 0.1 / 75e3)
         state, saved = plant.get_state(), plant.time

@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 
 from cosim.metrics import METRIC_COLUMNS, run_metrics, signal_metrics
-from cosim.results import COLUMNS, RunResult
+from cosim.recorder import COLUMNS
+from cosim.results import RunInfo, RunResult
 
 TAU = 1e-3
 T = np.arange(0, 0.04 + 1e-12, 1e-6)
@@ -74,7 +75,9 @@ def test_run_metrics_saturation_and_compute_percentiles():
     frame["duty_cycle"] = np.where(t < 0.002, 1.0, 0.25)  # saturated for the first 2 ms
     frame["control_sample"] = np.arange(n) % 100 == 0
     frame["controller_compute_time"] = np.where(frame["control_sample"], np.arange(n) * 1e-8, np.nan)
-    result = RunResult(frame, {"scenario": {"metrics_start_s": 0.0}, "controller": {"duty_limits": [0.0, 1.0]}})
+    info = RunInfo(scenario="s", description="", metrics_start=0.0, controller="c", control_period=1e-3,
+                   record_period=1e-5, duty_limits=(0.0, 1.0), plant="p", plant_mode=None, interface="co-simulation")
+    result = RunResult(frame, info, complete=True)
     m = run_metrics(result)
     assert list(m) == list(METRIC_COLUMNS)
     assert m["duty_saturation_ms"] == pytest.approx(2.0, abs=0.011)

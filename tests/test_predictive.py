@@ -20,7 +20,7 @@ from controllers.predictors import (
     ripple_free_horizon,
 )
 from cosim.fmi.binding import builtin_binding
-from cosim.fmi.plant import FmuPlant
+from cosim.fmi.plant import open_plant
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
@@ -105,7 +105,7 @@ def test_averaged_model_predictor_is_exact_for_the_averaged_plant_in_ccm():
                                            "switch_on_resistance": 0.0, "diode_forward_voltage": 0.7})
     parameters = replace(NOMINAL, inductor_resistance=0.1, capacitor_esr=0.05, diode_forward_voltage=0.7)
     predictor = AveragedModelPredictor(parameters, 1e-4)
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
         plant.initialize([0.3, 48.0, 6.0])
         plant.advance_to(2e-3)
         roles = plant.output_roles
@@ -187,7 +187,7 @@ def test_switched_model_predicts_what_the_sensor_of_the_switched_fmu_reads(carri
     binding = builtin_binding("switched", {**PARASITICS, "pwm_carrier": CARRIERS.index(carrier)})
     predictor = SwitchedModelPredictor(replace(NOMINAL, **PARASITICS), period, FSW, carrier=carrier, sensor=sensor)
     duties = [0.3, 0.28, 0.33, 0.25]
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
         plant.initialize([0.27, 48.0, 6.0])
         t = 3e-3 if period > 1e-4 else 150 * period
         plant.advance_to(t)

@@ -156,11 +156,11 @@ import gc, sys
 from controllers.pi import PIController
 from cosim.fmi.binding_file import load_binding
 from cosim.base.errors import PlantError
-from cosim.fmi.plant import FmuPlant
+from cosim.fmi.plant import open_plant
 from cosim.master import RunFailed, run
 from cosim.scenarios import parse_scenario
 
-plant = FmuPlant(load_binding(sys.argv[1]))
+plant = open_plant(load_binding(sys.argv[1]))
 scenario = parse_scenario('name = "s"\\nduration = 0.02\\n[initial]\\nreference = 12.0\\n')
 try:
     run(plant, PIController(0.0, 14.0, 1e-3), scenario)
@@ -196,7 +196,7 @@ def test_an_fmu_that_reported_fatal_is_never_called_again(tmp_path, faulty_fmu):
 def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
     import math
 
-    from cosim.batch import run_batch
+    from cosim.batch import Batch, run_batch
     from cosim.fmi.binding import builtin_binding
     from cosim.master import RunFailed
     from cosim.scenarios import load_scenario
@@ -215,8 +215,8 @@ def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
             return {"type": "broken", "name": self.name, "duty_limits": [0.0, 1.0]}
 
     with pytest.raises(RunFailed, match=r"controller broken returned duty cycle inf at t = 0.004 s"):
-        run_batch(replace(builtin_binding("averaged"), tag_override="x"), [Broken()], [load_scenario("startup")],
-                  tmp_path)
+        run_batch(Batch(replace(builtin_binding("averaged"), tag_override="x"), [load_scenario("startup")]),
+                  [Broken()], tmp_path)
     meta = json.loads((tmp_path / "runs" / "startup__broken__x__1ms.json").read_text())
     assert meta["complete"] is False and meta["rows"] > 300
     no_temporary_files(tmp_path)
@@ -367,7 +367,7 @@ MEMORY_SCRIPT = """
 import os, sys
 from controllers.pi import PIController
 from cosim.fmi.binding import builtin_binding
-from cosim.fmi.plant import FmuPlant
+from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.scenarios import parse_scenario
 
@@ -378,7 +378,7 @@ scenario = parse_scenario('name = "short"\\nduration = 0.003\\n[initial]\\nrefer
                           '[[events]]\\ntime = 0.001\\nload_resistance = 5.0\\n')
 binding, pi = builtin_binding("switched"), PIController(0.0, 14.0, 1e-3)
 growth = {}
-with FmuPlant(binding) as plant:  # reuse and reset: the known cure for reload crashes
+with open_plant(binding) as plant:  # reuse and reset: the known cure for reload crashes
     for i in range(1000):
         if i == 50:
             base = rss_mb()
@@ -387,7 +387,7 @@ with FmuPlant(binding) as plant:  # reuse and reset: the known cure for reload c
 for i in range(1000):  # a fresh instance every time
     if i == 50:
         base = rss_mb()
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
         run(plant, pi, scenario, record_period=1e-4)
 growth["reinstantiate"] = rss_mb() - base
 print(growth["reuse"], growth["reinstantiate"])

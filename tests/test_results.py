@@ -11,7 +11,8 @@ import pytest
 from controllers.pi import PIController
 from cosim.fmi.binding import builtin_binding
 from cosim.master import simulate
-from cosim.results import COLUMNS, read_run, write_run
+from cosim.recorder import COLUMNS
+from cosim.results import read_run, write_run
 from cosim.scenarios import load_scenario
 
 

@@ -8,11 +8,13 @@ every role to the variable of the same name; :mod:`cosim.fmi.binding_file` reads
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Mapping
 
+from cosim.base.errors import ConfigError
 from cosim.base.labels import slug
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
@@ -58,11 +60,6 @@ class RoleMap:
     scale: float = 1.0
     offset: float = 0.0
 
-    def to_fmu(self, value: float) -> float:
-        return self.scale * value + self.offset
-
-    def from_fmu(self, value: float) -> float:
-        return (value - self.offset) / self.scale
 
 
 @dataclass(frozen=True)
@@ -123,8 +120,6 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
     from plant_fmu import fmu_path
 
     if mode not in PLANT_MODE_CODES:
-        from cosim.base.errors import ConfigError
-
         raise ConfigError(f"plant mode {mode!r} is unknown: expected one of {', '.join(PLANT_MODE_CODES)}")
     values: dict[str, float | int] = {"plant_mode": PLANT_MODE_CODES[mode]}
     values.update(parameters or {})
@@ -141,3 +136,87 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
         parameters=values,
         label=f"BuckConverter (built-in, {mode})",
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# A binding against an FMU's model description: the one place the roles and parameters are checked
+
+
+class BindingMismatch(ConfigError):
+    """A role or parameter of a binding does not fit the FMU. ``kind`` ("role" or "parameter")
+    and ``key`` name what, so a binding file can add its line; the plant adds the FMU's name."""
+
+    def __init__(self, message: str, kind: str, key: str):
+        super().__init__(message)
+        self.kind, self.key = kind, key
+
+
+@dataclass(frozen=True)
+class ResolvedRole:
+    """A role bound to a value reference: ``fmu_value = scale * workbench_value + offset``."""
+
+    role: str
+    value_reference: int
+    scale: float
+    offset: float
+
+
+@dataclass(frozen=True)
+class ResolvedParameter:
+    """A parameter or start value to set before initialisation, typed as the FMU declares it."""
+
+    name: str
+    value_reference: int
+    type: str  # "Real", "Integer", "Enumeration", "Boolean" or "String"
+    value: float | int | bool | str
+
+
+_PARAMETER_TYPES = {"Real": (int, float), "Integer": (int,), "Enumeration": (int,), "Boolean": (bool,),
+                    "String": (str,)}
+
+
+def resolve_roles(binding: PlantBinding, model_description) -> dict[str, ResolvedRole]:
+    """Each bound role's variable: it exists, is Real, has a causality that fits the role, and
+    the role's scale is finite and non-zero. Raises :class:`BindingMismatch` naming the role."""
+    variables = {v.name: v for v in model_description.modelVariables}
+    fmu_name = Path(binding.fmu_path).name
+    resolved = {}
+    for role, mapping in binding.roles.items():
+        variable = variables.get(mapping.variable)
+        if variable is None:
+            raise BindingMismatch(f"role {role!r} names variable {mapping.variable!r}, which {fmu_name} does not "
+                                  "have", "role", role)
+        if variable.type != "Real":
+            raise BindingMismatch(f"role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}",
+                                  "role", role)
+        wanted = ("input", "parameter") if role in INPUT_ROLES else ("output", "local")
+        if variable.causality not in wanted:
+            raise BindingMismatch(f"role {role!r} needs causality {' or '.join(wanted)}, but {mapping.variable!r} "
+                                  f"has causality {variable.causality}", "role", role)
+        if mapping.scale == 0.0 or not math.isfinite(mapping.scale) or not math.isfinite(mapping.offset):
+            raise BindingMismatch(f"role {role!r} has scale {mapping.scale} / offset {mapping.offset}; expected a "
+                                  "finite, non-zero scale and a finite offset", "role", role)
+        resolved[role] = ResolvedRole(role, variable.valueReference, mapping.scale, mapping.offset)
+    return resolved
+
+
+def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_name: str) -> list[ResolvedParameter]:
+    """Each parameter names a variable of the FMU and has a value of its type (a Real takes any
+    finite number; Integer and Enumeration whole numbers; Boolean true/false; String text).
+    Raises :class:`BindingMismatch` naming the parameter."""
+    variables = {v.name: v for v in model_description.modelVariables}
+    resolved = []
+    for name, value in parameters.items():
+        variable = variables.get(name)
+        if variable is None:
+            raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}", "parameter", name)
+        kind = variable.type
+        expected = _PARAMETER_TYPES.get(kind, ())
+        fits = isinstance(value, expected) and (kind == "Boolean" or not isinstance(value, bool))
+        if fits and kind == "Real" and not math.isfinite(float(value)):
+            fits = False
+        if not fits:
+            raise BindingMismatch(f"parameter {name!r} is {kind} in {fmu_name}, got {value!r} "
+                                  f"({type(value).__name__})", "parameter", name)
+        resolved.append(ResolvedParameter(name, variable.valueReference, kind, value))
+    return resolved

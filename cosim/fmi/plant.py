@@ -1,5 +1,14 @@
-"""One plant FMU instance stepped by fmpy: co-simulation through ``fmi2DoStep``, model exchange
-through fmpy's CVode solver. The master sees the same small interface for both.
+"""Plant FMUs stepped by fmpy: one plant interface, one small class per FMI interface.
+
+* :class:`CoSimulationPlant` -- the FMU's own solver through ``fmi2DoStep`` (fmpy's
+  ``FMU2Slave``), steps subdivided to the binding's ``max_step``;
+* :class:`ModelExchangePlant` -- the FMU's equations integrated by fmpy's CVode (``FMU2Model``),
+  with time events (e.g. PWM edges) and state events (e.g. the diode blocking).
+
+Both inherit :class:`FmuPlant`, the plumbing they share: the archive checks, the roles resolved
+to value references (:func:`cosim.fmi.binding.resolve_roles`), the value buffers, the log, the
+life cycle and the FMU state. :func:`open_plant` picks the class for an interface. The master
+sees only the methods of :class:`FmuPlant`.
 
 The hot path (set inputs, step, get outputs) calls the C functions that fmpy loaded with their
 prototypes, on value-reference and value buffers allocated once, so a macro step allocates no
@@ -28,8 +37,16 @@ from fmpy.fmi2 import (
 )
 
 from cosim.base.errors import ConfigError, PlantError
-from cosim.fmi.archive import check_fmu
-from cosim.fmi.binding import INPUT_ROLES, OUTPUT_ROLES, PlantBinding
+from cosim.fmi.archive import CheckedFmu, check_fmu
+from cosim.fmi.binding import (
+    INPUT_ROLES,
+    OUTPUT_ROLES,
+    BindingMismatch,
+    PlantBinding,
+    ResolvedParameter,
+    resolve_parameters,
+    resolve_roles,
+)
 
 STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
 FATAL_STATUS = 4
@@ -49,53 +66,69 @@ def normalise_interface(name: str | None) -> str | None:
         raise ConfigError(f"interface {name!r} is unknown: expected 'co-simulation' (cs) or 'model-exchange' (me)") from None
 
 
-class _NoInput:
-    """fmpy's CVode wrapper re-applies inputs at root checks; the master holds them instead."""
+def choose_interface(checked: CheckedFmu, wanted: str | None, origin: str) -> str:
+    """The interface to use: ``wanted`` if the FMU offers it here, else co-simulation if offered."""
+    if wanted is None:
+        return CO_SIMULATION if CO_SIMULATION in checked.interfaces else checked.interfaces[0]
+    if wanted not in checked.interfaces:
+        raise ConfigError(f"{origin}: interface {wanted!r} is not available for this platform "
+                          f"(the FMU offers: {', '.join(checked.interfaces)})")
+    return wanted
 
-    def apply(self, time, continuous=True, discrete=True, after_event=False):
-        return None
+
+def open_plant(binding: PlantBinding, interface: str | None = None, relative_tolerance: float = 1e-8,
+               instance_name: str = "plant") -> "FmuPlant":
+    """Check the binding's FMU, choose its interface (``interface``, else the binding's, else
+    co-simulation when offered) and instantiate it. ``relative_tolerance`` is CVode's (model exchange)."""
+    checked = check_fmu(binding.fmu_path)
+    chosen = choose_interface(checked, normalise_interface(interface or binding.interface), binding.origin)
+    cls = CoSimulationPlant if chosen == CO_SIMULATION else ModelExchangePlant
+    return cls(binding, checked, relative_tolerance=relative_tolerance, instance_name=instance_name)
 
 
 class FmuPlant:
-    """An instantiated plant FMU with the workbench's roles resolved to value references."""
+    """An instantiated plant FMU with the workbench's roles resolved to value references.
 
-    def __init__(self, binding: PlantBinding, interface: str | None = None, relative_tolerance: float = 1e-8,
+    Life cycle: :meth:`initialize` (resets first if the instance ran before), then
+    :meth:`set_inputs` / :meth:`advance_to` / :meth:`outputs` in any order, :meth:`close` at the
+    end (or use it as a context manager). Inputs and outputs are lists in the order of
+    :attr:`input_roles` / :attr:`output_roles`, in workbench units.
+    """
+
+    interface: str  # CO_SIMULATION or MODEL_EXCHANGE
+    _fmu_class: type
+
+    def __init__(self, binding: PlantBinding, checked: CheckedFmu, relative_tolerance: float = 1e-8,
                  instance_name: str = "plant"):
-        checked = check_fmu(binding.fmu_path)
         self.binding = binding
         self.model_description = md = checked.model_description
-        self.interface = self._choose_interface(checked.interfaces, normalise_interface(interface or binding.interface))
         self.relative_tolerance = relative_tolerance
         self.time = 0.0
         self.log: deque[tuple[str, str, str]] = deque(maxlen=500)  # (status, category, message)
-        variables = {v.name: v for v in md.modelVariables}
-        self._variables = variables
-        self.input_roles = tuple(r for r in INPUT_ROLES if binding.has(r))
-        self.output_roles = tuple(r for r in OUTPUT_ROLES if binding.has(r))
-        in_vrs = [self._resolve(role, variables, inputs=True) for role in self.input_roles]
-        out_vrs = [self._resolve(role, variables, inputs=False) for role in self.output_roles]
-        self._in_vr = (c_uint * len(in_vrs))(*in_vrs)
-        self._in_value = (c_double * len(in_vrs))()
-        self._out_vr = (c_uint * len(out_vrs))(*out_vrs)
-        self._out_value = (c_double * len(out_vrs))()
-        maps_in = [binding.roles[r] for r in self.input_roles]
-        maps_out = [binding.roles[r] for r in self.output_roles]
-        self._in_scale = [m.scale for m in maps_in]
-        self._in_offset = [m.offset for m in maps_in]
-        self._out_identity = all(m.scale == 1.0 and m.offset == 0.0 for m in maps_out)
-        self._out_scale = [m.scale for m in maps_out]
-        self._out_offset = [m.offset for m in maps_out]
-        self._parameters = [self._resolve_parameter(name, value, variables) for name, value in binding.parameters.items()]
+        try:
+            roles = resolve_roles(binding, md)
+            self._parameters = resolve_parameters(binding.parameters, md, binding.fmu_path.name)
+        except BindingMismatch as error:
+            raise ConfigError(f"{binding.origin}: {error}") from None
+        self.input_roles = tuple(r for r in INPUT_ROLES if r in roles)
+        self.output_roles = tuple(r for r in OUTPUT_ROLES if r in roles)
+        inputs = [roles[r] for r in self.input_roles]
+        outputs = [roles[r] for r in self.output_roles]
+        self._in_vr = (c_uint * len(inputs))(*(r.value_reference for r in inputs))
+        self._in_value = (c_double * len(inputs))()
+        self._out_vr = (c_uint * len(outputs))(*(r.value_reference for r in outputs))
+        self._out_value = (c_double * len(outputs))()
+        self._in_scale = [r.scale for r in inputs]
+        self._in_offset = [r.offset for r in inputs]
+        self._out_identity = all(r.scale == 1.0 and r.offset == 0.0 for r in outputs)
+        self._out_scale = [r.scale for r in outputs]
+        self._out_offset = [r.offset for r in outputs]
         self.feedthrough = self._feedthrough(md)
         self._unzipdir = fmpy.extract(str(binding.fmu_path))
         self._callbacks = self._make_callbacks()
         self._fmu = None
         self._initialized = False
         self._fatal = False
-        self._solver = None
-        self._inputs_changed = False
-        self._next_event_time: float | None = None
-        self._needs_completed_step = False
         try:
             self._instantiate(instance_name)
         except BaseException:
@@ -103,40 +136,6 @@ class FmuPlant:
             raise
 
     # ------------------------------------------------------------------ set-up
-    def _choose_interface(self, available: tuple[str, ...], wanted: str | None) -> str:
-        if wanted is None:
-            return CO_SIMULATION if CO_SIMULATION in available else available[0]
-        if wanted not in available:
-            raise ConfigError(
-                f"{self.binding.origin}: interface {wanted!r} is not available for this platform "
-                f"(the FMU offers: {', '.join(available)})"
-            )
-        return wanted
-
-    def _resolve(self, role: str, variables: dict, inputs: bool) -> int:
-        mapping = self.binding.roles[role]
-        variable = variables.get(mapping.variable)
-        if variable is None:
-            raise ConfigError(
-                f"{self.binding.origin}: role {role!r} names variable {mapping.variable!r}, "
-                f"which {self.binding.fmu_path.name} does not have"
-            )
-        if variable.type != "Real":
-            raise ConfigError(
-                f"{self.binding.origin}: role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}"
-            )
-        if inputs and variable.causality not in ("input", "parameter"):
-            raise ConfigError(
-                f"{self.binding.origin}: role {role!r} needs an input, but {mapping.variable!r} has causality {variable.causality}"
-            )
-        if not inputs and variable.causality not in ("output", "local"):
-            raise ConfigError(
-                f"{self.binding.origin}: role {role!r} needs an output, but {mapping.variable!r} has causality {variable.causality}"
-            )
-        if mapping.scale == 0.0 or not math.isfinite(mapping.scale) or not math.isfinite(mapping.offset):
-            raise ConfigError(f"{self.binding.origin}: role {role!r} has scale {mapping.scale} / offset {mapping.offset}; expected a finite, non-zero scale")
-        return variable.valueReference
-
     def _feedthrough(self, md) -> dict[str, bool]:
         """Per input role: can setting it change a bound output at the same instant?
 
@@ -151,18 +150,6 @@ class FmuPlant:
             result[role] = any(dependencies.get(o) is None or any(d.name == name for d in dependencies[o])
                                for o in outputs)
         return result
-
-    def _resolve_parameter(self, name: str, value, variables: dict):
-        variable = variables.get(name)
-        if variable is None:
-            raise ConfigError(f"{self.binding.origin}: parameter {name!r} is not a variable of {self.binding.fmu_path.name}")
-        kind = variable.type
-        expected = {"Real": (int, float), "Integer": (int,), "Enumeration": (int,), "Boolean": (bool,), "String": (str,)}[kind]
-        if isinstance(value, bool) and kind != "Boolean" or not isinstance(value, expected):
-            raise ConfigError(
-                f"{self.binding.origin}: parameter {name!r} is {kind} in the FMU, got {value!r} ({type(value).__name__})"
-            )
-        return variable.valueReference, kind, value
 
     def _make_callbacks(self):
         def on_log(environment, instance_name, status, category, message):
@@ -184,15 +171,13 @@ class FmuPlant:
         self._logger_function = on_log  # keep the Python function alive as long as the callbacks
         return callbacks
 
+    def _model_identifier(self) -> str:
+        raise NotImplementedError
+
     def _instantiate(self, instance_name: str) -> None:
         md = self.model_description
-        if self.interface == CO_SIMULATION:
-            cls, identifier = FMU2Slave, md.coSimulation.modelIdentifier
-        else:
-            cls, identifier = FMU2Model, md.modelExchange.modelIdentifier
-            self._needs_completed_step = bool(md.modelExchange.needsCompletedIntegratorStep)
-        self._fmu = cls(guid=md.guid, unzipDirectory=self._unzipdir, modelIdentifier=identifier,
-                        instanceName=instance_name)
+        self._fmu = self._fmu_class(guid=md.guid, unzipDirectory=self._unzipdir,
+                                    modelIdentifier=self._model_identifier(), instanceName=instance_name)
         try:
             self._fmu.instantiate(callbacks=self._callbacks)
         except Exception:
@@ -202,12 +187,21 @@ class FmuPlant:
         dll = self._fmu.dll
         self._set_real = dll.fmi2SetReal
         self._get_real = dll.fmi2GetReal
-        self._do_step = dll.fmi2DoStep if self.interface == CO_SIMULATION else None
         self._component = self._fmu.component
 
     @property
     def label(self) -> str:
         return self.binding.label
+
+    @property
+    def initialized(self) -> bool:
+        """True between :meth:`initialize` and the next :meth:`reset`."""
+        return self._initialized
+
+    @property
+    def variable_step(self) -> bool:
+        """Can the master use communication steps of different lengths? (model exchange: always)"""
+        return True
 
     def _last_log_suffix(self) -> str:
         for status, _, message in reversed(self.log):
@@ -225,10 +219,16 @@ class FmuPlant:
     # ------------------------------------------------------------------ life cycle
     def initialize(self, inputs: Sequence[float], start_time: float = 0.0,
                    start_values: Mapping[str, float] | None = None) -> None:
-        """Set parameters, start values and the first inputs, and leave initialization mode at ``start_time``."""
+        """Set parameters, start values and the first inputs, and leave initialization mode at
+        ``start_time``; an instance that ran before is reset first, so one instance serves many runs."""
+        if self._initialized:
+            self.reset()
         self._refuse_if_fatal()
         fmu = self._fmu
-        extra = [self._resolve_parameter(n, v, self._variables) for n, v in (start_values or {}).items()]
+        try:
+            extra = resolve_parameters(start_values or {}, self.model_description, self.binding.fmu_path.name)
+        except BindingMismatch as error:
+            raise ConfigError(f"{self.binding.origin}: {error}") from None
         try:
             fmu.setupExperiment(startTime=start_time)
             self._apply_parameters(self._parameters + extra)
@@ -242,20 +242,22 @@ class FmuPlant:
             raise ConfigError(str(failure)) from None
         self.time = start_time
         self._initialized = True
-        if self.interface == MODEL_EXCHANGE:
-            self._start_model_exchange(start_time)
+        self._after_initialization(start_time)
 
-    def _apply_parameters(self, parameters) -> None:
+    def _after_initialization(self, start_time: float) -> None:
+        """Interface-specific start (model exchange: the solver)."""
+
+    def _apply_parameters(self, parameters: list[ResolvedParameter]) -> None:
         fmu = self._fmu
-        for vr, kind, value in parameters:
-            if kind == "Real":
-                fmu.setReal([vr], [float(value)])
-            elif kind in ("Integer", "Enumeration"):
-                fmu.setInteger([vr], [int(value)])
-            elif kind == "Boolean":
-                fmu.setBoolean([vr], [bool(value)])
+        for p in parameters:
+            if p.type == "Real":
+                fmu.setReal([p.value_reference], [float(p.value)])
+            elif p.type in ("Integer", "Enumeration"):
+                fmu.setInteger([p.value_reference], [int(p.value)])
+            elif p.type == "Boolean":
+                fmu.setBoolean([p.value_reference], [bool(p.value)])
             else:
-                fmu.setString([vr], [str(value)])
+                fmu.setString([p.value_reference], [str(p.value)])
 
     @property
     def fatal(self) -> bool:
@@ -274,7 +276,6 @@ class FmuPlant:
             self._fmu.reset()
         except FMICallException as error:
             raise self._fail(error.function, error.status) from None
-        self._solver = None
         self._initialized = False
         self.time = 0.0
         self.log.clear()
@@ -287,7 +288,6 @@ class FmuPlant:
         """
         if self._fmu is not None:
             fmu, self._fmu = self._fmu, None
-            self._solver = None
             if self._fatal:
                 _ABANDONED_AFTER_FATAL.append(fmu)  # keep it alive: its library must stay loaded
                 self._remove_unzipdir()
@@ -335,7 +335,6 @@ class FmuPlant:
             self._write_inputs(values)
         except FMICallException as error:
             raise self._fail(error.function, error.status) from None
-        self._inputs_changed = True
 
     def outputs(self) -> list[float]:
         """Output roles (order of :attr:`output_roles`) in workbench units, as Python floats."""
@@ -347,26 +346,55 @@ class FmuPlant:
             return values
         return [(v - o) / k for v, o, k in zip(values, self._out_offset, self._out_scale)]
 
-    # ------------------------------------------------------------------ time
     def advance_to(self, t_next: float) -> None:
         """Advance the plant from :attr:`time` to ``t_next`` with the inputs held."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ FMU state
+    def get_state(self):
+        """Snapshot of the FMU (fmi2GetFMUstate); free it with :meth:`free_state`."""
+        return self._fmu.getFMUstate()
+
+    def set_state(self, state, time: float) -> None:
+        """Restore a snapshot taken at ``time``."""
+        self._fmu.setFMUstate(state)
+        self.time = time
+
+    def free_state(self, state) -> None:
+        self._fmu.freeFMUstate(state)
+
+
+class CoSimulationPlant(FmuPlant):
+    """The FMU's own solver: ``fmi2DoStep`` from one instant to the next (split at ``max_step``)."""
+
+    interface = CO_SIMULATION
+    _fmu_class = FMU2Slave
+
+    def _model_identifier(self) -> str:
+        return self.model_description.coSimulation.modelIdentifier
+
+    def _instantiate(self, instance_name: str) -> None:
+        super()._instantiate(instance_name)
+        self._do_step = self._fmu.dll.fmi2DoStep
+
+    @property
+    def variable_step(self) -> bool:
+        return bool(self.model_description.coSimulation.canHandleVariableCommunicationStepSize)
+
+    def advance_to(self, t_next: float) -> None:
         t0 = self.time
         if t_next <= t0:
             return
-        if self._do_step is not None and not self.binding.max_step:  # the common case, kept lean
+        if not self.binding.max_step:  # the common case, kept lean: one call
             status = self._do_step(self._component, t0, t_next - t0, fmi2True)
             if status > 1:
                 raise self._fail("fmi2DoStep", status, at=t0)
-        elif self.interface == CO_SIMULATION:
-            self._advance_cs(t_next)
         else:
-            self._advance_me(t_next)
+            self._advance_in_pieces(t0, t_next, self.binding.max_step)
         self.time = t_next
 
-    def _advance_cs(self, t_next: float) -> None:
-        t0 = self.time
+    def _advance_in_pieces(self, t0: float, t_next: float, max_step: float) -> None:
         h = t_next - t0
-        max_step = self.binding.max_step
         n = math.ceil(h / max_step * (1.0 - 1e-12)) if h > max_step else 1
         for i in range(n):
             start = t0 + h * i / n if i else t0
@@ -375,8 +403,32 @@ class FmuPlant:
             if status > 1:
                 raise self._fail("fmi2DoStep", status, at=start)
 
-    # model exchange ---------------------------------------------------
-    def _start_model_exchange(self, start_time: float) -> None:
+
+class _NoInput:
+    """fmpy's CVode wrapper re-applies inputs at root checks; the master holds them instead."""
+
+    def apply(self, time, continuous=True, discrete=True, after_event=False):
+        return None
+
+
+class ModelExchangePlant(FmuPlant):
+    """The FMU's equations integrated by fmpy's CVode, with time and state events."""
+
+    interface = MODEL_EXCHANGE
+    _fmu_class = FMU2Model
+
+    def __init__(self, binding: PlantBinding, checked: CheckedFmu, relative_tolerance: float = 1e-8,
+                 instance_name: str = "plant"):
+        self._solver = None
+        self._inputs_changed = False
+        self._next_event_time: float | None = None
+        self._needs_completed_step = bool(checked.model_description.modelExchange.needsCompletedIntegratorStep)
+        super().__init__(binding, checked, relative_tolerance, instance_name)
+
+    def _model_identifier(self) -> str:
+        return self.model_description.modelExchange.modelIdentifier
+
+    def _after_initialization(self, start_time: float) -> None:
         from fmpy.sundials import CVodeSolver
 
         fmu = self._fmu
@@ -400,13 +452,26 @@ class FmuPlant:
         )
         self._inputs_changed = False
 
+    def reset(self) -> None:
+        super().reset()
+        self._solver = None
+
+    def close(self) -> None:
+        self._solver = None
+        super().close()
+
+    def set_inputs(self, values: Sequence[float]) -> None:
+        super().set_inputs(values)
+        self._inputs_changed = True  # inputs may change discrete states (e.g. the diode unblocks)
+
     def _event_update(self) -> None:
         fmu = self._fmu
         needed, terminate = True, False
         while needed and not terminate:
             needed, terminate, _, _, defined, next_time = fmu.newDiscreteStates()
         if terminate:
-            raise PlantError(f"{self.binding.origin}: the FMU asked to terminate at t = {self.time:.9g} s{self._last_log_suffix()}")
+            raise PlantError(f"{self.binding.origin}: the FMU asked to terminate at t = {self.time:.9g} s"
+                             f"{self._last_log_suffix()}")
         self._next_event_time = next_time if defined else None
 
     def _handle_event(self, time: float) -> None:
@@ -416,11 +481,13 @@ class FmuPlant:
         fmu.enterContinuousTimeMode()
         self._solver.reset(time)
 
-    def _advance_me(self, t_next: float) -> None:
+    def advance_to(self, t_next: float) -> None:
+        if t_next <= self.time:
+            return
         fmu, solver = self._fmu, self._solver
         t = self.time
         try:
-            if self._inputs_changed:  # inputs may change discrete states (e.g. the diode unblocks)
+            if self._inputs_changed:
                 fmu.setTime(t)
                 self._handle_event(t)
                 self._inputs_changed = False
@@ -449,27 +516,13 @@ class FmuPlant:
             raise self._fail(error.function, error.status, at=t) from None
         except RuntimeError as error:  # CVode failure
             raise PlantError(f"{self.binding.origin}: the model-exchange solver failed at t = {t:.9g} s ({error})") from None
-
-    # ------------------------------------------------------------------ FMU state
-    def get_state(self):
-        """Snapshot of the FMU (fmi2GetFMUstate); free it with :meth:`free_state`."""
-        return self._fmu.getFMUstate()
+        self.time = t_next
 
     def set_state(self, state, time: float) -> None:
-        """Restore a snapshot taken at ``time``. In model exchange the discrete part (the next
-        PWM edge) is re-derived by an event update and the solver restarts there."""
-        self._fmu.setFMUstate(state)
-        self.time = time
+        """Restore a snapshot taken at ``time``; the discrete part (the next PWM edge) is re-derived
+        by an event update and the solver restarts there."""
+        super().set_state(state, time)
         if self._solver is not None:
             self._fmu.setTime(time)
             self._handle_event(time)
             self._inputs_changed = False
-
-    def free_state(self, state) -> None:
-        self._fmu.freeFMUstate(state)
-
-    def serialize_state(self, state) -> bytes:
-        return bytes(self._fmu.serializeFMUstate(state))
-
-    def deserialize_state(self, data: bytes):
-        return self._fmu.deSerializeFMUstate(bytearray(data))

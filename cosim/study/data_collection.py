@@ -20,8 +20,9 @@ import pandas as pd
 from controllers.base import Measurement, check_duty_limits
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
-from cosim.fmi.plant import FmuPlant
+from cosim.fmi.plant import open_plant
 from cosim.master import run
+from cosim.recorder import UNITS
 from cosim.results import write_parquet
 from cosim.scenarios import Scenario, ScenarioEvent
 from plant_fmu.table_ii import TABLE_II
@@ -135,7 +136,7 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     period = controller.sample_period
     scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"))
     dithered = DitheredController(controller, settings.excitation, settings.seed)
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
         result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
     frame = result.frame[result.frame["control_sample"]].reset_index(drop=True)
     frame["load_conductance"] = load_conductance(frame["measured_load_current"].to_numpy(),
@@ -148,7 +149,7 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
         "control_period_s": period,
         "collection": asdict(settings),
         "controller": dithered.describe(),
-        "units": {**{c: result.metadata["units"].get(c, "") for c in SAMPLE_COLUMNS}, "load_conductance": "S"},
+        "units": {**{c: UNITS.get(c, "") for c in SAMPLE_COLUMNS}, "load_conductance": "S"},
     }
     return frame
 

@@ -22,7 +22,7 @@ from scipy.optimize import minimize
 from controllers.pi import PIController
 from cosim.base.errors import WorkbenchError
 from cosim.fmi.binding import PlantBinding
-from cosim.fmi.plant import FmuPlant
+from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
@@ -92,7 +92,7 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
 
         bar = tqdm(desc=f"tuning PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False)
 
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
 
         def cost(params: np.ndarray) -> float:
             nonlocal evaluations

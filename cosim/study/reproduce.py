@@ -31,7 +31,7 @@ import pandas as pd
 
 from cosim.base.errors import PlantError
 from cosim.base.files import atomic_write_text, remove_temporary_files
-from cosim.batch import run_batch, write_metrics
+from cosim.batch import Batch, run_batch, write_metrics
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc, plant_binding, scenarios_for
@@ -178,29 +178,30 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
             log(f"  {tag}: skipping {scenario.name}: {binding.origin} binds no {', '.join(sorted(missing))}")
         else:
             scenarios.append(scenario)
+    batch = Batch(binding, scenarios)
     start = time.perf_counter()
-    batch = run_batch(binding, controllers, scenarios, out_dir, seed=seed, styles=CONTROLLER_STYLES,
-                      extra_metadata={"pipeline": asdict(pipeline)})
-    metrics = batch.metrics
+    output = run_batch(batch, controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
+                       extra_metadata={"pipeline": asdict(pipeline)})
+    metrics = output.metrics
     if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
         if transient_within_sample(period):  # does a longer horizon change anything at 1 ms?
-            ablation = run_batch(binding, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
-                                 scenarios, out_dir, seed=seed, figures=False)
+            ablation = run_batch(batch, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
+                                 out_dir, seed=seed, figures=False)
         else:  # the oracle blind to the sensor (eq. 3), and a synchronous point sample instead of the mean
-            blind = run_batch(binding, [model_mpc(true_parameters, period, MPC_ORACLE_AVERAGED)],
-                              scenarios, out_dir, seed=seed, figures=False)
-            synchronous = plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous")
+            blind = run_batch(batch, [model_mpc(true_parameters, period, MPC_ORACLE_AVERAGED)], out_dir, seed=seed,
+                              figures=False)
+            synchronous = Batch(plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous"), scenarios)
             ablation = run_batch(synchronous, [model_mpc(true_parameters, period, MPC_ORACLE_SYNC,
-                                                         binding=synchronous)],
-                                 scenarios, out_dir, seed=seed, figures=False)
+                                                         binding=synchronous.binding)],
+                                 out_dir, seed=seed, figures=False)
             studies = [blind.metrics, ablation.metrics]
             for offset in profile.seed_study:  # the same NNPC identified from other seeded data
                 other = seed + offset
                 data = collect(binding, pi.controller(), collection_settings(period, profile.samples, other))
                 model = train(data, nn_configs(period)["nnpc"], TrainingSettings(seed=other),
                               metadata={"control_period_s": period, "plant": binding.label, "seed": other})
-                studies.append(run_batch(binding, [nnpc(model, period, seed_variant(NNPC, other))], scenarios,
-                                         out_dir, seed=other, figures=False).metrics)
+                studies.append(run_batch(batch, [nnpc(model, period, seed_variant(NNPC, other))], out_dir,
+                                         seed=other, figures=False).metrics)
             ablation.metrics = pd.concat(studies, ignore_index=True)
         ablation.metrics["plant_tag"] = pipeline.plant_tag
         metrics = pd.concat([metrics, ablation.metrics], ignore_index=True)
