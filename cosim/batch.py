@@ -20,7 +20,7 @@ from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import RunFailed, check_plant_supports, run_checked
-from cosim.metrics import metrics_table
+from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, metrics_table
 from cosim.plots import Styles, plot_scenario
 from cosim.results import RunResult, write_parquet, write_run
 from cosim.scenarios import Scenario
@@ -108,10 +108,17 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
 
 
 def write_metrics(table: pd.DataFrame, path_stem: Path) -> list[Path]:
-    """Write a metrics table as CSV and Parquet (atomically)."""
+    """Write a metrics table atomically: ``<stem>.csv`` and ``.parquet`` with every metric that is
+    not a wall-clock measurement (byte-identical when the same runs are repeated), and
+    ``<stem>.timing.csv`` with the wall-clock ones (controller compute time) beside the columns
+    that identify each row."""
     path_stem = Path(path_stem)
+    deterministic = table.drop(columns=[c for c in WALLCLOCK_METRICS if c in table.columns])
+    identity = [c for c in table.columns if c not in METRIC_COLUMNS]
+    timing = table[identity + [c for c in WALLCLOCK_METRICS if c in table.columns]]
     return [
-        atomic_write(path_stem.with_suffix(".csv"), lambda tmp: table.to_csv(tmp, index=False)),
-        write_parquet(table, {"description": "metrics per scenario and controller; see cosim/metrics.py"},
+        atomic_write(path_stem.with_suffix(".csv"), lambda tmp: deterministic.to_csv(tmp, index=False)),
+        write_parquet(deterministic, {"description": "metrics per scenario and controller; see cosim/metrics.py"},
                       path_stem.with_suffix(".parquet"), units={}),
+        atomic_write(path_stem.with_name(f"{path_stem.name}.timing.csv"), lambda tmp: timing.to_csv(tmp, index=False)),
     ]

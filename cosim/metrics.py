@@ -53,6 +53,11 @@ METRIC_COLUMNS = (
     "controller_p50_us",
     "controller_p99_us",
 )
+#: metrics that are wall-clock measurements: they differ from run to run, so tables written to
+#: files keep them apart (``<stem>.timing.csv``) from the byte-comparable ones
+WALLCLOCK_METRICS = ("controller_p50_us", "controller_p99_us")
+#: the columns of :func:`metrics_table` that identify a run
+LABEL_COLUMNS = ("scenario", "controller", "plant", "interface", "control_period_us", "complete")
 
 
 def _first_crossing(t: np.ndarray, y: np.ndarray, level: float, rising: bool) -> float:

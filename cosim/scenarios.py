@@ -234,11 +234,5 @@ def shipped_scenario_names() -> list[str]:
 PAPER_SCENARIOS = ("startup", "load_change", "reference_up", "reference_down")
 
 
-def paper_scenarios() -> list[Scenario]:
-    return [load_scenario(name) for name in PAPER_SCENARIOS]
-
-
 def shipped_scenarios() -> list[Scenario]:
     return [load_scenario(name) for name in shipped_scenario_names()]
-
-

@@ -28,11 +28,6 @@ class ConverterRatings:
         """1 / f_sw [s]."""
         return 1.0 / self.switching_frequency
 
-    @property
-    def nominal_duty(self) -> float:
-        """Vo / Vs: the ideal CCM duty cycle at the operating point [1]."""
-        return self.output_voltage / self.input_voltage
-
 
 #: Table II of the paper (Saadatmand, Shamsi, Ferdowsi)
 TABLE_II = ConverterRatings(input_voltage=48.0, output_voltage=12.0, load_resistance=6.0,

@@ -39,10 +39,6 @@ def atomic_write_text(path: Path, text: str) -> Path:
     return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    return atomic_write(path, lambda tmp: tmp.write_bytes(data))
-
-
 def remove_temporary_files(folder: Path) -> None:
     """Delete the temporary files of writes that a terminated process left unfinished."""
     for stale in Path(folder).rglob(TEMPORARY_GLOB):

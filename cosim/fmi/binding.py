@@ -22,17 +22,6 @@ OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_
                 "measured_inductor_current", "measured_load_current")
 ROLES = INPUT_ROLES + OUTPUT_ROLES
 REQUIRED_ROLES = ("duty_cycle", "output_voltage")
-ROLE_UNITS = {
-    "duty_cycle": "1",
-    "input_voltage": "V",
-    "load_resistance": "Ohm",
-    "output_voltage": "V",
-    "inductor_current": "A",
-    "load_current": "A",
-    "measured_output_voltage": "V",
-    "measured_inductor_current": "A",
-    "measured_load_current": "A",
-}
 ROLE_DESCRIPTIONS = {
     "duty_cycle": "duty cycle command, 0..1 (input, required)",
     "input_voltage": "input/supply voltage Vs (input, optional: needed for supply steps)",

@@ -42,7 +42,17 @@ from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
 from cosim.base.toml_files import TomlLocator, parse_toml, where
 from cosim.fmi.archive import check_fmu
-from cosim.fmi.binding import INPUT_ROLES, REQUIRED_ROLES, ROLE_DESCRIPTIONS, ROLES, PlantBinding, RoleMap
+from cosim.fmi.binding import (
+    INPUT_ROLES,
+    REQUIRED_ROLES,
+    ROLE_DESCRIPTIONS,
+    ROLES,
+    BindingMismatch,
+    PlantBinding,
+    RoleMap,
+    resolve_parameters,
+    resolve_roles,
+)
 from cosim.fmi.plant import normalise_interface
 
 TOP_KEYS = {"fmu", "interface", "max_step", "label", "roles", "parameters"}
@@ -132,25 +142,16 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
 
 
 def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
-    """Each role's variable exists, is Real and has a causality that fits the role."""
-    variables = {v.name: v for v in checked.model_description.modelVariables}
+    """The roles and parameters against the FMU (:func:`resolve_roles`, :func:`resolve_parameters`:
+    the plant's own checks), each mistake located at its key's line; and the interface."""
     path = binding.source
-    for role, mapping in binding.roles.items():
-        place = where(path, loc, "variable", f"roles.{role}")
-        variable = variables.get(mapping.variable)
-        if variable is None:
-            raise ConfigError(f"{place}: role {role!r} names variable {mapping.variable!r}, which "
-                              f"{binding.fmu_path.name} does not have")
-        if variable.type != "Real":
-            raise ConfigError(f"{place}: role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}")
-        wanted = ("input", "parameter") if role in INPUT_ROLES else ("output", "local")
-        if variable.causality not in wanted:
-            raise ConfigError(f"{place}: role {role!r} needs causality {' or '.join(wanted)}, but "
-                              f"{mapping.variable!r} has causality {variable.causality}")
-    for name in binding.parameters:
-        if name not in variables:
-            raise ConfigError(f"{where(path, loc, name, 'parameters')}: parameter {name!r} is not a variable of "
-                              f"{binding.fmu_path.name}")
+    try:
+        resolve_roles(binding, checked.model_description)
+        resolve_parameters(binding.parameters, checked.model_description, binding.fmu_path.name)
+    except BindingMismatch as error:
+        place = where(path, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
+            where(path, loc, error.key, "parameters")
+        raise ConfigError(f"{place}: {error}") from None
     wanted_interface = binding.interface
     if wanted_interface is not None and wanted_interface not in checked.interfaces:
         raise ConfigError(f"{where(path, loc, 'interface')}: interface {wanted_interface!r} is not available "

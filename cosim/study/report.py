@@ -16,6 +16,8 @@ from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
 from cosim.study.experiments import horizon_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
+from cosim.study.summaries import markdown_table, ratio_table, seed_study, value
+from cosim.study.targets import Targets
 from cosim.study.vocabulary import (
     DITHER_FAST,
     DITHER_SLOW,
@@ -31,7 +33,6 @@ from cosim.study.vocabulary import (
     PI,
     SWITCHING_PERIOD,
     horizon_variant,
-    is_seed_variant,
 )
 from plant_fmu.table_ii import TABLE_II
 
@@ -46,123 +47,11 @@ def lc_physics(resistance: float = TABLE_II.load_resistance) -> dict[str, float]
             "settling_ms": 4 / (zeta * wn) * 1e3}
 
 
-def _fmt(value, digits: int = 3) -> str:
-    if value is None or (isinstance(value, float) and (math.isnan(value) or math.isinf(value))):
-        return "n/a"
-    if isinstance(value, str):
-        return value
-    if isinstance(value, (bool,)):
-        return "yes" if value else "no"
-    if abs(value) >= 1e4 or (abs(value) < 1e-3 and value != 0):
-        return f"{value:.{digits}e}"
-    return f"{value:.{digits}g}"
-
-
-def _table(frame: pd.DataFrame, columns: list[str], headers: list[str] | None = None, digits: int = 3) -> list[str]:
-    headers = headers or columns
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    for _, row in frame[columns].iterrows():
-        lines.append("| " + " | ".join(_fmt(v, digits) if not isinstance(v, str) else v for v in row) + " |")
-    return lines
-
-
-def _ratio_table(metrics: pd.DataFrame, pipeline: str, numerator: str, denominator: str) -> pd.DataFrame:
-    m = metrics[metrics["pipeline"] == pipeline]
-    a = m[m["controller"] == numerator].set_index("scenario")["iae_Vs"]
-    b = m[m["controller"] == denominator].set_index("scenario")["iae_Vs"]
-    return (a / b).rename(f"{numerator}/{denominator}")
-
-
-def _seed_study(metrics, pipeline) -> list[str]:
-    """Names of the seed-study NNPCs of a pipeline ("NNPC (seed 1)", ...)."""
-    names = metrics.loc[metrics["pipeline"] == pipeline, "controller"]
-    return sorted(n for n in set(names) if is_seed_variant(n))
-
-
-def _value(metrics, pipeline, controller, scenario, column):
-    rows = metrics[(metrics["pipeline"] == pipeline) & (metrics["controller"] == controller)
-                   & (metrics["scenario"] == scenario)]
-    return float(rows[column].iloc[0]) if len(rows) else math.nan
-
-
-def benchmark_p99(out_dir: Path) -> float | None:
-    """NNPC p99 compute time at 1 ms from the benchmark table, if ``buck-cosim bench`` has run."""
-    path = Path(out_dir) / "benchmarks.csv"
-    if not path.is_file():
-        return None
-    try:
-        table = pd.read_csv(path)
-        row = table[table["benchmark"].str.startswith("controller compute per step, NNPC, 1 ms")]
-        return float(row["p99"].iloc[0]) if len(row) else None
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-class Targets:
-    """The issue's targets, each checked against the measured metrics."""
-
-    def __init__(self, metrics: pd.DataFrame, elapsed: float, pipelines: list[str], out_dir: Path = Path(".")):
-        self.rows: list[dict] = []
-        m = metrics
-        fast = period_label(SWITCHING_PERIOD)
-        paper = period_label(PAPER_PERIOD)
-
-        def add(target, measured, met, note=""):
-            self.rows.append({"target": target, "measured": measured, "met": "yes" if met else "**no**",
-                              "note": note})
-
-        for mode in ("averaged", "switched"):
-            tag = f"nominal-{mode}__{paper}"
-            if tag in pipelines:
-                r = _ratio_table(m, tag, NNPC, MPC_ORACLE)
-                add(f"NNPC IAE <= 1.10 x oracle-MPC IAE, every scenario, 1 ms, {mode}",
-                    "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= 1.10).all()))
-        nnpc = m[(m["controller"] == NNPC) & m["pipeline"].str.startswith("nominal")]
-        if len(nnpc):
-            worst = nnpc.loc[nnpc["steady_state_error_pct"].abs().idxmax()]
-            add("NNPC steady-state error <= 0.2 % of the reference, every scenario (nominal plants, both rates)",
-                f"max |error| {abs(worst['steady_state_error_pct']):.3f} % ({worst['scenario']}, {worst['pipeline']})",
-                bool((nnpc["steady_state_error_pct"].abs() <= 0.2).all()))
-        for mode in ("averaged", "switched"):
-            tag = f"nominal-{mode}__{fast}"
-            if tag in pipelines:
-                overshoot = _value(m, tag, NNPC, "startup", "overshoot_pct")
-                seeds = _seed_study(m, tag)
-                note = ("NNPC identified from other seeds' data: " + "; ".join(
-                    f"{name}: {_value(m, tag, name, 'startup', 'overshoot_pct'):.2f} %" for name in seeds)) if seeds else ""
-                add(f"NNPC start-up overshoot <= 5 % at 1/fsw, {mode}", f"{overshoot:.2f} %", overshoot <= 5.0, note)
-                r = _ratio_table(m, tag, NNPC, PI)
-                note = ("other seeds, worst scenario: " + "; ".join(
-                    f"{name}: {_ratio_table(m, tag, name, 'PI').max():.3f}" for name in seeds)) if seeds else ""
-                add(f"NNPC IAE <= 0.6 x PI IAE at 1/fsw, {mode}", "; ".join(f"{s}: {v:.3f}" for s, v in r.items()),
-                    bool((r <= 0.6).all()), note)
-        for rate in (paper, fast):
-            tag = f"mismatch-switched__{rate}"
-            if tag in pipelines:
-                r = _ratio_table(m, tag, NNPC, MPC_NOMINAL)
-                add(f"Under mismatch: NNPC IAE <= 0.8 x nominal-model MPC IAE, {rate}",
-                    "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= 0.8).all()))
-        slow = m[(m["controller"] == NNPC) & m["pipeline"].str.endswith(paper)]
-        if len(slow):
-            p99 = float(slow["controller_p99_us"].max())
-            measured, met, note = f"worst run p99 {p99:.0f} us", p99 <= 100.0, \
-                "per-run p99 over ~45 samples, two pipelines sharing the cores"
-            bench = benchmark_p99(out_dir)
-            if bench is not None:
-                measured += f"; benchmark suite: p99 {bench:.0f} us"
-                met = bench <= 100.0
-                note = "met/not met from the benchmark (3000 samples, one process; results/benchmarks.md)"
-            add("NNPC compute per step p99 <= 100 us at 1 ms", measured, met, note)
-        add("Whole reproduction <= 120 s on 2 cores", f"{elapsed:.1f} s", elapsed <= 120.0)
-
-    def frame(self) -> pd.DataFrame:
-        return pd.DataFrame(self.rows)
-
-
-def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, *, profile, seed: int,
-                 workers: int) -> Path:
+def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed: int) -> Path:
+    """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics.
+    Nothing in either depends on the wall clock (that is :func:`cosim.study.timings.write_timings`'s)."""
     pipelines = [o.pipeline.tag for o in outputs]
-    targets = Targets(metrics, elapsed, pipelines, out_dir)
+    targets = Targets(metrics, pipelines)
     target_frame = targets.frame()
     atomic_write(out_dir / "targets.csv", lambda tmp: target_frame.to_csv(tmp, index=False))
     physics = lc_physics()
@@ -171,20 +60,21 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, 
         "# Reproduction report: NNPC for a 48 V -> 12 V buck converter",
         "",
         "Generated by `make reproduce` (`buck-cosim reproduce`) -- do not edit by hand. "
-        f"Wall time {elapsed:.1f} s on {workers} worker process(es), seed {seed}.",
+        f"Seed {seed}. Wall-clock figures (controller compute time per step, the reproduction's run time and "
+        "their targets) change from run to run and are in [timings.md](timings.md).",
     ]
     if profile.quick:
         lines += ["", "**Quick profile (CI smoke test): tiny data sets and shortened runs; the numbers mean nothing.**"]
     lines += ["", "## Summary", ""] + _summary(metrics, pipelines, physics, targets) + [""]
-    lines += ["## Targets", "", "Each target of the project's issue, checked against this reproduction "
-              "(also in `targets.csv`).", ""]
-    lines += _table(target_frame, ["target", "measured", "met", "note"])
+    lines += ["## Targets", "", "Each quality target of the project, checked against this reproduction "
+              "(also in `targets.csv`); the wall-clock targets are in [timings.md](timings.md).", ""]
+    lines += markdown_table(target_frame, ["target", "measured", "met", "note"])
     lines += ["", "## Setup", ""] + _setup(physics) + [""]
     lines += ["## PI gains (tuned per plant and rate)", "", f"Method: {PI_METHOD}.", ""]
     pi_rows = pd.DataFrame([{"pipeline": o.pipeline.tag, "Kp [1/V]": o.pi["kp"], "Ki [1/(V s)]": o.pi["ki"],
                              "worst overshoot [%]": o.pi["worst_overshoot_pct"], "simulations": o.pi["evaluations"]}
                             for o in outputs])
-    lines += _table(pi_rows, list(pi_rows.columns), digits=4)
+    lines += markdown_table(pi_rows, list(pi_rows.columns), digits=4)
     lines += ["", "## NN identification", "",
               "10 000 samples per plant and rate (the paper's 3 x 10 000 matrix of iL, vc, d, plus the load "
               "conductance), collected with the tuned PI and seeded random references and loads; the last 20 % "
@@ -198,14 +88,12 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, 
                             "1-step vo [mV]": rmse.get("one_step_rmse_voltage_V", math.nan) * 1e3,
                             "1-step iL [mA]": rmse.get("one_step_rmse_current_A", math.nan) * 1e3,
                             "10-step vo [mV]": rmse.get("10_step_rmse_voltage_V", math.nan) * 1e3,
-                            "10-step iL [mA]": rmse.get("10_step_rmse_current_A", math.nan) * 1e3,
-                            "training [s]": o.timings.get(f"training_{name}_s", math.nan)})
-    lines += _table(pd.DataFrame(nn_rows), list(nn_rows[0]), digits=3) if nn_rows else []
+                            "10-step iL [mA]": rmse.get("10_step_rmse_current_A", math.nan) * 1e3})
+    lines += markdown_table(pd.DataFrame(nn_rows), list(nn_rows[0]), digits=3) if nn_rows else []
     columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "undershoot_pct", "settling_time_ms",
-               "steady_state_error_pct", "iae_Vs", "peak_inductor_current_A", "controller_p50_us",
-               "controller_p99_us"]
+               "steady_state_error_pct", "iae_Vs", "peak_inductor_current_A"]
     headers = ["scenario", "controller", "rise [ms]", "overshoot [%]", "undershoot [%]", "settling 2% [ms]",
-               "SS error [%]", "IAE [V s]", "peak iL [A]", "ctrl p50 [us]", "ctrl p99 [us]"]
+               "SS error [%]", "IAE [V s]", "peak iL [A]"]
     for rate, title in ((paper, f"Results at the paper's rate ({period_text(PAPER_PERIOD)})"),
                         (fast, f"Results at one switching period ({period_text(SWITCHING_PERIOD)})")):
         lines += ["", f"## {title}", ""]
@@ -214,7 +102,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, 
                 continue
             tag = o.pipeline.tag
             lines += [f"### {o.pipeline.plant_tag}", ""]
-            lines += _table(metrics[metrics["pipeline"] == tag], columns, headers)
+            lines += markdown_table(metrics[metrics["pipeline"] == tag], columns, headers)
             lines += [""]
             for scenario in sorted(set(metrics.loc[metrics["pipeline"] == tag, "scenario"]),
                                    key=lambda s: list(metrics["scenario"]).index(s)):
@@ -224,10 +112,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, 
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",
               "make bench            # the benchmark table (results/benchmarks.md)", "```", "",
-              "Package versions: " + ", ".join(f"{k} {v}" for k, v in package_versions().items()) + ".", "",
-              "Per-pipeline wall times [s]:", ""]
-    timing_rows = pd.DataFrame([{"pipeline": o.pipeline.tag, **{k: v for k, v in o.timings.items()}} for o in outputs])
-    lines += _table(timing_rows, list(timing_rows.columns), digits=3)
+              "Package versions: " + ", ".join(f"{k} {v}" for k, v in package_versions().items()) + "."]
     return atomic_write_text(out_dir / "REPORT.md", "\n".join(lines) + "\n")
 
 
@@ -271,7 +156,7 @@ def _ablation(text: str, rows: pd.DataFrame, columns: dict[str, str]) -> list[st
     """One ablation: its explanation and its table (metric column -> heading), or nothing without rows."""
     if not len(rows):
         return []
-    return [text, "", *_table(rows, list(columns), list(columns.values())), ""]
+    return [text, "", *markdown_table(rows, list(columns), list(columns.values())), ""]
 
 
 def _ablations(metrics: pd.DataFrame) -> list[str]:
@@ -285,7 +170,7 @@ def _ablations(metrics: pd.DataFrame) -> list[str]:
         "transient is over within a sample, so the first move -- the only one applied -- is the same.",
         runs(f"nominal-switched__{paper}", [NNPC, horizon_variant(NNPC, 3)]),
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
-         "settling_time_ms": "settling [ms]", "controller_p50_us": "ctrl p50 [us]"})
+         "settling_time_ms": "settling [ms]"})
     tag = f"nominal-switched__{fast}"
     lines += _ablation(
         "**Model and sensor at 13.33 us** (nominal switched plant, oracle parameters): *MPC-oracle* predicts the "
@@ -297,7 +182,7 @@ def _ablations(metrics: pd.DataFrame) -> list[str]:
         runs(tag, [MPC_ORACLE, MPC_ORACLE_AVERAGED, MPC_ORACLE_SYNC]),
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
          "steady_state_error_pct": "SS error [%]"})
-    seeds = _seed_study(metrics, tag)
+    seeds = seed_study(metrics, tag)
     if seeds:
         rows = runs(tag, [NNPC, *seeds])
         pi = runs(tag, [PI]).set_index("scenario")["iae_Vs"]
@@ -317,10 +202,10 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
     lines = []
     tag = f"nominal-switched__{paper}"
     if tag in pipelines:
-        os_pi = _value(metrics, tag, PI, "startup", "overshoot_pct")
-        os_nn = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
-        r_pi = _ratio_table(metrics, tag, NNPC, PI)
-        r_or = _ratio_table(metrics, tag, NNPC, MPC_ORACLE)
+        os_pi = value(metrics, tag, PI, "startup", "overshoot_pct")
+        os_nn = value(metrics, tag, NNPC, "startup", "overshoot_pct")
+        r_pi = ratio_table(metrics, tag, NNPC, PI)
+        r_or = ratio_table(metrics, tag, NNPC, MPC_ORACLE)
         lines.append(
             f"- **At 1 ms the LC transient is over before the next sample** ({physics['settling_ms']:.2f} ms). "
             f"No controller can shape it: a predictive controller moves the output in one sample and the "
@@ -331,12 +216,12 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             + "; NNPC / oracle MPC: " + ", ".join(f"{s} {v:.3f}" for s, v in r_or.items()) + ".")
     tag = f"nominal-switched__{fast}"
     if tag in pipelines:
-        r_pi = _ratio_table(metrics, tag, NNPC, PI)
-        r_or = _ratio_table(metrics, tag, NNPC, MPC_ORACLE)
-        os_nn = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
-        seeds = _seed_study(metrics, tag)
+        r_pi = ratio_table(metrics, tag, NNPC, PI)
+        r_or = ratio_table(metrics, tag, NNPC, MPC_ORACLE)
+        os_nn = value(metrics, tag, NNPC, "startup", "overshoot_pct")
+        seeds = seed_study(metrics, tag)
         spread = (" (NNPCs identified from other seeds' data: " + ", ".join(
-            f"{_value(metrics, tag, name, 'startup', 'overshoot_pct'):.1f} %" for name in seeds) + ")") if seeds else ""
+            f"{value(metrics, tag, name, 'startup', 'overshoot_pct'):.1f} %" for name in seeds) + ")") if seeds else ""
         lines.append(
             "- **At one switching period the controllers can shape the transient**: NNPC IAE / PI IAE = "
             + ", ".join(f"{s} {v:.2f}" for s, v in r_pi.items())
@@ -354,10 +239,10 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
     tag = f"nominal-switched__{fast}"
     sync = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == MPC_ORACLE_SYNC)]
     if len(sync):
-        averaged = _value(metrics, tag, MPC_ORACLE, "startup", "overshoot_pct")
-        synchronous = _value(metrics, tag, MPC_ORACLE_SYNC, "startup", "overshoot_pct")
-        learned = _value(metrics, tag, NNPC, "startup", "overshoot_pct")
-        blind = _value(metrics, tag, MPC_ORACLE_AVERAGED, "startup", "overshoot_pct")
+        averaged = value(metrics, tag, MPC_ORACLE, "startup", "overshoot_pct")
+        synchronous = value(metrics, tag, MPC_ORACLE_SYNC, "startup", "overshoot_pct")
+        learned = value(metrics, tag, NNPC, "startup", "overshoot_pct")
+        blind = value(metrics, tag, MPC_ORACLE_AVERAGED, "startup", "overshoot_pct")
         lines.append(
             f"- **On the switched plant at 13.33 us the model must contain the sensor**: the oracle MPC, which "
             f"predicts the averaging sensor's reading with the switched circuit, overshoots {averaged:.1f} % at "
@@ -367,7 +252,7 @@ def _summary(metrics, pipelines, physics, targets) -> list[str]:
             f"measurement and sees two past samples, overshoots {learned:.1f} %.")
     tag = f"mismatch-switched__{fast}"
     if tag in pipelines:
-        r = _ratio_table(metrics, tag, NNPC, MPC_NOMINAL)
+        r = ratio_table(metrics, tag, NNPC, MPC_NOMINAL)
         lines.append("- **Model mismatch** (L +20 %, C -20 %, parasitics): NNPC IAE / nominal-model MPC IAE at "
                      "13.33 us = " + ", ".join(f"{s} {v:.2f}" for s, v in r.items())
                      + ". The disturbance estimate makes the nominal-model MPC offset-free, so mismatch costs it "

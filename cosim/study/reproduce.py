@@ -32,11 +32,13 @@ import pandas as pd
 from cosim.base.errors import PlantError
 from cosim.base.files import atomic_write_text, remove_temporary_files
 from cosim.batch import Batch, run_batch, write_metrics
+from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc, plant_binding, scenarios_for
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
+from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
     CONTROLLER_STYLES,
     MISMATCH,
@@ -115,8 +117,10 @@ class PipelineOutput:
     timings: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> str:
-        return json.dumps({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models,
-                           "timings": self.timings}, indent=2, sort_keys=True, default=str)
+        """The summary written to ``pipelines/<tag>.json`` (no wall-clock figures: those are
+        ``pipelines/<tag>.timings.json``, not committed, and ``timings.md``)."""
+        return json.dumps({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models},
+                          indent=2, sort_keys=True, default=str)
 
 
 def log(message: str) -> None:
@@ -211,6 +215,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
     output = PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
                             timings=timings)
     write_metrics(metrics, out_dir / "metrics" / f"metrics__{tag}")
+    atomic_write_text(out_dir / "pipelines" / f"{tag}.timings.json", json.dumps(timings, indent=2, sort_keys=True) + "\n")
     atomic_write_text(out_dir / "pipelines" / f"{tag}.json", output.to_json() + "\n")
     return output
 
@@ -244,8 +249,14 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
     if not (summary.is_file() and metrics.is_file()):
         return None
     data = json.loads(summary.read_text(encoding="utf-8"))
-    return PipelineOutput(pipeline=pipeline, metrics=pd.read_csv(metrics), pi=data["pi"], models=data["models"],
-                          timings=data["timings"])
+    table = pd.read_csv(metrics)
+    timing = metrics.with_name(f"{metrics.stem}.timing.csv")
+    if timing.is_file():  # the wall-clock metrics, in the same row order
+        for column in WALLCLOCK_METRICS:
+            table[column] = pd.read_csv(timing)[column].to_numpy()
+    timings_file = summary.with_name(f"{pipeline.tag}.timings.json")
+    timings = json.loads(timings_file.read_text(encoding="utf-8")) if timings_file.is_file() else {}
+    return PipelineOutput(pipeline=pipeline, metrics=table, pi=data["pi"], models=data["models"], timings=timings)
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
@@ -309,7 +320,8 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
     elapsed = time.perf_counter() - started
-    report = write_report(out_dir, ordered, metrics, elapsed, profile=profile, seed=seed, workers=workers)
+    report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed)
+    write_timings(out_dir, ordered, metrics, elapsed, workers)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 
