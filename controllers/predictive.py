@@ -4,8 +4,9 @@ Cost (paper eq. 16 and 23): for a candidate duty sequence over the horizon N,
 
     J = sum_{j=1..N} gamma^(j-1) * sqrt((vo(k+j) - vref)^2 + (iL(k+j) - iref)^2)
 
-with iref = vref / R the steady-state inductor current for vref at the load R, measured as
-vo / io from the load-current sensor (or estimated as vo / iL when there is none).
+with iref = vref / R the steady-state inductor current for vref at the load R, estimated from
+the sensors by :func:`controllers.load_estimate.estimate_conductance` (io / vo, or iL / vo
+without a load-current sensor).
 
 Optimizer (:class:`HorizonOptimizer`): the duty is held over blocks of the horizon (move
 blocking), so a candidate is a few block values. All candidates of a stage are evaluated in one
@@ -30,6 +31,7 @@ from typing import Callable
 import numpy as np
 
 from controllers.base import Measurement, check_duty_limits, check_sample_period
+from controllers.load_estimate import estimate_conductance
 from controllers.predictors import PredictionContext, Predictor
 
 
@@ -268,14 +270,7 @@ class PredictiveController:
         self._bias = np.zeros(2)
         self._predicted = None  # one-step prediction made at the previous sample (without bias)
         self._previous_duty = 0.0
-        self._load = self.nominal_load
-
-    def _estimate_load(self, m: Measurement) -> float:
-        if math.isfinite(m.load_current) and m.load_current > 1e-6 and m.output_voltage > 1e-3:
-            self._load = m.output_voltage / m.load_current
-        elif math.isfinite(m.inductor_current) and m.inductor_current > 1e-3 and m.output_voltage > 1e-3:
-            self._load = m.output_voltage / m.inductor_current  # steady state: iL = io
-        return self._load
+        self._conductance = 1.0 / self.nominal_load  # [S] the load estimate
 
     def step(self, m: Measurement) -> float:
         if not math.isfinite(m.inductor_current):
@@ -296,11 +291,13 @@ class PredictiveController:
             (b_current, b_voltage), (p_current, p_voltage) = self._bias.tolist(), self._predicted.tolist()
             self._bias = np.array([(1 - alpha) * b_current + alpha * (current - p_current),
                                    (1 - alpha) * b_voltage + alpha * (voltage - p_voltage)])
-        load = self._estimate_load(m)
+        conductance = self._conductance = estimate_conductance(m.output_voltage, m.load_current, m.inductor_current,
+                                                               self._conductance)
         reference = m.reference
-        current_reference = reference / load
+        current_reference = reference * conductance
         context = PredictionContext(history=self._history, input_voltage=m.input_voltage if math.isfinite(m.input_voltage)
-                                    else self.nominal_input_voltage, load_resistance=load, load_current=m.load_current,
+                                    else self.nominal_input_voltage, load_resistance=1.0 / conductance,
+                                    load_conductance=conductance, load_current=m.load_current,
                                     previous_duty=self._previous_duty)
         weights = self._weights
         rollout = self.predictor.rollout

@@ -83,7 +83,8 @@ class PredictionContext:
 
     history: np.ndarray  # (delays, 3): rows [iL, vo, d], most recent first; row 0's duty is the candidate's
     input_voltage: float
-    load_resistance: float  # measured or estimated
+    load_resistance: float  # [Ohm] estimated: 1 / load_conductance
+    load_conductance: float  # [S] the estimate of controllers.load_estimate
     load_current: float
     previous_duty: float
 
@@ -116,7 +117,7 @@ class NNPredictor:
         extras = None
         if self._extras:
             signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
-                       "load_conductance": 1.0 / context.load_resistance}
+                       "load_conductance": context.load_conductance}
             extras = np.array([signals[s] for s in self._extras], dtype=float)
         return self.model.rollout_shared(context.history, duties, extras, disturbance)
 

@@ -34,6 +34,7 @@ FSW = TABLE_II.switching_frequency
 
 def context(il=1.0, vo=8.0, load=6.0, vs=48.0):
     return PredictionContext(history=np.array([[il, vo, 0.0]]), input_voltage=vs, load_resistance=load,
+                             load_conductance=1.0 / load,
                              load_current=vo / load, previous_duty=0.2)
 
 
@@ -204,7 +205,7 @@ def test_switched_model_predicts_what_the_sensor_of_the_switched_fmu_reads(carri
             t += period
             plant.advance_to(t)
             readings.append(reading())
-    ctx = PredictionContext(history=np.array([[start[0], start[1], 0.0]]), input_voltage=48.0, load_resistance=6.0,
+    ctx = PredictionContext(history=np.array([[start[0], start[1], 0.0]]), input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0,
                             load_current=start[1] / 6.0, previous_duty=0.27)
     predicted = predictor.rollout(ctx, np.array([duties]), np.zeros(2))[0]
     np.testing.assert_allclose(predicted, readings, rtol=2e-6, atol=2e-5)  # duty-grid interpolation
@@ -249,7 +250,7 @@ def test_a_self_reproducing_warm_start_does_not_hold_the_output_off_its_referenc
     bias = np.array([-0.0018530089423268196, 0.0036338815685323864])
     warm = np.array([0.28297668038408774] + [0.2926063100137174] * 3 + [0.25141289437585734] * 4
                     + [0.27548010973936904] * 8 + [0.2547462277091907] * 7)
-    ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_current=12.7 / 6.0,
+    ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0, load_current=12.7 / 6.0,
                             previous_duty=warm[0])
     settings = HorizonSettings(horizon=23, levels=21)
     weights = settings.discount ** np.arange(23)

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from controllers.base import Measurement, check_duty_limits
+from controllers.load_estimate import conductance_series
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
@@ -30,15 +31,6 @@ from plant_fmu.table_ii import TABLE_II
 SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
                   "load_resistance", "input_voltage", "load_current", "measured_load_current", "load_conductance",
                   "inductor_current", "output_voltage")
-
-
-def load_conductance(load_current: np.ndarray, output_voltage: np.ndarray) -> np.ndarray:
-    """io / vo as the controller computes it (1/R); held over samples where vo is too small to divide by."""
-    valid = output_voltage > 0.05
-    conductance = np.full(len(load_current), np.nan)
-    conductance[valid] = load_current[valid] / output_voltage[valid]
-    series = pd.Series(conductance).ffill().bfill()
-    return series.to_numpy() if series.notna().all() else np.zeros(len(load_current))
 
 
 @dataclass(frozen=True)
@@ -139,8 +131,11 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     with open_plant(binding) as plant:
         result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
     frame = result.frame[result.frame["control_sample"]].reset_index(drop=True)
-    frame["load_conductance"] = load_conductance(frame["measured_load_current"].to_numpy(),
-                                                 frame["measured_output_voltage"].to_numpy())
+    # the controller's own load estimate, sample by sample, so the network learns the feature it is fed
+    frame["load_conductance"] = conductance_series(frame["measured_output_voltage"].to_numpy(),
+                                                   frame["measured_load_current"].to_numpy(),
+                                                   frame["measured_inductor_current"].to_numpy(),
+                                                   initial=1.0 / TABLE_II.load_resistance)
     frame = frame[list(SAMPLE_COLUMNS)]
     frame.attrs["metadata"] = {
         "description": "NN identification data: one row per control sample (paper Section IV)",
