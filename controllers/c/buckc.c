@@ -1,0 +1,48 @@
+/*
+ * buckc.c -- status texts and struct sizes for bindings (not an algorithm file; see buckc.h).
+ */
+#include <string.h>
+
+#include "buckc.h"
+#include "nn_model.h"
+#include "pi.h"
+#include "predictive.h"
+#include "predictors.h"
+
+const char *buckc_status_text(int status)
+{
+    switch (status) {
+    case BUCKC_OK: return "ok";
+    case BUCKC_ERR_NULL: return "a required pointer is NULL";
+    case BUCKC_ERR_LIMIT: return "a size is above a compile-time maximum";
+    case BUCKC_ERR_INVALID: return "an invalid value";
+    case BUCKC_ERR_NO_INDUCTOR_CURRENT: return "the predictive controller needs the inductor current";
+    case BUCKC_ERR_UNSUPPORTED: return "a configuration the Python reference cannot run either";
+    default: return "unknown status";
+    }
+}
+
+size_t buckc_struct_size(const char *type_name)
+{
+#define SIZE(T) if (strcmp(type_name, #T) == 0) return sizeof(T)
+    if (type_name == NULL)
+        return 0;
+    SIZE(BuckcPiConfig);
+    SIZE(BuckcPi);
+    SIZE(BuckcNnConfig);
+    SIZE(BuckcNnShared);
+    SIZE(BuckcCircuitParameters);
+    SIZE(BuckcAveragedConfig);
+    SIZE(BuckcAveragedStep);
+    SIZE(BuckcSwitchedConfig);
+    SIZE(BuckcSwitchedTable);
+    SIZE(BuckcHorizonSettings);
+    SIZE(BuckcOptimizer);
+    SIZE(BuckcPredictorConfig);
+    SIZE(BuckcPredictiveConfig);
+    SIZE(BuckcMeasurement);
+    SIZE(BuckcPredictiveState);
+    SIZE(BuckcPredictive);
+#undef SIZE
+    return 0;
+}

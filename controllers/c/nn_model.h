@@ -1,0 +1,85 @@
+/*
+ * nn_model.h -- C twin of the numpy forward pass and rollouts of controllers/nn_model.py
+ * (NNPlantModel.predict, NNPlantModel.rollout, NNPlantModel.rollout_shared).
+ *
+ * Weight layout (BuckcNnConfig). The weights are the *folded* ones of the numpy path,
+ * NNPlantModel._weights / _biases: the input standardisation is folded into layer 0 and the
+ * output de-standardisation into the last layer, so the network maps physical inputs to
+ * physical outputs [iL(k), vc(k)] (minus x(k-1) if residual). Row-vector convention,
+ *
+ *     h_{l+1} = act(h_l @ W_l + b_l),   y = h_L @ W_L + b_L   (no activation on the last layer)
+ *
+ * with weights[l][i][j] = W_l[i, j] (input i, output unit j) and biases[l][j] = b_l[j];
+ * layer l = 0 .. n_hidden, layer n_hidden being the output layer (2 units). Unused entries
+ * are ignored (zero them). Inputs of layer 0, in order (NNConfig.input_names):
+ *
+ *     [iL, vc, d](k-1), [iL, vc, d](k-2), ..., [iL, vc, d](k-delays), extras...(k-1)
+ *
+ * History arrays are double[delays][3], rows [iL, vc, d], most recent first; the duty of row 0
+ * is replaced by the candidate's first duty, as in Python.
+ */
+#ifndef BUCKC_NN_MODEL_H
+#define BUCKC_NN_MODEL_H
+
+#include "buckc.h"
+
+#define BUCKC_NN_MAX_HIDDEN_LAYERS 4
+#define BUCKC_NN_MAX_WIDTH 32       /* units per hidden layer; also bounds the inputs (<= 15) */
+#define BUCKC_NN_MAX_DELAYS 4
+#define BUCKC_NN_MAX_EXTRAS 3
+#define BUCKC_NN_OUTPUTS 2
+#define BUCKC_NN_MAX_LAYERS (BUCKC_NN_MAX_HIDDEN_LAYERS + 1)
+#define BUCKC_NN_MAX_INPUTS (3 * BUCKC_NN_MAX_DELAYS + BUCKC_NN_MAX_EXTRAS)
+
+/* NNConfig.activation */
+enum { BUCKC_ACTIVATION_TANH = 0, BUCKC_ACTIVATION_RELU = 1, BUCKC_ACTIVATION_SIGMOID = 2 };
+/* nn_model.EXTRA_SIGNALS, as the NNPredictor computes them from its PredictionContext */
+enum {
+    BUCKC_EXTRA_LOAD_CONDUCTANCE = 0, /* 1 / load_resistance */
+    BUCKC_EXTRA_LOAD_CURRENT = 1,     /* load_current (NaN without a load-current sensor) */
+    BUCKC_EXTRA_INPUT_VOLTAGE = 2     /* input_voltage */
+};
+
+typedef struct {
+    int delays;                           /* NNConfig.delays, 1..BUCKC_NN_MAX_DELAYS */
+    int n_extras;                         /* len(NNConfig.extra_signals) */
+    int extras[BUCKC_NN_MAX_EXTRAS];      /* BUCKC_EXTRA_..., in input order */
+    int n_hidden;                         /* len(NNConfig.hidden), 1..BUCKC_NN_MAX_HIDDEN_LAYERS */
+    int hidden[BUCKC_NN_MAX_HIDDEN_LAYERS]; /* units per hidden layer */
+    int activation;                       /* BUCKC_ACTIVATION_... */
+    int residual;                         /* NNConfig.residual: the network learns x(k) - x(k-1) */
+    double weights[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH][BUCKC_NN_MAX_WIDTH];
+    double biases[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH];
+} BuckcNnConfig;
+
+/* What rollout_shared computes once per measured history (one sample of the controller). */
+typedef struct {
+    int fast; /* 1: rollout_shared's fast path (1 delay, 1 hidden layer); 0: rollout() on the history */
+    double history[BUCKC_NN_MAX_DELAYS][3];
+    double extras[BUCKC_NN_MAX_EXTRAS];
+    double disturbance[2];
+    double constant[BUCKC_NN_MAX_WIDTH]; /* fast: b1 (+ extras @ w_extra) */
+    double z0[BUCKC_NN_MAX_WIDTH];       /* fast: state @ w_state + constant */
+    double b2[BUCKC_NN_OUTPUTS];         /* fast: b2 + disturbance */
+} BuckcNnShared;
+
+/* Validate sizes and codes; *what names the refused field. */
+int buckc_nn_check(const BuckcNnConfig *config, const char **what);
+/* 3 * delays + n_extras */
+int buckc_nn_inputs(const BuckcNnConfig *config);
+
+/* NNPlantModel.predict for one row: x[buckc_nn_inputs()] -> y[2]. */
+void buckc_nn_forward(const BuckcNnConfig *config, const double *x, double *y);
+
+/* NNPlantModel.rollout for one candidate: history[delays][3] (row-major), extras[n_extras]
+ * (may be NULL when n_extras == 0), duties[n], disturbance[2] (NULL = none) -> out[n][2]. */
+void buckc_nn_rollout(const BuckcNnConfig *config, const double *history, const double *extras,
+                      const double *duties, int n, const double *disturbance, double *out);
+
+/* NNPlantModel.rollout_shared, split into its per-history part and its per-candidate part. */
+void buckc_nn_shared_prepare(const BuckcNnConfig *config, const double *history, const double *extras,
+                             const double *disturbance, BuckcNnShared *shared);
+void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *shared,
+                             const double *duties, int n, double *out);
+
+#endif

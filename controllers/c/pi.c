@@ -1,0 +1,56 @@
+/*
+ * pi.c -- twin of controllers/pi.py: PIController.__init__ (validation), reset() and step().
+ *
+ *   e(k) = v_ref(k) - v_o(k)
+ *   I(k) = I(k-1) + K_i T_s e(k)   -- kept only if it does not push a saturated duty further
+ *   d(k) = clip(K_p e(k) + I(k), d_min, d_max)
+ */
+#include <math.h>
+
+#include "pi.h"
+
+int buckc_pi_init(BuckcPi *pi, const BuckcPiConfig *config, const char **what)
+{
+    if (pi == NULL || config == NULL) {
+        if (what) *what = "pi or config is NULL";
+        return BUCKC_ERR_NULL;
+    }
+    if (!(config->kp >= 0.0 && config->ki >= 0.0)) {
+        if (what) *what = "kp, ki: expected values >= 0";
+        return BUCKC_ERR_INVALID;
+    }
+    if (!(config->sample_period > 0.0 && isfinite(config->sample_period))) {
+        if (what) *what = "sample_period: expected a finite value > 0";
+        return BUCKC_ERR_INVALID;
+    }
+    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0)) {
+        if (what) *what = "duty_min, duty_max: expected 0 <= min < max <= 1";
+        return BUCKC_ERR_INVALID;
+    }
+    pi->config = *config;
+    pi->integral = 0.0;
+    return BUCKC_OK;
+}
+
+void buckc_pi_reset(BuckcPi *pi)
+{
+    pi->integral = 0.0;
+}
+
+double buckc_pi_step(BuckcPi *pi, double reference, double output_voltage)
+{
+    const BuckcPiConfig *c = &pi->config;
+    double error = reference - output_voltage;
+    double low = c->duty_min, high = c->duty_max;
+    double integral = pi->integral + c->ki * c->sample_period * error; /* (ki Ts) e, as Python */
+    double unclamped = c->kp * error + integral;
+    double duty = unclamped;
+    int pushing_high, pushing_low;
+    if (low > duty) duty = low;   /* Python's min(max(unclamped, low), high), NaN kept */
+    if (high < duty) duty = high;
+    pushing_high = unclamped > high && error > 0.0;
+    pushing_low = unclamped < low && error < 0.0;
+    if (!(pushing_high || pushing_low))
+        pi->integral = integral;
+    return duty;
+}

@@ -1,0 +1,557 @@
+/*
+ * predictive.c -- twin of controllers/predictive.py:
+ *   buckc_doubling_blocks    doubling_blocks
+ *   buckc_optimizer_init     HorizonSettings.__post_init__ (validation) + HorizonOptimizer.__init__
+ *   buckc_optimizer_solve    HorizonOptimizer.solve with first_stage and _openings
+ *   buckc_predictive_*       PredictiveController.__init__ / reset / _estimate_load / step, and the
+ *                            NNPredictor.rollout glue (its extra signals from the context)
+ * Candidates are generated and costed one at a time in Python's stage order (so ties go where
+ * numpy's argmin sends them); see predictive.h.
+ */
+#include <math.h>
+#include <string.h>
+
+#include "predictive.h"
+
+#define FAIL(code, text) do { if (what) *what = (text); return (code); } while (0)
+
+/* ------------------------------------------------------------------ settings */
+
+int buckc_doubling_blocks(int horizon, int *blocks, int max_blocks)
+{
+    int n = 0, total = 0, size = 1;
+    while (total < horizon) {
+        int step = size < horizon - total ? size : horizon - total;
+        if (n >= max_blocks)
+            return -1;
+        blocks[n++] = step;
+        total += step;
+        if (n >= 2)
+            size *= 2;
+    }
+    return n;
+}
+
+/* levels ** n capped just above limit (no overflow) */
+static long capped_power(long base, int n, long limit)
+{
+    long r = 1;
+    int i;
+    for (i = 0; i < n; ++i) {
+        r *= base;
+        if (r > limit)
+            return limit + 1;
+    }
+    return r;
+}
+
+/* np.linspace(low, high, num) for num >= 2: i * ((high - low) / (num - 1)) + low, the last = high */
+static void linspace(double low, double high, int num, double *out)
+{
+    double step = (high - low) / (double)(num - 1);
+    int i;
+    for (i = 0; i < num; ++i)
+        out[i] = (double)i * step + low;
+    out[num - 1] = high;
+}
+
+int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings, double low, double high,
+                         const char **what)
+{
+    BuckcHorizonSettings s;
+    int nb, i, j, b, t, per_axis, openings;
+    if (o == NULL || settings == NULL)
+        FAIL(BUCKC_ERR_NULL, "optimizer or settings is NULL");
+    s = *settings;
+    if (s.horizon < 1)
+        FAIL(BUCKC_ERR_INVALID, "horizon: expected >= 1");
+    if (s.horizon > BUCKC_MAX_HORIZON)
+        FAIL(BUCKC_ERR_LIMIT, "horizon: above BUCKC_MAX_HORIZON");
+    if (s.n_blocks == 0) {
+        s.n_blocks = buckc_doubling_blocks(s.horizon, s.blocks, BUCKC_MAX_BLOCKS);
+        if (s.n_blocks < 0)
+            FAIL(BUCKC_ERR_LIMIT, "blocks: doubling_blocks(horizon) has more than BUCKC_MAX_BLOCKS");
+    }
+    if (s.n_blocks < 0)
+        FAIL(BUCKC_ERR_INVALID, "blocks: a negative count");
+    if (s.n_blocks > BUCKC_MAX_BLOCKS)
+        FAIL(BUCKC_ERR_LIMIT, "blocks: more than BUCKC_MAX_BLOCKS");
+    for (i = 0, t = 0; i < s.n_blocks; ++i) {
+        if (s.blocks[i] < 1)
+            FAIL(BUCKC_ERR_INVALID, "blocks: expected positive lengths");
+        t += s.blocks[i];
+    }
+    if (t != s.horizon)
+        FAIL(BUCKC_ERR_INVALID, "blocks: expected lengths summing to the horizon");
+    if (!(s.discount > 0.0 && s.discount <= 1.0))
+        FAIL(BUCKC_ERR_INVALID, "discount: expected 0 < gamma <= 1");
+    if (s.levels < 2 || s.refine_iterations < 0)
+        FAIL(BUCKC_ERR_INVALID, "levels must be >= 2 and refine_iterations >= 0");
+    if (s.levels > BUCKC_MAX_LEVELS)
+        FAIL(BUCKC_ERR_LIMIT, "levels: above BUCKC_MAX_LEVELS");
+    if (!(s.bias_filter > 0.0 && s.bias_filter <= 1.0))
+        FAIL(BUCKC_ERR_INVALID, "bias_filter: expected 0 < alpha <= 1");
+    if (!(0.0 <= low && low < high && high <= 1.0))
+        FAIL(BUCKC_ERR_INVALID, "duty limits: expected 0 <= min < max <= 1");
+
+    memset(o, 0, sizeof(*o));
+    o->settings = s;
+    o->low = low;
+    o->high = high;
+    nb = o->n_blocks = s.n_blocks;
+    for (b = 0, t = 0; b < nb; ++b) {
+        o->block_starts[b] = t;
+        for (j = 0; j < s.blocks[b]; ++j)
+            o->block_of_step[t++] = b;
+    }
+    o->spacing = (high - low) / (s.levels - 1);
+    linspace(low, high, s.levels, o->grid);
+    linspace(low, high, 5, o->coarse);
+    if (capped_power(s.levels, nb, 4 * BUCKC_FULL_GRID_LIMIT) <= 4 * BUCKC_FULL_GRID_LIMIT) {
+        o->global_is_full = 1;
+        o->n_global = (int)capped_power(s.levels, nb, 4 * BUCKC_FULL_GRID_LIMIT);
+    } else {
+        o->global_is_full = 0;
+        o->n_global = s.levels; /* constant sequences */
+    }
+    per_axis = 0;
+    for (i = 3; i < 34; i += 2)
+        if (capped_power(i, nb, BUCKC_FULL_GRID_LIMIT) <= BUCKC_FULL_GRID_LIMIT)
+            per_axis = i;
+    if (per_axis) { /* meshgrid(offsets, ..., indexing="ij").ravel(): the last block fastest */
+        int half = (per_axis - 1) / 2, rows = (int)capped_power(per_axis, nb, BUCKC_FULL_GRID_LIMIT);
+        for (i = 0; i < rows; ++i) {
+            int rest = i;
+            for (b = nb - 1; b >= 0; --b) {
+                o->lattice[i][b] = (signed char)(rest % per_axis - half);
+                rest /= per_axis;
+            }
+        }
+        o->n_lattice = rows;
+        o->shrink = (double)(2 * half);
+        o->full_lattice = 1;
+        o->warm_step = o->spacing / (10 * o->shrink);
+        o->warm_span = o->warm_step * (double)half;
+    } else { /* many blocks: lines along each block, pairs of blocks, all blocks together */
+        static const int line[8] = {-4, -3, -2, -1, 1, 2, 3, 4};
+        static const int pair[4][2] = {{1, 1}, {1, -1}, {-1, 1}, {-1, -1}};
+        static const int all[8] = {-8, -4, -2, -1, 1, 2, 4, 8};
+        int r = 1, v, q; /* row 0: no move */
+        if (1 + 8 * nb + 2 * nb * (nb - 1) + 8 > BUCKC_MAX_LATTICE)
+            FAIL(BUCKC_ERR_LIMIT, "blocks: the pattern-search moves exceed BUCKC_MAX_LATTICE");
+        for (v = 0; v < 8; ++v)
+            for (b = 0; b < nb; ++b, ++r)
+                o->lattice[r][b] = (signed char)line[v];
+        for (i = 0; i < nb; ++i)
+            for (j = i + 1; j < nb; ++j)
+                for (q = 0; q < 4; ++q, ++r) {
+                    o->lattice[r][i] = (signed char)pair[q][0];
+                    o->lattice[r][j] = (signed char)pair[q][1];
+                }
+        for (v = 0; v < 8; ++v, ++r)
+            for (b = 0; b < nb; ++b)
+                o->lattice[r][b] = (signed char)all[v];
+        o->n_lattice = r;
+        o->shrink = 3.0;
+        o->full_lattice = 0;
+        o->warm_step = o->spacing / (10 * o->shrink);
+        o->warm_span = o->warm_step * 8.0;
+    }
+    for (i = 0; i < BUCKC_NEAR_OFFSETS; ++i) /* spacing / 20 * np.arange(-10.0, 11.0) */
+        o->near_offsets[i] = o->spacing / 20 * (double)(i - 10);
+    if (o->global_is_full) {
+        o->stage_candidates_cold = o->n_global;
+        o->stage_candidates_warm = o->n_lattice + o->n_global;
+    } else {
+        if (nb < 2) /* _openings' pairs need two blocks: Python raises an IndexError at its first solve */
+            FAIL(BUCKC_ERR_UNSUPPORTED, "levels: one block with levels above 512 (the Python optimizer fails there)");
+        openings = s.levels + 25 + nb * (nb - 1);
+        o->stage_candidates_cold = o->n_global + openings;
+        o->stage_candidates_warm = o->n_lattice + BUCKC_NEAR_OFFSETS + o->n_global + openings;
+    }
+    if (o->stage_candidates_warm > BUCKC_MAX_CANDIDATES)
+        FAIL(BUCKC_ERR_LIMIT, "stage-1 candidates: more than BUCKC_MAX_CANDIDATES");
+    return BUCKC_OK;
+}
+
+/* ------------------------------------------------------------------ solve */
+
+/* numpy's argmin over the candidates seen so far: the first minimum, or the first NaN */
+typedef struct {
+    int count, index, is_nan;
+    double cost;
+    double values[BUCKC_MAX_BLOCKS];
+    double prediction[2];
+} Scan;
+
+typedef struct {
+    BuckcOptimizer *o;
+    BuckcCostFunction cost;
+    void *user;
+} Problem;
+
+static double clip(const BuckcOptimizer *o, double d)
+{
+    if (d < o->low) d = o->low; /* np.maximum then np.minimum: NaN stays NaN */
+    if (d > o->high) d = o->high;
+    return d;
+}
+
+static void consider(const Problem *p, Scan *scan, const double *values)
+{
+    const BuckcOptimizer *o = p->o;
+    double duties[BUCKC_MAX_HORIZON], prediction[2] = {NAN, NAN}, c;
+    int t, take;
+    for (t = 0; t < o->settings.horizon; ++t) /* expand() */
+        duties[t] = values[o->block_of_step[t]];
+    c = p->cost(p->user, duties, o->settings.horizon, prediction);
+    if (scan->count == 0)
+        take = 1;
+    else if (scan->is_nan)
+        take = 0;
+    else
+        take = isnan(c) || c < scan->cost;
+    if (take) {
+        scan->cost = c;
+        scan->index = scan->count;
+        scan->is_nan = isnan(c) != 0;
+        memcpy(scan->values, values, sizeof(double) * (size_t)o->n_blocks);
+        scan->prediction[0] = prediction[0];
+        scan->prediction[1] = prediction[1];
+    }
+    scan->count++;
+}
+
+/* _openings(anchor): each row ends at the steady-state duty */
+static void openings(const Problem *p, Scan *scan, double anchor)
+{
+    const BuckcOptimizer *o = p->o;
+    int nb = o->n_blocks, i, b, j, m, q;
+    double row[BUCKC_MAX_BLOCKS];
+    for (i = 0; i < o->settings.levels; ++i) { /* a grid over the first move */
+        for (b = 0; b < nb; ++b)
+            row[b] = anchor;
+        row[0] = o->grid[i];
+        consider(p, scan, row);
+    }
+    for (i = 0; i < 25; ++i) { /* a coarse grid over the first two */
+        for (b = 0; b < nb; ++b)
+            row[b] = anchor;
+        row[0] = o->coarse[i / 5];
+        row[1] = o->coarse[i % 5];
+        consider(p, scan, row);
+    }
+    for (q = 0; q < 2; ++q) { /* bang-bang: (high, low) then (low, high) */
+        double a = q == 0 ? o->high : o->low, bb = q == 0 ? o->low : o->high;
+        for (j = 1; j < nb; ++j)
+            for (m = 0; m < nb - j; ++m) {
+                for (b = 0; b < nb; ++b)
+                    row[b] = b < j ? a : (b < j + m ? bb : anchor);
+                consider(p, scan, row);
+            }
+    }
+}
+
+double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *user, const double *warm,
+                             double anchor, double *sequence, double *first_prediction)
+{
+    Problem p;
+    Scan scan;
+    double center[BUCKC_MAX_BLOCKS], row[BUCKC_MAX_BLOCKS], best[BUCKC_MAX_BLOCKS], best_prediction[2];
+    double best_cost, step;
+    int nb = o->n_blocks, horizon = o->settings.horizon, n_warm = 0, i, b, t, it, near_warm = 0;
+    p.o = o;
+    p.cost = cost;
+    p.user = user;
+    memset(&scan, 0, sizeof(scan));
+
+    /* ---- first_stage */
+    if (o->low > anchor) anchor = o->low; /* min(max(anchor, low), high) */
+    if (o->high < anchor) anchor = o->high;
+    if (warm != NULL) { /* the previous solution shifted by one sample, per block */
+        for (b = 0; b < nb; ++b) {
+            int s = o->block_starts[b] + 1;
+            center[b] = warm[s < horizon ? s : horizon - 1];
+        }
+        for (i = 0; i < o->n_lattice; ++i) { /* first, so that ties go to the warm start */
+            for (b = 0; b < nb; ++b)
+                row[b] = clip(o, center[b] + o->warm_step * (double)o->lattice[i][b]);
+            consider(&p, &scan, row);
+        }
+        n_warm = o->n_lattice;
+    }
+    if (o->global_is_full) { /* the full grid, the last block fastest */
+        for (i = 0; i < o->n_global; ++i) {
+            int rest = i;
+            for (b = nb - 1; b >= 0; --b) {
+                row[b] = o->grid[rest % o->settings.levels];
+                rest /= o->settings.levels;
+            }
+            consider(&p, &scan, row);
+        }
+    } else {
+        if (warm != NULL) /* constant sequences finely around the last move */
+            for (i = 0; i < BUCKC_NEAR_OFFSETS; ++i) {
+                double d = clip(o, warm[0] + o->near_offsets[i]);
+                for (b = 0; b < nb; ++b)
+                    row[b] = d;
+                consider(&p, &scan, row);
+            }
+        for (i = 0; i < o->settings.levels; ++i) { /* constant sequences */
+            for (b = 0; b < nb; ++b)
+                row[b] = o->grid[i];
+            consider(&p, &scan, row);
+        }
+        openings(&p, &scan, anchor);
+    }
+    o->evaluations = scan.count;
+    o->passes = 1;
+    o->warm_count = n_warm;
+    memcpy(best, scan.values, sizeof(double) * (size_t)nb);
+    best_cost = scan.cost;
+    best_prediction[0] = scan.prediction[0];
+    best_prediction[1] = scan.prediction[1];
+    o->best_call = 0;
+    o->best_row = scan.index;
+
+    /* ---- refinement */
+    if (n_warm) { /* strictly inside the warm lattice: on its edge the optimum may lie further out */
+        double deviation = 0.0;
+        for (b = 0; b < nb; ++b) {
+            double d = fabs(best[b] - center[b]);
+            if (d > deviation || b == 0)
+                deviation = d;
+        }
+        near_warm = deviation < o->warm_span - 0.5 * o->warm_step;
+    }
+    o->near_warm = near_warm;
+    if (near_warm)
+        step = o->warm_step / o->shrink;
+    else
+        step = o->full_lattice ? o->spacing / o->shrink : (o->high - o->low) / 8;
+    for (it = 0; it < o->settings.refine_iterations; ++it) {
+        double start[BUCKC_MAX_BLOCKS];
+        if (step < o->settings.duty_tolerance)
+            break;
+        memcpy(start, best, sizeof(start));
+        memset(&scan, 0, sizeof(scan));
+        for (i = 0; i < o->n_lattice; ++i) {
+            for (b = 0; b < nb; ++b)
+                row[b] = clip(o, start[b] + step * (double)o->lattice[i][b]);
+            consider(&p, &scan, row);
+        }
+        o->evaluations += scan.count;
+        o->passes += 1;
+        if (scan.cost < best_cost) {
+            memcpy(best, scan.values, sizeof(double) * (size_t)nb);
+            best_cost = scan.cost;
+            best_prediction[0] = scan.prediction[0];
+            best_prediction[1] = scan.prediction[1];
+            o->best_call = o->passes - 1;
+            o->best_row = scan.index;
+        }
+        step /= o->shrink;
+    }
+    for (t = 0; t < horizon; ++t)
+        sequence[t] = best[o->block_of_step[t]];
+    if (first_prediction != NULL) {
+        first_prediction[0] = best_prediction[0];
+        first_prediction[1] = best_prediction[1];
+    }
+    return best_cost;
+}
+
+/* ------------------------------------------------------------------ the controller */
+
+size_t buckc_predictive_size(void)
+{
+    return sizeof(BuckcPredictive);
+}
+
+static int predictor_delays(const BuckcPredictiveConfig *config)
+{
+    return config->predictor.kind == BUCKC_PREDICTOR_NN ? config->predictor.nn.delays : 1;
+}
+
+int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *config, const char **what)
+{
+    int status, j;
+    if (c == NULL || config == NULL)
+        FAIL(BUCKC_ERR_NULL, "controller or config is NULL");
+    if (!(config->sample_period > 0.0 && isfinite(config->sample_period)))
+        FAIL(BUCKC_ERR_INVALID, "sample_period: expected a finite value > 0");
+    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0))
+        FAIL(BUCKC_ERR_INVALID, "duty limits: expected 0 <= min < max <= 1");
+    switch (config->predictor.kind) {
+    case BUCKC_PREDICTOR_NN:
+        status = buckc_nn_check(&config->predictor.nn, what);
+        break;
+    case BUCKC_PREDICTOR_AVERAGED:
+        status = buckc_averaged_check(&config->predictor.averaged, what);
+        break;
+    case BUCKC_PREDICTOR_SWITCHED:
+        status = buckc_switched_check(&config->predictor.switched, NULL, what);
+        break;
+    default:
+        FAIL(BUCKC_ERR_INVALID, "predictor kind: unknown code");
+    }
+    if (status != BUCKC_OK)
+        return status;
+    memset(c, 0, sizeof(*c));
+    status = buckc_optimizer_init(&c->optimizer, &config->horizon, config->duty_min, config->duty_max, what);
+    if (status != BUCKC_OK)
+        return status;
+    c->config = config;
+    for (j = 0; j < config->horizon.horizon; ++j) /* discount ** np.arange(horizon) */
+        c->weights[j] = pow(config->horizon.discount, (double)j);
+    buckc_predictive_clear_caches(c);
+    buckc_predictive_reset(c);
+    return BUCKC_OK;
+}
+
+void buckc_predictive_reset(BuckcPredictive *c)
+{
+    BuckcPredictiveState *s = &c->state;
+    memset(s, 0, sizeof(*s));
+    s->delays = predictor_delays(c->config);
+    s->previous_duty = 0.0;
+    s->load = c->config->nominal_load;
+    s->best_cost = NAN;
+}
+
+void buckc_predictive_clear_caches(BuckcPredictive *c)
+{
+    buckc_averaged_cache_clear(&c->averaged_cache);
+    buckc_switched_cache_clear(&c->switched_cache);
+    c->table = NULL;
+}
+
+const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *c)
+{
+    return &c->state;
+}
+
+/* eq. 23: sum_j gamma^j sqrt((iL - iref)^2 + (vo - vref)^2) over the predicted states */
+static double sequence_cost(void *user, const double *duties, int horizon, double *first_prediction)
+{
+    BuckcPredictive *c = (BuckcPredictive *)user;
+    const BuckcPredictorConfig *predictor = &c->config->predictor;
+    double predicted[BUCKC_MAX_HORIZON][2], total = 0.0;
+    int j;
+    switch (predictor->kind) {
+    case BUCKC_PREDICTOR_NN:
+        buckc_nn_shared_rollout(&predictor->nn, &c->nn, duties, horizon, &predicted[0][0]);
+        break;
+    case BUCKC_PREDICTOR_AVERAGED:
+        buckc_averaged_rollout(&c->averaged, duties, horizon, &predicted[0][0]);
+        break;
+    default:
+        buckc_switched_rollout(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
+                               c->context_disturbance, &predicted[0][0]);
+        break;
+    }
+    for (j = 0; j < horizon; ++j) {
+        double e0 = predicted[j][0] - c->target[0], e1 = predicted[j][1] - c->target[1];
+        e0 *= e0;
+        e1 *= e1;
+        total += sqrt(e0 + e1) * c->weights[j];
+    }
+    if (first_prediction != NULL) {
+        first_prediction[0] = predicted[0][0];
+        first_prediction[1] = predicted[0][1];
+    }
+    return total;
+}
+
+double buckc_predictive_cost(BuckcPredictive *c, const double *duties, double *first_prediction)
+{
+    return sequence_cost(c, duties, c->config->horizon.horizon, first_prediction);
+}
+
+int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double *duty)
+{
+    const BuckcPredictiveConfig *config = c->config;
+    BuckcPredictiveState *s = &c->state;
+    double current, voltage, load, input_voltage, anchor, first[2], sequence[BUCKC_MAX_HORIZON];
+    int delays = s->delays, d;
+    if (m == NULL || duty == NULL)
+        return BUCKC_ERR_NULL;
+    if (!isfinite(m->inductor_current))
+        return BUCKC_ERR_NO_INDUCTOR_CURRENT;
+    current = m->inductor_current;
+    voltage = m->output_voltage;
+    if (!s->have_history) {
+        for (d = 0; d < delays; ++d) {
+            s->history[d][0] = current;
+            s->history[d][1] = voltage;
+            s->history[d][2] = s->previous_duty;
+        }
+        s->have_history = 1;
+    } else {
+        if (delays > 1) {
+            for (d = delays - 1; d >= 1; --d)
+                memcpy(s->history[d], s->history[d - 1], sizeof(s->history[d]));
+            s->history[1][2] = s->previous_duty; /* the duty applied after that sample */
+        }
+        s->history[0][0] = current;
+        s->history[0][1] = voltage;
+        s->history[0][2] = 0.0;
+    }
+    if (s->have_predicted) { /* the filtered one-step prediction error */
+        double alpha = config->horizon.bias_filter;
+        double b0 = s->bias[0], b1 = s->bias[1];
+        s->bias[0] = (1 - alpha) * b0 + alpha * (current - s->predicted[0]);
+        s->bias[1] = (1 - alpha) * b1 + alpha * (voltage - s->predicted[1]);
+    }
+    /* _estimate_load */
+    if (isfinite(m->load_current) && m->load_current > 1e-6 && voltage > 1e-3)
+        s->load = voltage / m->load_current;
+    else if (isfinite(m->inductor_current) && m->inductor_current > 1e-3 && voltage > 1e-3)
+        s->load = voltage / m->inductor_current; /* steady state: iL = io */
+    load = s->load;
+    c->target[0] = m->reference / load;
+    c->target[1] = m->reference;
+    input_voltage = isfinite(m->input_voltage) ? m->input_voltage : 48.0;
+    c->context_previous_duty = s->previous_duty;
+    c->context_disturbance[0] = s->bias[0];
+    c->context_disturbance[1] = s->bias[1];
+    switch (config->predictor.kind) {
+    case BUCKC_PREDICTOR_NN: { /* NNPredictor.rollout's extra signals */
+        const BuckcNnConfig *nn = &config->predictor.nn;
+        double extras[BUCKC_NN_MAX_EXTRAS];
+        int e;
+        for (e = 0; e < nn->n_extras; ++e) {
+            switch (nn->extras[e]) {
+            case BUCKC_EXTRA_LOAD_CURRENT: extras[e] = m->load_current; break;
+            case BUCKC_EXTRA_INPUT_VOLTAGE: extras[e] = input_voltage; break;
+            default: extras[e] = 1.0 / load; break;
+            }
+        }
+        buckc_nn_shared_prepare(nn, &s->history[0][0], nn->n_extras ? extras : NULL, s->bias, &c->nn);
+        break;
+    }
+    case BUCKC_PREDICTOR_AVERAGED:
+        buckc_averaged_prepare(&config->predictor.averaged, &c->averaged_cache, load, s->previous_duty,
+                               input_voltage, s->history[0], s->bias, &c->averaged);
+        break;
+    default:
+        c->table = buckc_switched_cached(&config->predictor.switched, &c->switched_cache, load, input_voltage);
+        break;
+    }
+    anchor = input_voltage > 0 ? m->reference / input_voltage : s->previous_duty;
+    s->best_cost = buckc_optimizer_solve(&c->optimizer, sequence_cost, c, s->have_warm ? s->warm : NULL, anchor,
+                                         sequence, first);
+    s->evaluations = c->optimizer.evaluations;
+    s->passes = c->optimizer.passes;
+    s->best_call = c->optimizer.best_call;
+    s->best_row = c->optimizer.best_row;
+    /* the model's own one-step prediction (the disturbance is added after each step) */
+    s->predicted[0] = first[0] - s->bias[0];
+    s->predicted[1] = first[1] - s->bias[1];
+    s->have_predicted = 1;
+    memcpy(s->warm, sequence, sizeof(double) * (size_t)config->horizon.horizon);
+    s->have_warm = 1;
+    s->previous_duty = sequence[0];
+    *duty = sequence[0];
+    return BUCKC_OK;
+}

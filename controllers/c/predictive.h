@@ -1,0 +1,152 @@
+/*
+ * predictive.h -- C twin of controllers/predictive.py: HorizonOptimizer (move-blocked duty
+ * sequences, stage-1 candidates + batched refinement) and PredictiveController.step (history,
+ * offset-free disturbance estimate, load estimate, eq. 23 cost), on any of the three predictors
+ * (NNPredictor, AveragedModelPredictor, SwitchedModelPredictor).
+ *
+ * The optimizer streams its candidates (generated in Python's order, each costed as it is
+ * made), so no candidate array is stored; numpy's argmin (the first minimum, or the first NaN)
+ * is reproduced by strict '<' scanning.
+ */
+#ifndef BUCKC_PREDICTIVE_H
+#define BUCKC_PREDICTIVE_H
+
+#include "buckc.h"
+#include "nn_model.h"
+#include "predictors.h"
+
+#define BUCKC_MAX_HORIZON 32
+#define BUCKC_MAX_BLOCKS 16
+#define BUCKC_MAX_LEVELS 129
+#define BUCKC_MAX_LATTICE 640     /* refinement moves: a full lattice (<= 128) or the pattern (<= 617) */
+#define BUCKC_MAX_CANDIDATES 1536 /* stage-1 candidates: bounds the worst-case work of a step */
+#define BUCKC_FULL_GRID_LIMIT 128 /* predictive.FULL_GRID_LIMIT */
+#define BUCKC_NEAR_OFFSETS 21     /* constant sequences within half a grid cell of the last move */
+
+/* predictive.HorizonSettings (blocks resolved: n_blocks = 0 means doubling_blocks(horizon)) */
+typedef struct {
+    int horizon;                  /* prediction steps N, 1..BUCKC_MAX_HORIZON */
+    int n_blocks;
+    int blocks[BUCKC_MAX_BLOCKS]; /* move blocking: positive lengths summing to the horizon */
+    double discount;              /* gamma of eq. 16, 0 < gamma <= 1 */
+    int levels;                   /* grid points per block in stage 1, 2..BUCKC_MAX_LEVELS */
+    int refine_iterations;        /* at most this many refinement passes */
+    double duty_tolerance;        /* stop zooming once the lattice step is this fine */
+    double bias_filter;           /* weight of the newest disturbance estimate, 0 < alpha <= 1 */
+} BuckcHorizonSettings;
+
+/* The stage-1 and refinement structure HorizonOptimizer.__init__ derives from its settings,
+ * plus the diagnostics of the last solve. */
+typedef struct {
+    BuckcHorizonSettings settings;
+    double low, high;                     /* duty limits */
+    int n_blocks;
+    int block_of_step[BUCKC_MAX_HORIZON]; /* expand(): block index of each step */
+    int block_starts[BUCKC_MAX_BLOCKS];
+    double spacing;                       /* (high - low) / (levels - 1) */
+    double grid[BUCKC_MAX_LEVELS];        /* np.linspace(low, high, levels) */
+    double coarse[5];                     /* np.linspace(low, high, 5) */
+    int global_is_full;                   /* levels ** n_blocks <= 4 * FULL_GRID_LIMIT */
+    int n_global;
+    int full_lattice;                     /* a full lattice of offsets, else the pattern moves */
+    int n_lattice;
+    signed char lattice[BUCKC_MAX_LATTICE][BUCKC_MAX_BLOCKS];
+    double shrink;
+    double warm_step, warm_span;
+    double near_offsets[BUCKC_NEAR_OFFSETS];
+    int stage_candidates_cold, stage_candidates_warm; /* stage-1 sizes without / with a warm start */
+    /* diagnostics of the last buckc_optimizer_solve */
+    int evaluations, passes, best_call, best_row;
+    int warm_count, near_warm;
+} BuckcOptimizer;
+
+/* A candidate's cost: duties[horizon] per step; write its first predicted state (with the
+ * disturbance, as Python's predictions[call][row, 0]) to first_prediction[2] (may be ignored). */
+typedef double (*BuckcCostFunction)(void *user, const double *duties, int horizon, double *first_prediction);
+
+int buckc_doubling_blocks(int horizon, int *blocks, int max_blocks); /* doubling_blocks(); returns the count */
+int buckc_optimizer_init(BuckcOptimizer *optimizer, const BuckcHorizonSettings *settings, double low,
+                         double high, const char **what);
+/* HorizonOptimizer.solve: writes the best per-step sequence[horizon] and its first prediction
+ * (first_prediction may be NULL); warm = the previous solution (horizon values) or NULL;
+ * returns the best cost. */
+double buckc_optimizer_solve(BuckcOptimizer *optimizer, BuckcCostFunction cost, void *user, const double *warm,
+                             double anchor, double *sequence, double *first_prediction);
+
+/* ------------------------------------------------------------------ the controller */
+
+enum { BUCKC_PREDICTOR_NN = 0, BUCKC_PREDICTOR_AVERAGED = 1, BUCKC_PREDICTOR_SWITCHED = 2 };
+
+typedef struct {
+    int kind;                       /* BUCKC_PREDICTOR_...: which of the three below is used */
+    BuckcNnConfig nn;
+    BuckcAveragedConfig averaged;
+    BuckcSwitchedConfig switched;
+} BuckcPredictorConfig;
+
+typedef struct {
+    double sample_period;           /* [s] */
+    double duty_min, duty_max;
+    double nominal_load;            /* [Ohm] the load assumed until one is measured */
+    BuckcHorizonSettings horizon;
+    BuckcPredictorConfig predictor;
+} BuckcPredictiveConfig;
+
+/* controllers.base.Measurement (SI units, NaN where the plant has no such output) */
+typedef struct {
+    double time;
+    double reference;
+    double output_voltage;
+    double inductor_current;
+    double load_current;
+    double input_voltage;
+} BuckcMeasurement;
+
+/* PredictiveController's state between samples, plus diagnostics of the last step. */
+typedef struct {
+    int delays;
+    int have_history;
+    double history[BUCKC_NN_MAX_DELAYS][3]; /* rows [iL, vo, d], most recent first */
+    int have_warm;
+    double warm[BUCKC_MAX_HORIZON];         /* the previous solution */
+    double bias[2];                         /* the state-disturbance estimate */
+    int have_predicted;
+    double predicted[2];                    /* the model's one-step prediction made at the last sample */
+    double previous_duty;
+    double load;                            /* [Ohm] the last load estimate */
+    /* diagnostics of the last step */
+    double best_cost;
+    int evaluations, passes, best_call, best_row;
+} BuckcPredictiveState;
+
+typedef struct {
+    const BuckcPredictiveConfig *config; /* not copied: keep it alive (it may be static const data) */
+    BuckcOptimizer optimizer;
+    double weights[BUCKC_MAX_HORIZON];   /* discount ** j */
+    BuckcPredictiveState state;
+    /* the sample being solved (the predictor's PredictionContext) */
+    double target[2];                    /* [iref, vref] */
+    double context_previous_duty;
+    double context_disturbance[2];
+    BuckcNnShared nn;
+    BuckcAveragedStep averaged;
+    const BuckcSwitchedTable *table;
+    /* the predictors' caches (kept across reset(), as the Python predictor's are) */
+    BuckcAveragedCache averaged_cache;
+    BuckcSwitchedCache switched_cache;
+} BuckcPredictive;
+
+size_t buckc_predictive_size(void);
+/* Validate the whole configuration (what Python refuses, and the C maxima) and reset. */
+int buckc_predictive_init(BuckcPredictive *controller, const BuckcPredictiveConfig *config, const char **what);
+/* PredictiveController.reset (the predictor caches are kept, as in Python) */
+void buckc_predictive_reset(BuckcPredictive *controller);
+/* PredictiveController.step: *duty receives the duty to hold until the next sample. */
+int buckc_predictive_step(BuckcPredictive *controller, const BuckcMeasurement *measurement, double *duty);
+/* Forget the predictors' cached matrices and tables (Python has no such call; for tests). */
+void buckc_predictive_clear_caches(BuckcPredictive *controller);
+const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *controller);
+/* The eq. 23 cost of one duty sequence at the last step's context (for tests and tools). */
+double buckc_predictive_cost(BuckcPredictive *controller, const double *duties, double *first_prediction);
+
+#endif

@@ -1,0 +1,748 @@
+"""The C99 twins of the controllers (``controllers/c/``): build, load and drive them from Python.
+
+``controllers/c`` holds hand-written C versions of the PI, the NN forward pass and rollouts, the
+averaged and switched circuit predictors, the horizon optimizer and the predictive controller's
+step -- operation by operation the arithmetic of the Python references, with no allocation, no
+mutable globals and configuration as plain data (see ``controllers/c/buckc.h``). This module
+compiles them into one shared library, mirrors their structs with :mod:`ctypes`, and offers
+:class:`NativePIController` and :class:`NativePredictiveController`, which implement the
+controller protocol of :mod:`controllers.base` and are built *from* the Python controllers.
+
+Why it calls the C compiler itself rather than fmpy's build helper: ``fmpy.build`` compiles an
+FMU folder (``modelDescription.xml`` + ``sources/``) through CMake into
+``binaries/<platform>/<id>.so`` -- the right tool for the plant FMU. The twins are not an FMU:
+they are one plain in-process library for the twin tests, for fast reproduction runs and for
+timing the controller without Python in the loop, so one compiler invocation (no CMake, no FMI
+glue) is all it takes. It is cached like the plant: under ``$BUCK_COSIM_CACHE`` (or
+``~/.cache/buck-cosim``) by a hash of the sources, flags and compiler version, built in a
+temporary folder there and moved into place atomically, so concurrent processes never load a
+half-written library.
+
+Flags: ``-std=c99 -Wall -Wextra -Wpedantic -Werror`` (the twins must compile clean), ``-O2`` (no
+value-changing optimisation: no ``-ffast-math``) and ``-ffp-contract=off``, which keeps a compiler
+from fusing ``a*b + c`` into one FMA -- numpy rounds each ufunc separately, and GCC in GNU mode or
+clang in any mode would otherwise fuse on targets with FMA.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import math
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from controllers.base import Measurement, check_duty_limits, check_sample_period
+from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
+from controllers.pi import PIController
+from controllers.predictive import PredictiveController
+from controllers.predictors import (CARRIERS, SENSOR_MODELS, AveragedModelPredictor, CircuitParameters, NNPredictor,
+                                    PredictionContext, SwitchedModelPredictor)
+
+SOURCE_DIR = Path(__file__).parent / "c"
+FLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-ffp-contract=off")
+LIBRARIES = ("-lm",)
+LIBRARY_NAME = "buckc"
+
+
+class NativeBuildError(RuntimeError):
+    """The C twins could not be compiled (or no compiler was found); the message names the log."""
+
+
+# ------------------------------------------------------------------------------------------ build
+
+def cache_dir() -> Path:
+    """``$BUCK_COSIM_CACHE`` or ``~/.cache/buck-cosim`` (the plant FMU's cache too)."""
+    configured = os.environ.get("BUCK_COSIM_CACHE")
+    return Path(configured) if configured else Path.home() / ".cache" / "buck-cosim"
+
+
+def compiler() -> list[str]:
+    """The C compiler Python was built with (``sysconfig``'s CC) if it is installed here, else ``cc``."""
+    configured = shlex.split(sysconfig.get_config_var("CC") or "")
+    if configured and shutil.which(configured[0]):
+        return configured
+    if shutil.which("cc"):
+        return ["cc"]
+    raise NativeBuildError("no C compiler found: neither sysconfig's CC "
+                           f"({sysconfig.get_config_var('CC')!r}) nor 'cc' is on PATH")
+
+
+def _compiler_version(command: list[str]) -> str:
+    try:
+        out = subprocess.run([*command, "--version"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise NativeBuildError(f"C compiler {' '.join(command)} does not run: {error}") from None
+    return (out.stdout or out.stderr).strip().splitlines()[0] if (out.stdout or out.stderr).strip() else "unknown"
+
+
+def _suffix() -> str:
+    return {"darwin": ".dylib", "win32": ".dll"}.get(sys.platform, ".so")
+
+
+def source_digest(source_dir: Path = SOURCE_DIR, command: list[str] | None = None) -> str:
+    """Hash of everything that determines the library: sources, flags, compiler and platform."""
+    command = command or compiler()
+    digest = hashlib.sha256()
+    digest.update(f"{_compiler_version(command)} {' '.join(command)} {FLAGS} {LIBRARIES} {sys.platform} "
+                  f"{sysconfig.get_platform()}".encode())
+    for path in sorted(Path(source_dir).glob("*.[ch]")):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def build_library(source_dir: Path = SOURCE_DIR, force: bool = False) -> Path:
+    """Path of the compiled twins, compiling once per source hash; raises :class:`NativeBuildError`."""
+    source_dir = Path(source_dir)
+    command = compiler()
+    key = source_digest(source_dir, command)
+    folder = cache_dir()
+    target = folder / f"{LIBRARY_NAME}-{key}{_suffix()}"
+    if target.is_file() and not force:
+        return target
+    folder.mkdir(parents=True, exist_ok=True)
+    log = folder / f"{LIBRARY_NAME}-{key}.build.log"
+    sources = sorted(str(p) for p in source_dir.glob("*.c"))
+    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{LIBRARY_NAME}-build-") as tmp:
+        staged = Path(tmp) / f"{LIBRARY_NAME}{_suffix()}"
+        argv = [*command, *FLAGS, *sources, "-o", str(staged), *LIBRARIES]
+        try:
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+        except (OSError, subprocess.TimeoutExpired) as error:
+            log.write_text(f"$ {shlex.join(argv)}\n{error}\n")
+            raise NativeBuildError(f"compiling the C controller twins failed ({error}); compiler log: {log}") from None
+        log.write_text(f"$ {shlex.join(argv)}\n{done.stdout}{done.stderr}")
+        if done.returncode != 0 or not staged.is_file():
+            raise NativeBuildError(f"compiling the C controller twins failed (exit {done.returncode}); "
+                                   f"compiler log: {log}")
+        os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
+    return target
+
+
+# ------------------------------------------------------------------------------------------ struct mirrors
+
+def _limits(source_dir: Path = SOURCE_DIR) -> dict[str, int]:
+    """The integer ``#define BUCKC_...`` maxima of the headers (one source of truth for the mirrors)."""
+    limits = {}
+    for header in sorted(source_dir.glob("*.h")):
+        for name, value in re.findall(r"^#define\s+(BUCKC_\w+)\s+(\d+)\b", header.read_text(), flags=re.M):
+            limits[name] = int(value)
+    return limits
+
+
+LIMITS = _limits()
+MAX_HIDDEN_LAYERS = LIMITS["BUCKC_NN_MAX_HIDDEN_LAYERS"]
+MAX_WIDTH = LIMITS["BUCKC_NN_MAX_WIDTH"]
+MAX_DELAYS = LIMITS["BUCKC_NN_MAX_DELAYS"]
+MAX_EXTRAS = LIMITS["BUCKC_NN_MAX_EXTRAS"]
+MAX_LAYERS = MAX_HIDDEN_LAYERS + 1
+CACHE_KEYS = LIMITS["BUCKC_PY_CACHE_KEYS"]
+MAX_GRID = LIMITS["BUCKC_SWITCHED_MAX_GRID"]
+TABLES = LIMITS["BUCKC_SWITCHED_TABLES"]
+COLUMNS = LIMITS["BUCKC_SWITCHED_COLUMNS"]
+MAX_HORIZON = LIMITS["BUCKC_MAX_HORIZON"]
+MAX_BLOCKS = LIMITS["BUCKC_MAX_BLOCKS"]
+MAX_LEVELS = LIMITS["BUCKC_MAX_LEVELS"]
+MAX_LATTICE = LIMITS["BUCKC_MAX_LATTICE"]
+NEAR_OFFSETS = LIMITS["BUCKC_NEAR_OFFSETS"]
+
+OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT, ERR_UNSUPPORTED = 0, -1, -2, -3, -4, -5
+PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
+
+c_double, c_int = ctypes.c_double, ctypes.c_int
+
+
+def _array(kind, *shape):
+    for size in reversed(shape):
+        kind = kind * size
+    return kind
+
+
+class PiConfig(ctypes.Structure):
+    _fields_ = [("kp", c_double), ("ki", c_double), ("sample_period", c_double), ("duty_min", c_double),
+                ("duty_max", c_double)]
+
+
+class Pi(ctypes.Structure):
+    _fields_ = [("config", PiConfig), ("integral", c_double)]
+
+
+class NnConfig(ctypes.Structure):
+    _fields_ = [("delays", c_int), ("n_extras", c_int), ("extras", _array(c_int, MAX_EXTRAS)),
+                ("n_hidden", c_int), ("hidden", _array(c_int, MAX_HIDDEN_LAYERS)), ("activation", c_int),
+                ("residual", c_int), ("weights", _array(c_double, MAX_LAYERS, MAX_WIDTH, MAX_WIDTH)),
+                ("biases", _array(c_double, MAX_LAYERS, MAX_WIDTH))]
+
+
+class NnShared(ctypes.Structure):
+    _fields_ = [("fast", c_int), ("history", _array(c_double, MAX_DELAYS, 3)), ("extras", _array(c_double, MAX_EXTRAS)),
+                ("disturbance", _array(c_double, 2)), ("constant", _array(c_double, MAX_WIDTH)),
+                ("z0", _array(c_double, MAX_WIDTH)), ("b2", _array(c_double, 2))]
+
+
+class CircuitParametersC(ctypes.Structure):
+    _fields_ = [("inductance", c_double), ("capacitance", c_double), ("inductor_resistance", c_double),
+                ("switch_on_resistance", c_double), ("diode_forward_voltage", c_double), ("capacitor_esr", c_double)]
+
+
+class AveragedConfig(ctypes.Structure):
+    _fields_ = [("parameters", CircuitParametersC), ("sample_period", c_double)]
+
+
+class AveragedEntry(ctypes.Structure):
+    _fields_ = [("key_load", c_double), ("key_switch", c_double), ("phi", _array(c_double, 4)),
+                ("gamma", _array(c_double, 2))]
+
+
+class AveragedCache(ctypes.Structure):
+    _fields_ = [("count", c_int), ("entries", AveragedEntry * CACHE_KEYS)]
+
+
+class AveragedStep(ctypes.Structure):
+    _fields_ = [("phi_y", _array(c_double, 4)), ("gamma_y", _array(c_double, 2)), ("drive", c_double),
+                ("forward", c_double), ("y0", _array(c_double, 2)), ("disturbance", _array(c_double, 2))]
+
+
+class SwitchedConfig(ctypes.Structure):
+    _fields_ = [("parameters", CircuitParametersC), ("sample_period", c_double), ("switching_frequency", c_double),
+                ("carrier", c_int), ("sensor", c_int), ("grid_points", c_int)]
+
+
+class SwitchedTable(ctypes.Structure):
+    _fields_ = [("load", c_double), ("input_voltage", c_double), ("points", c_int),
+                ("rows", _array(c_double, MAX_GRID, COLUMNS))]
+
+
+class SwitchedKey(ctypes.Structure):
+    _fields_ = [("key_load", c_double), ("key_input", c_double), ("load", c_double), ("input_voltage", c_double)]
+
+
+class SwitchedCache(ctypes.Structure):
+    _fields_ = [("n_keys", c_int), ("keys", SwitchedKey * CACHE_KEYS), ("n_tables", c_int), ("next_table", c_int),
+                ("tables", SwitchedTable * TABLES)]
+
+
+class HorizonSettingsC(ctypes.Structure):
+    _fields_ = [("horizon", c_int), ("n_blocks", c_int), ("blocks", _array(c_int, MAX_BLOCKS)), ("discount", c_double),
+                ("levels", c_int), ("refine_iterations", c_int), ("duty_tolerance", c_double),
+                ("bias_filter", c_double)]
+
+
+class Optimizer(ctypes.Structure):
+    _fields_ = [("settings", HorizonSettingsC), ("low", c_double), ("high", c_double), ("n_blocks", c_int),
+                ("block_of_step", _array(c_int, MAX_HORIZON)), ("block_starts", _array(c_int, MAX_BLOCKS)),
+                ("spacing", c_double), ("grid", _array(c_double, MAX_LEVELS)), ("coarse", _array(c_double, 5)),
+                ("global_is_full", c_int), ("n_global", c_int), ("full_lattice", c_int), ("n_lattice", c_int),
+                ("lattice", _array(ctypes.c_byte, MAX_LATTICE, MAX_BLOCKS)), ("shrink", c_double),
+                ("warm_step", c_double), ("warm_span", c_double), ("near_offsets", _array(c_double, NEAR_OFFSETS)),
+                ("stage_candidates_cold", c_int), ("stage_candidates_warm", c_int), ("evaluations", c_int),
+                ("passes", c_int), ("best_call", c_int), ("best_row", c_int), ("warm_count", c_int),
+                ("near_warm", c_int)]
+
+
+class PredictorConfig(ctypes.Structure):
+    _fields_ = [("kind", c_int), ("nn", NnConfig), ("averaged", AveragedConfig), ("switched", SwitchedConfig)]
+
+
+class PredictiveConfig(ctypes.Structure):
+    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
+                ("nominal_load", c_double), ("horizon", HorizonSettingsC), ("predictor", PredictorConfig)]
+
+
+class MeasurementC(ctypes.Structure):
+    _fields_ = [("time", c_double), ("reference", c_double), ("output_voltage", c_double),
+                ("inductor_current", c_double), ("load_current", c_double), ("input_voltage", c_double)]
+
+
+class PredictiveState(ctypes.Structure):
+    _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
+                ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
+                ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
+                ("load", c_double), ("best_cost", c_double), ("evaluations", c_int), ("passes", c_int),
+                ("best_call", c_int), ("best_row", c_int)]
+
+
+#: ctypes mirror -> C type name, checked against sizeof() in the library when it is loaded
+MIRRORS = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
+           CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
+           AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig", SwitchedTable: "BuckcSwitchedTable",
+           HorizonSettingsC: "BuckcHorizonSettings", Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
+           PredictiveConfig: "BuckcPredictiveConfig", MeasurementC: "BuckcMeasurement",
+           PredictiveState: "BuckcPredictiveState"}
+
+COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
+
+_P = ctypes.POINTER
+_D = _P(c_double)
+_SIGNATURES = {
+    "buckc_status_text": (ctypes.c_char_p, [c_int]),
+    "buckc_struct_size": (ctypes.c_size_t, [ctypes.c_char_p]),
+    "buckc_pi_init": (c_int, [_P(Pi), _P(PiConfig), _P(ctypes.c_char_p)]),
+    "buckc_pi_reset": (None, [_P(Pi)]),
+    "buckc_pi_step": (c_double, [_P(Pi), c_double, c_double]),
+    "buckc_nn_check": (c_int, [_P(NnConfig), _P(ctypes.c_char_p)]),
+    "buckc_nn_forward": (None, [_P(NnConfig), _D, _D]),
+    "buckc_nn_rollout": (None, [_P(NnConfig), _D, _D, _D, c_int, _D, _D]),
+    "buckc_nn_shared_prepare": (None, [_P(NnConfig), _D, _D, _D, _P(NnShared)]),
+    "buckc_nn_shared_rollout": (None, [_P(NnConfig), _P(NnShared), _D, c_int, _D]),
+    "buckc_expm2": (None, [_D, c_double, _D]),
+    "buckc_circuit_matrix": (None, [_P(CircuitParametersC), c_double, c_double, _D]),
+    "buckc_measured_from_state": (None, [_P(CircuitParametersC), c_double, _D]),
+    "buckc_solve2": (None, [_D, _D, _D]),
+    "buckc_inverse2": (None, [_D, _D]),
+    "buckc_averaged_check": (c_int, [_P(AveragedConfig), _P(ctypes.c_char_p)]),
+    "buckc_averaged_discrete": (None, [_P(AveragedConfig), c_double, c_double, _D, _D]),
+    "buckc_averaged_cached": (None, [_P(AveragedConfig), _P(AveragedCache), c_double, c_double, _D, _D]),
+    "buckc_averaged_prepare": (None, [_P(AveragedConfig), _P(AveragedCache), c_double, c_double, c_double, _D, _D,
+                                      _P(AveragedStep)]),
+    "buckc_averaged_rollout": (None, [_P(AveragedStep), _D, c_int, _D]),
+    "buckc_switched_check": (c_int, [_P(SwitchedConfig), _P(c_int), _P(ctypes.c_char_p)]),
+    "buckc_switched_table": (None, [_P(SwitchedConfig), c_double, c_double, _P(SwitchedTable)]),
+    "buckc_switched_cached": (_P(SwitchedTable), [_P(SwitchedConfig), _P(SwitchedCache), c_double, c_double]),
+    "buckc_switched_lookup": (None, [_P(SwitchedTable), c_double, _D]),
+    "buckc_switched_rollout": (None, [_P(SwitchedTable), _D, c_double, _D, c_int, _D, _D]),
+    "buckc_optimizer_init": (c_int, [_P(Optimizer), _P(HorizonSettingsC), c_double, c_double, _P(ctypes.c_char_p)]),
+    "buckc_optimizer_solve": (c_double, [_P(Optimizer), COST_FUNCTION, ctypes.c_void_p, _D, c_double, _D, _D]),
+    "buckc_predictive_size": (ctypes.c_size_t, []),
+    "buckc_predictive_init": (c_int, [ctypes.c_void_p, _P(PredictiveConfig), _P(ctypes.c_char_p)]),
+    "buckc_predictive_reset": (None, [ctypes.c_void_p]),
+    "buckc_predictive_step": (c_int, [ctypes.c_void_p, _P(MeasurementC), _D]),
+    "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
+    "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
+    "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
+}
+
+
+@functools.lru_cache(maxsize=1)
+def library() -> ctypes.CDLL:
+    """The loaded twins (built on first use), with argument types set and the struct layouts checked."""
+    lib = ctypes.CDLL(str(build_library()))
+    for name, (restype, argtypes) in _SIGNATURES.items():
+        function = getattr(lib, name)
+        function.restype, function.argtypes = restype, argtypes
+    for mirror, c_name in MIRRORS.items():
+        size = lib.buckc_struct_size(c_name.encode())
+        if size != ctypes.sizeof(mirror):
+            raise RuntimeError(f"controllers/native.py: the ctypes mirror of {c_name} has {ctypes.sizeof(mirror)} bytes, "
+                               f"the C struct {size}: update the mirror after editing the header")
+    return lib
+
+
+def status_text(status: int) -> str:
+    return library().buckc_status_text(status).decode()
+
+
+def _check(status: int, what: ctypes.c_char_p, owner: str) -> None:
+    if status != OK:
+        detail = what.value.decode() if what.value else status_text(status)
+        raise ValueError(f"{owner}: the C twin refuses the configuration: {detail} ({status_text(status)})")
+
+
+def _pointer(array: np.ndarray):
+    return array.ctypes.data_as(_D)
+
+
+# ------------------------------------------------------------------------------------------ configs from Python
+
+def circuit_parameters(p: CircuitParameters) -> CircuitParametersC:
+    return CircuitParametersC(p.inductance, p.capacitance, p.inductor_resistance, p.switch_on_resistance,
+                              p.diode_forward_voltage, p.capacitor_esr)
+
+
+def nn_config(model: NNPlantModel) -> NnConfig:
+    """The folded weights of ``model``'s numpy path (``_weights`` / ``_biases``, read only) as a C config."""
+    config = model.config
+    problems = []
+    if config.delays > MAX_DELAYS:
+        problems.append(f"delays {config.delays} > BUCKC_NN_MAX_DELAYS ({MAX_DELAYS})")
+    if len(config.hidden) > MAX_HIDDEN_LAYERS:
+        problems.append(f"{len(config.hidden)} hidden layers > BUCKC_NN_MAX_HIDDEN_LAYERS ({MAX_HIDDEN_LAYERS})")
+    if max(config.hidden) > MAX_WIDTH:
+        problems.append(f"hidden layer of {max(config.hidden)} units > BUCKC_NN_MAX_WIDTH ({MAX_WIDTH})")
+    if len(config.extra_signals) > MAX_EXTRAS:
+        problems.append(f"{len(config.extra_signals)} extra signals > BUCKC_NN_MAX_EXTRAS ({MAX_EXTRAS})")
+    if config.n_inputs > MAX_WIDTH:
+        problems.append(f"{config.n_inputs} inputs > BUCKC_NN_MAX_WIDTH ({MAX_WIDTH})")
+    if problems:
+        raise ValueError(f"network {config.label} has no C twin: " + "; ".join(problems))
+    c = NnConfig()
+    c.delays = config.delays
+    c.n_extras = len(config.extra_signals)
+    for i, name in enumerate(config.extra_signals):
+        c.extras[i] = EXTRA_SIGNALS.index(name)
+    c.n_hidden = len(config.hidden)
+    for i, size in enumerate(config.hidden):
+        c.hidden[i] = size
+    c.activation = list(ACTIVATIONS).index(config.activation)
+    c.residual = int(config.residual)
+    weights = np.ctypeslib.as_array(c.weights)
+    biases = np.ctypeslib.as_array(c.biases)
+    folded_w, folded_b = model._weights, model._biases  # the numpy path's layers, x @ W + b
+    if len(folded_w) != len(config.hidden) + 1:
+        raise ValueError(f"network {config.label}: {len(folded_w)} folded layers, expected {len(config.hidden) + 1}")
+    for layer, (w, b) in enumerate(zip(folded_w, folded_b)):
+        rows, cols = w.shape
+        weights[layer, :rows, :cols] = w
+        biases[layer, :cols] = b
+    return c
+
+
+def horizon_config(settings, owner: str) -> HorizonSettingsC:
+    blocks = tuple(settings.blocks)
+    problems = []
+    if settings.horizon > MAX_HORIZON:
+        problems.append(f"horizon {settings.horizon} > BUCKC_MAX_HORIZON ({MAX_HORIZON})")
+    if len(blocks) > MAX_BLOCKS:
+        problems.append(f"{len(blocks)} blocks > BUCKC_MAX_BLOCKS ({MAX_BLOCKS})")
+    if settings.levels > MAX_LEVELS:
+        problems.append(f"levels {settings.levels} > BUCKC_MAX_LEVELS ({MAX_LEVELS})")
+    if problems:
+        raise ValueError(f"{owner}: horizon settings have no C twin: " + "; ".join(problems))
+    c = HorizonSettingsC()
+    c.horizon = settings.horizon
+    c.n_blocks = len(blocks)
+    for i, size in enumerate(blocks):
+        c.blocks[i] = size
+    c.discount = settings.discount
+    c.levels = settings.levels
+    c.refine_iterations = settings.refine_iterations
+    c.duty_tolerance = settings.duty_tolerance
+    c.bias_filter = settings.bias_filter
+    return c
+
+
+def predictor_config(predictor) -> PredictorConfig:
+    """One of the three Python predictors as a C predictor configuration (ValueError for others)."""
+    c = PredictorConfig()
+    if isinstance(predictor, NNPredictor):
+        c.kind = PREDICTOR_NN
+        c.nn = nn_config(predictor.model)
+    elif isinstance(predictor, AveragedModelPredictor):
+        c.kind = PREDICTOR_AVERAGED
+        c.averaged = AveragedConfig(circuit_parameters(predictor.parameters), predictor.sample_period)
+    elif isinstance(predictor, SwitchedModelPredictor):
+        points = len(predictor.duty_grid)
+        if points > MAX_GRID:
+            raise ValueError(f"switched model {predictor.name!r}: {points} duty-grid points > "
+                             f"BUCKC_SWITCHED_MAX_GRID ({MAX_GRID})")
+        if not np.array_equal(predictor.duty_grid, np.linspace(0.0, 1.0, points)):
+            raise ValueError(f"switched model {predictor.name!r}: the duty grid is not linspace(0, 1, {points}), "
+                             "the only grid the C twin builds")
+        c.kind = PREDICTOR_SWITCHED
+        c.switched = SwitchedConfig(circuit_parameters(predictor.parameters), predictor.sample_period,
+                                    predictor.switching_frequency, CARRIERS.index(predictor.carrier),
+                                    SENSOR_MODELS.index(predictor.sensor), points)
+    else:
+        raise ValueError(f"predictor {type(predictor).__name__} ({getattr(predictor, 'name', '?')!r}) has no C twin: "
+                         "expected NNPredictor, AveragedModelPredictor or SwitchedModelPredictor")
+    return c
+
+
+# ------------------------------------------------------------------------------------------ controllers
+
+class NativePIController:
+    """:class:`controllers.pi.PIController` in C (``controllers/c/pi.c``); same protocol, same numbers."""
+
+    def __init__(self, kp: float, ki: float, sample_period: float = 1e-3,
+                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI", tuning: dict | None = None):
+        if kp < 0 or ki < 0:
+            raise ValueError(f"PI gains kp = {kp}, ki = {ki} are invalid: expected values >= 0")
+        self.kp, self.ki = float(kp), float(ki)
+        self.sample_period = check_sample_period(sample_period, "PI")
+        self.duty_limits = check_duty_limits(duty_limits, "PI")
+        self.name = name
+        self.tuning = tuning or {}
+        self._lib = library()
+        self._pi = Pi()
+        what = ctypes.c_char_p()
+        config = PiConfig(self.kp, self.ki, self.sample_period, *self.duty_limits)
+        _check(self._lib.buckc_pi_init(ctypes.byref(self._pi), ctypes.byref(config), ctypes.byref(what)), what, name)
+        self._step = self._lib.buckc_pi_step
+        self._ref = ctypes.byref(self._pi)
+
+    @classmethod
+    def from_python(cls, pi: PIController) -> "NativePIController":
+        return cls(pi.kp, pi.ki, pi.sample_period, pi.duty_limits, pi.name, pi.tuning)
+
+    @property
+    def integral(self) -> float:
+        return self._pi.integral
+
+    def reset(self) -> None:
+        self._lib.buckc_pi_reset(self._ref)
+
+    def step(self, measurement: Measurement) -> float:
+        return self._step(self._ref, measurement.reference, measurement.output_voltage)
+
+    def describe(self) -> dict:
+        return {"type": "PI", "name": self.name, "kp_per_V": self.kp, "ki_per_V_s": self.ki,
+                "sample_period_s": self.sample_period, "duty_limits": list(self.duty_limits),
+                "anti_windup": "conditional integration (clamping)", "tuning": self.tuning,
+                "implementation": "C twin (controllers/c/pi.c)"}
+
+
+class NativePredictiveController:
+    """:class:`controllers.predictive.PredictiveController` in C (``controllers/c/predictive.c``).
+
+    Build it with :meth:`from_python`; it holds its own copy of the configuration (the C struct
+    points at it) and its own predictor caches, which start empty and, as Python's, survive
+    :meth:`reset`.
+    """
+
+    def __init__(self, config: PredictiveConfig, name: str, description: dict | None = None):
+        self._lib = library()
+        self._config = config  # the C controller keeps a pointer to it
+        self.name = name
+        self.sample_period = check_sample_period(config.sample_period, name)
+        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
+        self._description = description or {}
+        size = self._lib.buckc_predictive_size()
+        self._memory = (c_double * (size // ctypes.sizeof(c_double) + 1))()  # 8-byte aligned
+        self._handle = ctypes.cast(self._memory, ctypes.c_void_p)
+        what = ctypes.c_char_p()
+        _check(self._lib.buckc_predictive_init(self._handle, ctypes.byref(config), ctypes.byref(what)), what, name)
+        self._state = self._lib.buckc_predictive_state(self._handle).contents
+        self._measurement = MeasurementC()
+        self._duty = c_double()
+        self._step = self._lib.buckc_predictive_step
+        self._args = (self._handle, ctypes.byref(self._measurement), ctypes.byref(self._duty))
+
+    @classmethod
+    def from_python(cls, controller: PredictiveController) -> "NativePredictiveController":
+        config = PredictiveConfig()
+        config.sample_period = controller.sample_period
+        config.duty_min, config.duty_max = controller.duty_limits
+        config.nominal_load = controller.nominal_load
+        config.horizon = horizon_config(controller.settings, controller.name)
+        config.predictor = predictor_config(controller.predictor)
+        return cls(config, controller.name, controller.describe())
+
+    @property
+    def config(self) -> PredictiveConfig:
+        return self._config
+
+    @property
+    def state(self) -> PredictiveState:
+        """The C controller's state between samples (a live view: read, do not write)."""
+        return self._state
+
+    def reset(self) -> None:
+        self._lib.buckc_predictive_reset(self._handle)
+
+    def clear_caches(self) -> None:
+        self._lib.buckc_predictive_clear_caches(self._handle)
+
+    def step(self, m: Measurement) -> float:
+        c = self._measurement
+        c.time, c.reference, c.output_voltage = m.time, m.reference, m.output_voltage
+        c.inductor_current, c.load_current, c.input_voltage = m.inductor_current, m.load_current, m.input_voltage
+        status = self._step(*self._args)
+        if status != OK:
+            if status == ERR_NO_INDUCTOR_CURRENT:
+                raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
+                                 "inductor_current role")
+            raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
+        return self._duty.value
+
+    def cost(self, duties) -> tuple[float, np.ndarray]:
+        """Eq. 23 cost of one per-step duty sequence at the last step's context, and its first prediction."""
+        duties = np.ascontiguousarray(duties, dtype=float)
+        first = np.empty(2)
+        value = self._lib.buckc_predictive_cost(self._handle, _pointer(duties), _pointer(first))
+        return value, first
+
+    def describe(self) -> dict:
+        return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
+
+
+# ------------------------------------------------------------------------------------------ predictors and optimizer
+
+class NativePredictor:
+    """A C predictor behind the Python :class:`~controllers.predictors.Predictor` protocol (one C
+    rollout per candidate; for checking the twins, not for speed)."""
+
+    def __init__(self, predictor):
+        self._lib = library()
+        self.name = f"{predictor.name} (C twin)"
+        self.delays = predictor.delays
+        self.config = predictor_config(predictor)
+        self._extras = tuple(predictor.model.config.extra_signals) if isinstance(predictor, NNPredictor) else ()
+        self.averaged_cache = AveragedCache()
+        self.switched_cache = SwitchedCache()
+
+    def rollout(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray) -> np.ndarray:
+        duties = np.ascontiguousarray(duties, dtype=float)
+        m, n = duties.shape
+        out = np.empty((m, n, 2))
+        dist = np.ascontiguousarray(disturbance, dtype=float)
+        history = np.ascontiguousarray(context.history, dtype=float)
+        lib, kind = self._lib, self.config.kind
+        if kind == PREDICTOR_NN:
+            signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
+                       "load_conductance": 1.0 / context.load_resistance}
+            extras = np.array([signals[s] for s in self._extras] or [0.0])
+            shared = NnShared()
+            lib.buckc_nn_shared_prepare(ctypes.byref(self.config.nn), _pointer(history),
+                                        _pointer(extras) if self._extras else None, _pointer(dist),
+                                        ctypes.byref(shared))
+            for i in range(m):
+                lib.buckc_nn_shared_rollout(ctypes.byref(self.config.nn), ctypes.byref(shared), _pointer(duties[i]),
+                                            n, _pointer(out[i]))
+        elif kind == PREDICTOR_AVERAGED:
+            step = AveragedStep()
+            y0 = np.ascontiguousarray(history[0, :2])
+            lib.buckc_averaged_prepare(ctypes.byref(self.config.averaged), ctypes.byref(self.averaged_cache),
+                                       context.load_resistance, context.previous_duty, context.input_voltage,
+                                       _pointer(y0), _pointer(dist), ctypes.byref(step))
+            for i in range(m):
+                lib.buckc_averaged_rollout(ctypes.byref(step), _pointer(duties[i]), n, _pointer(out[i]))
+        else:
+            table = lib.buckc_switched_cached(ctypes.byref(self.config.switched), ctypes.byref(self.switched_cache),
+                                              context.load_resistance, context.input_voltage)
+            y0 = np.ascontiguousarray(history[0, :2])
+            for i in range(m):
+                lib.buckc_switched_rollout(table, _pointer(y0), context.previous_duty, _pointer(duties[i]), n,
+                                           _pointer(dist), _pointer(out[i]))
+        return out
+
+    def describe(self) -> dict:
+        return {"type": "C twin", "name": self.name}
+
+
+class NativeOptimizer:
+    """The C :c:func:`buckc_optimizer_solve` on a Python cost of one sequence (for twin tests)."""
+
+    def __init__(self, settings, duty_limits: tuple[float, float]):
+        self._lib = library()
+        self.optimizer = Optimizer()
+        self._settings = horizon_config(settings, "optimizer")
+        self.horizon = settings.horizon
+        what = ctypes.c_char_p()
+        low, high = check_duty_limits(duty_limits, "optimizer")
+        _check(self._lib.buckc_optimizer_init(ctypes.byref(self.optimizer), ctypes.byref(self._settings), low, high,
+                                              ctypes.byref(what)), what, "optimizer")
+
+    def solve(self, cost_of_sequence, warm: np.ndarray | None = None, anchor: float = 0.5) -> tuple[np.ndarray, float]:
+        """``cost_of_sequence(duties (horizon,)) -> float``; returns (sequence, best cost)."""
+        errors = []
+
+        def callback(_user, duties, horizon, first):
+            try:
+                value = float(cost_of_sequence(np.ctypeslib.as_array(duties, (horizon,)).copy()))
+            except Exception as error:  # an exception cannot cross the C frames
+                errors.append(error)
+                value = math.nan
+            first[0] = first[1] = math.nan
+            return value
+
+        function = COST_FUNCTION(callback)
+        sequence = np.empty(self.horizon)
+        warm_array = None if warm is None else np.ascontiguousarray(warm, dtype=float)
+        best = self._lib.buckc_optimizer_solve(ctypes.byref(self.optimizer), function, None,
+                                               None if warm_array is None else _pointer(warm_array), anchor,
+                                               _pointer(sequence), None)
+        if errors:
+            raise errors[0]
+        return sequence, best
+
+    @property
+    def evaluations(self) -> int:
+        return self.optimizer.evaluations
+
+    @property
+    def passes(self) -> int:
+        return self.optimizer.passes
+
+    @property
+    def best_location(self) -> tuple[int, int]:
+        return self.optimizer.best_call, self.optimizer.best_row
+
+
+# ------------------------------------------------------------------------------------------ building blocks for tests
+
+def expm2(a: np.ndarray, t: float) -> np.ndarray:
+    out = np.empty(4)
+    library().buckc_expm2(_pointer(np.ascontiguousarray(a, dtype=float).ravel()), t, _pointer(out))
+    return out.reshape(2, 2)
+
+
+def nn_forward(config: NnConfig, x: np.ndarray) -> np.ndarray:
+    """``NNPlantModel.predict`` in C, one row at a time."""
+    x = np.ascontiguousarray(np.atleast_2d(x), dtype=float)
+    out = np.empty((len(x), 2))
+    lib = library()
+    for i in range(len(x)):
+        lib.buckc_nn_forward(ctypes.byref(config), _pointer(x[i]), _pointer(out[i]))
+    return out
+
+
+def nn_rollout(config: NnConfig, histories: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+               disturbance: np.ndarray | None = None) -> np.ndarray:
+    """``NNPlantModel.rollout`` in C: histories (M, delays, 3), duties (M, N), extras (M, E) -> (M, N, 2)."""
+    histories = np.ascontiguousarray(histories, dtype=float)
+    duties = np.ascontiguousarray(duties, dtype=float)
+    m, n = duties.shape
+    out = np.empty((m, n, 2))
+    ex = None if extras is None else np.ascontiguousarray(extras, dtype=float)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
+    lib = library()
+    for i in range(m):
+        lib.buckc_nn_rollout(ctypes.byref(config), _pointer(histories[i]), None if ex is None else _pointer(ex[i]),
+                             _pointer(duties[i]), n, None if dist is None else _pointer(dist), _pointer(out[i]))
+    return out
+
+
+def nn_rollout_shared(config: NnConfig, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+                      disturbance: np.ndarray | None = None) -> np.ndarray:
+    """``NNPlantModel.rollout_shared`` in C: one history (delays, 3) for all candidates."""
+    history = np.ascontiguousarray(history, dtype=float)
+    duties = np.ascontiguousarray(duties, dtype=float)
+    m, n = duties.shape
+    out = np.empty((m, n, 2))
+    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=float)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
+    shared = NnShared()
+    lib = library()
+    lib.buckc_nn_shared_prepare(ctypes.byref(config), _pointer(history), None if ex is None else _pointer(ex),
+                                None if dist is None else _pointer(dist), ctypes.byref(shared))
+    for i in range(m):
+        lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i]), n,
+                                    _pointer(out[i]))
+    return out
+
+
+def switched_table(predictor: SwitchedModelPredictor, load: float, input_voltage: float) -> np.ndarray:
+    """``SwitchedModelPredictor._table`` computed in C (no cache): (grid_points, 24)."""
+    config = predictor_config(predictor).switched
+    table = SwitchedTable()
+    library().buckc_switched_table(ctypes.byref(config), load, input_voltage, ctypes.byref(table))
+    return np.ctypeslib.as_array(table.rows)[:table.points].copy()
+
+
+def switched_rollout_with_table(table: np.ndarray, y0, previous_duty: float, duties: np.ndarray,
+                                disturbance) -> np.ndarray:
+    """The C switched rollout on a given table (e.g. Python's own), for all candidates."""
+    c_table = SwitchedTable()
+    c_table.points = len(table)
+    np.ctypeslib.as_array(c_table.rows)[:len(table)] = table
+    duties = np.ascontiguousarray(duties, dtype=float)
+    m, n = duties.shape
+    out = np.empty((m, n, 2))
+    y = np.ascontiguousarray(y0, dtype=float)
+    dist = np.ascontiguousarray(disturbance, dtype=float)
+    lib = library()
+    for i in range(m):
+        lib.buckc_switched_rollout(ctypes.byref(c_table), _pointer(y), previous_duty, _pointer(duties[i]), n,
+                                   _pointer(dist), _pointer(out[i]))
+    return out
