@@ -46,8 +46,15 @@ from controllers.base import Measurement, check_duty_limits, check_sample_period
 from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
 from controllers.pi import PIController
 from controllers.predictive import PredictiveController
-from controllers.predictors import (CARRIERS, SENSOR_MODELS, AveragedModelPredictor, CircuitParameters, NNPredictor,
-                                    PredictionContext, SwitchedModelPredictor)
+from controllers.predictors import (
+    CARRIERS,
+    SENSOR_MODELS,
+    AveragedModelPredictor,
+    CircuitParameters,
+    NNPredictor,
+    PredictionContext,
+    SwitchedModelPredictor,
+)
 
 SOURCE_DIR = Path(__file__).parent / "c"
 FLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-ffp-contract=off")
@@ -257,7 +264,8 @@ class PredictorConfig(ctypes.Structure):
 
 class PredictiveConfig(ctypes.Structure):
     _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_load", c_double), ("horizon", HorizonSettingsC), ("predictor", PredictorConfig)]
+                ("nominal_load", c_double), ("nominal_input_voltage", c_double), ("horizon", HorizonSettingsC),
+                ("predictor", PredictorConfig)]
 
 
 class MeasurementC(ctypes.Structure):
@@ -269,7 +277,7 @@ class PredictiveState(ctypes.Structure):
     _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
-                ("load", c_double), ("best_cost", c_double), ("evaluations", c_int), ("passes", c_int),
+                ("conductance", c_double), ("best_cost", c_double), ("evaluations", c_int), ("passes", c_int),
                 ("best_call", c_int), ("best_row", c_int)]
 
 
@@ -524,6 +532,7 @@ class NativePredictiveController:
         config.sample_period = controller.sample_period
         config.duty_min, config.duty_max = controller.duty_limits
         config.nominal_load = controller.nominal_load
+        config.nominal_input_voltage = controller.nominal_input_voltage
         config.horizon = horizon_config(controller.settings, controller.name)
         config.predictor = predictor_config(controller.predictor)
         return cls(config, controller.name, controller.describe())
@@ -590,7 +599,7 @@ class NativePredictor:
         lib, kind = self._lib, self.config.kind
         if kind == PREDICTOR_NN:
             signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
-                       "load_conductance": 1.0 / context.load_resistance}
+                       "load_conductance": context.load_conductance}
             extras = np.array([signals[s] for s in self._extras] or [0.0])
             shared = NnShared()
             lib.buckc_nn_shared_prepare(ctypes.byref(self.config.nn), _pointer(history),

@@ -29,10 +29,22 @@ from controllers.base import Controller, Measurement
 from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, TrainingSettings, load_model, train
 from controllers.pi import PIController
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController
-from controllers.predictors import (AveragedModelPredictor, CircuitParameters, PredictionContext,
-                                    SwitchedModelPredictor, circuit_matrix, expm2, expm2_many, measured_from_state)
+from controllers.predictors import (
+    AveragedModelPredictor,
+    CircuitParameters,
+    PredictionContext,
+    SwitchedModelPredictor,
+    circuit_matrix,
+    expm2,
+    expm2_many,
+    measured_from_state,
+)
+from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.study.vocabulary import NOMINAL
+from plant_fmu.table_ii import TABLE_II
 
-TS = 1 / 75e3
+TS = TABLE_II.switching_period
+FSW = TABLE_II.switching_frequency
 FIXTURES = Path(__file__).parent / "fixtures"
 PARASITICS = CircuitParameters(inductance=264e-6, capacitance=8e-6, inductor_resistance=0.15,
                                switch_on_resistance=0.1, diode_forward_voltage=0.7, capacitor_esr=0.05)
@@ -164,7 +176,7 @@ def test_networks_above_the_c_maxima_are_refused_by_name():
 
 def test_expm2_circuit_matrix_and_measured_from_state_match(lib):
     worst = 0.0
-    for p in (CircuitParameters(), PARASITICS):
+    for p in (NOMINAL, PARASITICS):
         c_p = native.circuit_parameters(p)
         for load in (0.01, 0.5, 2.0, 6.0, 200.0, 1e4):  # under- and over-damped
             for switch_resistance in (0.0, 0.05):
@@ -184,11 +196,11 @@ def contexts(rng, loads, count=3):
     for load in loads:
         for _ in range(count):
             yield PredictionContext(history=np.array([[rng.uniform(0, 3), rng.uniform(0, 15), 0.0]]),
-                                    input_voltage=float(rng.choice([48.0, 40.0])), load_resistance=load,
+                                    input_voltage=float(rng.choice([48.0, 40.0])), load_resistance=load, load_conductance=1 / load,
                                     load_current=1.0, previous_duty=float(rng.uniform(0, 1)))
 
 
-@pytest.mark.parametrize("parameters", [CircuitParameters(), PARASITICS], ids=["nominal", "parasitics"])
+@pytest.mark.parametrize("parameters", [NOMINAL, PARASITICS], ids=["nominal", "parasitics"])
 @pytest.mark.parametrize("period", [1e-3, TS], ids=["1ms", "13us"])
 def test_averaged_predictor_rollout_matches(parameters, period):
     rng = np.random.default_rng(7)
@@ -230,7 +242,7 @@ def test_averaged_cache_keeps_pythons_first_value_per_key_and_its_clear_rule(lib
 
 
 def switched_cases():
-    for parameters, label in ((CircuitParameters(), "nominal"), (PARASITICS, "parasitics")):
+    for parameters, label in ((NOMINAL, "nominal"), (PARASITICS, "parasitics")):
         for period in (TS, 1e-3):
             for carrier, sensor in (("sawtooth", "period_average"), ("triangle", "period_start"),
                                     ("sawtooth", "period_start")):
@@ -245,7 +257,7 @@ def test_switched_predictor_tables_and_rollouts_match(parameters, period, carrie
     chosen where the map H is well conditioned: at 1 ms and low loads it is not (see
     test_switched_model_is_ill_conditioned_at_1ms_and_low_loads)."""
     rng = np.random.default_rng(3)
-    python = SwitchedModelPredictor(parameters, period, carrier=carrier, sensor=sensor)
+    python = SwitchedModelPredictor(parameters, period, FSW, carrier=carrier, sensor=sensor)
     twin = native.NativePredictor(python)
     loads = (6.0, 2.0, 50.0) if period < 1e-4 else (6.0, 50.0)
     for ctx in contexts(rng, loads, count=2):
@@ -276,15 +288,15 @@ def test_switched_model_is_ill_conditioned_at_1ms_and_low_loads():
     state to the sensor reading, is nearly singular and K = F H^-1 amplifies rounding. Both
     implementations then disagree far above the ulp level; with parasitics numpy calls H
     singular and the Python predictor raises, where the C one returns non-finite maps."""
-    python = SwitchedModelPredictor(CircuitParameters(), 1e-3)
+    python = SwitchedModelPredictor(NOMINAL, 1e-3, FSW)
     table = python._table(2.0, 48.0)
     assert np.linalg.cond(table[:, 6:10].reshape(-1, 2, 2)).max() > 1e10
     with pytest.raises(np.linalg.LinAlgError):
-        SwitchedModelPredictor(PARASITICS, 1e-3)._table(2.0, 48.0)
+        SwitchedModelPredictor(PARASITICS, 1e-3, FSW)._table(2.0, 48.0)
 
 
 def test_switched_cache_recomputes_evicted_tables_from_the_first_value_of_their_key(lib):
-    python = SwitchedModelPredictor(PARASITICS, TS)
+    python = SwitchedModelPredictor(PARASITICS, TS, FSW)
     config = native.predictor_config(python).switched
     cache = native.SwitchedCache()
 
@@ -355,14 +367,15 @@ def test_optimizer_twin_evaluates_the_same_candidates_in_the_same_order(settings
 def test_horizon_settings_above_the_c_maxima_are_refused_by_name():
     from controllers.predictors import AveragedModelPredictor
 
-    too_long = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS, HorizonSettings(horizon=40))
+    too_long = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=40),
+                                   **OPERATING_POINT)
     with pytest.raises(ValueError, match=r"horizon 40 > BUCKC_MAX_HORIZON \(32\)"):
         native.NativePredictiveController.from_python(too_long)
 
     class Other:
         name, delays = "other", 1
 
-    other = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS)
+    other = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, **OPERATING_POINT)
     other.predictor = Other()
     with pytest.raises(ValueError, match="predictor Other .* has no C twin"):
         native.NativePredictiveController.from_python(other)
@@ -411,8 +424,8 @@ def fast_scenarios():
 @pytest.fixture(scope="module")
 def model_1ms() -> NNPlantModel:
     """The workbench's 1 ms network, identified quickly (800 samples, 100 L-BFGS iterations)."""
-    from cosim.data_collection import collect
-    from cosim.experiments import collection_settings, nn_configs, plant_binding
+    from cosim.study.data_collection import collect
+    from cosim.study.experiments import collection_settings, nn_configs, plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
                    collection_settings(1e-3, samples=800, seed=3))
@@ -420,11 +433,17 @@ def model_1ms() -> NNPlantModel:
 
 
 def replay_case(name: str, model_1ms):
-    from cosim.experiments import MISMATCH, NOMINAL, model_mpc, nnpc, plant_binding
-    from cosim.scenarios import paper_scenarios
+    from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+    from cosim.study.experiments import model_mpc, nnpc, plant_binding
+    from cosim.study.vocabulary import MISMATCH
 
-    if name == "nnpc-1ms":
-        return plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3), paper_scenarios()
+    if name == "nnpc-1ms":  # the paper's scenarios and random references and loads (dead-beat moves repeat)
+        from cosim.study.data_collection import random_scenario
+        from cosim.study.experiments import collection_settings
+
+        scenarios = [load_scenario(n) for n in PAPER_SCENARIOS]
+        scenarios.append(random_scenario(collection_settings(1e-3, samples=200, seed=9), 1e-3))
+        return plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3), scenarios
     if name == "nnpc-13us":  # 2 delays, horizon 23, move blocking: the reproduction's network
         model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
         return plant_binding("mismatch", "switched"), nnpc(model, TS), fast_scenarios()
@@ -455,7 +474,7 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
     between numpy's BLAS/SIMD arithmetic and the C loops -- would show as a duty mismatch. Such
     samples are counted, not hidden: at most 1 % may occur, each scenario must end in agreement,
     and none occurred when this was written."""
-    from cosim.fmu_plant import FmuPlant
+    from cosim.fmi.plant import open_plant
     from cosim.master import run
 
     binding, controller, scenarios = replay_case(case, model_1ms)
@@ -467,7 +486,7 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
     worst = 0.0
     path_differences = 0
     all_duties = []
-    with FmuPlant(binding) as plant:
+    with open_plant(binding) as plant:
         for scenario in scenarios:
             recorder.log.clear()
             run(plant, recorder, scenario, record_period=controller.sample_period)
@@ -500,10 +519,10 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
 def test_native_nnpc_drives_the_plant_like_the_python_one(rate, model_1ms, request):
     """Closed loop: each NNPC drives its own run of the plant FMU on the start-up scenario; the
     duty traces agree to 1e-9 at every control sample (so the output traces are the same run)."""
-    from cosim.experiments import nnpc, plant_binding
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
+    from cosim.study.experiments import nnpc, plant_binding
 
     if rate == "1ms":
         binding, controller, scenario = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3), load_scenario("startup")
@@ -526,7 +545,8 @@ def test_native_nnpc_drives_the_plant_like_the_python_one(rate, model_1ms, reque
 
 
 def test_native_predictive_controller_keeps_the_protocol():
-    controller = PredictiveController(AveragedModelPredictor(CircuitParameters(), TS), TS, HorizonSettings(horizon=5))
+    controller = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=5),
+                                      **OPERATING_POINT)
     twin = native.NativePredictiveController.from_python(controller)
     assert (twin.name, twin.sample_period, twin.duty_limits) == (controller.name, controller.sample_period,
                                                                   controller.duty_limits)
@@ -538,3 +558,18 @@ def test_native_predictive_controller_keeps_the_protocol():
     assert [twin.step(m) for m in sequence] == first  # reset forgets everything that matters
     assert first == [controller.step(m) for m in sequence]
     assert math.isfinite(twin.state.best_cost) and twin.state.have_warm
+
+
+def test_the_load_estimate_twin_follows_the_python_rule():
+    from controllers import load_estimate
+
+    lib = native.library()
+    lib.buckc_estimate_conductance.restype = ctypes.c_double
+    lib.buckc_estimate_conductance.argtypes = [ctypes.c_double] * 4
+    rng = np.random.default_rng(8)
+    edges = [load_estimate.MIN_VOLTAGE, np.nextafter(load_estimate.MIN_VOLTAGE, 1.0), 0.0, 12.0]
+    currents = [load_estimate.MIN_CURRENT, np.nextafter(load_estimate.MIN_CURRENT, 1.0), 0.0, math.nan, 2.0, -1.0]
+    cases = [(v, i, l) for v in edges for i in currents for l in currents]
+    cases += [tuple(x) for x in rng.uniform(-1, 15, (200, 3))]
+    for vo, io, il in cases:
+        assert lib.buckc_estimate_conductance(vo, io, il, 0.125) == load_estimate.estimate_conductance(vo, io, il, 0.125)

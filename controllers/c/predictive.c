@@ -3,7 +3,7 @@
  *   buckc_doubling_blocks    doubling_blocks
  *   buckc_optimizer_init     HorizonSettings.__post_init__ (validation) + HorizonOptimizer.__init__
  *   buckc_optimizer_solve    HorizonOptimizer.solve with first_stage and _openings
- *   buckc_predictive_*       PredictiveController.__init__ / reset / _estimate_load / step, and the
+ *   buckc_predictive_*       PredictiveController.__init__ / reset / step (the load estimate: load_estimate.c), and the
  *                            NNPredictor.rollout glue (its extra signals from the context)
  * Candidates are generated and costed one at a time in Python's stage order (so ties go where
  * numpy's argmin sends them); see predictive.h.
@@ -12,6 +12,7 @@
 #include <string.h>
 
 #include "predictive.h"
+#include "load_estimate.h"
 
 #define FAIL(code, text) do { if (what) *what = (text); return (code); } while (0)
 
@@ -415,7 +416,7 @@ void buckc_predictive_reset(BuckcPredictive *c)
     memset(s, 0, sizeof(*s));
     s->delays = predictor_delays(c->config);
     s->previous_duty = 0.0;
-    s->load = c->config->nominal_load;
+    s->conductance = 1.0 / c->config->nominal_load;
     s->best_cost = NAN;
 }
 
@@ -503,15 +504,11 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         s->bias[0] = (1 - alpha) * b0 + alpha * (current - s->predicted[0]);
         s->bias[1] = (1 - alpha) * b1 + alpha * (voltage - s->predicted[1]);
     }
-    /* _estimate_load */
-    if (isfinite(m->load_current) && m->load_current > 1e-6 && voltage > 1e-3)
-        s->load = voltage / m->load_current;
-    else if (isfinite(m->inductor_current) && m->inductor_current > 1e-3 && voltage > 1e-3)
-        s->load = voltage / m->inductor_current; /* steady state: iL = io */
-    load = s->load;
-    c->target[0] = m->reference / load;
+    s->conductance = buckc_estimate_conductance(voltage, m->load_current, m->inductor_current, s->conductance);
+    load = 1.0 / s->conductance;
+    c->target[0] = m->reference * s->conductance;
     c->target[1] = m->reference;
-    input_voltage = isfinite(m->input_voltage) ? m->input_voltage : 48.0;
+    input_voltage = isfinite(m->input_voltage) ? m->input_voltage : config->nominal_input_voltage;
     c->context_previous_duty = s->previous_duty;
     c->context_disturbance[0] = s->bias[0];
     c->context_disturbance[1] = s->bias[1];
@@ -524,7 +521,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
             switch (nn->extras[e]) {
             case BUCKC_EXTRA_LOAD_CURRENT: extras[e] = m->load_current; break;
             case BUCKC_EXTRA_INPUT_VOLTAGE: extras[e] = input_voltage; break;
-            default: extras[e] = 1.0 / load; break;
+            default: extras[e] = s->conductance; break;
             }
         }
         buckc_nn_shared_prepare(nn, &s->history[0][0], nn->n_extras ? extras : NULL, s->bias, &c->nn);

@@ -88,6 +88,7 @@ typedef struct {
     double sample_period;           /* [s] */
     double duty_min, duty_max;
     double nominal_load;            /* [Ohm] the load assumed until one is measured */
+    double nominal_input_voltage;   /* [V] stands in for a supply voltage the measurement lacks */
     BuckcHorizonSettings horizon;
     BuckcPredictorConfig predictor;
 } BuckcPredictiveConfig;
@@ -113,7 +114,7 @@ typedef struct {
     int have_predicted;
     double predicted[2];                    /* the model's one-step prediction made at the last sample */
     double previous_duty;
-    double load;                            /* [Ohm] the last load estimate */
+    double conductance;                     /* [S] the last load estimate (load_estimate.h) */
     /* diagnostics of the last step */
     double best_cost;
     int evaluations, passes, best_call, best_row;
