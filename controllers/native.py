@@ -575,6 +575,15 @@ class NativePredictiveController:
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
 
 
+def native_twin(controller):
+    """The C twin of a Python PI or predictive controller; any other controller is returned as it is."""
+    if isinstance(controller, PIController):
+        return NativePIController.from_python(controller)
+    if isinstance(controller, PredictiveController):
+        return NativePredictiveController.from_python(controller)
+    return controller
+
+
 # ------------------------------------------------------------------------------------------ predictors and optimizer
 
 class NativePredictor:

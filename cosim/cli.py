@@ -107,6 +107,7 @@ def cmd_run(args) -> int:
     from cosim.batch import Batch, run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
     from cosim.study.controller_factory import make_controllers
+    from cosim.study.experiments import implemented
     from cosim.study.vocabulary import CONTROLLER_STYLES
 
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
@@ -118,6 +119,7 @@ def cmd_run(args) -> int:
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,
                                    progress=args.progress)
+    controllers = [implemented(c, args.implementation) for c in controllers]
     output = run_batch(batch, controllers, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
                        record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
                        progress=args.progress, stream=args.stream)
@@ -263,6 +265,7 @@ def cmd_reproduce(args) -> int:
 
         load_binding(args.plant)  # refuse a bad binding before any work starts
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
+              implementation=args.implementation,
               profile=QUICK if args.quick else FULL, binding_file=args.plant,
               control_periods=tuple(args.control_period or ()))
     return 0
@@ -304,6 +307,12 @@ def _add_plant_options(parser) -> None:
                              "(default: the binding's choice, else co-simulation)")
 
 
+def _add_implementation_option(parser) -> None:
+    parser.add_argument("--implementation", choices=["c", "python"], default="c",
+                        help="run the PI and predictive controllers as their C twins (controllers/c: the same duty "
+                             "at every sample, several times faster) or as the Python references (default: c)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="buck-cosim",
@@ -343,6 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="output folder (default: results/runs-cli)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
+    _add_implementation_option(p)
     p.add_argument("--stream", action="store_true",
                    help="for long runs: write rows to Parquet while running, in bounded memory (no CSV, metrics "
                         "or figures)")
@@ -427,6 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--control-period", action="append", type=parse_period, metavar="SECONDS",
                    help="with --plant: control period(s) to run (repeatable; default 1e-3)")
     p.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
+    _add_implementation_option(p)
     p.set_defaults(func=cmd_reproduce)
 
     p = sub.add_parser("bench", help="run the benchmark suite; write results/benchmarks.md and .csv",

@@ -99,6 +99,23 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
 
 
+#: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every
+#: sample; the default, several times faster for the predictive controllers) or the Python reference
+IMPLEMENTATIONS = ("c", "python")
+
+
+def implemented(controller, implementation: str = "c"):
+    """``controller`` as it should run: its C twin for ``"c"`` (PI and predictive controllers;
+    others as they are), itself for ``"python"``."""
+    if implementation not in IMPLEMENTATIONS:
+        raise ConfigError(f"implementation {implementation!r} is unknown: expected one of {', '.join(IMPLEMENTATIONS)}")
+    if implementation == "python":
+        return controller
+    from controllers.native import native_twin
+
+    return native_twin(controller)
+
+
 #: what the predictive controllers assume before their sensors tell them (Table II)
 NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_input_voltage": TABLE_II.input_voltage}
 

@@ -31,11 +31,13 @@ import pandas as pd
 
 from cosim.base.errors import PlantError
 from cosim.base.files import atomic_write_text, remove_temporary_files
-from cosim.batch import Batch, run_batch, write_metrics
+from cosim.batch import Batch, write_metrics
+from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import (collection_settings, implemented, model_mpc, nn_configs, nnpc, plant_binding,
+                                    scenarios_for)
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
@@ -127,7 +129,8 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int) -> PipelineOutput:
+def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
+                 implementation: str = "c") -> PipelineOutput:
     import torch
 
     from controllers.nn_model import TrainingSettings, save_model, train
@@ -183,6 +186,9 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int)
         else:
             scenarios.append(scenario)
     batch = Batch(binding, scenarios)
+    def run_batch(batch, controllers, out_dir, **options):  # every run with the chosen implementation
+        return batch_runs(batch, [implemented(c, implementation) for c in controllers], out_dir, **options)
+
     start = time.perf_counter()
     output = run_batch(batch, controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
                        extra_metadata={"pipeline": asdict(pipeline)})
@@ -260,18 +266,24 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
+              implementation: str = "c",
               profile: Profile = FULL, binding_file: str | None = None,
               control_periods: tuple[float, ...] = ()) -> Path:
     """Run every pipeline and write ``REPORT.md``; returns the report path.
 
     With ``binding_file``, the pipeline runs on that external plant at ``control_periods``
-    (default 1 ms) instead of the built-in plants.
+    (default 1 ms) instead of the built-in plants. ``implementation``: the controllers' C twins
+    ("c", equivalent at every sample and faster) or their Python references ("python").
     """
     from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
     started = time.perf_counter()
     fmu_path()  # build once, before workers start
+    if implementation == "c":
+        from controllers.native import library
+
+        library()  # the C twins too
     if not resume:  # a fresh reproduction recomputes everything, tuned gains included
         for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
             stale.unlink()
@@ -293,11 +305,11 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
     if workers <= 1:
         for done, p in enumerate(todo, start=1):
-            outputs[p] = run_pipeline(p, out_dir, profile, seed)
+            outputs[p] = run_pipeline(p, out_dir, profile, seed, implementation)
             log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
     elif todo:
         # longest first (the fast-rate pipelines), so the workers finish together
-        jobs = [(p, out_dir, profile, seed) for p in sorted(todo, key=lambda p: p.control_period)]
+        jobs = [(p, out_dir, profile, seed, implementation) for p in sorted(todo, key=lambda p: p.control_period)]
         # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
         # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
         executor = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
