@@ -44,7 +44,7 @@ import numpy as np
 
 from controllers.base import Measurement, check_duty_limits, check_sample_period
 from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
-from controllers.pi import PIController
+from controllers.pi import PIController, check_gains
 from controllers.predictive import PredictiveController
 from controllers.predictors import (
     CARRIERS,
@@ -464,9 +464,7 @@ class NativePIController:
 
     def __init__(self, kp: float, ki: float, sample_period: float = 1e-3,
                  duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI", tuning: dict | None = None):
-        if kp < 0 or ki < 0:
-            raise ValueError(f"PI gains kp = {kp}, ki = {ki} are invalid: expected values >= 0")
-        self.kp, self.ki = float(kp), float(ki)
+        self.kp, self.ki = check_gains(kp, ki)
         self.sample_period = check_sample_period(sample_period, "PI")
         self.duty_limits = check_duty_limits(duty_limits, "PI")
         self.name = name

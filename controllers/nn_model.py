@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import io
 import math
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -295,6 +296,11 @@ def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = Tra
         raise ValueError(f"{n} samples are too few to train on: expected at least 100")
     test_start = int(round(n * (1 - settings.test_fraction)))
     train_frame, test_frame = frame.iloc[:test_start], frame.iloc[test_start:]
+    columns = [*STATE_SIGNALS, "duty_cycle", *extra_columns(config)]
+    finite = np.isfinite(frame[columns].to_numpy(dtype=float)).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"{int((~finite).sum())} of {n} samples hold NaN or infinite values in "
+                         f"{', '.join(columns)} (first: row {int(np.argmin(finite))}): expected finite measurements")
     x, y = build_dataset(train_frame, config)
     if config.residual:
         y = y - x[:, :2]  # the network learns the change over one sample
@@ -385,12 +391,31 @@ def _checksum(state_dict: dict, extra: list[np.ndarray]) -> str:
     return digest.hexdigest()
 
 
+def _non_finite(state: dict, norm: dict) -> str | None:
+    """The name of the first weight or normalisation array holding NaN or an infinity, else None."""
+    for name in sorted(state):
+        if not bool(torch.isfinite(state[name]).all()):
+            return name
+    for name, array in norm.items():
+        if not np.isfinite(array).all():
+            return f"normalisation {name}"
+    return None
+
+
+NORMALISATION = ("input_mean", "input_std", "output_mean", "output_std")
+
+
 def save_model(model: NNPlantModel, path: Path) -> Path:
-    """Write the model atomically; only tensors, numbers, strings, lists and dicts go in."""
+    """Write the model atomically; only tensors, numbers, strings, lists and dicts go in. A model
+    with non-finite weights or normalisation is refused (ValueError): it would command nonsense."""
     from cosim.base.files import atomic_write
 
     state = {k: v.detach().clone() for k, v in model.network.state_dict().items()}
     norm = [model.input_mean, model.input_std, model.output_mean, model.output_std]
+    bad = _non_finite(state, dict(zip(NORMALISATION, norm)))
+    if bad is not None:
+        raise ValueError(f"the trained network has non-finite values in {bad} (NaN or infinite samples in the "
+                         "data?): refusing to save it")
     payload = {
         "format": FORMAT,
         "version": VERSION,
@@ -412,13 +437,19 @@ def load_model(path: Path, expect_period: float | None = None,
                expect_config: NNConfig | None = None) -> NNPlantModel:
     """Read a model with ``weights_only=True``; refuse anything that is not exactly what we wrote."""
     path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"model file {path} is a folder: expected a .pt file written by buck-cosim train")
     if not path.is_file():
         raise ModelFileError(f"model file {path} does not exist")
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; anything else is not ours
+        raise ModelFileError(f"model file {path} is not a model written by buck-cosim train (not a torch zip "
+                             "archive: truncated, or another kind of file)")
     try:
         payload = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as error:  # truncated zip, pickled code refused by weights_only, ...
-        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        if "weights_only" in str(error) or "Unsupported global" in str(error):
+    except Exception as error:  # a damaged archive, pickled code refused by weights_only, ...
+        text = str(error).strip()
+        reason = text.splitlines()[0] if text else type(error).__name__
+        if "Unsupported global" in text or "Unsupported operand" in text:
             reason = "it contains objects other than plain weights (refused without running them)"
         raise ModelFileError(f"model file {path} cannot be read: {reason[:200]}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
@@ -440,14 +471,21 @@ def load_model(path: Path, expect_period: float | None = None,
     for name, size in expected_shapes.items():
         if norm[name].shape != (size,):
             raise ModelFileError(f"model file {path}: normalisation {name} has shape {norm[name].shape}, expected ({size},)")
-    checksum = _checksum(network.state_dict(), [norm[k] for k in ("input_mean", "input_std", "output_mean", "output_std")])
+    checksum = _checksum(network.state_dict(), [norm[k] for k in NORMALISATION])
     if checksum != payload.get("checksum"):
         raise ModelFileError(f"model file {path} fails its SHA-256 check: the weights were changed after saving")
+    bad = _non_finite(network.state_dict(), norm)
+    if bad is not None:
+        raise ModelFileError(f"model file {path} has non-finite values in {bad}: refused (the controller would "
+                             "command nonsense)")
     metadata = payload.get("metadata", {})
     if expect_config is not None and expect_config != config:
         raise ModelFileError(f"model file {path} was trained for inputs {config.label}; expected {expect_config.label}")
     period = metadata.get("control_period_s")
-    if expect_period is not None and period is not None and not math.isclose(period, expect_period, rel_tol=1e-9):
+    if expect_period is not None and period is None:
+        raise ModelFileError(f"model file {path} names no control period (trained on data without the workbench's "
+                             "metadata): train it again with --control-period")
+    if expect_period is not None and not math.isclose(period, expect_period, rel_tol=1e-9):
         raise ModelFileError(
             f"model file {path} was trained at a control period of {period * 1e6:.4g} us; "
             f"the controller samples every {expect_period * 1e6:.4g} us"

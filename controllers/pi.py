@@ -14,7 +14,17 @@ saturated, e.g. during start-up, so the output does not overshoot when it leaves
 
 from __future__ import annotations
 
+import math
+
 from controllers.base import Measurement, check_duty_limits, check_sample_period
+
+
+def check_gains(kp: float, ki: float) -> tuple[float, float]:
+    """Finite, non-negative gains (NaN and infinities refused); raise ValueError naming them."""
+    kp, ki = float(kp), float(ki)
+    if not (math.isfinite(kp) and math.isfinite(ki) and kp >= 0 and ki >= 0):
+        raise ValueError(f"PI gains kp = {kp}, ki = {ki} are invalid: expected finite values >= 0")
+    return kp, ki
 
 
 class PIController:
@@ -23,10 +33,7 @@ class PIController:
     def __init__(self, kp: float, ki: float, sample_period: float = 1e-3,
                  duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI",
                  tuning: dict | None = None):
-        if kp < 0 or ki < 0:
-            raise ValueError(f"PI gains kp = {kp}, ki = {ki} are invalid: expected values >= 0")
-        self.kp = float(kp)
-        self.ki = float(ki)
+        self.kp, self.ki = check_gains(kp, ki)
         self.sample_period = check_sample_period(sample_period, "PI")
         self.duty_limits = check_duty_limits(duty_limits, "PI")
         self.name = name

@@ -24,6 +24,7 @@ from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, metrics_table
 from cosim.plots import Styles, plot_scenario
 from cosim.results import RunResult, write_parquet, write_run
 from cosim.scenarios import Scenario
+from cosim.timeline import plan_timeline
 
 
 def run_stem(scenario: Scenario, controller: Controller, plant_tag: str) -> str:
@@ -48,6 +49,12 @@ class Batch:
         object.__setattr__(self, "scenarios", tuple(self.scenarios))
         for scenario in self.scenarios:
             check_plant_supports(self.binding, scenario)
+
+    def check_rates(self, control_period: float, record_period: float) -> None:
+        """Refuse, before any work, periods that no run of the batch could use (too many instants,
+        too few controller samples): the checks :func:`cosim.timeline.plan_timeline` makes per run."""
+        for scenario in self.scenarios:
+            plan_timeline(scenario, control_period, record_period)
 
 
 @dataclass

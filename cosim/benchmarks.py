@@ -175,14 +175,14 @@ def _raw_floor(step: float, count: int) -> float:
         slave.close()
 
 
-def _master_step(step: float, count: int) -> float:
+def _master_step(step: float, count: int, isolate: bool = False) -> float:
     from cosim.fmi.binding import builtin_binding
     from cosim.fmi.plant import open_plant
     from cosim.master import run
     from cosim.scenarios import parse_scenario
 
     scenario = parse_scenario(f'name = "bench"\nduration = {count * step!r}\n[initial]\nreference = 12.0\n')
-    with open_plant(builtin_binding("averaged")) as plant:
+    with open_plant(builtin_binding("averaged"), isolate=isolate) as plant:
         start = time.perf_counter()
         result = run(plant, _Constant(step), scenario, record_period=step)
         elapsed = time.perf_counter() - start
@@ -199,9 +199,17 @@ def bench_master(quick: bool) -> list[BenchRow]:
         masters.append(_master_step(step, count))
     ratios = [m / f for m, f in zip(masters, floors)]
     ratio = statistics.median(ratios)
+    isolated = [_master_step(step, count // 4 if not quick else count, isolate=True) for _ in range(repeats)]
+    cost = statistics.median(isolated) - statistics.median(masters)
     return [
         BenchRow("raw fmpy floor: setReal + doStep + getReal per macro step (averaged, 10 us)",
                  statistics.median(floors) * 1e6, None, "us"),
+        BenchRow("master per macro step, plant FMU isolated in a child process (--isolate)",
+                 statistics.median(isolated) * 1e6, None, "us", "",
+                 None, f"isolation adds {cost * 1e6:.3g} us per instant (one pipe round trip); it is the default for "
+                       "binding-file plants only, whose FMUs are foreign code and slower per step anyway"),
+        BenchRow("isolation cost ratio: isolated / in-process master per macro step",
+                 statistics.median(isolated) / statistics.median(masters), None, "ratio"),
         BenchRow("master per macro step (control + record every 10 us, constant controller)",
                  statistics.median(masters) * 1e6, None, "us"),
         BenchRow("master overhead ratio: master / raw fmpy floor (median of interleaved repeats)",

@@ -8,6 +8,7 @@ failed, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.fmi.binding import PLANT_MODE_CODES
+from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
 from cosim.study.vocabulary import (
     CONTROLLERS,
     DITHER_FAST,
@@ -51,6 +53,16 @@ def output_dir(text: str | None) -> Path | None:
     return path
 
 
+def input_file(text: str, what: str, hint: str = "") -> Path:
+    """A file to read: refused at once, in one line, if it is missing or a folder."""
+    path = Path(text)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder: expected a file")
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} does not exist" + (f" ({hint})" if hint else ""))
+    return path
+
+
 def output_file(text: str | None) -> Path | None:
     """A file a result goes to: its folder must be creatable and writable, and it must not be a folder."""
     if text is None:
@@ -77,6 +89,44 @@ def parse_period(text: str) -> float:
     return value
 
 
+#: seeds are 32-bit: numpy's and torch's generators take them, and so does any tool a user repeats a run with
+SEED_MAX = 2**32 - 1
+
+
+def seed_value(text: str) -> int:
+    """A random seed: a whole number 0 .. 2**32 - 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: expected a whole number 0 .. {SEED_MAX}") from None
+    if not 0 <= value <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"seed {text} is out of range: expected a whole number 0 .. {SEED_MAX}")
+    return value
+
+
+def bounded(kind=float, low: float | None = None, high: float | None = None, *, below_high: bool = False,
+            unit: str = ""):
+    """An argparse type: a finite number (``kind`` int or float) with ``low <= value`` and
+    ``value <= high`` (``value < high`` with ``below_high``); NaN and infinities are refused."""
+    name = "whole number" if kind is int else "finite number"
+    limits = [f">= {low:g}" if low is not None else "", (f"< {high:g}" if below_high else f"<= {high:g}")
+              if high is not None else ""]
+    expected = f"a {name} {' and '.join(x for x in limits if x)}".strip() + (f" {unit}" if unit else "")
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is invalid: expected {expected}") from None
+        ok = math.isfinite(value) and (low is None or value >= low) and \
+            (high is None or (value < high if below_high else value <= high))
+        if not ok:
+            raise argparse.ArgumentTypeError(f"{text} is invalid: expected {expected}")
+        return value
+
+    return parse
+
+
 # ---------------------------------------------------------------------------------------------
 # Commands
 
@@ -94,13 +144,18 @@ def cmd_scenarios(args) -> int:
 
 
 def _plant_binding(args):
+    from dataclasses import replace
+
     if getattr(args, "plant", None):
         from cosim.fmi.binding_file import load_binding
 
-        return load_binding(args.plant)
-    from cosim.study.experiments import plant_binding
+        binding = load_binding(args.plant)
+    else:
+        from cosim.study.experiments import plant_binding
 
-    return plant_binding(args.variant, args.mode, args.sensor)
+        binding = plant_binding(args.variant, args.mode, args.sensor)
+    isolate = getattr(args, "isolate", None)
+    return binding if isolate is None else replace(binding, isolate=isolate)
 
 
 def cmd_run(args) -> int:
@@ -114,6 +169,7 @@ def cmd_run(args) -> int:
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
     out_dir = output_dir(args.out)
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
+    batch.check_rates(args.control_period, args.record_period)
     # the batch is checked: now the (possibly long) tuning and training
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
@@ -138,6 +194,7 @@ def cmd_run(args) -> int:
 def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
+    output_file(args.draft_binding)  # a folder or an unwritable place is refused before anything is read
     print(describe_fmu(args.fmu))
     if args.draft_binding:
         from cosim.fmi.binding_file import write_draft_binding
@@ -148,12 +205,10 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from cosim.base.files import atomic_write
+    from cosim.base.files import atomic_write, atomic_write_json
     from cosim.results import read_run, write_parquet
 
-    source = Path(args.run_file)
-    if not source.is_file():
-        raise ConfigError(f"run file {source} does not exist")
+    source = input_file(args.run_file, "run file")
     try:
         result = read_run(source)
     except (ValueError, OSError) as error:
@@ -161,12 +216,9 @@ def cmd_export(args) -> int:
     out_dir = output_dir(args.out) if args.out else source.parent
     frame = result.frame.drop(columns=["controller_compute_time"], errors="ignore")
     if args.to == "csv":
-        import json
-
         target = out_dir / f"{source.stem}.csv"
         atomic_write(target, lambda tmp: frame.to_csv(tmp, index=False))
-        atomic_write(target.with_suffix(".json"),
-                     lambda tmp: tmp.write_text(json.dumps(result.metadata, indent=2, sort_keys=True) + "\n"))
+        atomic_write_json(target.with_suffix(".json"), result.metadata)
     else:
         target = write_parquet(frame, result.metadata, out_dir / f"{source.stem}.parquet")
     print(f"wrote {target}")
@@ -208,9 +260,10 @@ def cmd_collect(args) -> int:
 
     output_file(args.out)
     work_dir = output_dir(args.work_dir)
+    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
+    settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
-    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
     save_samples(data, Path(args.out))
     print(f"wrote {len(data)} samples ({', '.join(data.columns)}) to {args.out}")
@@ -227,9 +280,7 @@ def cmd_train(args) -> int:
     except ValueError as error:
         raise ConfigError(str(error)) from None
     output_file(args.out)
-    source = Path(args.data)
-    if not source.is_file():
-        raise ConfigError(f"data file {source} does not exist (write one with buck-cosim collect-data)")
+    source = input_file(args.data, "data file", "write one with buck-cosim collect-data")
     try:
         frame, metadata = read_parquet(source)
     except Exception as error:
@@ -238,13 +289,22 @@ def cmd_train(args) -> int:
     missing = [c for c in needed if c not in frame.columns]
     if missing:
         raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
+    period = metadata.get("control_period_s")
+    if args.control_period is not None:
+        if period is not None and not math.isclose(period, args.control_period, rel_tol=1e-9):
+            raise ConfigError(f"{source} was collected at a control period of {period:.6g} s, not the "
+                              f"--control-period {args.control_period:.6g} s given")
+        period = args.control_period
+    if period is None:
+        raise ConfigError(f"{source} has no workbench metadata naming its control period (not written by "
+                          "buck-cosim collect-data?): give the period the samples were taken at with --control-period")
     try:
         model = train(frame, config, TrainingSettings(seed=args.seed), progress=args.progress,
-                      metadata={"control_period_s": metadata.get("control_period_s"), "plant": metadata.get("plant"),
+                      metadata={"control_period_s": period, "plant": metadata.get("plant"),
                                 "data_file": str(source), "seed": args.seed})
+        save_model(model, Path(args.out))
     except ValueError as error:
         raise ConfigError(f"{source}: {error}") from None
-    save_model(model, Path(args.out))
     rmse = model.metadata["held_out_rmse"]
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
           f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step {rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
@@ -253,17 +313,21 @@ def cmd_train(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from cosim.study.reproduce import reproduce
+    from cosim.study.reproduce import FULL, QUICK, reproduce
 
-    if args.workers < 1:
-        raise ConfigError(f"--workers {args.workers} is invalid: expected >= 1")
     output_dir(args.out)
-    from cosim.study.reproduce import FULL, QUICK
-
-    if args.plant:
+    if args.control_period and not args.plant:
+        raise ConfigError("--control-period applies to reproduce --plant only (the built-in study runs at 1 ms and "
+                          "at one switching period)")
+    if args.plant:  # refuse a bad binding, or a period its scenarios cannot use, before any work starts
+        from cosim.batch import Batch
         from cosim.fmi.binding_file import load_binding
+        from cosim.study.experiments import scenarios_for
 
-        load_binding(args.plant)  # refuse a bad binding before any work starts
+        binding = load_binding(args.plant)
+        for period in args.control_period or (PAPER_PERIOD,):
+            scenarios = [s for s in scenarios_for(period) if s.required_roles() <= set(binding.roles)]
+            Batch(binding, scenarios).check_rates(period, 1e-5)
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
               implementation=args.implementation,
               profile=QUICK if args.quick else FULL, binding_file=args.plant,
@@ -302,6 +366,13 @@ def _add_plant_options(parser) -> None:
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
                              "(--mode/--variant/--sensor then do not apply; see README)")
+    isolation = parser.add_mutually_exclusive_group()
+    isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
+                           help="step the plant FMU in a child process: a crash inside it ends the run with an error "
+                                "(exit 3, rows kept) instead of the workbench (default for binding-file plants; costs "
+                                "one pipe round trip per step, see benchmarks.md)")
+    isolation.add_argument("--no-isolate", dest="isolate", action="store_false",
+                           help="step the plant FMU in this process (default for the built-in plant)")
     parser.add_argument("--interface", choices=["cs", "me"], default=None,
                         help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
                              "(default: the binding's choice, else co-simulation)")
@@ -342,13 +413,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: 1e-3)")
     p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
                    help="recording step in s; need not divide the control period (default: 1e-5)")
-    p.add_argument("--kp", type=float, help="PI proportional gain [1/V] (default: tuned automatically)")
-    p.add_argument("--ki", type=float, help="PI integral gain [1/(V s)] (default: tuned automatically)")
-    p.add_argument("--duty-min", type=float, default=0.0, help="lower duty limit (default: 0)")
-    p.add_argument("--duty-max", type=float, default=1.0, help="upper duty limit (default: 1)")
+    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned automatically)")
+    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned automatically)")
+    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
+    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")
-    p.add_argument("--samples", type=int, default=10_000, help="samples collected when nnpc trains on demand")
-    p.add_argument("--seed", type=int, default=0, help="random seed for data collection and training (default: 0)")
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    p.add_argument("--seed", type=seed_value, default=0,
+                   help=f"random seed for data collection and training, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="output folder (default: results/runs-cli)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
@@ -364,11 +437,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="sample period in s (default: 1e-3)")
-    p.add_argument("--samples", type=int, default=10_000, help="number of samples (default: 10000, the paper's)")
-    p.add_argument("--excitation", type=float, default=None,
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                   help=f"number of samples (>= {MIN_SAMPLES}; default: 10000, the paper's)")
+    p.add_argument("--excitation", type=bounded(float, 0.0, MAX_EXCITATION, below_high=True), default=None,
                    help=f"standard deviation of the duty dither added to the PI (default: {DITHER_SLOW} at control "
                         f"periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, {DITHER_FAST} faster; 0 = plain PI)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="where tuned PI gains are cached (default: results/runs-cli)")
     p.add_argument("--out", required=True, metavar="DATA.parquet", help="output file")
@@ -378,13 +452,17 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Fit [iL, vo, d](k-1..k-D) (+ extra signals) -> [iL, vo](k) with torch; report "
                                    "held-out one-step and 10-step RMSE; save with weights only.")
     p.add_argument("data", help="samples written by collect-data (.parquet)")
-    p.add_argument("--hidden", type=int, nargs="+", default=[7], help="hidden layer sizes (default: 7, the paper's)")
+    p.add_argument("--hidden", type=bounded(int, 1), nargs="+", default=[7],
+                   help="hidden layer sizes (default: 7, the paper's)")
     p.add_argument("--activation", default="tanh", help="tanh (default), relu or sigmoid")
-    p.add_argument("--delays", type=int, default=1, help="past samples of [iL, vo, d] fed in (default: 1)")
+    p.add_argument("--delays", type=bounded(int, 1), default=1, help="past samples of [iL, vo, d] fed in (default: 1)")
     p.add_argument("--extra", action="append", choices=["load_conductance", "load_current", "input_voltage"],
                    help="extra measured input at k-1 (repeatable)")
     p.add_argument("--residual", action="store_true", help="learn the change over one sample (skip connection)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--control-period", type=parse_period, metavar="SECONDS",
+                   help="the period the samples were taken at, in s -- needed only for data without the workbench's "
+                        "metadata (collect-data writes it); the model is then refused at any other period")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
     p.set_defaults(func=cmd_train)
 
@@ -426,7 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "MPC baselines, and write data, models, runs, metrics, figures and "
                                    "REPORT.md under OUT.")
     p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
-    p.add_argument("--workers", type=int, default=2, help="parallel worker processes (default: 2)")
+    p.add_argument("--workers", type=bounded(int, 1), default=2, help="parallel worker processes (default: 2)")
     p.add_argument("--resume", action="store_true",
                    help="keep pipelines an interrupted reproduction finished, and their tuned gains")
     p.add_argument("--quick", action="store_true",
@@ -436,7 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "external FMU instead of the built-in plants")
     p.add_argument("--control-period", action="append", type=parse_period, metavar="SECONDS",
                    help="with --plant: control period(s) to run (repeatable; default 1e-3)")
-    p.add_argument("--seed", type=int, default=0, help="base random seed (default: 0)")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"base random seed, 0 .. {SEED_MAX} (default: 0)")
     _add_implementation_option(p)
     p.set_defaults(func=cmd_reproduce)
 
@@ -467,7 +545,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt:
-        print("error: interrupted; completed results were kept", file=sys.stderr)
+        print("error: interrupted; files already complete were kept and none is half-written", file=sys.stderr)
         return 130
     except OSError as error:  # a file system refusal (disk full, permissions): one line, not a traceback
         where = f"{error.filename}: " if error.filename else ""

@@ -259,7 +259,7 @@ class _Run:
         result = RunResult.from_table(np.empty((0, len(COLUMNS))), self.info, self.details,
                                       complete, error)
         self.stream.close(result.metadata)
-        result.rows, result.streamed_to = self.stream.rows, str(self.stream_to)
+        result.rows, result.streamed, result.streamed_to = self.stream.rows, True, str(self.stream_to)
         return result
 
 

@@ -37,7 +37,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from cosim.base.files import atomic_write, atomic_write_text, temporary_name
+from cosim.base.files import atomic_write, atomic_write_json, json_text, temporary_name
 from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, UNITS, WALLCLOCK_COLUMNS
 
 METADATA_KEY = b"buck_cosim"
@@ -95,6 +95,7 @@ class RunResult:
     #: controller, plant, rates, seed, versions, and what the caller added (e.g. the pipeline)
     details: dict = field(default_factory=dict)
     rows: int | None = None  # rows written when the table was streamed to a file (the frame is empty)
+    streamed: bool = False  # the rows were written to a file while running (RunStream)
     streamed_to: str | None = None
 
     @property
@@ -102,8 +103,10 @@ class RunResult:
         """The JSON metadata written beside the table (derived: the details plus the ending)."""
         meta = {**self.details, "complete": self.complete, "error": self.error,
                 "rows": self.rows if self.rows is not None else len(self.frame)}
+        if self.streamed:
+            meta["streamed"] = True
         if self.streamed_to is not None:
-            meta.update({"streamed": True, "streamed_to": self.streamed_to})
+            meta["streamed_to"] = self.streamed_to
         return meta
 
     @classmethod
@@ -116,9 +119,10 @@ class RunResult:
         details = {k: v for k, v in metadata.items() if k not in ("complete", "error", "rows", "streamed",
                                                                    "streamed_to")}
         rows = metadata.get("rows")
+        streamed = bool(metadata.get("streamed", False))
         return cls(frame=frame, info=RunInfo.from_metadata(metadata), complete=bool(metadata.get("complete", False)),
-                   error=metadata.get("error"), details=details,
-                   rows=rows if metadata.get("streamed") else None, streamed_to=metadata.get("streamed_to"))
+                   error=metadata.get("error"), details=details, rows=rows if streamed else None, streamed=streamed,
+                   streamed_to=metadata.get("streamed_to"))
 
 
 def frame_of(data: np.ndarray) -> pd.DataFrame:
@@ -172,18 +176,9 @@ def run_details(*, scenario, controller, plant, control_period: float, record_pe
 
 
 def json_ready(value):
-    """Round-trip through JSON so metadata written and read back compare equal."""
-    return json.loads(json.dumps(value, default=_jsonable, sort_keys=True))
-
-
-def _jsonable(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, (set, tuple)):
-        return list(value)
-    return str(value)
+    """Round-trip through JSON so metadata written and read back compare equal (non-finite
+    numbers become null: the files are strict JSON)."""
+    return json.loads(json_text(value, indent=None))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -200,7 +195,7 @@ def write_parquet(frame: pd.DataFrame, metadata: dict, path: Path, units: dict |
     table = pa.Table.from_pandas(frame, preserve_index=False)
     fields = [f.with_metadata({"unit": units[f.name]}) if f.name in units else f for f in table.schema]
     schema = pa.schema(fields, metadata={**(table.schema.metadata or {}),
-                                         METADATA_KEY: json.dumps(metadata, sort_keys=True).encode()})
+                                         METADATA_KEY: json_text(metadata, indent=None).encode()})
     table = table.cast(schema)
     return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
 
@@ -224,7 +219,7 @@ def write_run(result: RunResult, directory: Path, stem: str) -> dict[str, Path]:
     paths = {
         "parquet": write_parquet(table, metadata, directory / f"{stem}.parquet"),
         "csv": atomic_write(directory / f"{stem}.csv", lambda tmp: table.to_csv(tmp, index=False)),
-        "json": atomic_write_text(directory / f"{stem}.json", json.dumps(metadata, indent=2, sort_keys=True) + "\n"),
+        "json": atomic_write_json(directory / f"{stem}.json", metadata),
         "timing": atomic_write(directory / f"{stem}.timing.csv", lambda tmp: timing.to_csv(tmp, index=False)),
     }
     return paths
@@ -267,12 +262,12 @@ class RunStream:
         if self._writers is None:  # nothing was recorded: still leave a valid, empty table
             self.write(np.empty((0, len(COLUMNS))))
         meta = {**metadata, "rows": self.rows, "streamed": True}
-        self._writers[0].add_key_value_metadata({METADATA_KEY: json.dumps(meta, sort_keys=True).encode()})
+        self._writers[0].add_key_value_metadata({METADATA_KEY: json_text(meta, indent=None).encode()})
         for writer in self._writers:
             writer.close()
         os.replace(self._tmp, self.path)
         os.replace(self._tmp_timing, self._timing_path)
-        atomic_write_text(self.path.with_suffix(".json"), json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        atomic_write_json(self.path.with_suffix(".json"), meta)
         return self.path
 
 

@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Mapping
 
 from cosim.base.errors import ConfigError
 from cosim.base.toml_files import parse_toml
@@ -65,6 +66,11 @@ class Scenario:
     settle: float = 0.0  # [s]
     analysis_start: float | None = None  # [s]
     source: Path | None = None
+    key_places: Mapping[str, str] = field(default_factory=dict, compare=False)  # key -> "file:line"
+
+    def place(self, key: str) -> str:
+        """Where a top-level key of the scenario is (``file:line``), to name it in a message."""
+        return self.key_places.get(key) or (str(self.source) if self.source else f"scenario {self.name}")
 
     @property
     def metrics_start(self) -> float:
@@ -186,6 +192,7 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
                 f"expected at least one of {', '.join(EVENT_SIGNALS)}"
             )
         events.append(ScenarioEvent(time=time, changes=changes))
+    indexed = list(enumerate(events))  # the file's order, for messages
     events.sort(key=lambda e: e.time)
 
     analysis_start = None
@@ -196,8 +203,30 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
                 f"{_where(path, loc, 'analysis_start')}: analysis_start = {analysis_start} s is outside "
                 f"[0, duration = {duration} s)"
             )
+    _check_reachable(initial, sorted(indexed, key=lambda pair: pair[1].time), path, loc)
+    places = {key: _where(path, loc, key) for key in ("duration", "settle", "name") if key in data}
     return Scenario(name=name, description=description, duration=duration, initial=initial,
-                    events=tuple(events), settle=settle, analysis_start=analysis_start, source=path)
+                    events=tuple(events), settle=settle, analysis_start=analysis_start, source=path,
+                    key_places=places)
+
+
+def _check_reachable(initial: dict, events: list[tuple[int, "ScenarioEvent"]], path, loc) -> None:
+    """Refuse a reference a buck converter cannot reach: above the input voltage in effect.
+    ``events`` are (index in the file, event) in time order."""
+    reference, supply = initial["reference"], initial["input_voltage"]
+    points = [(0.0, None, None)] + [(event.time, index, event) for index, event in events]
+    for time, index, event in points:
+        if event is not None:
+            reference = event.changes.get("reference", reference)
+            supply = event.changes.get("input_voltage", supply)
+        if reference > supply:
+            if event is None:
+                place = _where(path, loc, "reference", "initial")
+            else:
+                key = "reference" if "reference" in event.changes else "input_voltage"
+                place = _where(path, loc, key, "events", index)
+            raise ConfigError(f"{place}: the reference {reference:g} V at t = {time:g} s exceeds the input voltage "
+                              f"{supply:g} V in effect then: a buck converter's output cannot exceed its input")
 
 
 def _check_signal(signal, value, path, loc, label, key, table, index) -> None:
@@ -212,6 +241,8 @@ def _check_signal(signal, value, path, loc, label, key, table, index) -> None:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a scenario file, or a shipped scenario by name (see :func:`shipped_scenarios`)."""
     path = Path(name_or_path)
+    if path.is_dir():
+        raise ConfigError(f"scenario {path} is a folder: expected a scenario file (.toml) or a shipped scenario name")
     if not path.is_file():
         shipped = SHIPPED_DIR / f"{name_or_path}.toml"
         if shipped.is_file():

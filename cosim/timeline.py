@@ -22,6 +22,9 @@ CONTROL, RECORD, EVENT = 1, 2, 4
 #: instants closer than this are one instant [s]; far below any period, far above float rounding
 MERGE_TOLERANCE = 1e-12
 MAX_INSTANTS = 200_000_000  # a sanity limit; memory stays bounded below it (windows)
+#: a run whose recorded part holds fewer controller samples than this is refused: with one sample
+#: (a control period as long as the scenario) the controller acts once and the rest is open loop
+MIN_CONTROL_SAMPLES = 2
 WINDOW_INSTANTS = 16_384  # instants generated at a time
 WHOLE_TIMELINE_LIMIT = 5_000_000  # build_timeline() refuses more (the master itself iterates windows)
 
@@ -103,10 +106,18 @@ def plan_timeline(scenario: Scenario, control_period: float, record_period: floa
     end = settle + scenario.duration
     expected = end / control_period + scenario.duration / record_period
     if expected > MAX_INSTANTS:
+        key = "settle" if settle / control_period > scenario.duration / record_period else "duration"
         raise ConfigError(
-            f"scenario {scenario.name}: {expected:.3g} instants for {scenario.duration} s at control period "
-            f"{control_period} s and record period {record_period} s; the limit is {MAX_INSTANTS:.0e}"
-        )
+            f"{scenario.place(key)}: scenario {scenario.name}'s settle {scenario.settle:g} s and duration "
+            f"{scenario.duration:g} s at control period {control_period:.6g} s and record period "
+            f"{record_period:.6g} s make {expected:.3g} instants; the limit is {MAX_INSTANTS:.0e} (shorten {key} "
+            "or use longer periods)")
+    samples = int(math.floor(scenario.duration / control_period * (1 + 1e-12) + 1e-9)) + 1
+    if samples < MIN_CONTROL_SAMPLES:
+        raise ConfigError(
+            f"{scenario.place('duration')}: scenario {scenario.name} records {scenario.duration:g} s, which holds "
+            f"{samples} controller sample(s) at control period {control_period:.6g} s: expected at least "
+            f"{MIN_CONTROL_SAMPLES} (a shorter control period or a longer duration)")
     control_count = int(math.floor(end / control_period * (1 + 1e-12) + 1e-9)) + 1
     record_count = int(math.floor(scenario.duration / record_period * (1 + 1e-12) + 1e-9)) + 1
     events = np.array([settle + e.time for e in scenario.events if any(k != "reference" for k in e.changes)],

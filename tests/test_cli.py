@@ -66,8 +66,23 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["run", "startup", "--control-period", "0"], "error: buck-cosim run: argument --control-period: period 0 s is invalid"),
     (["run", "startup", "--control-period", "fast"], "'fast' is not a period in seconds"),
     (["run", "startup", "--kp", "0.1"], "error: --kp and --ki must be given together"),
-    (["run", "startup", "--kp", "-1", "--ki", "3"], "error: PI gains kp = -1.0, ki = 3.0 are invalid"),
-    (["run", "startup", "--duty-max", "1.5"], "error: duty limits (0.0, 1.5) are invalid"),
+    (["run", "startup", "--kp", "-1", "--ki", "3"], "argument --kp: -1 is invalid: expected a finite number >= 0"),
+    (["run", "startup", "--kp", "nan", "--ki", "3"], "argument --kp: nan is invalid: expected a finite number >= 0"),
+    (["run", "startup", "--kp", "0", "--ki", "inf"], "argument --ki: inf is invalid: expected a finite number >= 0"),
+    (["run", "startup", "--duty-max", "1.5"], "argument --duty-max: 1.5 is invalid: expected a finite number >= 0 "
+                                              "and <= 1"),
+    (["run", "startup", "--duty-min", "0.6", "--duty-max", "0.5"], "error: duty limits (0.6, 0.5) are invalid"),
+    (["run", "startup", "--seed", "-1"], "argument --seed: seed -1 is out of range: expected a whole number 0 .. "
+                                         "4294967295"),
+    (["run", "startup", "--seed", str(10**30)], "argument --seed: seed 1000000000000000000000000000000 is out of "
+                                                "range"),
+    (["collect-data", "--seed", "-1", "--out", "d.parquet"], "argument --seed: seed -1 is out of range"),
+    (["collect-data", "--samples", "0", "--out", "d.parquet"], "argument --samples: 0 is invalid: expected a whole "
+                                                               "number >= 100"),
+    (["collect-data", "--excitation", "nan", "--out", "d.parquet"], "argument --excitation: nan is invalid"),
+    (["train", "d.parquet", "--seed", str(2**32), "--out", "m.pt"], "argument --seed: seed 4294967296 is out of range"),
+    (["train", ".", "--out", "m.pt"], "error: data file . is a folder: expected a file"),
+    (["reproduce", "--workers", "0"], "argument --workers: 0 is invalid: expected a whole number >= 1"),
     (["inspect", "README.md"], "is not a zip archive"),
     (["export", "missing.parquet", "--to", "csv"], "error: run file missing.parquet does not exist"),
     (["frobnicate"], "error: buck-cosim: argument COMMAND: invalid choice"),
@@ -121,7 +136,7 @@ def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
 
 @pytest.mark.parametrize("make,args,message", [
     (None, ["train", "missing.parquet", "--out", "m.pt"], "error: data file missing.parquet does not exist"),
-    ("garbage", ["run", "startup", "--controller", "nnpc", "--model", "bad.pt"], "model file bad.pt cannot be read"),
+    ("garbage", ["run", "startup", "--controller", "nnpc", "--model", "bad.pt"], "model file bad.pt is not a model written by buck-cosim train"),
     (None, ["train", "x.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
 ])
 def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):

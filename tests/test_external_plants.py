@@ -145,7 +145,7 @@ def test_draft_binding_guesses_roles_from_names_and_units(python_buck_fmu, buck_
     (('variable = "Vin"', 'variable = "Vout"'), r"role 'input_voltage' needs causality input or parameter, but 'Vout' has causality output"),
     (("scale = 1000.0", "scale = 0"), r"plant.toml:13: roles.inductor_current.scale = 0 is invalid"),
     (("rL = 0.15", "Lf = 0.15"), r"plant.toml:\d+: parameter 'Lf' is not a variable of PyBuck.fmu"),
-    (('fmu = "PyBuck.fmu"', 'fmu = "Nope.fmu"'), r"plant.toml:1: plant FMU .*Nope.fmu does not exist"),
+    (('fmu = "PyBuck.fmu"', 'fmu = "Nope.fmu"'), r"plant.toml:1: FMU .*Nope.fmu does not exist"),
     (('label = "PyBuck (pythonfmu)"', 'interface = "model-exchange"'), r"plant.toml:2: interface 'model-exchange' is not available \(the FMU offers: co-simulation\)"),
     (('label = "PyBuck (pythonfmu)"', 'interface = "cosim"'), r"interface 'cosim' is unknown"),
 ])
@@ -239,7 +239,7 @@ def test_bad_fmu_archives_are_refused_before_extraction(tmp_path, buck_fmu, kind
         check_fmu(path)
     done = subprocess.run([sys.executable, "-m", "cosim.cli", "inspect", str(path)], capture_output=True, text=True)
     assert done.returncode == 2 and "Traceback" not in done.stderr
-    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: plant FMU")
+    assert len(done.stderr.strip().splitlines()) == 1 and done.stderr.startswith("error: FMU")
 
 
 def test_a_measured_voltage_without_a_measured_load_current_is_warned_about(python_binding, capsys):

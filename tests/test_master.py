@@ -162,7 +162,7 @@ def test_invalid_periods_are_refused():
         build_timeline(scenario(), 0.0, 1e-5)
     with pytest.raises(ConfigError, match="record period = -1e-05 s is invalid"):
         build_timeline(scenario(), 1e-3, -1e-5)
-    with pytest.raises(ConfigError, match="instants .* the limit is"):
+    with pytest.raises(ConfigError, match="instants; the limit is"):
         build_timeline(scenario(duration=100.0), 1e-3, 1e-7)
 
 

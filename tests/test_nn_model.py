@@ -108,7 +108,7 @@ def test_load_refuses_missing_truncated_and_foreign_files(model, tmp_path):
     path = save_model(model, tmp_path / "model.pt")
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
-    with pytest.raises(ModelFileError, match=r"truncated.pt cannot be read"):
+    with pytest.raises(ModelFileError, match=r"truncated.pt is not a model written by buck-cosim train"):
         load_model(truncated)
     foreign = tmp_path / "foreign.pt"
     torch.save({"weights": torch.zeros(3)}, foreign)

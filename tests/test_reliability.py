@@ -326,7 +326,8 @@ def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path,
 @pytest.mark.parametrize("args,message", [
     (["run", "startup", "--kp", "0", "--ki", "14", "--out", "afile"], "output folder afile is an existing file"),
     (["tune-pi", "--out", "."], "output file . is a folder"),
-    (["train", "small.parquet", "--out", "m.pt"], "small.parquet: 50 samples are too few to train on"),
+    (["train", "small.parquet", "--control-period", "1e-3", "--out", "m.pt"],
+     "small.parquet: 50 samples are too few to train on"),
 ])
 def test_output_and_size_mistakes_are_caught_before_the_work(tmp_path, args, message):
     import numpy as np

@@ -53,10 +53,12 @@ def _binary_platforms(names: list[str]) -> tuple[str, ...]:
 def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_BYTES) -> CheckedFmu:
     """Validate an FMU archive without extracting it; raise :class:`FmuArchiveError` naming the problem."""
     path = Path(path)
+    if path.is_dir():
+        raise FmuArchiveError(f"FMU {path} is a folder: expected a .fmu file (a zip archive)")
     if not path.is_file():
-        raise FmuArchiveError(f"plant FMU {path} does not exist (expected a .fmu file)")
+        raise FmuArchiveError(f"FMU {path} does not exist (expected a .fmu file)")
     if not zipfile.is_zipfile(path):
-        raise FmuArchiveError(f"plant FMU {path} is not a zip archive (an FMU is a zip file with modelDescription.xml)")
+        raise FmuArchiveError(f"FMU {path} is not a zip archive (an FMU is a zip file with modelDescription.xml)")
     try:
         with zipfile.ZipFile(path) as archive:
             infos = archive.infolist()
@@ -64,34 +66,34 @@ def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_B
             for name in names:
                 problem = _member_problem(name)
                 if problem:
-                    raise FmuArchiveError(f"plant FMU {path}: member {name!r} {problem}; refusing to extract it")
+                    raise FmuArchiveError(f"FMU {path}: member {name!r} {problem}; refusing to extract it")
             total = sum(info.file_size for info in infos)
             if total > max_uncompressed_bytes:
                 raise FmuArchiveError(
-                    f"plant FMU {path} would expand to {total / 2**20:.0f} MiB, "
+                    f"FMU {path} would expand to {total / 2**20:.0f} MiB, "
                     f"more than the limit of {max_uncompressed_bytes / 2**20:.0f} MiB"
                 )
             if "modelDescription.xml" not in names:
-                raise FmuArchiveError(f"plant FMU {path} has no modelDescription.xml at the top level")
+                raise FmuArchiveError(f"FMU {path} has no modelDescription.xml at the top level")
             xml = archive.read("modelDescription.xml")
     except zipfile.BadZipFile as error:
-        raise FmuArchiveError(f"plant FMU {path} is a damaged zip archive ({error})") from None
+        raise FmuArchiveError(f"FMU {path} is a damaged zip archive ({error})") from None
     except (EOFError, OSError) as error:
-        raise FmuArchiveError(f"plant FMU {path} is truncated or unreadable ({error})") from None
+        raise FmuArchiveError(f"FMU {path} is truncated or unreadable ({error})") from None
     try:
         root = ElementTree.fromstring(xml)
     except ElementTree.ParseError as error:
-        raise FmuArchiveError(f"plant FMU {path}: modelDescription.xml is not well-formed XML ({error})") from None
+        raise FmuArchiveError(f"FMU {path}: modelDescription.xml is not well-formed XML ({error})") from None
     version = root.get("fmiVersion")
     if version is None:
-        raise FmuArchiveError(f"plant FMU {path}: modelDescription.xml has no fmiVersion attribute")
+        raise FmuArchiveError(f"FMU {path}: modelDescription.xml has no fmiVersion attribute")
     if version != "2.0":
-        raise FmuArchiveError(f"plant FMU {path} is FMI {version}; the workbench supports {SUPPORTED}")
+        raise FmuArchiveError(f"FMU {path} is FMI {version}; the workbench supports {SUPPORTED}")
     try:
         model_description = fmpy.read_model_description(str(path), validate=False)
     except Exception as error:  # fmpy raises plain Exceptions for malformed descriptions
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise FmuArchiveError(f"plant FMU {path}: malformed modelDescription.xml ({message})") from None
+        raise FmuArchiveError(f"FMU {path}: malformed modelDescription.xml ({message})") from None
     platforms = _binary_platforms(names)
     suffix = SHARED_LIBRARY_SUFFIX.get(fmpy.platform, ".so")
     interfaces = []
@@ -105,7 +107,7 @@ def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_B
                                            ("model-exchange", model_description.modelExchange)) if i]
         have = ", ".join(platforms) if platforms else "none"
         raise FmuArchiveError(
-            f"plant FMU {path} has no {fmpy.platform} binary for its interfaces ({', '.join(declared) or 'none declared'}); "
+            f"FMU {path} has no {fmpy.platform} binary for its interfaces ({', '.join(declared) or 'none declared'}); "
             f"binaries present: {have}"
         )
     return CheckedFmu(path=path, model_description=model_description, interfaces=tuple(interfaces),

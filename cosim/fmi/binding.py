@@ -63,10 +63,15 @@ class PlantBinding:
     source: Path | None = None  # the binding file, named in error messages
     label: str = "BuckConverter (built-in)"
     tag_override: str | None = None  # short name for file names (see :attr:`tag`)
+    isolate: bool = False  # step the FMU in a child process (cosim.fmi.isolation): a crash ends only the run
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
         object.__setattr__(self, "parameters", MappingProxyType(dict(self.parameters)))
+
+    def __reduce__(self):  # read-only mappings do not pickle: rebuild from plain dicts (worker processes)
+        return (PlantBinding, (self.fmu_path, dict(self.roles), self.interface, dict(self.parameters), self.max_step,
+                               self.source, self.label, self.tag_override, self.isolate))
 
     def has(self, role: str) -> bool:
         return role in self.roles
@@ -96,6 +101,7 @@ class PlantBinding:
             "roles": {r: {"variable": m.variable, "scale": m.scale, "offset": m.offset} for r, m in self.roles.items()},
             "parameters": dict(self.parameters),
             "max_step_s": self.max_step,
+            "isolated": self.isolate,
         }
 
 

@@ -6,6 +6,8 @@ A binding is a small TOML file next to (or pointing at) the FMU::
     interface = "co-simulation"     # or "model-exchange"; default: what the FMU offers, preferring CS
     max_step = 1e-5                 # [s] optional: the largest step the FMU accepts; longer ones are split
     label = "My buck (Modelica)"    # optional: how runs and figures name this plant
+    isolate = true                  # optional (default true): step the FMU in a child process, so a crash
+                                    # in it ends the run with an error instead of the workbench
 
     [roles.duty_cycle]              # required; an input
     variable = "D"
@@ -55,7 +57,7 @@ from cosim.fmi.binding import (
 )
 from cosim.fmi.plant import normalise_interface
 
-TOP_KEYS = {"fmu", "interface", "max_step", "label", "roles", "parameters"}
+TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "roles", "parameters"}
 ROLE_KEYS = {"variable", "scale", "offset"}
 
 
@@ -91,6 +93,10 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     label = data.get("label", f"{fmu_path.stem} (bound by {path.name})")
     if not isinstance(label, str):
         raise ConfigError(f"{where(path, loc, 'label')}: label has the wrong type: expected text")
+    isolate = data.get("isolate", True)
+    if not isinstance(isolate, bool):
+        raise ConfigError(f"{where(path, loc, 'isolate')}: isolate = {isolate!r} has the wrong type: expected true or "
+                          "false")
 
     roles_table = data.get("roles", {})
     if not isinstance(roles_table, dict):
@@ -136,7 +142,7 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     except FmuArchiveError as error:
         raise FmuArchiveError(f"{where(path, loc, 'fmu')}: {error}") from None
     binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
-                           max_step=max_step, source=path, label=label)
+                           max_step=max_step, source=path, label=label, isolate=isolate)
     _check_variables(binding, checked, loc)
     return binding
 
@@ -161,6 +167,8 @@ def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
 def load_binding(path: str | Path) -> PlantBinding:
     """Read and check a binding file; raise :class:`ConfigError` (one line) on any problem."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"binding file {path} is a folder: expected a .toml file")
     if not path.is_file():
         raise ConfigError(f"binding file {path} does not exist")
     try:

@@ -50,6 +50,7 @@ from cosim.fmi.binding import (
 
 STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
 FATAL_STATUS = 4
+FATAL_REFUSAL = "the FMU reported fmi2Fatal earlier and cannot be used again (FMI 2.0 forbids any further call)"
 _ABANDONED_AFTER_FATAL: list = []  # FMU objects that reported fmi2Fatal; never called or unloaded again
 CO_SIMULATION = "co-simulation"
 MODEL_EXCHANGE = "model-exchange"
@@ -77,13 +78,44 @@ def choose_interface(checked: CheckedFmu, wanted: str | None, origin: str) -> st
 
 
 def open_plant(binding: PlantBinding, interface: str | None = None, relative_tolerance: float = 1e-8,
-               instance_name: str = "plant") -> "FmuPlant":
+               instance_name: str = "plant", *, isolate: bool | None = None, unzip_dir: str | None = None) -> "FmuPlant":
     """Check the binding's FMU, choose its interface (``interface``, else the binding's, else
-    co-simulation when offered) and instantiate it. ``relative_tolerance`` is CVode's (model exchange)."""
+    co-simulation when offered) and instantiate it. ``relative_tolerance`` is CVode's (model exchange).
+
+    ``isolate``: step the FMU in a child process (:class:`cosim.fmi.isolation.IsolatedPlant`), so a
+    crash inside it ends the run with an error instead of taking the workbench with it (default:
+    the binding's ``isolate``, which binding files turn on).
+    ``unzip_dir``: an empty folder to extract the FMU into (default: a new temporary one).
+    """
     checked = check_fmu(binding.fmu_path)
     chosen = choose_interface(checked, normalise_interface(interface or binding.interface), binding.origin)
+    if binding.isolate if isolate is None else isolate:
+        from cosim.fmi.isolation import IsolatedPlant
+
+        return IsolatedPlant(binding, checked, chosen, relative_tolerance=relative_tolerance,
+                             instance_name=instance_name)
     cls = CoSimulationPlant if chosen == CO_SIMULATION else ModelExchangePlant
-    return cls(binding, checked, relative_tolerance=relative_tolerance, instance_name=instance_name)
+    return cls(binding, checked, relative_tolerance=relative_tolerance, instance_name=instance_name,
+               unzip_dir=unzip_dir)
+
+
+def plant_signals(binding: PlantBinding, model_description) -> tuple[tuple[str, ...], tuple[str, ...], dict[str, bool]]:
+    """The bound input roles and output roles (in the workbench's order) and, per input role,
+    whether setting it can change a bound output at the same instant (feedthrough).
+
+    Feedthrough is read from the ModelStructure dependencies; an output without declared
+    dependencies depends on everything. The master re-reads outputs after an input change only if so.
+    """
+    inputs = tuple(r for r in INPUT_ROLES if binding.has(r))
+    outputs = tuple(r for r in OUTPUT_ROLES if binding.has(r))
+    dependencies = {u.variable.name: u.dependencies for u in model_description.outputs}
+    output_variables = [binding.roles[r].variable for r in outputs]
+    feedthrough = {}
+    for role in inputs:
+        name = binding.roles[role].variable
+        feedthrough[role] = any(dependencies.get(o) is None or any(d.name == name for d in dependencies[o])
+                                for o in output_variables)
+    return inputs, outputs, feedthrough
 
 
 class FmuPlant:
@@ -99,7 +131,7 @@ class FmuPlant:
     _fmu_class: type
 
     def __init__(self, binding: PlantBinding, checked: CheckedFmu, relative_tolerance: float = 1e-8,
-                 instance_name: str = "plant"):
+                 instance_name: str = "plant", unzip_dir: str | None = None):
         self.binding = binding
         self.model_description = md = checked.model_description
         self.relative_tolerance = relative_tolerance
@@ -110,8 +142,7 @@ class FmuPlant:
             self._parameters = resolve_parameters(binding.parameters, md, binding.fmu_path.name)
         except BindingMismatch as error:
             raise ConfigError(f"{binding.origin}: {error}") from None
-        self.input_roles = tuple(r for r in INPUT_ROLES if r in roles)
-        self.output_roles = tuple(r for r in OUTPUT_ROLES if r in roles)
+        self.input_roles, self.output_roles, self.feedthrough = plant_signals(binding, md)
         inputs = [roles[r] for r in self.input_roles]
         outputs = [roles[r] for r in self.output_roles]
         self._in_vr = (c_uint * len(inputs))(*(r.value_reference for r in inputs))
@@ -123,8 +154,7 @@ class FmuPlant:
         self._out_identity = all(r.scale == 1.0 and r.offset == 0.0 for r in outputs)
         self._out_scale = [r.scale for r in outputs]
         self._out_offset = [r.offset for r in outputs]
-        self.feedthrough = self._feedthrough(md)
-        self._unzipdir = fmpy.extract(str(binding.fmu_path))
+        self._unzipdir = fmpy.extract(str(binding.fmu_path), unzipdir=unzip_dir)
         self._callbacks = self._make_callbacks()
         self._fmu = None
         self._initialized = False
@@ -136,21 +166,6 @@ class FmuPlant:
             raise
 
     # ------------------------------------------------------------------ set-up
-    def _feedthrough(self, md) -> dict[str, bool]:
-        """Per input role: can setting it change a bound output at the same instant?
-
-        Read from the ModelStructure dependencies; an output without declared dependencies
-        depends on everything. The master re-reads outputs after an input change only if so.
-        """
-        dependencies = {u.variable.name: u.dependencies for u in md.outputs}
-        outputs = [self.binding.roles[r].variable for r in self.output_roles]
-        result = {}
-        for role in self.input_roles:
-            name = self.binding.roles[role].variable
-            result[role] = any(dependencies.get(o) is None or any(d.name == name for d in dependencies[o])
-                               for o in outputs)
-        return result
-
     def _make_callbacks(self):
         def on_log(environment, instance_name, status, category, message):
             try:
@@ -179,7 +194,8 @@ class FmuPlant:
         self._fmu = self._fmu_class(guid=md.guid, unzipDirectory=self._unzipdir,
                                     modelIdentifier=self._model_identifier(), instanceName=instance_name)
         try:
-            self._fmu.instantiate(callbacks=self._callbacks)
+            # logging on: an FMU may report why a call failed only then (pythonfmu, e.g., its exception)
+            self._fmu.instantiate(callbacks=self._callbacks, loggingOn=True)
         except Exception:
             self._fmu.freeLibrary()
             self._fmu = None
@@ -204,9 +220,10 @@ class FmuPlant:
         return True
 
     def _last_log_suffix(self) -> str:
+        """``": <the FMU's last error, discard or warning message>"`` (on one line), or nothing."""
         for status, _, message in reversed(self.log):
             if status in ("error", "fatal", "discard", "warning"):
-                return f": {message}"
+                return f": {' '.join(message.split())}"
         return ""
 
     def _fail(self, call: str, status: int | None = None, at: float | None = None) -> PlantError:
@@ -266,8 +283,7 @@ class FmuPlant:
 
     def _refuse_if_fatal(self) -> None:
         if self._fatal:
-            raise PlantError(f"{self.binding.origin}: the FMU reported fmi2Fatal earlier and cannot be used "
-                             "again (FMI 2.0 forbids any further call)")
+            raise PlantError(f"{self.binding.origin}: {FATAL_REFUSAL}")
 
     def reset(self) -> None:
         """Return to the instantiated state (fmi2Reset) so the same instance serves another run."""
@@ -418,12 +434,12 @@ class ModelExchangePlant(FmuPlant):
     _fmu_class = FMU2Model
 
     def __init__(self, binding: PlantBinding, checked: CheckedFmu, relative_tolerance: float = 1e-8,
-                 instance_name: str = "plant"):
+                 instance_name: str = "plant", unzip_dir: str | None = None):
         self._solver = None
         self._inputs_changed = False
         self._next_event_time: float | None = None
         self._needs_completed_step = bool(checked.model_description.modelExchange.needsCompletedIntegratorStep)
-        super().__init__(binding, checked, relative_tolerance, instance_name)
+        super().__init__(binding, checked, relative_tolerance, instance_name, unzip_dir)
 
     def _model_identifier(self) -> str:
         return self.model_description.modelExchange.modelIdentifier

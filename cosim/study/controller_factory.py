@@ -64,14 +64,32 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int = 10_000, seed: int = 0,
                      progress: bool = False) -> list:
-    from controllers.pi import PIController
+    """The controllers ``names`` for ``binding`` at ``period``: everything is checked first (names,
+    gains, duty limits, the period, the roles each controller needs, a given model file), then the
+    PI is tuned and networks trained where needed -- so a mistake is refused before minutes of work."""
+    from controllers.base import check_duty_limits
+    from controllers.pi import PIController, check_gains
 
+    unknown = [n for n in names if n not in CONTROLLERS]
+    if unknown:
+        raise ConfigError(f"controller {unknown[0]!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
     if model_path and sum(n in NETWORKS for n in names) > 1:
         raise ConfigError("--model gives one network: run nnpc and nnpc-paper separately when you pass --model")
     if not (period > 0 and math.isfinite(period)):
         raise ConfigError(f"control period {period} s is invalid: expected a finite value > 0")
+    try:
+        check_duty_limits(duty_limits, "duty limits")
+        if kp is not None:
+            check_gains(kp, ki)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    if any(n in NETWORKS for n in names) and not binding.has("inductor_current"):
+        raise ConfigError(f"{next(n for n in names if n in NETWORKS)} needs the inductor_current role, which "
+                          f"{binding.origin} does not bind")
+    oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
+    given = load_model(Path(model_path), expect_period=period) if model_path else None
     controllers = []
     try:
         for name in names:
@@ -82,17 +100,13 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 else:
                     controllers.append(tuned_pi(binding, period, out_dir, progress).controller(duty_limits))
             elif name in NETWORKS:
-                if not binding.has("inductor_current"):
-                    raise ConfigError(f"{name} needs the inductor_current role, which {binding.origin} does not bind")
-                model = trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
-                                      model_path=model_path, progress=progress)
+                model = given or trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
+                                               model_path=None, progress=progress)
                 controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
-                controllers.append(model_mpc(true_parameters(binding), period, MPC_ORACLE, duty_limits, binding))
-            elif name == "mpc-nominal":
+                controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
+            else:  # mpc-nominal
                 controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
-            else:
-                raise ConfigError(f"controller {name!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
-    except ValueError as error:  # invalid gains, limits or periods from the controller constructors
+    except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers

@@ -19,7 +19,7 @@ import pandas as pd
 
 from controllers.base import Measurement, check_duty_limits
 from controllers.load_estimate import conductance_series
-from cosim.base.errors import ConfigError
+from cosim.base.errors import ConfigError, RunInterrupted
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
@@ -31,6 +31,10 @@ from plant_fmu.table_ii import TABLE_II
 SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
                   "load_resistance", "input_voltage", "load_current", "measured_load_current", "load_conductance",
                   "inductor_current", "output_voltage")
+
+
+MIN_SAMPLES = 100  # a data set smaller than this cannot be split into training, validation and test
+MAX_EXCITATION = 0.5  # [1] a dither this large would be the signal, not a perturbation of the PI
 
 
 @dataclass(frozen=True)
@@ -45,8 +49,8 @@ class CollectionSettings:
     seed: int = 0
 
     def check(self) -> None:
-        if self.samples < 100:
-            raise ConfigError(f"samples = {self.samples} is too few: expected >= 100")
+        if self.samples < MIN_SAMPLES:
+            raise ConfigError(f"samples = {self.samples} is too few: expected >= {MIN_SAMPLES}")
         lo, hi = self.reference_range
         if not 0 <= lo < hi:
             raise ConfigError(f"reference range ({lo}, {hi}) V is invalid: expected 0 <= min < max")
@@ -56,8 +60,8 @@ class CollectionSettings:
         lo, hi = self.hold_range
         if not 1 <= lo <= hi:
             raise ConfigError(f"hold range ({lo}, {hi}) periods is invalid: expected 1 <= min <= max")
-        if not 0 <= self.excitation < 0.5:
-            raise ConfigError(f"excitation = {self.excitation} is invalid: expected 0 <= sigma < 0.5")
+        if not 0 <= self.excitation < MAX_EXCITATION:
+            raise ConfigError(f"excitation = {self.excitation} is invalid: expected 0 <= sigma < {MAX_EXCITATION}")
         if not 0 <= self.rest_probability < 1:
             raise ConfigError(f"rest_probability = {self.rest_probability} is invalid: expected 0 <= p < 1")
 
@@ -129,7 +133,12 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"))
     dithered = DitheredController(controller, settings.excitation, settings.seed)
     with open_plant(binding) as plant:
-        result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
+        try:
+            result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)
+        except RunInterrupted as stop:  # a partial data set would bias the identification: keep nothing
+            at = stop.partial.frame["time"].iloc[-1] if stop.partial is not None and len(stop.partial.frame) else 0.0
+            raise RunInterrupted(f"data collection interrupted at t = {at:.6g} s of "
+                                 f"{scenario.duration:.6g} s; no data file written") from None
     frame = result.frame[result.frame["control_sample"]].reset_index(drop=True)
     # the controller's own load estimate, sample by sample, so the network learns the feature it is fed
     frame["load_conductance"] = conductance_series(frame["measured_output_voltage"].to_numpy(),

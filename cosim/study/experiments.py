@@ -113,7 +113,10 @@ def implemented(controller, implementation: str = "c"):
         return controller
     from controllers.native import native_twin
 
-    return native_twin(controller)
+    try:
+        return native_twin(controller)
+    except ValueError as error:  # a configuration the C twin cannot hold (sizes above its maxima)
+        raise ConfigError(f"{controller.name}: {error} (run it with --implementation python)") from None
 
 
 #: what the predictive controllers assume before their sensors tell them (Table II)

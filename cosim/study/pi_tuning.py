@@ -21,6 +21,7 @@ from scipy.optimize import minimize
 
 from controllers.pi import PIController
 from cosim.base.errors import WorkbenchError
+from cosim.base.files import json_text
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
@@ -59,7 +60,7 @@ class PITuning:
                             tuning={"method": self.method, "cost_V2s": self.cost, "plant": self.plant})
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=2, sort_keys=True)
+        return json_text(asdict(self))
 
     @classmethod
     def from_json(cls, text: str) -> "PITuning":

@@ -30,14 +30,21 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.errors import PlantError
-from cosim.base.files import atomic_write_text, remove_temporary_files
+from cosim.base.files import atomic_write_json, atomic_write_text, json_text, remove_temporary_files
 from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.experiments import (collection_settings, implemented, model_mpc, nn_configs, nnpc, plant_binding,
-                                    scenarios_for)
+from cosim.study.experiments import (
+    collection_settings,
+    implemented,
+    model_mpc,
+    nn_configs,
+    nnpc,
+    plant_binding,
+    scenarios_for,
+)
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
@@ -121,8 +128,7 @@ class PipelineOutput:
     def to_json(self) -> str:
         """The summary written to ``pipelines/<tag>.json`` (no wall-clock figures: those are
         ``pipelines/<tag>.timings.json``, not committed, and ``timings.md``)."""
-        return json.dumps({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models},
-                          indent=2, sort_keys=True, default=str)
+        return json_text({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models})
 
 
 def log(message: str) -> None:
@@ -221,7 +227,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     output = PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
                             timings=timings)
     write_metrics(metrics, out_dir / "metrics" / f"metrics__{tag}")
-    atomic_write_text(out_dir / "pipelines" / f"{tag}.timings.json", json.dumps(timings, indent=2, sort_keys=True) + "\n")
+    atomic_write_json(out_dir / "pipelines" / f"{tag}.timings.json", timings)
     atomic_write_text(out_dir / "pipelines" / f"{tag}.json", output.to_json() + "\n")
     return output
 

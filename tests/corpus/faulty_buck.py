@@ -1,7 +1,7 @@
 """A deliberately faulty plant (pythonfmu): at fault_time it fails in the way fault_kind selects.
 
 fault_kind: 0 none, 1 do_step reports failure (fmi2Discard), 2 do_step raises (fmi2Error),
-3 the output turns NaN. Until then it is a first-order stand-in: Vout follows D * Vin with a
+3 the output turns NaN, 4 do_step dereferences a null pointer (the process dies of SIGSEGV). Until then it is a first-order stand-in: Vout follows D * Vin with a
 0.1 ms time constant; IL = Vout / Rload.
 """
 
@@ -39,6 +39,10 @@ class FaultyBuck(Fmi2Slave):
             if self.fault_kind == 3:
                 self.Vout = math.nan
                 return True
+            if self.fault_kind == 4:
+                import ctypes
+
+                ctypes.string_at(0)  # reads address 0: SIGSEGV, as a buggy C FMU would
         target = 48.0 * self.duty
         self.Vout = target + (self.Vout - target) * math.exp(-step_size / 1e-4)
         self.IL = self.Vout / self.Rload

@@ -1,0 +1,259 @@
+"""A plant FMU stepped in a child process: an FMU that crashes (a segfault in foreign code) ends the
+run with a one-line error, the rows recorded up to the crash kept, instead of killing the workbench.
+
+:class:`IsolatedPlant` offers the methods of :class:`cosim.fmi.plant.FmuPlant`; a child process
+(started with ``spawn``: nothing of the parent's threads or loaded libraries is inherited) holds
+the real plant. Calls are batched: ``set_inputs`` and ``advance_to`` are queued and travel with the
+next call that needs an answer (``outputs``, ``initialize``, ``reset``, the FMU state), so an
+instant of the master's loop costs one round trip through a pipe. The parent decides where the
+FMU is extracted and deletes that folder in every ending, the child's crash included.
+
+Why not a library: the standard library's ``multiprocessing`` pipe is all this needs; a process
+pool (concurrent.futures, dask) would add scheduling per call, and no fmpy facility runs an FMU
+out of process.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import shutil
+import signal
+import tempfile
+from typing import Mapping, Sequence
+
+from cosim.base.errors import ConfigError, FmuArchiveError, PlantError, WorkbenchError
+from cosim.fmi.archive import CheckedFmu
+from cosim.fmi.binding import PlantBinding
+from cosim.fmi.plant import FATAL_REFUSAL, plant_signals
+
+#: how long the child may take to start and to answer a set-up call [s]; steps have no limit
+START_TIMEOUT = 60.0
+_ERRORS = {cls.__name__: cls for cls in (ConfigError, FmuArchiveError, PlantError, WorkbenchError)}
+
+
+def _serve(connection, binding: PlantBinding, interface: str, relative_tolerance: float, instance_name: str,
+           unzip_dir: str) -> None:
+    """The child: open the plant and answer the parent's requests until it says close -- or goes
+    away (its end of the pipe closes): then the child closes the FMU and ends quietly."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    from cosim.fmi.plant import open_plant
+
+    plant = None
+    try:
+        try:
+            plant = open_plant(binding, interface, relative_tolerance, instance_name, isolate=False,
+                               unzip_dir=unzip_dir)
+            connection.send(("ok", plant.variable_step))
+        except WorkbenchError as error:  # opening failed
+            connection.send(("error", type(error).__name__, str(error), False))
+            return
+        states: dict[int, object] = {}
+        while True:
+            request = connection.recv()
+            if request[0] == "close":
+                break
+            try:
+                connection.send(("ok", _answer_request(plant, states, request)))
+            except WorkbenchError as error:
+                connection.send(("error", type(error).__name__, str(error), plant.fatal))
+    except (EOFError, OSError):  # the parent went away (it ended, or it was terminated)
+        pass
+    except Exception as error:  # a bug here, not the FMU's: report it rather than vanish
+        try:
+            connection.send(("error", "PlantError", f"{type(error).__name__}: {error}", False))
+        except OSError:
+            pass
+    finally:
+        if plant is not None:
+            plant.close()
+        connection.close()
+
+
+def _answer_request(plant, states: dict, request: tuple):
+    kind = request[0]
+    if kind == "ops":
+        result = None
+        for op in request[1]:
+            if op[0] == "set":
+                plant.set_inputs(op[1])
+            elif op[0] == "advance":
+                plant.advance_to(op[1])
+            else:
+                result = plant.outputs()
+        return result
+    if kind == "initialize":
+        return plant.initialize(request[1], request[2], request[3])
+    if kind == "reset":
+        return plant.reset()
+    if kind == "get_state":
+        handle = len(states) + 1
+        states[handle] = plant.get_state()
+        return handle
+    if kind == "set_state":
+        return plant.set_state(states[request[1]], request[2])
+    if kind == "free_state":
+        return plant.free_state(states.pop(request[1]))
+    raise PlantError(f"unknown request {kind!r} to the plant process")
+
+
+class IsolatedPlant:
+    """A plant FMU in a child process, with the interface of :class:`cosim.fmi.plant.FmuPlant`."""
+
+    def __init__(self, binding: PlantBinding, checked: CheckedFmu, interface: str, relative_tolerance: float = 1e-8,
+                 instance_name: str = "plant"):
+        self.binding = binding
+        self.model_description = checked.model_description
+        self.interface = interface
+        self.relative_tolerance = relative_tolerance
+        self.input_roles, self.output_roles, self.feedthrough = plant_signals(binding, checked.model_description)
+        self.time = 0.0
+        self._initialized = False
+        self._fatal = False  # fmi2Fatal, or the process died
+        self._crash: str | None = None  # how the process died
+        self._queue: list[tuple] = []
+        self._unzip_dir = tempfile.mkdtemp(prefix="buck-cosim-fmu-")
+        context = multiprocessing.get_context("spawn")
+        self._connection, child = context.Pipe()
+        self._process = context.Process(target=_serve, name=f"plant FMU {binding.fmu_path.name}", daemon=True,
+                                        args=(child, binding, interface, relative_tolerance, instance_name,
+                                              self._unzip_dir))
+        try:
+            self._process.start()
+            child.close()
+            if not self._connection.poll(START_TIMEOUT):
+                raise PlantError(f"{binding.origin}: the plant process did not start within {START_TIMEOUT:g} s")
+            self.variable_step = self._answer("opening the FMU")
+        except BaseException:
+            self._stop()
+            raise
+
+    # ------------------------------------------------------------------ the pipe
+    def _answer(self, doing: str):
+        try:
+            reply = self._connection.recv()
+        except (EOFError, OSError):
+            raise self._crashed(doing) from None
+        if reply[0] == "ok":
+            return reply[1]
+        _, name, message, fatal = reply
+        self._fatal = self._fatal or fatal
+        raise _ERRORS.get(name, PlantError)(message)
+
+    def _crashed(self, doing: str) -> PlantError:
+        self._process.join(timeout=5)
+        code = self._process.exitcode
+        how = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit code {code}"
+        self._fatal, self._crash = True, how
+        return PlantError(f"{self.binding.origin}: the FMU crashed the plant process ({how}) while {doing} "
+                          f"at t = {self.time:.9g} s")
+
+    def _call(self, doing: str, *request):
+        self._flush_into(None)
+        try:
+            self._connection.send(request)
+        except (BrokenPipeError, OSError):
+            raise self._crashed(doing) from None
+        return self._answer(doing)
+
+    def _flush_into(self, final: tuple | None):
+        ops, self._queue = self._queue, []
+        if final is not None:
+            ops.append(final)
+        if not ops:
+            return None
+        try:
+            self._connection.send(("ops", ops))
+        except (BrokenPipeError, OSError):
+            raise self._crashed("stepping") from None
+        return self._answer("stepping")
+
+    # ------------------------------------------------------------------ the plant interface
+    @property
+    def label(self) -> str:
+        return self.binding.label
+
+    @property
+    def initialized(self) -> bool:
+        return self._initialized
+
+    @property
+    def fatal(self) -> bool:
+        return self._fatal
+
+    def _refuse_if_dead(self) -> None:
+        if self._crash:
+            raise PlantError(f"{self.binding.origin}: the FMU crashed its process earlier ({self._crash}) and cannot "
+                             "be used again")
+        if self._fatal:
+            raise PlantError(f"{self.binding.origin}: {FATAL_REFUSAL}")
+
+    def initialize(self, inputs: Sequence[float], start_time: float = 0.0,
+                   start_values: Mapping[str, float] | None = None) -> None:
+        self._refuse_if_dead()
+        self._queue.clear()
+        self._call("initialising", "initialize", list(inputs), start_time, dict(start_values or {}))
+        self.time = start_time
+        self._initialized = True
+
+    def reset(self) -> None:
+        self._refuse_if_dead()
+        self._queue.clear()
+        self._call("resetting", "reset")
+        self._initialized = False
+        self.time = 0.0
+
+    def set_inputs(self, values: Sequence[float]) -> None:
+        self._queue.append(("set", list(values)))
+
+    def advance_to(self, t_next: float) -> None:
+        if t_next > self.time:
+            self._queue.append(("advance", t_next))
+            self.time = t_next
+
+    def outputs(self) -> list[float]:
+        return self._flush_into(("outputs",))
+
+    def get_state(self):
+        return self._call("saving the FMU state", "get_state")
+
+    def set_state(self, state, time: float) -> None:
+        self._call("restoring the FMU state", "set_state", state, time)
+        self.time = time
+
+    def free_state(self, state) -> None:
+        self._call("freeing the FMU state", "free_state", state)
+
+    def close(self) -> None:
+        """Ask the child to close the FMU, then stop it and delete the extracted files (every ending)."""
+        if self._process is not None and self._process.is_alive() and not self._fatal:
+            try:
+                self._queue.clear()
+                self._connection.send(("close",))
+            except (BrokenPipeError, OSError):
+                pass
+        self._stop()
+
+    def _stop(self) -> None:
+        process, self._process = self._process, None
+        if process is not None:
+            process.join(timeout=10)
+            if process.is_alive():
+                process.kill()
+                process.join(timeout=5)
+        self._connection.close()
+        if self._unzip_dir:
+            shutil.rmtree(self._unzip_dir, ignore_errors=True)
+            self._unzip_dir = None
+
+    def __enter__(self) -> "IsolatedPlant":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+

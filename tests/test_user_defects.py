@@ -1,0 +1,307 @@
+"""Defects found by trying the workbench as a new user would (bad inputs, faulty FMUs,
+interruptions), each with the test that would have caught it. README: "What happens when things
+go wrong"."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from controllers.nn_model import NNConfig, TrainingSettings, _checksum, load_model, save_model, train
+from cosim.base.errors import ModelFileError
+from cosim.results import read_run, write_parquet
+
+FAULTY = """\
+fmu = "{fmu}"
+{extra}
+[roles.duty_cycle]
+variable = "duty"
+[roles.output_voltage]
+variable = "Vout"
+[roles.inductor_current]
+variable = "IL"
+[parameters]
+fault_kind = {kind}
+fault_time = 0.0103
+"""
+
+
+def cli(*args, cwd=None, timeout=600):
+    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
+                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout)
+
+
+def one_line_error(done, code: int, message: str) -> str:
+    assert done.returncode == code, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in done.stderr, done.stderr
+    assert message in lines[0], lines[0]
+    return lines[0]
+
+
+def strict_json(path: Path):
+    """JSON as the standard has it: NaN and Infinity are not JSON."""
+    def refuse(constant):
+        raise AssertionError(f"{path} holds {constant}, which is not JSON")
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def small_frame(n=300, **extra) -> pd.DataFrame:
+    return pd.DataFrame({"measured_inductor_current": np.linspace(0, 2, n),
+                         "measured_output_voltage": np.linspace(0, 12, n), "duty_cycle": np.full(n, 0.25), **extra})
+
+
+# ------------------------------------------------------------------ 1. streamed runs keep their metadata
+
+
+def test_an_interrupted_streamed_run_exported_to_csv_is_still_marked_incomplete(tmp_path, faulty_fmu):
+    binding = tmp_path / "faulty.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=1, extra=""))
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--stream",
+                       "--record-period", "1e-4", "--out", str(tmp_path / "out")), 3, "fmi2DoStep failed (discard)")
+    streamed = tmp_path / "out" / "runs" / "startup__pi__bound-faulty__1ms.parquet"
+    assert read_run(streamed).metadata["complete"] is False
+    assert cli("export", str(streamed), "--to", "csv", "--out", str(tmp_path / "csv")).returncode == 0
+    meta = strict_json(tmp_path / "csv" / "startup__pi__bound-faulty__1ms.json")
+    assert meta["complete"] is False and "fmi2DoStep failed (discard) at t = 0.0103" in meta["error"]
+    assert meta["streamed"] is True and meta["rows"] == len(pd.read_csv(tmp_path / "csv" /
+                                                                         "startup__pi__bound-faulty__1ms.csv"))
+    back = read_run(tmp_path / "csv" / "startup__pi__bound-faulty__1ms.csv")  # and back to Parquet keeps it too
+    assert back.complete is False and back.error == meta["error"] and back.metadata["streamed"] is True
+
+
+# ------------------------------------------------------------------ 2, 3. model files
+
+
+@pytest.fixture(scope="module")
+def tiny_model():
+    return train(small_frame(), NNConfig(), TrainingSettings(max_iterations=10), metadata={"control_period_s": 1e-3})
+
+
+def test_non_finite_weights_with_a_valid_checksum_are_refused(tiny_model, tmp_path):
+    path = save_model(tiny_model, tmp_path / "good.pt")
+    payload = torch.load(path, weights_only=True)
+    payload["state_dict"]["layers.0.weight"][0, 0] = math.nan
+    norm = [payload["normalisation"][k].numpy() for k in ("input_mean", "input_std", "output_mean", "output_std")]
+    payload["checksum"] = _checksum(payload["state_dict"], norm)  # a tamperer who knows the format
+    torch.save(payload, tmp_path / "nan.pt")
+    with pytest.raises(ModelFileError, match=r"nan.pt has non-finite values in layers.0.weight: refused"):
+        load_model(tmp_path / "nan.pt", expect_period=1e-3)
+    payload = torch.load(path, weights_only=True)
+    payload["normalisation"]["input_std"][1] = math.inf
+    norm = [payload["normalisation"][k].numpy() for k in ("input_mean", "input_std", "output_mean", "output_std")]
+    payload["checksum"] = _checksum(payload["state_dict"], norm)
+    torch.save(payload, tmp_path / "inf.pt")
+    with pytest.raises(ModelFileError, match=r"non-finite values in normalisation input_std"):
+        load_model(tmp_path / "inf.pt")
+
+
+def test_training_refuses_non_finite_data_and_saving_refuses_non_finite_weights(tiny_model, tmp_path):
+    frame = small_frame()
+    frame.loc[40, "measured_output_voltage"] = math.nan
+    with pytest.raises(ValueError, match=r"1 of 300 samples hold NaN or infinite values in measured_inductor_current, "
+                                         r"measured_output_voltage, duty_cycle \(first: row 40\)"):
+        train(frame, NNConfig(), TrainingSettings(max_iterations=10))
+    with torch.no_grad():
+        tiny_model.network.layers[0].weight[0, 0] = math.inf
+    with pytest.raises(ValueError, match=r"non-finite values in layers.0.weight .* refusing to save it"):
+        save_model(tiny_model, tmp_path / "inf.pt")
+    assert not (tmp_path / "inf.pt").exists()
+
+
+def test_data_without_a_control_period_needs_one_and_a_model_without_one_is_refused_at_use(tmp_path):
+    write_parquet(small_frame(), {}, tmp_path / "foreign.parquet")  # no workbench metadata at all
+    one_line_error(cli("train", "foreign.parquet", "--out", "m.pt", cwd=tmp_path), 2,
+                   "foreign.parquet has no workbench metadata naming its control period")
+    assert not (tmp_path / "m.pt").exists()
+    assert cli("train", "foreign.parquet", "--control-period", "1/75e3", "--out", "m.pt", cwd=tmp_path).returncode == 0
+    assert load_model(tmp_path / "m.pt").metadata["control_period_s"] == pytest.approx(1 / 75e3, rel=1e-12)
+    one_line_error(cli("run", "startup", "--controller", "nnpc", "--model", "m.pt", "--out", "o", cwd=tmp_path), 2,
+                   "was trained at a control period of 13.33 us; the controller samples every 1000 us")
+    model = train(small_frame(), NNConfig(), TrainingSettings(max_iterations=10))  # no period in its metadata
+    save_model(model, tmp_path / "periodless.pt")
+    one_line_error(cli("run", "startup", "--controller", "nnpc", "--model", "periodless.pt", "--out", "o",
+                       cwd=tmp_path), 2, "periodless.pt names no control period")
+    write_parquet(small_frame(), {"control_period_s": 1e-3}, tmp_path / "ours.parquet")
+    one_line_error(cli("train", "ours.parquet", "--control-period", "2e-3", "--out", "x.pt", cwd=tmp_path), 2,
+                   "was collected at a control period of 0.001 s, not the --control-period 0.002 s given")
+
+
+def test_random_bytes_and_folders_are_named_for_what_they_are(tmp_path):
+    (tmp_path / "noise.pt").write_bytes(os.urandom(4096))
+    with pytest.raises(ModelFileError, match=r"noise.pt is not a model written by buck-cosim train \(not a torch "
+                                             r"zip archive"):
+        load_model(tmp_path / "noise.pt")
+    with pytest.raises(ModelFileError, match=r"is a folder: expected a .pt file"):
+        load_model(tmp_path)
+    one_line_error(cli("export", str(tmp_path), "--to", "csv"), 2, "is a folder: expected a file")
+    one_line_error(cli("run", str(tmp_path), "--kp", "0", "--ki", "14", "--out", str(tmp_path / "o")), 2,
+                   "is a folder: expected a scenario file")
+    one_line_error(cli("run", "startup", "--plant", str(tmp_path), "--kp", "0", "--ki", "14"), 2,
+                   "is a folder: expected a .toml file")
+    one_line_error(cli("inspect", str(tmp_path)), 2, "is a folder: expected a .fmu file")
+
+
+# ------------------------------------------------------------------ 5. numbers written to JSON
+
+
+def test_every_json_file_a_run_writes_is_strict_json(tmp_path):
+    done = cli("run", "startup", "--kp", "0", "--ki", "14", "--no-figures", "--out", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    files = list(tmp_path.rglob("*.json"))
+    assert files
+    for path in files:
+        strict_json(path)
+
+
+# ------------------------------------------------------------------ 6, 7. impossible requests, work before checks
+
+
+def test_a_reference_above_the_supply_is_refused_with_its_line(tmp_path):
+    (tmp_path / "high.toml").write_text('name = "high"\nduration = 0.03\n[initial]\nreference = 12.0\n'
+                                        '[[events]]\ntime = 0.02\ninput_voltage = 40.0\n'
+                                        '[[events]]\ntime = 0.01\nreference = 45.0\n')
+    one_line_error(cli("run", str(tmp_path / "high.toml"), "--kp", "0", "--ki", "14", "--out", str(tmp_path)), 2,
+                   "high.toml:7: the reference 45 V at t = 0.02 s exceeds the input voltage 40 V in effect then: a "
+                   "buck converter's output cannot exceed its input")  # line 7: the supply step that makes it so
+
+
+def test_a_control_period_longer_than_the_scenario_is_refused_before_any_tuning(tmp_path):
+    error = one_line_error(cli("run", "startup", "--control-period", "0.05", "--out", str(tmp_path)), 2,
+                           "scenario startup records 0.03 s, which holds 1 controller sample(s) at control period "
+                           "0.05 s: expected at least 2")
+    assert "startup.toml:4:" in error  # the duration's line
+    assert not (tmp_path / "tuning").exists()  # refused before the PI was tuned
+
+
+def test_bad_collection_settings_are_refused_before_the_pi_is_tuned(tmp_path):
+    one_line_error(cli("collect-data", "--samples", "50", "--work-dir", str(tmp_path), "--out",
+                       str(tmp_path / "d.parquet")), 2, "argument --samples: 50 is invalid")
+    one_line_error(cli("collect-data", "--excitation", "0.7", "--work-dir", str(tmp_path), "--out",
+                       str(tmp_path / "d.parquet")), 2, "argument --excitation: 0.7 is invalid")
+    assert not list(tmp_path.rglob("*.json")) and not (tmp_path / "d.parquet").exists()
+
+
+def test_a_bad_model_file_is_refused_before_the_pi_is_tuned(tmp_path):
+    (tmp_path / "bad.pt").write_bytes(b"junk")
+    one_line_error(cli("run", "startup", "--controller", "pi", "--controller", "nnpc", "--model",
+                       str(tmp_path / "bad.pt"), "--out", str(tmp_path)), 2, "bad.pt is not a model")
+    assert not (tmp_path / "tuning").exists()
+
+
+# ------------------------------------------------------------------ 8. messages that name the place
+
+
+@pytest.mark.parametrize("parameter,message", [
+    ("fault_kind = 1.5", "faulty.toml:10: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got 1.5 (float)"),
+    ('fault_time = "big"', "faulty.toml:11: parameter 'fault_time' is Real in FaultyBuck.fmu, got 'big' (str)"),
+    ("fault_kind = true", "faulty.toml:10: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got True (bool)"),
+])
+def test_a_wrongly_typed_binding_parameter_is_refused_with_its_line_when_the_file_loads(tmp_path, faulty_fmu,
+                                                                                       parameter, message):
+    from cosim.base.errors import ConfigError
+    from cosim.fmi.binding_file import load_binding
+
+    name = parameter.split(" = ")[0]
+    lines = FAULTY.format(fmu=faulty_fmu, kind=0, extra="").splitlines()
+    text = "\n".join(parameter if line.startswith(f"{name} = ") else line for line in lines) + "\n"
+    (tmp_path / "faulty.toml").write_text(text)
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_binding(tmp_path / "faulty.toml")  # before any FMU is opened
+
+
+def test_a_huge_settle_is_refused_naming_the_file_and_the_key(tmp_path):
+    (tmp_path / "huge.toml").write_text('name = "huge"\nduration = 0.03\nsettle = 1e6\n[initial]\nreference = 12.0\n')
+    one_line_error(cli("run", str(tmp_path / "huge.toml"), "--kp", "0", "--ki", "14", "--out", str(tmp_path)), 2,
+                   "huge.toml:3: scenario huge's settle 1e+06 s and duration 0.03 s at control period 0.001 s and "
+                   "record period 1e-05 s make 1e+09 instants; the limit is 2e+08 (shorten settle")
+
+
+def test_the_fmus_own_exception_text_is_in_the_message(tmp_path, faulty_fmu):
+    binding = tmp_path / "faulty.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2, extra=""))
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--no-figures",
+                       "--record-period", "1e-4", "--out", str(tmp_path / "out")), 3,
+                   "fmi2DoStep failed (fatal) at t = 0.0103 s: Fatal py exception encountered: [doStep] "
+                   "PyObject_CallMethod RuntimeError('simulated solver breakdown')")
+
+
+def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
+    from cosim.study.controller_factory import tuned_pi
+    from cosim.study.experiments import plant_binding
+
+    tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached: the command goes straight to collecting
+    process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "collect-data", "--samples",
+                                "2000000", "--work-dir", str(tmp_path), "--out", str(tmp_path / "d.parquet")],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
+    time.sleep(6.0)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "data collection interrupted at t = " in lines[0] and "no data file written" in \
+        lines[0] and "rows kept" not in lines[0], err
+    assert not (tmp_path / "d.parquet").exists()
+
+
+# ------------------------------------------------------------------ 9. a crashing FMU
+
+
+def _extracted_fmu_folders() -> set[str]:
+    return {p.name for p in Path(tempfile.gettempdir()).glob("buck-cosim-fmu-*")}
+
+
+def test_a_crashing_fmu_ends_the_run_not_the_workbench(tmp_path, faulty_fmu):
+    """A plant FMU that dereferences NULL: isolated (the default for binding files) the run ends with
+    exit 3 and one line naming the FMU and the time, the rows before the crash are written and
+    marked incomplete, and the extracted FMU is deleted. In-process (--no-isolate) it takes the
+    whole process with it -- the reason isolation is the default for external FMUs."""
+    binding = tmp_path / "crash.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=4, extra=""))
+    before = _extracted_fmu_folders()
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
+                       "--out", str(tmp_path / "out")), 3,
+                   f"binding file {binding}: the FMU crashed the plant process (signal SIGSEGV) while stepping at "
+                   "t = 0.0104 s")
+    run = read_run(tmp_path / "out" / "runs" / "startup__pi__bound-crash__1ms.parquet")
+    assert run.complete is False and "SIGSEGV" in run.error
+    assert 0.0099 < run.frame["time"].max() < 0.0104 and len(run.frame) > 90
+    assert _extracted_fmu_folders() <= before
+    crashed = cli("run", "startup", "--plant", str(binding), "--no-isolate", "--kp", "0", "--ki", "14",
+                  "--record-period", "1e-4", "--out", str(tmp_path / "in-process"))
+    assert crashed.returncode == -signal.SIGSEGV  # no message, no rows: what isolation prevents
+
+
+def test_isolation_gives_the_same_run_as_in_process(tmp_path, faulty_fmu):
+    from controllers.pi import PIController
+    from cosim.fmi.binding_file import load_binding
+    from cosim.master import simulate
+    from cosim.scenarios import load_scenario
+
+    binding = tmp_path / "plant.toml"
+    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=0, extra=""))
+    plant = load_binding(binding)
+    assert plant.isolate is True  # binding files default to isolation
+    runs = [simulate(replace_isolate(plant, isolate), PIController(0.0, 14.0, 1e-3), load_scenario("startup"),
+                     record_period=1e-4) for isolate in (True, False)]
+    pd.testing.assert_frame_equal(runs[0].frame.drop(columns="controller_compute_time"),
+                                  runs[1].frame.drop(columns="controller_compute_time"))
+    assert runs[0].metadata["plant"]["isolated"] is True and runs[1].metadata["plant"]["isolated"] is False
+
+
+def replace_isolate(binding, isolate: bool):
+    from dataclasses import replace
+
+    return replace(binding, isolate=isolate)
