@@ -191,6 +191,31 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_export_controller(args) -> int:
+    from cosim.fmi.controller_export import export_controller
+    from cosim.study.controller_factory import make_controllers
+
+    out = output_file(args.out)
+    if out.suffix.lower() != ".fmu":
+        raise ConfigError(f"--out {out} is invalid: expected a file name ending in .fmu")
+    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
+        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    work_dir = output_dir(args.work_dir)
+    binding = _plant_binding(args)
+    [controller] = make_controllers([args.controller], binding, args.control_period, work_dir,
+                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
+                                    model_path=args.model, samples=args.samples, seed=args.seed,
+                                    progress=args.progress)
+    try:
+        binary, source = export_controller(controller, out)
+    except ValueError as error:  # a configuration the C twins cannot hold
+        raise ConfigError(f"{controller.name}: {error}") from None
+    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU: "
+          f"{binary}")
+    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    return 0
+
+
 def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
@@ -403,10 +428,11 @@ def build_parser() -> argparse.ArgumentParser:
                                    "figure per scenario (PNG + SVG) under OUT/figures.")
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                    help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
-    p.add_argument("--controller", action="append",
-                   choices=list(CONTROLLERS),
-                   help="controller(s) to run; repeat to overlay several (default: pi). nnpc trains its network "
-                        "on demand (data collected with the tuned PI) unless --model is given")
+    p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml",
+                   help=f"controller(s) to run; repeat to overlay several (default: pi): {', '.join(CONTROLLERS)}, "
+                        "a controller FMU with the workbench's role names (buck-cosim export-controller), or a "
+                        "controller-binding file for any other controller FMU (it runs at its own sample period). "
+                        "nnpc trains its network on demand (data collected with the tuned PI) unless --model")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
@@ -465,6 +491,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 co-simulation FMU (C99)",
+                       description="Write the workbench's PI or predictive controller (NNPC, MPC) as an FMI 2.0 "
+                                   "co-simulation FMU built from the hand-written C99 twins of controllers/c and a "
+                                   "generated header of data (gains, or the horizon settings and the network's "
+                                   "weights), plus its source FMU. Its variables carry the workbench's role names "
+                                   "(reference, measured_output_voltage, measured_inductor_current, "
+                                   "measured_load_current, input_voltage -> duty_cycle; parameter sample_period "
+                                   "[s]); run it with 'buck-cosim run --controller NAME.fmu'.")
+    p.add_argument("controller", choices=list(CONTROLLERS), help="which controller")
+    p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
+                   help="sample period in s, e.g. 1e-3 or 1/75e3 (default: 1e-3); the predictive settings are the "
+                        "workbench's at that rate")
+    p.add_argument("--out", required=True, metavar="NAME.fmu", help="the FMU to write (NAME-source.fmu beside it)")
+    p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand "
+                                                     "on the plant below)")
+    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned on the plant)")
+    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned on the plant)")
+    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
+    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
+    p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                   help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+    _add_plant_options(p)
+    p.set_defaults(func=cmd_export_controller)
 
     p = sub.add_parser("inspect", help="describe any FMU (and draft a binding file for it)",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "

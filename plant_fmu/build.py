@@ -1,9 +1,13 @@
-"""Build ``BuckConverter.fmu`` from the C sources with fmpy's own compile (CMake + the C compiler).
+"""Build the workbench's FMUs from C sources with fmpy's own compile (CMake + the C compiler).
 
-The built FMU is cached under a name that contains a hash of the sources, the fmpy version and
-the platform, so editing a source file triggers exactly one rebuild and users and tests never
-build by hand. A source-only FMU (no binaries) is written beside it for tools that compile FMUs
-themselves.
+Every FMU -- the buck plant, the controllers, the scenario sources -- is the shared FMI 2.0 glue
+(``plant_fmu/glue``) plus one model, described by an :class:`FmuSources`: its model identifier,
+its ``modelDescription.xml`` and its source files. :func:`build` stages them in an FMU folder,
+compiles them with ``fmpy.build.build_platform_binary`` (warnings on, warnings as errors) and
+zips the result; :func:`build_source_fmu` zips the same folder without compiling, for tools that
+compile FMUs themselves. Both are cached under a name that holds a hash of everything that
+determines the binary (sources, model description, fmpy version, platform, flags), so editing a
+source file triggers exactly one rebuild and users and tests never build by hand.
 """
 
 from __future__ import annotations
@@ -15,20 +19,69 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import fmpy
 import fmpy.build
 import fmpy.util
 
-SOURCE_DIR = Path(__file__).parent / "sources"
+PACKAGE_DIR = Path(__file__).parent
+GLUE_DIR = PACKAGE_DIR / "glue"
+SOURCE_DIR = PACKAGE_DIR / "sources"
 MODEL_IDENTIFIER = "BuckConverter"
-C_SOURCES = ("buck_model.c", "buck_model.h", "buck_variables.h", "fmi2_functions.c")
+GLUE_FILES = ("fmi2_glue.c", "fmu_model.h")
+PLANT_FILES = ("buck_model.c", "buck_model.h", "buck_variables.h", "buck_fmu.c")
 MODEL_DESCRIPTION = "modelDescription.xml"
+#: warnings as errors; no fused multiply-add (the C twins must round like the Python references)
+CMAKE_OPTIONS = {"CMAKE_COMPILE_WARNING_AS_ERROR:BOOL": "ON", "CMAKE_C_FLAGS:STRING": "-ffp-contract=off"}
 
 
 class PlantBuildError(RuntimeError):
-    """The FMU could not be compiled; the message names the log with the compiler output."""
+    """An FMU could not be compiled; the message names the log with the compiler output."""
+
+
+@dataclass(frozen=True)
+class FmuSources:
+    """What an FMU is built from: ``files`` are (name, contents) pairs staged under ``sources/``."""
+
+    identifier: str
+    model_description: str
+    files: tuple[tuple[str, bytes], ...]
+
+    def digest(self) -> str:
+        """Hash of everything that determines the binary: sources, fmpy version, platform, flags."""
+        h = hashlib.sha256()
+        h.update(f"fmpy {fmpy.__version__} {fmpy.platform} {sys.platform} {sorted(CMAKE_OPTIONS.items())}".encode())
+        h.update(self.identifier.encode())
+        h.update(self.model_description.encode())
+        for name, contents in sorted(self.files):
+            h.update(name.encode())
+            h.update(contents)
+        return h.hexdigest()[:16]
+
+    def stage(self, unzipdir: Path) -> None:
+        """Write ``modelDescription.xml`` and ``sources/`` into an FMU folder layout."""
+        unzipdir = Path(unzipdir)
+        (unzipdir / "sources").mkdir(parents=True)
+        (unzipdir / MODEL_DESCRIPTION).write_text(self.model_description, encoding="utf-8")
+        for name, contents in self.files:
+            (unzipdir / "sources" / name).write_bytes(contents)
+
+
+def read_files(folder: Path, names: tuple[str, ...]) -> tuple[tuple[str, bytes], ...]:
+    return tuple((name, (Path(folder) / name).read_bytes()) for name in names)
+
+
+def glue_files() -> tuple[tuple[str, bytes], ...]:
+    """The shared FMI 2.0 glue every FMU of the workbench is compiled with."""
+    return read_files(GLUE_DIR, GLUE_FILES)
+
+
+def plant_sources() -> FmuSources:
+    """The buck converter plant FMU."""
+    return FmuSources(MODEL_IDENTIFIER, (SOURCE_DIR / MODEL_DESCRIPTION).read_text(encoding="utf-8"),
+                      glue_files() + read_files(SOURCE_DIR, PLANT_FILES))
 
 
 def cache_dir() -> Path:
@@ -38,13 +91,8 @@ def cache_dir() -> Path:
 
 
 def source_digest() -> str:
-    """Hash of everything that determines the binary: sources, fmpy version, platform."""
-    digest = hashlib.sha256()
-    digest.update(f"fmpy {fmpy.__version__} {fmpy.platform} {sys.platform}".encode())
-    for name in (MODEL_DESCRIPTION, *C_SOURCES):
-        digest.update(name.encode())
-        digest.update((SOURCE_DIR / name).read_bytes())
-    return digest.hexdigest()[:16]
+    """Hash of the plant FMU's sources (see :meth:`FmuSources.digest`)."""
+    return plant_sources().digest()
 
 
 @contextlib.contextmanager
@@ -65,14 +113,7 @@ def _output_to(log_path: Path):
             os.close(saved[1])
 
 
-def _stage_sources(unzipdir: Path) -> None:
-    (unzipdir / "sources").mkdir(parents=True)
-    shutil.copy2(SOURCE_DIR / MODEL_DESCRIPTION, unzipdir / MODEL_DESCRIPTION)
-    for name in C_SOURCES:
-        shutil.copy2(SOURCE_DIR / name, unzipdir / "sources" / name)
-
-
-def _compile(unzipdir: Path, build_dir: Path, log_path: Path) -> None:
+def _compile(unzipdir: Path, build_dir: Path, log_path: Path, identifier: str) -> None:
     """fmpy's compile with all warnings on and warnings as errors."""
     build_dir.mkdir()
     # fmpy calls `cmake`; pip installs it next to this interpreter, which may not be on PATH.
@@ -80,71 +121,84 @@ def _compile(unzipdir: Path, build_dir: Path, log_path: Path) -> None:
     os.environ["PATH"] = str(Path(sys.executable).parent) + os.pathsep + path
     try:
         with _output_to(log_path):
-            fmpy.build.build_platform_binary(
-                unzipdir,
-                build_dir=build_dir,
-                all_warnings=True,
-                cmake_options={"CMAKE_COMPILE_WARNING_AS_ERROR:BOOL": "ON"},
-            )
+            fmpy.build.build_platform_binary(unzipdir, build_dir=build_dir, all_warnings=True,
+                                             cmake_options=dict(CMAKE_OPTIONS))
     except (subprocess.CalledProcessError, OSError) as error:
         tail = log_path.read_text(errors="replace").strip().splitlines()[-15:]
         raise PlantBuildError(
-            f"compiling {MODEL_IDENTIFIER}.fmu failed ({error}); compiler log: {log_path}\n" + "\n".join(tail)
+            f"compiling {identifier}.fmu failed ({error}); compiler log: {log_path}\n" + "\n".join(tail)
         ) from None
     finally:
         os.environ["PATH"] = path
 
 
-def stage_sources(unzipdir: Path) -> None:
-    """Copy modelDescription.xml and sources/ into an FMU folder layout (to build or to adapt)."""
-    _stage_sources(Path(unzipdir))
-
-
-def _zip_into(unzipdir: Path, target: Path, compile_first: bool) -> Path:
+def _zip_into(unzipdir: Path, target: Path, compile_first: bool, identifier: str) -> Path:
     """Optionally compile a staged FMU folder (fmpy's CMake build), then zip it atomically to ``target``."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
         tmp_path = Path(tmp)
         if compile_first:
-            _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log")
+            _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log", identifier)
         staged = tmp_path / "staged.fmu"
         fmpy.util.create_zip_archive(staged, unzipdir)
         os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
     return target
 
 
-def compile_fmu(unzipdir: Path, target: Path) -> Path:
+def stage_sources(unzipdir: Path) -> None:
+    """The plant FMU's folder layout (modelDescription.xml and sources/), to build or to adapt."""
+    plant_sources().stage(Path(unzipdir))
+
+
+def compile_fmu(unzipdir: Path, target: Path, identifier: str = MODEL_IDENTIFIER) -> Path:
     """Compile a staged FMU folder with fmpy's CMake build and zip it atomically to ``target``."""
-    return _zip_into(unzipdir, target, compile_first=True)
+    return _zip_into(unzipdir, target, compile_first=True, identifier=identifier)
 
 
-def _cached(suffix: str, compile_first: bool, force: bool) -> Path:
-    target = cache_dir() / f"{MODEL_IDENTIFIER}-{source_digest()}{suffix}.fmu"
+def _cached(sources: FmuSources, suffix: str, compile_first: bool, force: bool) -> Path:
+    target = cache_dir() / f"{sources.identifier}-{sources.digest()}{suffix}.fmu"
     if target.is_file() and not force:
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".stage-") as tmp:
-        unzipdir = Path(tmp) / MODEL_IDENTIFIER
-        _stage_sources(unzipdir)
-        return _zip_into(unzipdir, target, compile_first)
+        unzipdir = Path(tmp) / sources.identifier
+        sources.stage(unzipdir)
+        return _zip_into(unzipdir, target, compile_first, sources.identifier)
+
+
+def build(sources: FmuSources, force: bool = False) -> Path:
+    """The compiled FMU (this platform's binary + its sources) of ``sources``, from the cache or built now."""
+    return _cached(sources, "", compile_first=True, force=force)
+
+
+def build_source_fmu(sources: FmuSources, force: bool = False) -> Path:
+    """A source-only FMU (modelDescription.xml + sources/) that other tools can compile."""
+    return _cached(sources, "-source", compile_first=False, force=force)
 
 
 def fmu_path(force: bool = False) -> Path:
     """Path of the compiled BuckConverter FMU (model exchange + co-simulation), building it if needed."""
-    return _cached("", compile_first=True, force=force)
+    return build(plant_sources(), force)
 
 
 def source_fmu_path(force: bool = False) -> Path:
-    """Path of a source-only FMU (modelDescription.xml + sources/) that other tools can compile."""
-    return _cached("-source", compile_first=False, force=force)
+    """Path of the plant's source-only FMU."""
+    return build_source_fmu(plant_sources(), force)
+
+
+def export(sources: FmuSources, binary: Path, source: Path, force: bool = False) -> tuple[Path, Path]:
+    """Copy the compiled and the source FMU of ``sources`` to ``binary`` and ``source`` (atomically)."""
+    for built, target in ((build(sources, force), binary), (build_source_fmu(sources, force), source)):
+        Path(target).parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(target).with_name(f".{Path(target).name}.tmp-{os.getpid()}")
+        shutil.copyfile(built, tmp)
+        os.replace(tmp, target)
+    return Path(binary), Path(source)
 
 
 def export_fmus(output_dir: Path, force: bool = False) -> tuple[Path, Path]:
-    """Copy the compiled and the source FMU to ``output_dir`` as BuckConverter.fmu / BuckConverter-source.fmu."""
-    output_dir.mkdir(parents=True, exist_ok=True)
-    binary = output_dir / f"{MODEL_IDENTIFIER}.fmu"
-    source = output_dir / f"{MODEL_IDENTIFIER}-source.fmu"
-    shutil.copyfile(fmu_path(force), binary)
-    shutil.copyfile(source_fmu_path(force), source)
-    return binary, source
+    """Copy the compiled and the source plant FMU to ``output_dir`` as BuckConverter.fmu / BuckConverter-source.fmu."""
+    output_dir = Path(output_dir)
+    return export(plant_sources(), output_dir / f"{MODEL_IDENTIFIER}.fmu",
+                  output_dir / f"{MODEL_IDENTIFIER}-source.fmu", force)

@@ -68,7 +68,8 @@ def test_fmu_contains_binary_and_sources_and_source_fmu_has_no_binary(buck_fmu):
     with zipfile.ZipFile(buck_fmu) as z:
         names = set(z.namelist())
     assert f"binaries/{fmpy.platform}/BuckConverter.so" in names
-    assert {"sources/buck_model.c", "sources/fmi2_functions.c", "modelDescription.xml"} <= names
+    assert {"sources/buck_model.c", "sources/buck_fmu.c", "sources/fmi2_glue.c", "sources/fmu_model.h",
+            "modelDescription.xml"} <= names
     with zipfile.ZipFile(source_fmu_path()) as z:
         source_names = set(z.namelist())
     assert not any(n.startswith("binaries/") for n in source_names)
@@ -82,7 +83,7 @@ def test_build_is_cached_by_source_hash(buck_fmu, tmp_path, monkeypatch):
     digest = plant_build.source_digest()
     copy = tmp_path / "sources"
     copy.mkdir()
-    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.C_SOURCES):
+    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.PLANT_FILES):
         (copy / name).write_bytes((plant_build.SOURCE_DIR / name).read_bytes())
     (copy / "buck_model.c").write_text((copy / "buck_model.c").read_text() + "\n/* edited */\n")
     monkeypatch.setattr(plant_build, "SOURCE_DIR", copy)
@@ -92,7 +93,7 @@ def test_build_is_cached_by_source_hash(buck_fmu, tmp_path, monkeypatch):
 def test_compile_errors_name_the_log(tmp_path, monkeypatch):
     copy = tmp_path / "sources"
     copy.mkdir()
-    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.C_SOURCES):
+    for name in (plant_build.MODEL_DESCRIPTION, *plant_build.PLANT_FILES):
         (copy / name).write_bytes((plant_build.SOURCE_DIR / name).read_bytes())
     (copy / "buck_model.c").write_text((copy / "buck_model.c").read_text() + "\nstatic int unused_variable_here;\n")
     monkeypatch.setattr(plant_build, "SOURCE_DIR", copy)

@@ -15,8 +15,8 @@ int buckc_pi_init(BuckcPi *pi, const BuckcPiConfig *config, const char **what)
         if (what) *what = "pi or config is NULL";
         return BUCKC_ERR_NULL;
     }
-    if (!(config->kp >= 0.0 && config->ki >= 0.0)) {
-        if (what) *what = "kp, ki: expected values >= 0";
+    if (!(isfinite(config->kp) && isfinite(config->ki) && config->kp >= 0.0 && config->ki >= 0.0)) {
+        if (what) *what = "kp, ki: expected finite values >= 0";
         return BUCKC_ERR_INVALID;
     }
     if (!(config->sample_period > 0.0 && isfinite(config->sample_period))) {

@@ -170,9 +170,11 @@ _PARAMETER_TYPES = {"Real": (int, float), "Integer": (int,), "Enumeration": (int
                     "String": (str,)}
 
 
-def resolve_roles(binding: PlantBinding, model_description) -> dict[str, ResolvedRole]:
-    """Each bound role's variable: it exists, is Real, has a causality that fits the role, and
-    the role's scale is finite and non-zero. Raises :class:`BindingMismatch` naming the role."""
+def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[str, ResolvedRole]:
+    """Each bound role's variable: it exists, is Real, has a causality that fits the role (an
+    ``input_roles`` role: input or parameter; any other: output or local), and the role's scale
+    is finite and non-zero. Raises :class:`BindingMismatch` naming the role. ``binding``: a plant
+    or a controller binding (anything with ``roles`` and ``fmu_path``)."""
     variables = {v.name: v for v in model_description.modelVariables}
     fmu_name = Path(binding.fmu_path).name
     resolved = {}
@@ -184,7 +186,7 @@ def resolve_roles(binding: PlantBinding, model_description) -> dict[str, Resolve
         if variable.type != "Real":
             raise BindingMismatch(f"role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}",
                                   "role", role)
-        wanted = ("input", "parameter") if role in INPUT_ROLES else ("output", "local")
+        wanted = ("input", "parameter") if role in input_roles else ("output", "local")
         if variable.causality not in wanted:
             raise BindingMismatch(f"role {role!r} needs causality {' or '.join(wanted)}, but {mapping.variable!r} "
                                   f"has causality {variable.causality}", "role", role)

@@ -67,16 +67,80 @@ def _number(value, label: str, place: str) -> float:
     return float(value)
 
 
-def parse_binding(text: str, path: Path) -> PlantBinding:
-    """Parse and check a binding file's text (``path`` locates the FMU and names errors)."""
-    data, loc = parse_toml(text, path, TOP_KEYS)
+def fmu_path_of(data: dict, path: Path, loc: TomlLocator) -> Path:
+    """The required ``fmu`` key: a path, relative to the binding file unless absolute."""
     if "fmu" not in data:
         raise ConfigError(f"{path}: missing required key 'fmu' (the FMU file this binding drives)")
     if not isinstance(data["fmu"], str):
         raise ConfigError(f"{where(path, loc, 'fmu')}: fmu has the wrong type: expected a path as text")
     fmu_path = Path(data["fmu"])
-    if not fmu_path.is_absolute():
-        fmu_path = (path.parent / fmu_path).resolve()
+    return fmu_path if fmu_path.is_absolute() else (path.parent / fmu_path).resolve()
+
+
+def parse_roles(data: dict, path: Path, loc: TomlLocator, allowed: tuple[str, ...]) -> dict[str, RoleMap]:
+    """The ``[roles.<name>]`` tables: each a variable with an optional finite, non-zero scale and offset."""
+    roles_table = data.get("roles", {})
+    if not isinstance(roles_table, dict):
+        raise ConfigError(f"{where(path, loc, 'roles')}: 'roles' must be a table of [roles.<name>] tables")
+    roles: dict[str, RoleMap] = {}
+    for role, entry in roles_table.items():
+        table = f"roles.{role}"
+        if role not in allowed:
+            raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}: expected one of "
+                              f"{', '.join(allowed)}")
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where(path, loc, role, 'roles')}: role {role!r} must be a table with 'variable'")
+        for key in entry:
+            if key not in ROLE_KEYS:
+                raise ConfigError(f"{where(path, loc, key, table)}: unknown key '{table}.{key}': expected one of "
+                                  f"{', '.join(sorted(ROLE_KEYS))}")
+        variable = entry.get("variable")
+        if not isinstance(variable, str) or not variable:
+            raise ConfigError(f"{where(path, loc, 'variable', table)}: '{table}.variable' must name an FMU variable")
+        scale = _number(entry.get("scale", 1.0), f"{table}.scale", where(path, loc, "scale", table))
+        offset = _number(entry.get("offset", 0.0), f"{table}.offset", where(path, loc, "offset", table))
+        if scale == 0:
+            raise ConfigError(f"{where(path, loc, 'scale', table)}: {table}.scale = 0 is invalid: expected a "
+                              "non-zero factor")
+        roles[role] = RoleMap(variable=variable, scale=scale, offset=offset)
+    return roles
+
+
+def parse_parameters(data: dict, path: Path, loc: TomlLocator) -> dict:
+    """The ``[parameters]`` table: names and values (numbers, true/false or text) set before initialisation."""
+    parameters = data.get("parameters", {})
+    if not isinstance(parameters, dict):
+        raise ConfigError(f"{where(path, loc, 'parameters')}: 'parameters' must be a table")
+    for name, value in parameters.items():
+        if not isinstance(value, (bool, int, float, str)):
+            raise ConfigError(f"{where(path, loc, name, 'parameters')}: parameter {name!r} = {value!r} is invalid: "
+                              "expected a number, true/false or text")
+    return parameters
+
+
+def checked_fmu_of(fmu_path: Path, path: Path, loc: TomlLocator):
+    """The archive checks of the bound FMU (nothing is extracted or loaded before this), located at ``fmu``."""
+    try:
+        return check_fmu(fmu_path)
+    except FmuArchiveError as error:
+        raise FmuArchiveError(f"{where(path, loc, 'fmu')}: {error}") from None
+
+
+def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ...]) -> None:
+    """A binding's roles and parameters against its FMU, each mistake located at its key's line."""
+    try:
+        resolve_roles(binding, checked.model_description, input_roles)
+        resolve_parameters(binding.parameters, checked.model_description, binding.fmu_path.name)
+    except BindingMismatch as error:
+        place = where(binding.source, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
+            where(binding.source, loc, error.key, "parameters")
+        raise ConfigError(f"{place}: {error}") from None
+
+
+def parse_binding(text: str, path: Path) -> PlantBinding:
+    """Parse and check a binding file's text (``path`` locates the FMU and names errors)."""
+    data, loc = parse_toml(text, path, TOP_KEYS)
+    fmu_path = fmu_path_of(data, path, loc)
     interface = data.get("interface")
     if interface is not None:
         if not isinstance(interface, str):
@@ -98,29 +162,7 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
         raise ConfigError(f"{where(path, loc, 'isolate')}: isolate = {isolate!r} has the wrong type: expected true or "
                           "false")
 
-    roles_table = data.get("roles", {})
-    if not isinstance(roles_table, dict):
-        raise ConfigError(f"{where(path, loc, 'roles')}: 'roles' must be a table of [roles.<name>] tables")
-    roles: dict[str, RoleMap] = {}
-    for role, entry in roles_table.items():
-        table = f"roles.{role}"
-        if role not in ROLES:
-            raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}: expected one of "
-                              f"{', '.join(ROLES)}")
-        if not isinstance(entry, dict):
-            raise ConfigError(f"{where(path, loc, role, 'roles')}: role {role!r} must be a table with 'variable'")
-        for key in entry:
-            if key not in ROLE_KEYS:
-                raise ConfigError(f"{where(path, loc, key, table)}: unknown key '{table}.{key}': expected one of "
-                                  f"{', '.join(sorted(ROLE_KEYS))}")
-        variable = entry.get("variable")
-        if not isinstance(variable, str) or not variable:
-            raise ConfigError(f"{where(path, loc, 'variable', table)}: '{table}.variable' must name an FMU variable")
-        scale = _number(entry.get("scale", 1.0), f"{table}.scale", where(path, loc, "scale", table))
-        offset = _number(entry.get("offset", 0.0), f"{table}.offset", where(path, loc, "offset", table))
-        if scale == 0:
-            raise ConfigError(f"{where(path, loc, 'scale', table)}: {table}.scale = 0 is invalid: expected a non-zero factor")
-        roles[role] = RoleMap(variable=variable, scale=scale, offset=offset)
+    roles = parse_roles(data, path, loc, ROLES)
     for role in REQUIRED_ROLES:
         if role not in roles:
             raise ConfigError(f"{path}: missing role [roles.{role}] ({ROLE_DESCRIPTIONS[role]})")
@@ -129,18 +171,9 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
               "predictive controllers will estimate the load from a measured vo and the plain load_current; "
               "bind both alike", file=sys.stderr)
 
-    parameters = data.get("parameters", {})
-    if not isinstance(parameters, dict):
-        raise ConfigError(f"{where(path, loc, 'parameters')}: 'parameters' must be a table")
-    for name, value in parameters.items():
-        if not isinstance(value, (bool, int, float, str)):
-            raise ConfigError(f"{where(path, loc, name, 'parameters')}: parameter {name!r} = {value!r} is invalid: "
-                              "expected a number, true/false or text")
+    parameters = parse_parameters(data, path, loc)
 
-    try:
-        checked = check_fmu(fmu_path)  # the archive first: nothing is extracted or loaded before this
-    except FmuArchiveError as error:
-        raise FmuArchiveError(f"{where(path, loc, 'fmu')}: {error}") from None
+    checked = checked_fmu_of(fmu_path, path, loc)
     binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
                            max_step=max_step, source=path, label=label, isolate=isolate)
     _check_variables(binding, checked, loc)
@@ -148,34 +181,33 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
 
 
 def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
-    """The roles and parameters against the FMU (:func:`resolve_roles`, :func:`resolve_parameters`:
-    the plant's own checks), each mistake located at its key's line; and the interface."""
-    path = binding.source
-    try:
-        resolve_roles(binding, checked.model_description)
-        resolve_parameters(binding.parameters, checked.model_description, binding.fmu_path.name)
-    except BindingMismatch as error:
-        place = where(path, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
-            where(path, loc, error.key, "parameters")
-        raise ConfigError(f"{place}: {error}") from None
+    """The roles and parameters against the FMU (the plant's own checks, :func:`check_against`),
+    and the interface."""
+    check_against(binding, checked, loc, INPUT_ROLES)
     wanted_interface = binding.interface
     if wanted_interface is not None and wanted_interface not in checked.interfaces:
-        raise ConfigError(f"{where(path, loc, 'interface')}: interface {wanted_interface!r} is not available "
-                          f"(the FMU offers: {', '.join(checked.interfaces)})")
+        raise ConfigError(f"{where(binding.source, loc, 'interface')}: interface {wanted_interface!r} is not "
+                          f"available (the FMU offers: {', '.join(checked.interfaces)})")
+
+
+def read_binding_text(path: str | Path, what: str = "binding file") -> tuple[str, Path]:
+    """A binding file's text and resolved path; a missing file, a folder or unreadable text is a
+    one-line :class:`ConfigError`."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder: expected a .toml file")
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} does not exist")
+    try:
+        return path.read_text(encoding="utf-8"), path.resolve()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read {what} ({error})") from None
 
 
 def load_binding(path: str | Path) -> PlantBinding:
-    """Read and check a binding file; raise :class:`ConfigError` (one line) on any problem."""
-    path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"binding file {path} is a folder: expected a .toml file")
-    if not path.is_file():
-        raise ConfigError(f"binding file {path} does not exist")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"{path}: cannot read binding file ({error})") from None
-    return parse_binding(text, path.resolve())
+    """Read and check a plant-binding file; raise :class:`ConfigError` (one line) on any problem."""
+    text, resolved = read_binding_text(path)
+    return parse_binding(text, resolved)
 
 
 # ---------------------------------------------------------------------------------------------

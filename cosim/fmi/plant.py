@@ -21,20 +21,12 @@ import math
 import shutil
 import sys
 from collections import deque
-from ctypes import byref, c_double, c_uint
+from ctypes import c_double, c_uint
 from typing import Mapping, Sequence
 
 import fmpy
 from fmpy.fmi1 import FMICallException
-from fmpy.fmi2 import (
-    FMU2Model,
-    FMU2Slave,
-    fmi2CallbackAllocateMemoryTYPE,
-    fmi2CallbackFreeMemoryTYPE,
-    fmi2CallbackFunctions,
-    fmi2CallbackLoggerTYPE,
-    fmi2True,
-)
+from fmpy.fmi2 import FMU2Model, FMU2Slave, fmi2True
 
 from cosim.base.errors import ConfigError, PlantError
 from cosim.fmi.archive import CheckedFmu, check_fmu
@@ -47,8 +39,8 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
+from cosim.fmi.fmu_log import STATUS_NAMES, callbacks_for, release
 
-STATUS_NAMES = ("ok", "warning", "discard", "error", "fatal", "pending")
 FATAL_STATUS = 4
 FATAL_REFUSAL = "the FMU reported fmi2Fatal earlier and cannot be used again (FMI 2.0 forbids any further call)"
 _ABANDONED_AFTER_FATAL: list = []  # FMU objects that reported fmi2Fatal; never called or unloaded again
@@ -167,23 +159,8 @@ class FmuPlant:
 
     # ------------------------------------------------------------------ set-up
     def _make_callbacks(self):
-        def on_log(environment, instance_name, status, category, message):
-            try:
-                text = message.decode("utf-8", "replace") if message else ""
-                cat = category.decode("utf-8", "replace") if category else ""
-                label = STATUS_NAMES[status] if 0 <= status < len(STATUS_NAMES) else str(status)
-                self.log.append((label, cat, text))
-            except Exception:  # never let an exception cross the C boundary
-                pass
-
-        callbacks = fmi2CallbackFunctions()
-        callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
-        callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
-        callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
-        from fmpy.logging import addLoggerProxy
-
-        addLoggerProxy(byref(callbacks))
-        self._logger_function = on_log  # keep the Python function alive as long as the callbacks
+        callbacks, self._log_handle = callbacks_for(lambda status, category, message:
+                                                    self.log.append((status, category, message)))
         return callbacks
 
     def _model_identifier(self) -> str:
@@ -320,6 +297,8 @@ class FmuPlant:
         self._remove_unzipdir()
 
     def _remove_unzipdir(self) -> None:
+        if getattr(self, "_log_handle", None) and not self._fatal:
+            release(self._log_handle)
         if getattr(self, "_unzipdir", None):
             shutil.rmtree(self._unzipdir, ignore_errors=True)
             self._unzipdir = None

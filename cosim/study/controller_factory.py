@@ -64,15 +64,16 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int = 10_000, seed: int = 0,
                      progress: bool = False) -> list:
-    """The controllers ``names`` for ``binding`` at ``period``: everything is checked first (names,
-    gains, duty limits, the period, the roles each controller needs, a given model file), then the
-    PI is tuned and networks trained where needed -- so a mistake is refused before minutes of work."""
+    """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`)
+    or paths of controller FMUs / controller-binding files (which run at their own sample period).
+    Everything is checked first (names, gains, duty limits, the period, the roles each controller
+    needs, a given model file, controller FMUs and their bindings), then the PI is tuned and
+    networks trained where needed -- so a mistake is refused before minutes of work."""
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
+    from cosim.fmi.controller import FmuController, controller_binding
 
-    unknown = [n for n in names if n not in CONTROLLERS]
-    if unknown:
-        raise ConfigError(f"controller {unknown[0]!r} is unknown: expected one of {', '.join(CONTROLLERS)}")
+    bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS}  # FMUs or binding files, checked now
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
     if model_path and sum(n in NETWORKS for n in names) > 1:
@@ -105,8 +106,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
-            else:  # mpc-nominal
+            elif name == "mpc-nominal":
                 controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
+            else:  # a controller FMU
+                controllers.append(FmuController(bound[name]))
     except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers

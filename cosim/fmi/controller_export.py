@@ -1,0 +1,139 @@
+"""Controller FMUs: a workbench controller as an FMI 2.0 co-simulation unit built from C.
+
+:func:`controller_sources` stages what the FMU is compiled from: the shared FMI 2.0 glue of the
+plant FMU (``plant_fmu/glue``), the hand-written algorithms of ``controllers/c``, the controller
+model (``controller_fmu/controller_fmu.c``: variables and the sample clock) and one generated
+header of data (:func:`controllers.codegen.config_header`). :func:`export_controller` builds it
+with the plant's fmpy-compile helper and cache and writes ``NAME.fmu`` and ``NAME-source.fmu``.
+
+The variables carry the workbench's role names: inputs ``reference``, ``measured_output_voltage``,
+``measured_inductor_current``, ``measured_load_current``, ``input_voltage``; output
+``duty_cycle`` (which depends directly on the inputs at a sample instant); parameters
+``sample_period``, ``duty_min``, ``duty_max`` (and ``kp``, ``ki`` for the PI, which may be set
+before initialisation; a predictive controller's are fixed by its generation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from xml.etree import ElementTree
+
+from controllers.codegen import KIND_PI, config_header, controller_kind, header_guid
+from controllers.native import SOURCE_DIR as ALGORITHM_DIR
+from plant_fmu.build import FmuSources, export, glue_files, read_files
+
+MODEL_DIR = Path(__file__).parent / "controller_fmu"
+MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
+ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
+                   "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h")
+#: compiled files (the glue, the model, the algorithms), in modelDescription.xml's SourceFiles
+COMPILED = ("fmi2_glue.c", "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c", "predictors.c", "predictive.c",
+            "load_estimate.c")
+
+
+@dataclass(frozen=True)
+class Variable:
+    name: str
+    value_reference: int
+    causality: str
+    variability: str
+    unit: str
+    description: str
+    start: str | None = None
+    pi_only: bool = False
+
+
+#: the controller FMUs' variables; controller_variables.h numbers them the same way (tested)
+VARIABLES = (
+    Variable("reference", 0, "input", "continuous", "V", "output-voltage reference", "0"),
+    Variable("measured_output_voltage", 1, "input", "continuous", "V", "what the output-voltage sensor reads", "0"),
+    Variable("measured_inductor_current", 2, "input", "continuous", "A", "what the inductor-current sensor reads",
+             "0"),
+    Variable("measured_load_current", 3, "input", "continuous", "A",
+             "what the load-current sensor reads (NaN: no such sensor; the load is then estimated from iL)", "0"),
+    Variable("input_voltage", 4, "input", "continuous", "V", "supply voltage", None),
+    Variable("duty_cycle", 5, "output", "discrete", "1", "duty cycle in effect (held between sample instants)"),
+    Variable("sample_period", 6, "parameter", "fixed", "s", "controller sample period Ts: samples at t0 + k Ts"),
+    Variable("duty_min", 7, "parameter", "fixed", "1", "lower duty limit"),
+    Variable("duty_max", 8, "parameter", "fixed", "1", "upper duty limit"),
+    Variable("kp", 9, "parameter", "fixed", "1/V", "proportional gain", pi_only=True),
+    Variable("ki", 10, "parameter", "fixed", "1/(V.s)", "integral gain", pi_only=True),
+)
+UNITS = {"V": {"kg": "1", "m": "2", "s": "-3", "A": "-1"}, "A": {"A": "1"}, "1": {}, "s": {"s": "1"},
+         "1/V": {"kg": "-1", "m": "-2", "s": "3", "A": "1"}, "1/(V.s)": {"kg": "-1", "m": "-2", "s": "2", "A": "1"}}
+
+
+def model_description(identifier: str, name: str, guid: str, description: str, start_values: dict[str, float],
+                      pi: bool) -> str:
+    """``modelDescription.xml`` of a controller FMU (co-simulation only)."""
+    root = ElementTree.Element("fmiModelDescription", {
+        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
+        "generationTool": "buck-cosim export-controller (hand-written C, generated data)",
+        "variableNamingConvention": "structured", "numberOfEventIndicators": "0"})
+    cs = ElementTree.SubElement(root, "CoSimulation", {
+        "modelIdentifier": identifier, "canHandleVariableCommunicationStepSize": "true",
+        "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
+        "canSerializeFMUstate": "true"})
+    files = ElementTree.SubElement(cs, "SourceFiles")
+    for file in COMPILED:
+        ElementTree.SubElement(files, "File", {"name": file})
+    units = ElementTree.SubElement(root, "UnitDefinitions")
+    for unit, base in UNITS.items():
+        element = ElementTree.SubElement(units, "Unit", {"name": unit})
+        if base:
+            ElementTree.SubElement(element, "BaseUnit", base)
+    variables = ElementTree.SubElement(root, "ModelVariables")
+    listed = [v for v in VARIABLES if pi or not v.pi_only]
+    for v in listed:
+        attributes = {"name": v.name, "valueReference": str(v.value_reference), "causality": v.causality,
+                      "variability": v.variability, "description": v.description}
+        if v.causality == "output":
+            attributes["initial"] = "calculated"
+        element = ElementTree.SubElement(variables, "ScalarVariable", attributes)
+        real = {"unit": v.unit}
+        start = start_values.get(v.name, v.start)
+        if v.causality != "output" and start is not None:
+            real["start"] = str(start)
+        ElementTree.SubElement(element, "Real", real)
+    structure = ElementTree.SubElement(root, "ModelStructure")
+    outputs = ElementTree.SubElement(structure, "Outputs")
+    index = {v.name: str(i + 1) for i, v in enumerate(listed)}
+    inputs = " ".join(index[v.name] for v in listed if v.causality == "input")
+    ElementTree.SubElement(outputs, "Unknown", {"index": index["duty_cycle"], "dependencies": inputs,
+                                                "dependenciesKind": " ".join("dependent" for _ in inputs.split())})
+    initial = ElementTree.SubElement(structure, "InitialUnknowns")
+    ElementTree.SubElement(initial, "Unknown", {"index": index["duty_cycle"]})
+    ElementTree.indent(root, space="  ")
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
+
+
+def controller_sources(controller, identifier: str) -> FmuSources:
+    """What the FMU of a Python PI or predictive controller is built from."""
+    header = config_header(controller, name=identifier)
+    pi = controller_kind(controller) == KIND_PI
+    low, high = controller.duty_limits
+    starts = {"sample_period": repr(float(controller.sample_period)), "duty_min": repr(float(low)),
+              "duty_max": repr(float(high)),
+              "input_voltage": repr(float(getattr(controller, "nominal_input_voltage", 48.0)))}
+    if pi:
+        starts.update(kp=repr(float(controller.kp)), ki=repr(float(controller.ki)))
+    description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
+                   f"{controller.sample_period:.6g} s ({'PI' if pi else 'predictive'}; hand-written C99, "
+                   "generated configuration)")
+    md = model_description(identifier, controller.name, header_guid(header), description, starts, pi)
+    files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + read_files(ALGORITHM_DIR, ALGORITHM_FILES)
+    return FmuSources(identifier, md, files + (("controller_config.h", header.encode()),))
+
+
+def export_controller(controller, out: Path, force: bool = False) -> tuple[Path, Path]:
+    """Build the controller's FMU and write ``out`` (``NAME.fmu``) and ``NAME-source.fmu`` beside it."""
+    out = Path(out)
+    identifier = _identifier(out.stem)
+    return export(controller_sources(controller, identifier), out, out.with_name(f"{out.stem}-source.fmu"), force)
+
+
+def _identifier(stem: str) -> str:
+    """A C identifier from a file name: the FMU's model identifier names its shared library."""
+    text = "".join(c if c.isalnum() or c == "_" else "_" for c in stem)
+    return text if text and not text[0].isdigit() else f"controller_{text}"

@@ -1,0 +1,274 @@
+/* A workbench controller as an FMU model (fmu_model.h): the PI or the predictive controller of
+ * controllers/c/, sampled on the FMU's own clock.
+ *
+ * The algorithm and its settings come from the generated controller_config.h (data only: the
+ * kind, the PI gains or the predictive configuration with the network's weights) -- the
+ * algorithms themselves are the hand-written C twins in controllers/c/. The FMI 2.0 glue is the
+ * one the plant FMU uses (fmi2_glue.c).
+ *
+ * Sampling. The FMU samples at t_k = t0 + k Ts (t0: the start time). At a sample instant the duty
+ * computed from the inputs of that instant is in effect at that instant: reading duty_cycle
+ * there computes it (direct feedthrough, declared in modelDescription.xml) without committing
+ * it, so a master may set inputs and read the duty as often as it likes; fmi2DoStep from a sample
+ * instant commits that computation (the controller's state advances) and moves to the next one.
+ * A communication step may end anywhere up to the next sample instant, never beyond it: a master
+ * steps the FMU with communication points that land on every sample instant. Between sample
+ * instants the duty is held (zero-order hold). */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "controller_variables.h"
+#include "fmu_model.h"
+#include "pi.h"
+#include "predictive.h"
+
+#include "controller_config.h" /* generated: CONTROLLER_KIND, CONTROLLER_NAME, CONTROLLER_GUID, PI_CONFIG,
+                                  PREDICTIVE_CONFIG */
+
+typedef struct {
+    double time;          /* the FMU's clock [s] */
+    double start_time;    /* t0 [s] */
+    long long next;       /* index k of the next sample instant not yet committed */
+    double inputs[CONTROLLER_INPUTS];
+    int computed;         /* a duty has been computed for sample `next` from the inputs now set */
+    double pending_duty;  /* that duty */
+    double duty;          /* the duty in effect between samples */
+    BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
+    BuckcPi pi, pi_pending;
+    BuckcPredictiveState predictive_pending;
+    BuckcPredictive predictive; /* last: the big one (the predictors' caches) */
+} ControllerData;
+
+const FmuModelInfo FMU_MODEL = {
+    CONTROLLER_GUID,
+    CONTROLLER_NAME,
+    sizeof(ControllerData),
+    0, /* co-simulation only */
+    0,
+    0x42434354u, /* "BCCT" */
+    1u,
+};
+
+static double sample_period(const ControllerData *d) {
+    return CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.sample_period : PREDICTIVE_CONFIG.sample_period;
+}
+
+static double sample_time(const ControllerData *d, long long k) {
+    return d->start_time + (double)k * sample_period(d);
+}
+
+static double tolerance(const ControllerData *d) { return 1e-9 * sample_period(d); }
+
+static int at_sample(const ControllerData *d) {
+    return fabs(d->time - sample_time(d, d->next)) <= tolerance(d);
+}
+
+void model_set_defaults(void *data) {
+    ControllerData *d = (ControllerData *)data;
+    memset(d, 0, sizeof *d);
+    d->pi_config = PI_CONFIG;
+    d->inputs[VR_INPUT_VOLTAGE] = PREDICTIVE_CONFIG.nominal_input_voltage;
+    d->inputs[VR_MEASURED_LOAD_CURRENT] = NAN;
+}
+
+const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer, size_t size) {
+    ControllerData *d = (ControllerData *)data;
+    const char *what = NULL;
+    int status;
+    (void)fmu;
+    if (CONTROLLER_KIND == CONTROLLER_PI) status = buckc_pi_init(&d->pi, &d->pi_config, &what);
+    else status = buckc_predictive_init(&d->predictive, &PREDICTIVE_CONFIG, &what);
+    if (status != BUCKC_OK) {
+        snprintf(buffer, size, "%s refuses its configuration: %s (%s)", CONTROLLER_NAME, what ? what : "",
+                 buckc_status_text(status));
+        return buffer;
+    }
+    d->start_time = d->time = time;
+    d->next = 0;
+    d->computed = 0;
+    d->duty = d->pending_duty = 0.0;
+    return NULL;
+}
+
+double model_time(const void *data) { return ((const ControllerData *)data)->time; }
+void model_set_time(void *data, double time) { ((ControllerData *)data)->time = time; }
+
+/* The duty of the sample instant from the inputs now set, without committing the state. */
+static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
+    double duty = 0.0;
+    if (CONTROLLER_KIND == CONTROLLER_PI) {
+        d->pi_pending = d->pi;
+        duty = buckc_pi_step(&d->pi_pending, d->inputs[VR_REFERENCE], d->inputs[VR_MEASURED_OUTPUT_VOLTAGE]);
+    } else {
+        BuckcMeasurement m;
+        BuckcPredictiveState committed = d->predictive.state;
+        m.time = d->time;
+        m.reference = d->inputs[VR_REFERENCE];
+        m.output_voltage = d->inputs[VR_MEASURED_OUTPUT_VOLTAGE];
+        m.inductor_current = d->inputs[VR_MEASURED_INDUCTOR_CURRENT];
+        m.load_current = d->inputs[VR_MEASURED_LOAD_CURRENT];
+        m.input_voltage = d->inputs[VR_INPUT_VOLTAGE];
+        int status = buckc_predictive_step(&d->predictive, &m, &duty);
+        d->predictive_pending = d->predictive.state;
+        d->predictive.state = committed; /* committed by fmi2DoStep, not by reading the duty */
+        if (status != BUCKC_OK) {
+            fmu_log(fmu, fmi2Error, "logStatusError", "%s at t = %.9g s: %s%s", CONTROLLER_NAME, d->time,
+                    buckc_status_text(status),
+                    status == BUCKC_ERR_NO_INDUCTOR_CURRENT ? " (measured_inductor_current is not finite)" : "");
+            return fmi2Error;
+        }
+    }
+    if (!isfinite(duty)) {
+        fmu_log(fmu, fmi2Error, "logStatusError", "%s computed a non-finite duty at t = %.9g s", CONTROLLER_NAME,
+                d->time);
+        return fmi2Error;
+    }
+    d->pending_duty = duty;
+    d->computed = 1;
+    return fmi2OK;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Variables                                                                                  */
+
+fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Real *value) {
+    ControllerData *d = (ControllerData *)data;
+    if (vr < CONTROLLER_INPUTS) {
+        *value = d->inputs[vr];
+        return fmi2OK;
+    }
+    switch (vr) {
+    case VR_DUTY_CYCLE:
+        if (at_sample(d) && !d->computed) {
+            fmi2Status status = compute(fmu, d);
+            if (status != fmi2OK) return status;
+        }
+        *value = at_sample(d) ? d->pending_duty : d->duty;
+        return fmi2OK;
+    case VR_SAMPLE_PERIOD: *value = sample_period(d); return fmi2OK;
+    case VR_DUTY_MIN:
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_min : PREDICTIVE_CONFIG.duty_min;
+        return fmi2OK;
+    case VR_DUTY_MAX:
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_max : PREDICTIVE_CONFIG.duty_max;
+        return fmi2OK;
+    case VR_KP:
+        if (CONTROLLER_KIND != CONTROLLER_PI) break;
+        *value = d->pi_config.kp;
+        return fmi2OK;
+    case VR_KI:
+        if (CONTROLLER_KIND != CONTROLLER_PI) break;
+        *value = d->pi_config.ki;
+        return fmi2OK;
+    default: break;
+    }
+    fmu_log(fmu, fmi2Error, "logStatusError", "fmi2GetReal: unknown value reference %u", vr);
+    return fmi2Error;
+}
+
+fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Real value, int initializing) {
+    ControllerData *d = (ControllerData *)data;
+    if (vr < CONTROLLER_INPUTS) {
+        if (d->inputs[vr] != value) d->computed = 0; /* NaN for the load current: "no such sensor" */
+        d->inputs[vr] = value;
+        return fmi2OK;
+    }
+    double *target = NULL;
+    if (CONTROLLER_KIND == CONTROLLER_PI) {
+        switch (vr) {
+        case VR_SAMPLE_PERIOD: target = &d->pi_config.sample_period; break;
+        case VR_DUTY_MIN: target = &d->pi_config.duty_min; break;
+        case VR_DUTY_MAX: target = &d->pi_config.duty_max; break;
+        case VR_KP: target = &d->pi_config.kp; break;
+        case VR_KI: target = &d->pi_config.ki; break;
+        default: break;
+        }
+    } else if (vr == VR_SAMPLE_PERIOD || vr == VR_DUTY_MIN || vr == VR_DUTY_MAX) {
+        double fixed = vr == VR_SAMPLE_PERIOD ? PREDICTIVE_CONFIG.sample_period
+                       : vr == VR_DUTY_MIN   ? PREDICTIVE_CONFIG.duty_min
+                                             : PREDICTIVE_CONFIG.duty_max;
+        if (value == fixed || fabs(value - fixed) <= 1e-12 * fabs(fixed)) return fmi2OK;
+        fmu_log(fmu, fmi2Error, "logStatusError",
+                "fmi2SetReal: %s was generated for %s = %.17g; its network and optimizer hold only for that value "
+                "(export it again for another)", CONTROLLER_NAME,
+                vr == VR_SAMPLE_PERIOD ? "sample_period" : vr == VR_DUTY_MIN ? "duty_min" : "duty_max", fixed);
+        return fmi2Error;
+    }
+    if (target == NULL) {
+        fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetReal: value reference %u is not an input or parameter", vr);
+        return fmi2Error;
+    }
+    if (!initializing) {
+        fmu_log(fmu, fmi2Error, "logStatusError",
+                "fmi2SetReal: the parameters of %s can only be set before fmi2ExitInitializationMode", CONTROLLER_NAME);
+        return fmi2Error;
+    }
+    if (!isfinite(value)) {
+        fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetReal: %g is invalid: expected a finite value", value);
+        return fmi2Error;
+    }
+    *target = value; /* the whole configuration is checked when initialisation ends */
+    return fmi2OK;
+}
+
+fmi2Status model_get_integer(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Integer *value) {
+    (void)data;
+    (void)value;
+    fmu_log(fmu, fmi2Error, "logStatusError", "fmi2GetInteger: unknown value reference %u", vr);
+    return fmi2Error;
+}
+
+fmi2Status model_set_integer(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Integer value,
+                             int initializing) {
+    (void)data;
+    (void)value;
+    (void)initializing;
+    fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetInteger: unknown value reference %u", vr);
+    return fmi2Error;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Co-simulation                                                                              */
+
+fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step) {
+    ControllerData *d = (ControllerData *)data;
+    (void)time;
+    if (at_sample(d)) {
+        if (!d->computed) {
+            fmi2Status status = compute(fmu, d);
+            if (status != fmi2OK) return status;
+        }
+        if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
+        else d->predictive.state = d->predictive_pending;
+        d->duty = d->pending_duty;
+        d->next += 1;
+        d->computed = 0;
+    }
+    double end = d->time + step, next = sample_time(d, d->next);
+    if (end > next + tolerance(d)) {
+        fmu_log(fmu, fmi2Error, "logStatusError",
+                "fmi2DoStep: the step from t = %.12g s to %.12g s passes the sample instant t = %.12g s of %s "
+                "(sample period %.6g s): a master must stop at every sample instant", d->time, end, next,
+                CONTROLLER_NAME, sample_period(d));
+        return fmi2Error;
+    }
+    d->time = fabs(end - next) <= tolerance(d) ? next : end; /* land exactly on the sample instant */
+    return fmi2OK;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* No model exchange: a sampled controller has no continuous states                           */
+
+void model_get_states(const void *data, double x[]) { (void)data; (void)x; }
+void model_set_states(void *data, const double x[]) { (void)data; (void)x; }
+void model_nominal_states(double x[]) { (void)x; }
+void model_derivatives(const void *data, double dx[]) { (void)data; (void)dx; }
+void model_event_indicators(const void *data, double z[]) { (void)data; (void)z; }
+int model_update_discrete(FmuInstance *fmu, void *data, double *next_event_time, int *next_event_defined) {
+    (void)fmu;
+    (void)data;
+    *next_event_time = 0.0;
+    *next_event_defined = 0;
+    return 0;
+}

@@ -1,0 +1,374 @@
+"""Controllers as FMUs: the workbench's PI and predictive controllers exported as FMI 2.0
+co-simulation units (hand-written C, generated data), driven by the master through the one
+controller adapter, and externally authored controller FMUs through controller-binding files."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import fmpy
+import fmpy.validation
+import numpy as np
+import pytest
+from fmpy.fmi2 import FMU2Slave
+
+from controllers.pi import PIController
+from cosim.base.errors import ConfigError
+from cosim.fmi.controller import FmuController, builtin_controller_binding, load_controller_binding, open_controller
+from cosim.fmi.controller_export import MODEL_DIR, VARIABLES, export_controller
+from cosim.master import simulate
+from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+from cosim.study.experiments import nnpc, plant_binding, scenarios_for
+from cosim.study.vocabulary import SWITCHING_PERIOD
+
+FIXTURES = Path(__file__).parent / "fixtures"
+CORPUS = Path(__file__).parent / "corpus"
+DUTY_TOLERANCE = 1e-9
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
+                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def out(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("controller-fmus")
+
+
+@pytest.fixture(scope="module")
+def pi() -> PIController:
+    return PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
+
+
+@pytest.fixture(scope="module")
+def nnpc_1ms():
+    """The workbench's 1 ms NNPC on a network identified quickly (800 samples, 100 iterations)."""
+    from controllers.nn_model import TrainingSettings, train
+    from cosim.study.data_collection import collect
+    from cosim.study.experiments import collection_settings, nn_configs
+
+    data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
+                   collection_settings(1e-3, samples=800, seed=3))
+    model = train(data, nn_configs(1e-3)["nnpc"], TrainingSettings(seed=3, max_iterations=100),
+                  metadata={"control_period_s": 1e-3})
+    return nnpc(model, 1e-3)
+
+
+@pytest.fixture(scope="module")
+def nnpc_fast():
+    """The reproduction's kind of NNPC at one switching period: 2 delays, horizon 23, move blocking."""
+    from controllers.nn_model import load_model
+
+    return nnpc(load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD),
+                SWITCHING_PERIOD)
+
+
+@pytest.fixture(scope="module")
+def fmus(out, pi, nnpc_1ms, nnpc_fast) -> dict[str, Path]:
+    return {name: export_controller(controller, out / f"{name}.fmu")[0]
+            for name, controller in (("pi", pi), ("nnpc_1ms", nnpc_1ms), ("nnpc_fast", nnpc_fast))}
+
+
+# ------------------------------------------------------------------ the FMUs themselves
+
+
+def test_value_references_in_the_header_match_the_model_description(fmus):
+    header = (MODEL_DIR / "controller_variables.h").read_text()
+    numbered = {m.group(1).lower(): int(m.group(2)) for m in re.finditer(r"VR_(\w+) = (\d+)", header)}
+    assert numbered == {v.name: v.value_reference for v in VARIABLES}
+    for name, path in fmus.items():
+        md = fmpy.read_model_description(str(path))
+        expected = {v.name: v.value_reference for v in VARIABLES if name == "pi" or not v.pi_only}
+        assert {v.name: v.valueReference for v in md.modelVariables} == expected
+        assert md.coSimulation is not None and md.modelExchange is None
+        duty = next(u for u in md.outputs if u.variable.name == "duty_cycle")
+        assert {d.name for d in duty.dependencies} == {v.name for v in VARIABLES if v.causality == "input"}
+
+
+def test_fmpy_validation_reports_nothing_and_the_source_fmu_has_no_binary(fmus):
+    import zipfile
+
+    for path in fmus.values():
+        assert fmpy.validation.validate_fmu(str(path)) == []
+        with zipfile.ZipFile(path.with_name(f"{path.stem}-source.fmu")) as z:
+            names = z.namelist()
+        assert not any(n.startswith("binaries/") for n in names)
+        assert {"sources/fmi2_glue.c", "sources/controller_fmu.c", "sources/predictive.c",
+                "sources/controller_config.h"} <= set(names)
+
+
+def test_the_generated_header_holds_data_only(out, nnpc_1ms):
+    from controllers.codegen import config_header
+
+    header = config_header(nnpc_1ms)
+    code = [line for line in header.splitlines() if line and not line.startswith(("/*", " *", "#"))]
+    assert all(line.startswith("static const ") for line in code), code  # no functions, no statements
+    assert "static const BuckcPredictiveConfig PREDICTIVE_CONFIG" in header
+    assert repr(float(nnpc_1ms.predictor.model._weights[0][0, 0])) in header  # the folded weights, exactly
+
+
+# ------------------------------------------------------------------ equivalence with the Python controllers
+
+
+def _duties(result) -> np.ndarray:
+    frame = result.frame
+    return frame.loc[frame["control_sample"], "duty_cycle"].to_numpy()
+
+
+@pytest.mark.parametrize("mode", ["averaged", "switched"])
+def test_pi_and_nnpc_fmus_give_the_python_duty_at_every_sample_at_1_ms(fmus, pi, nnpc_1ms, mode):
+    binding = plant_binding("nominal", mode)
+    for name, python in (("pi", pi), ("nnpc_1ms", nnpc_1ms)):
+        fmu = open_controller(str(fmus[name]))
+        assert fmu.sample_period == python.sample_period and fmu.duty_limits == python.duty_limits
+        for scenario in PAPER_SCENARIOS:
+            s = load_scenario(scenario)
+            reference, exported = (_duties(simulate(binding, c, s)) for c in (python, fmu))
+            assert len(exported) == len(reference) > 25
+            assert np.max(np.abs(exported - reference)) <= DUTY_TOLERANCE, (name, scenario)
+        fmu.close()
+
+
+@pytest.mark.parametrize("mode", ["averaged", "switched"])
+def test_the_nnpc_fmu_gives_the_python_duty_at_every_sample_at_one_switching_period(fmus, nnpc_fast, mode):
+    """No argmin flipped here: the C twin rounds operation by operation like numpy (1e-9 holds)."""
+    binding = plant_binding("mismatch", mode)
+    fmu = open_controller(str(fmus["nnpc_fast"]))
+    for scenario in scenarios_for(SWITCHING_PERIOD)[:2] if mode == "averaged" else scenarios_for(SWITCHING_PERIOD):
+        short = replace(scenario, duration=min(scenario.duration, 0.003), settle=min(scenario.settle, 0.001))
+        reference, exported = (_duties(simulate(binding, c, short)) for c in (nnpc_fast, fmu))
+        assert len(exported) > 200
+        assert np.max(np.abs(exported - reference)) <= DUTY_TOLERANCE, scenario.name
+    fmu.close()
+
+
+# ------------------------------------------------------------------ the sample clock, through fmpy alone
+
+
+def _callbacks(log: list):
+    """fmpy's callbacks with its logger proxy, which formats the FMU's variadic messages safely."""
+    from ctypes import byref
+
+    from fmpy.fmi2 import (
+        fmi2CallbackAllocateMemoryTYPE,
+        fmi2CallbackFreeMemoryTYPE,
+        fmi2CallbackFunctions,
+        fmi2CallbackLoggerTYPE,
+    )
+    from fmpy.logging import addLoggerProxy
+
+    def on_log(environment, name, status, category, message):
+        log.append(message.decode())
+
+    callbacks = fmi2CallbackFunctions()
+    callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
+    callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
+    callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
+    addLoggerProxy(byref(callbacks))
+    callbacks._keep = on_log
+    return callbacks
+
+
+class RawController:
+    """A controller FMU stepped through fmpy directly (no workbench adapter)."""
+
+    def __init__(self, path: Path, start=0.0):
+        self.md = fmpy.read_model_description(str(path))
+        self.vr = {v.name: v.valueReference for v in self.md.modelVariables}
+        self.unzipdir = fmpy.extract(str(path))
+        self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self.unzipdir,
+                             modelIdentifier=self.md.coSimulation.modelIdentifier)
+        self.log: list[str] = []
+        self.fmu.instantiate(callbacks=_callbacks(self.log), loggingOn=True)
+        self.fmu.setupExperiment(startTime=start)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+        self.time = start
+
+    def set(self, **values):
+        self.fmu.setReal([self.vr[k] for k in values], list(values.values()))
+
+    def duty(self) -> float:
+        return self.fmu.getReal([self.vr["duty_cycle"]])[0]
+
+    def step(self, h):
+        self.fmu.doStep(self.time, h)
+        self.time += h
+
+
+def test_reading_the_duty_at_a_sample_instant_computes_without_committing(fmus):
+    """Feedthrough: the duty follows the inputs set at the instant; only fmi2DoStep advances the PI."""
+    c = RawController(fmus["pi"])
+    c.set(reference=12.0, measured_output_voltage=10.0)
+    first = c.duty()
+    c.set(measured_output_voltage=11.0)
+    second = c.duty()
+    assert second < first  # recomputed from the new input, not accumulated
+    python = PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
+    from controllers.base import Measurement
+
+    assert second == python.step(Measurement(0.0, 12.0, 11.0))  # one sample, once
+    c.step(1e-3)
+    c.set(measured_output_voltage=11.5)
+    assert c.duty() == python.step(Measurement(1e-3, 12.0, 11.5))
+
+
+def test_any_communication_step_that_lands_on_the_sample_instants_gives_the_same_duties(fmus):
+    def trace(substeps: int) -> list[float]:
+        c = RawController(fmus["pi"], start=-0.004)
+        duties = []
+        for k in range(12):
+            c.set(reference=12.0, measured_output_voltage=0.5 * k)
+            duties.append(c.duty())
+            for j in range(substeps):
+                c.step(1e-3 / substeps)
+                if j < substeps - 1:
+                    assert c.duty() == duties[-1]  # held between the sample instants
+        return duties
+
+    assert trace(1) == trace(3) == trace(7)
+
+
+def test_a_step_past_a_sample_instant_is_an_error_naming_it(fmus):
+    c = RawController(fmus["pi"])
+    c.set(reference=12.0, measured_output_voltage=0.0)
+    c.step(1e-3)
+    with pytest.raises(Exception, match="fmi2DoStep"):
+        c.step(1.5e-3)
+    assert "the step from t = 0.001 s to 0.0025 s passes the sample instant t = 0.002 s" in c.log[-1]
+
+
+def test_fmu_state_round_trips_the_predictive_controller(fmus):
+    c = RawController(fmus["nnpc_1ms"])
+
+    def samples(n, start):
+        out = []
+        for k in range(n):
+            c.set(reference=12.0, measured_output_voltage=start + 0.3 * k, measured_inductor_current=1.0 + 0.01 * k,
+                  measured_load_current=2.0)
+            out.append(c.duty())
+            c.step(1e-3)
+        return out
+
+    samples(5, 0.0)
+    state = c.fmu.getFMUstate()
+    time = c.time
+    first = samples(6, 5.0)
+    c.fmu.setFMUstate(state)
+    c.time = time
+    assert samples(6, 5.0) == first
+    c.fmu.freeFMUstate(state)
+
+
+# ------------------------------------------------------------------ externally authored controllers
+
+
+@pytest.fixture(scope="module")
+def python_pi_fmu(tmp_path_factory) -> Path:
+    from pythonfmu.builder import FmuBuilder
+
+    folder = tmp_path_factory.mktemp("python-pi")
+    return Path(FmuBuilder.build_FMU(CORPUS / "python_pi_controller.py", dest=folder))
+
+
+BINDING = """\
+fmu = "{fmu}"
+label = "PI (pythonfmu)"
+
+[roles.reference]
+variable = "Vref"
+[roles.measured_output_voltage]
+variable = "Vmeas"
+[roles.duty_cycle]
+variable = "Dpct"
+scale = 100.0
+[roles.sample_period]
+variable = "Ts"
+
+[parameters]
+Kp = 0.0015
+Ki = 15.6
+Dmax = 95.0
+"""
+
+
+def test_a_pythonfmu_pi_under_other_names_matches_the_built_in_pi(python_pi_fmu, tmp_path, pi):
+    path = tmp_path / "pi.toml"
+    path.write_text(BINDING.format(fmu=python_pi_fmu))
+    controller = FmuController(load_controller_binding(path))
+    assert controller.sample_period == 1e-3 and controller.name == "PI (pythonfmu)"
+    for scenario in ("startup", "reference_up"):
+        s = load_scenario(scenario)
+        reference = _duties(simulate(plant_binding("nominal", "switched"), pi, s))
+        other = _duties(simulate(plant_binding("nominal", "switched"), controller, s))
+        np.testing.assert_allclose(other, reference, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("edit,message", [
+    (("[roles.duty_cycle]\nvariable = \"Dpct\"\nscale = 100.0\n", ""), "missing role [roles.duty_cycle]"),
+    (('variable = "Vmeas"', 'variable = "Vmeasured"'), r"pi.toml:7: role 'measured_output_voltage' names variable "
+                                                      r"'Vmeasured', which PythonPI.fmu does not have"),
+    (('variable = "Vref"', 'variable = "Dpct"'), r"pi.toml:5: role 'reference' needs causality input or parameter, "
+                                                 r"but 'Dpct' has causality output"),
+    (("Kp = 0.0015", 'Kp = "fast"'), r"pi.toml:15: parameter 'Kp' is Real in PythonPI.fmu, got 'fast'"),
+    (('label = "PI (pythonfmu)"', 'label = "PI"\nsample_period = 1.5e-3'),
+     r"sample_period = 0.0015 s is not a whole multiple of the FMU's own sample period 0.001 s"),
+    (('label = "PI (pythonfmu)"', 'label = "PI"\nduty_limits = [0.5, 0.2]'), r"pi.toml:3: duty_limits = \[0.5, 0.2\] is invalid: expected 0 <= min < max <= 1"),
+    (("[roles.sample_period]\nvariable = \"Ts\"\n", ""), r"no sample period: give sample_period"),
+])
+def test_controller_binding_mistakes_name_file_key_and_line(python_pi_fmu, tmp_path, edit, message):
+    path = tmp_path / "pi.toml"
+    path.write_text(BINDING.format(fmu=python_pi_fmu).replace(*edit))
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")
+                       if "roles." in message else message):
+        FmuController(load_controller_binding(path))
+
+
+# ------------------------------------------------------------------ the command line
+
+
+def test_export_then_run_from_the_command_line(tmp_path, fmus):
+    done = cli("export-controller", "pi", "--kp", "0.0015", "--ki", "15.6", "--out", str(tmp_path / "mine.fmu"))
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "mine.fmu").is_file() and (tmp_path / "mine-source.fmu").is_file()
+    done = cli("run", "startup", "--controller", "pi", "--kp", "0.0015", "--ki", "15.6", "--controller",
+               str(tmp_path / "mine.fmu"), "--no-figures", "--out", str(tmp_path / "runs"))
+    assert done.returncode == 0, done.stderr
+    from cosim.results import read_run
+
+    runs = {p.stem.split("__")[1]: read_run(p) for p in (tmp_path / "runs" / "runs").glob("*.parquet")}
+    assert set(runs) == {"pi", "mine"}
+    np.testing.assert_array_equal(_duties(runs["pi"]), _duties(runs["mine"]))
+    assert runs["mine"].metadata["controller"]["type"] == "controller FMU"
+
+
+def test_controller_fmu_faults_end_in_one_line(tmp_path, fmus):
+    """A controller FMU missing a role is a configuration error (2); one that fails mid-run (the
+    NNPC given no inductor current) a fault (3) with the rows kept and marked incomplete."""
+    (tmp_path / "plain.fmu").write_bytes(Path(fmpy.__file__).read_bytes())
+    done = cli("run", "startup", "--controller", str(tmp_path / "plain.fmu"), "--out", str(tmp_path / "a"))
+    assert done.returncode == 2 and "is not a zip archive" in done.stderr and "Traceback" not in done.stderr
+    from cosim.base.errors import ControllerError
+
+    plant = replace(plant_binding("nominal", "averaged"), roles={
+        r: m for r, m in plant_binding("nominal", "averaged").roles.items()
+        if r not in ("inductor_current", "measured_inductor_current")})
+    controller = open_controller(str(fmus["nnpc_1ms"]))
+    from cosim.master import RunFailed
+
+    with pytest.raises(RunFailed, match=r"needs a finite inductor current|measured_inductor_current is not finite"
+                       ) as failure:
+        simulate(plant, controller, load_scenario("startup"))
+    assert isinstance(failure.value.cause, ControllerError) and failure.value.exit_code == 3
+    assert failure.value.partial.complete is False
+
+
+def test_a_controller_fmu_without_the_role_names_needs_a_binding_file(python_pi_fmu):
+    with pytest.raises(ConfigError, match="has no variable 'reference': a controller FMU without the workbench's "
+                                          "role names needs a controller-binding file"):
+        builtin_controller_binding(python_pi_fmu)
