@@ -99,42 +99,63 @@ def _suffix() -> str:
 
 def source_digest(source_dir: Path = SOURCE_DIR, command: list[str] | None = None) -> str:
     """Hash of everything that determines the library: sources, flags, compiler and platform."""
-    command = command or compiler()
+    return _digest(sorted(Path(source_dir).glob("*.[ch]")), FLAGS, command or compiler())
+
+
+def _digest(files, flags, command: list[str], extra: bytes = b"") -> str:
     digest = hashlib.sha256()
-    digest.update(f"{_compiler_version(command)} {' '.join(command)} {FLAGS} {LIBRARIES} {sys.platform} "
+    digest.update(f"{_compiler_version(command)} {' '.join(command)} {flags} {LIBRARIES} {sys.platform} "
                   f"{sysconfig.get_platform()}".encode())
-    for path in sorted(Path(source_dir).glob("*.[ch]")):
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
+    for path in files:
+        digest.update(Path(path).name.encode())
+        digest.update(Path(path).read_bytes())
+    digest.update(extra)
     return digest.hexdigest()[:16]
+
+
+def build_c(name: str, sources: list[Path], headers: list[Path], flags: tuple[str, ...], suffix: str,
+            generated: dict[str, str] | None = None, force: bool = False) -> Path:
+    """Compile C ``sources`` (with ``headers`` and ``generated`` header texts beside them) into one
+    file under the cache, once per hash of everything that determines it; built in a temporary
+    folder and moved into place atomically. Raises :class:`NativeBuildError` naming the log."""
+    command = compiler()
+    files = sorted({Path(f) for f in (*sources, *headers)})
+    generated = generated or {}
+    extra = "".join(f"{k}\n{v}" for k, v in sorted(generated.items())).encode()
+    key = _digest(files, flags, command, extra)
+    folder = cache_dir()
+    target = folder / f"{name}-{key}{suffix}"
+    if target.is_file() and not force:
+        return target
+    folder.mkdir(parents=True, exist_ok=True)
+    log = folder / f"{name}-{key}.build.log"
+    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}-build-") as tmp:
+        for header, text in generated.items():
+            (Path(tmp) / header).write_text(text, encoding="utf-8")
+        includes = sorted({f"-I{Path(f).parent}" for f in files} | {f"-I{tmp}"})
+        staged = Path(tmp) / f"{name}{suffix}"
+        argv = [*command, *flags, *includes, *map(str, sorted(sources)), "-o", str(staged), *LIBRARIES]
+        try:
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+        except (OSError, subprocess.TimeoutExpired) as error:
+            log.write_text(f"$ {shlex.join(argv)}\n{error}\n")
+            raise NativeBuildError(f"compiling {name} failed ({error}); compiler log: {log}") from None
+        log.write_text(f"$ {shlex.join(argv)}\n{done.stdout}{done.stderr}")
+        if done.returncode != 0 or not staged.is_file():
+            raise NativeBuildError(f"compiling {name} failed (exit {done.returncode}); compiler log: {log}")
+        os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
+    return target
 
 
 def build_library(source_dir: Path = SOURCE_DIR, force: bool = False) -> Path:
     """Path of the compiled twins, compiling once per source hash; raises :class:`NativeBuildError`."""
     source_dir = Path(source_dir)
-    command = compiler()
-    key = source_digest(source_dir, command)
-    folder = cache_dir()
-    target = folder / f"{LIBRARY_NAME}-{key}{_suffix()}"
-    if target.is_file() and not force:
-        return target
-    folder.mkdir(parents=True, exist_ok=True)
-    log = folder / f"{LIBRARY_NAME}-{key}.build.log"
-    sources = sorted(str(p) for p in source_dir.glob("*.c"))
-    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{LIBRARY_NAME}-build-") as tmp:
-        staged = Path(tmp) / f"{LIBRARY_NAME}{_suffix()}"
-        argv = [*command, *FLAGS, *sources, "-o", str(staged), *LIBRARIES]
-        try:
-            done = subprocess.run(argv, capture_output=True, text=True, timeout=600)
-        except (OSError, subprocess.TimeoutExpired) as error:
-            log.write_text(f"$ {shlex.join(argv)}\n{error}\n")
-            raise NativeBuildError(f"compiling the C controller twins failed ({error}); compiler log: {log}") from None
-        log.write_text(f"$ {shlex.join(argv)}\n{done.stdout}{done.stderr}")
-        if done.returncode != 0 or not staged.is_file():
-            raise NativeBuildError(f"compiling the C controller twins failed (exit {done.returncode}); "
-                                   f"compiler log: {log}")
-        os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
-    return target
+    try:
+        return build_c(LIBRARY_NAME, sorted(source_dir.glob("*.c")), sorted(source_dir.glob("*.h")), FLAGS,
+                       _suffix(), force=force)
+    except NativeBuildError as error:
+        raise NativeBuildError(str(error).replace(f"compiling {LIBRARY_NAME}", "compiling the C controller twins")) \
+            from None
 
 
 # ------------------------------------------------------------------------------------------ struct mirrors

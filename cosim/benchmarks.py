@@ -375,13 +375,26 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
     from cosim.base.labels import period_label
     from cosim.study.reproduce import FULL, QUICK, reproduce
 
-    with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
-        start = time.perf_counter()
-        reproduce(Path(tmp), workers=2, profile=QUICK if quick else FULL)
-        elapsed = time.perf_counter() - start
-        metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv")
-    rows = [BenchRow("end-to-end reproduction (buck-cosim reproduce" + (" --quick" if quick else "") + "), 2 workers",
-                     elapsed, None, "s", "<= 120 s on 2 cores", elapsed <= 120.0)]
+    profile = QUICK if quick else FULL
+    times = {}
+    for implementation in ("python", "c"):  # the same reproduction, controllers in Python and in C
+        with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
+            start = time.perf_counter()
+            reproduce(Path(tmp), workers=2, profile=profile, implementation=implementation)
+            times[implementation] = time.perf_counter() - start
+            if implementation == "c":
+                metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv")
+    elapsed = times["c"]
+    ratio = times["c"] / times["python"]
+    command = "buck-cosim reproduce" + (" --quick" if quick else "")
+    rows = [BenchRow(f"end-to-end reproduction ({command}), 2 workers, controllers as their C twins (the default)",
+                     elapsed, None, "s", "<= 120 s on 2 cores", elapsed <= 120.0),
+            BenchRow(f"end-to-end reproduction ({command} --implementation python), 2 workers", times["python"],
+                     None, "s"),
+            BenchRow("reproduction time with the C controllers / with the Python controllers (same run)", ratio, None,
+                     "ratio", "<= 0.4", ratio <= 0.4,
+                     "the NN predictive controllers at one switching period dominate both: ~1 ms per step in C, "
+                     "~1.8 ms in Python (tanh calls: about 7 per network evaluation, thousands per step)")]
     for pipeline in sorted(set(metrics["pipeline"]), key=lambda p: (("13p33us" in p), p)):
         if not pipeline.startswith("nominal"):
             continue
@@ -402,10 +415,78 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
     return rows
 
 
+# ---------------------------------------------------------------------------------------------
+# 7. the C controllers, Python out of the loop
+
+
+def bench_c_controllers(quick: bool) -> list[BenchRow]:
+    """ns per step of the C PI and NNPC (the FMU's sources, controllers/c + the generated header)
+    replaying recorded closed-loop measurements, next to the Python controller on the same inputs;
+    the NNPC's operations counted and a Cortex-M4F cycle estimate (cosim.benchmark_harness)."""
+    from controllers.base import Measurement
+    from cosim.benchmark_harness import CORTEX_M4F, cortex_m4f_cycles, operation_counts, record_measurements, replay
+    from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
+
+    binding = plant_binding("nominal", "switched")
+    rows = []
+    for period, label in ((PAPER_PERIOD, "1 ms"), (SWITCHING_PERIOD, "13.33 us")):
+        samples = 40 if quick else (3000 if transient_within_sample(period) else 600)
+        scenario = _mixed_scenario(period, samples)
+        model, origin = _nn_model("nnpc", period, quick)
+        controllers = [_benchmark_pi(period), nnpc(model, period, NNPC)]
+        if not transient_within_sample(period):
+            controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
+        for controller in controllers:
+            measurements = record_measurements(binding, implemented(controller), scenario)
+            result = replay(controller, measurements, repeats=1 if quick else 3)
+            twin = implemented(controller)
+            twin.reset()
+            assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, result.duty)), \
+                "the harness and the in-process twin disagree"
+            python = []
+            controller.reset()
+            for row in measurements:
+                start = time.perf_counter_ns()
+                controller.step(Measurement(*row))
+                python.append(time.perf_counter_ns() - start)
+            c_p50, c_p99 = float(np.median(result.ns)) * 1e-3, _p99(result.ns) * 1e-3
+            py_p50, py_p99 = float(np.median(python)) * 1e-3, _p99(python) * 1e-3
+            budget = period * 1e6
+            target, met = "", None
+            if controller.name == NNPC:
+                target, met = ("p99 <= 5 us", c_p99 <= 5.0) if transient_within_sample(period) else \
+                    ("p99 <= 13.3 us (stretch)", c_p99 <= budget)
+            rows.append(BenchRow(f"C step, {controller.name}, {label} ({len(measurements)} replayed samples, "
+                                 f"{100 * c_p99 / budget:.3g} % of the period at p99)", c_p50, c_p99, "us", target, met,
+                                 f"NN: {origin}" if controller.name == NNPC else ""))
+            rows.append(BenchRow(f"Python step, {controller.name}, {label} (same inputs)", py_p50, py_p99, "us"))
+            rows.append(BenchRow(f"speed-up of C over Python, {controller.name}, {label} (p50)", py_p50 / c_p50, None,
+                                 "ratio"))
+            if controller.name != NNPC:
+                continue
+            counts = operation_counts(controller, result.evaluations)
+            cycles = cortex_m4f_cycles(counts)
+            for key, what in (("candidates", "candidate evaluations"), ("macs", "multiply-accumulates"),
+                              ("tanh", "tanh calls")):
+                rows.append(BenchRow(f"NNPC {label} per step: {what} (counted)", float(np.median(counts[key])),
+                                     float(np.percentile(counts[key], 99)), "count"))
+            fraction = float(np.percentile(cycles, 99)) / (CORTEX_M4F.clock_hz * period)
+            rows.append(BenchRow(
+                f"NNPC {label} per step on a 170 MHz Cortex-M4F (float32 port, estimated cycles)",
+                float(np.median(cycles)), float(np.percentile(cycles, 99)), "cycles",
+                f"fits {CORTEX_M4F.clock_hz * period:.0f} cycles", fraction <= 1.0,
+                f"p99 is {fraction:.3g} x the period; cost model: {CORTEX_M4F.mac} cycles/MAC, {CORTEX_M4F.tanh}/tanh, "
+                f"{CORTEX_M4F.sqrt}/sqrt, {CORTEX_M4F.candidate}/candidate, {CORTEX_M4F.interrupt} per sample for "
+                "ADC/PWM/ISR (cosim/benchmark_harness); the twins compute in double precision, which the M4F "
+                "emulates in software -- a float32 port is assumed"))
+    return rows
+
+
 BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "plant": bench_plant,
     "master": bench_master,
     "controllers": bench_controllers,
+    "c-controllers": bench_c_controllers,
     "training": bench_training,
     "inference": bench_inference,
     "reproduction": bench_reproduction,

@@ -46,20 +46,6 @@ def pi() -> PIController:
 
 
 @pytest.fixture(scope="module")
-def nnpc_1ms():
-    """The workbench's 1 ms NNPC on a network identified quickly (800 samples, 100 iterations)."""
-    from controllers.nn_model import TrainingSettings, train
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs
-
-    data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
-                   collection_settings(1e-3, samples=800, seed=3))
-    model = train(data, nn_configs(1e-3)["nnpc"], TrainingSettings(seed=3, max_iterations=100),
-                  metadata={"control_period_s": 1e-3})
-    return nnpc(model, 1e-3)
-
-
-@pytest.fixture(scope="module")
 def nnpc_fast():
     """The reproduction's kind of NNPC at one switching period: 2 delays, horizon 23, move blocking."""
     from controllers.nn_model import load_model

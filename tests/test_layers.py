@@ -7,7 +7,7 @@ Layers, lowest first (a module belongs to the longest prefix that names it):
 2. ``cosim.fmi``             FMU adapters, archive checks, bindings and binding files, inspect
 3. ``cosim`` (the rest)      core: master, timeline, scenarios, recorder, results, metrics, plots, batch
 4. ``cosim.study``           the paper study: vocabulary, experiments, tuning, data, reproduction, report
-5. ``cosim.cli``, ``cosim.benchmarks``   entry points
+5. ``cosim.cli``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points and the C timing harness
 
 Every import counts, also one inside a function (the lazy imports that keep the command line
 fast): a lazy upward import is still an upward dependency.
@@ -29,6 +29,7 @@ LAYERS = {
     "cosim.study": 4,
     "cosim.cli": 5,
     "cosim.benchmarks": 5,
+    "cosim.benchmark_harness": 5,
 }
 
 

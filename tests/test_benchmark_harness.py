@@ -1,0 +1,97 @@
+"""The C benchmark harness (cosim.benchmark_harness): the step it times is the controller's own
+C step (same duties and candidate evaluations as the in-process twin), and its operation counts
+match what the Python reference actually evaluates."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+import controllers.nn_model as nn_model_module
+from controllers.base import Measurement
+from controllers.pi import PIController
+from cosim.benchmark_harness import (
+    CORTEX_M4F,
+    CostModel,
+    cortex_m4f_cycles,
+    operation_counts,
+    record_measurements,
+    replay,
+)
+from cosim.study.experiments import implemented, nnpc, plant_binding, scenarios_for
+
+
+@pytest.fixture(scope="module")
+def measurements(nnpc_1ms):
+    scenario = scenarios_for(1e-3, ["load_change"])[0]
+    return record_measurements(plant_binding("nominal", "averaged"), implemented(nnpc_1ms), scenario)
+
+
+def test_the_replayed_c_step_is_the_twin_step(nnpc_1ms, measurements):
+    result = replay(nnpc_1ms, measurements, repeats=2)
+    assert len(result.ns) == 2 * len(measurements) and (result.ns > 0).all()
+    twin = implemented(nnpc_1ms)
+    twin.reset()
+    duties, evaluations = [], []
+    for row in measurements:
+        duties.append(twin.step(Measurement(*row)))
+        evaluations.append(twin.state.evaluations)
+    np.testing.assert_array_equal(result.duty, duties)
+    np.testing.assert_array_equal(result.evaluations, evaluations)
+    assert (result.evaluations > 0).all() and (result.passes >= 0).all()
+
+
+def test_the_replayed_pi_matches_the_python_pi(measurements):
+    pi = PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
+    result = replay(pi, measurements, repeats=1)
+    pi.reset()
+    expected = [pi.step(Measurement(*row)) for row in measurements]
+    np.testing.assert_array_equal(result.duty, expected)
+    assert (result.evaluations == 0).all()
+
+
+def test_tanh_counts_match_what_the_python_reference_evaluates(nnpc_1ms, measurements, monkeypatch):
+    """Count the elements numpy's tanh is given while the Python NNPC steps through the same inputs;
+    the harness's counts from its candidate evaluations must equal them step by step."""
+    counted = []
+
+    def counting_tanh(z, *args, **kwargs):
+        counted[-1] += np.size(z)
+        return np.tanh(z, *args, **kwargs)
+
+    proxy = types.SimpleNamespace(**{name: getattr(np, name) for name in dir(np) if not name.startswith("__")})
+    proxy.tanh = counting_tanh
+    monkeypatch.setattr(nn_model_module, "np", proxy)
+    controller = nnpc(nnpc_1ms.predictor.model, 1e-3)
+    controller.reset()
+    evaluations = []
+    for row in measurements:
+        counted.append(0)
+        controller.step(Measurement(*row))
+        evaluations.append(controller.optimizer.evaluations)
+    counts = operation_counts(controller, np.array(evaluations))
+    np.testing.assert_array_equal(counts["tanh"], counted)
+    hidden, horizon = controller.predictor.model.config.hidden[0], controller.settings.horizon
+    assert controller.predictor.model.config.delays == 1  # the shared fast path: 3H, then 5H MACs a step
+    np.testing.assert_array_equal(counts["macs"], np.array(evaluations) * (3 * hidden + 5 * hidden * (horizon - 1)
+                                                                          + 3 * horizon))
+    np.testing.assert_array_equal(counts["sqrt"], np.array(evaluations) * horizon)
+
+
+def test_cycle_estimate_is_the_cost_model_applied_to_the_counts():
+    counts = {"macs": np.array([100.0]), "tanh": np.array([10.0]), "sqrt": np.array([4.0]),
+              "candidates": np.array([2.0])}
+    model = CostModel(mac=1.0, tanh=10.0, sqrt=100.0, candidate=1000.0, interrupt=10000.0)
+    assert cortex_m4f_cycles(counts, model)[0] == 100 + 100 + 400 + 2000 + 10000
+    assert cortex_m4f_cycles(counts)[0] == pytest.approx(100 * CORTEX_M4F.mac + 10 * CORTEX_M4F.tanh + 4 * CORTEX_M4F.sqrt
+                                                         + 2 * CORTEX_M4F.candidate + CORTEX_M4F.interrupt)
+
+
+def test_operation_counts_refuse_a_circuit_model_predictor():
+    from cosim.study.experiments import model_mpc
+    from cosim.study.vocabulary import NOMINAL
+
+    with pytest.raises(ValueError, match="NN predictor"):
+        operation_counts(model_mpc(NOMINAL, 1e-3, "MPC"), np.array([1]))
