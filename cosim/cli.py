@@ -168,6 +168,7 @@ def cmd_run(args) -> int:
     if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
     out_dir = output_dir(args.out)
+    args.controller = args.controller or ["pi"]
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
     batch.check_rates(args.control_period, args.record_period)
     # the batch is checked: now the (possibly long) tuning and training
@@ -356,7 +357,7 @@ def cmd_reproduce(args) -> int:
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
               implementation=args.implementation,
               profile=QUICK if args.quick else FULL, binding_file=args.plant,
-              control_periods=tuple(args.control_period or ()))
+              control_periods=tuple(args.control_period or ()), controller_files=tuple(args.controller or ()))
     return 0
 
 
@@ -568,6 +569,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--control-period", action="append", type=parse_period, metavar="SECONDS",
                    help="with --plant: control period(s) to run (repeatable; default 1e-3)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"base random seed, 0 .. {SEED_MAX} (default: 0)")
+    p.add_argument("--controller", action="append", metavar="FMU|BINDING.toml",
+                   help="a controller FMU (export-controller's, or any with the role names) or a controller-binding "
+                        "file, run next to the built-in controllers in every pipeline at its sample period "
+                        "(repeatable); its runs are in metrics/ and the figures under its name")
     _add_implementation_option(p)
     p.set_defaults(func=cmd_reproduce)
 
@@ -589,8 +594,6 @@ def _raise_interrupt(signum, frame):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "controller", "unset") is None:
-        args.controller = ["pi"]
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
         return args.func(args) or 0

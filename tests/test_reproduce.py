@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -12,9 +13,17 @@ from cosim.study.reproduce import QUICK
 
 
 @pytest.fixture(scope="module")
-def reproduction(tmp_path_factory):
+def controller_fmu(tmp_path_factory) -> Path:
+    """A PI exported as an FMU (1 ms): the reproduction runs it next to its own controllers."""
+    out = tmp_path_factory.mktemp("fmus") / "my_pi.fmu"
+    assert main(["--no-progress", "export-controller", "pi", "--kp", "0.0015", "--ki", "15.6", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def reproduction(tmp_path_factory, controller_fmu):
     out = tmp_path_factory.mktemp("results")
-    assert main(["--no-progress", "reproduce", "--quick", "--out", str(out)]) == 0
+    assert main(["--no-progress", "reproduce", "--quick", "--out", str(out), "--controller", str(controller_fmu)]) == 0
     return out
 
 
@@ -33,8 +42,13 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
             "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)"} <= controllers
-    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2
+    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us;
+    # + the controller FMU in the three 1 ms pipelines
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 3 * 2
+    fmu = metrics[metrics["controller"] == "my_pi (FMU)"]
+    assert set(fmu["pipeline"]) == {t for t in QUICK.pipelines if t.endswith("__1ms")} and len(fmu) == 3 * 2
+    assert fmu["iae_Vs"].notna().all() and (fmu["iae_Vs"] > 0).all()
+    assert (reproduction / "runs" / "startup__my-pi-fmu__nominal-switched__1ms.parquet").is_file()
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
     assert set(seed_study["pipeline"]) == {"nominal-switched__13p33us"}
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
@@ -82,15 +96,40 @@ def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):
     assert "timings" not in summary
 
 
-def test_a_second_reproduction_writes_the_same_bytes(reproduction, tmp_path):
+def test_a_second_reproduction_writes_the_same_bytes(reproduction, controller_fmu, tmp_path):
     """Everything committed from results/ is byte-identical when the reproduction runs again
     (the wall-clock files aside): tuned gains, models, pipeline summaries, metrics, targets,
     figures and the report."""
     again = tmp_path / "again"
-    assert main(["--no-progress", "reproduce", "--quick", "--out", str(again)]) == 0
+    assert main(["--no-progress", "reproduce", "--quick", "--out", str(again), "--controller", str(controller_fmu)]) == 0
     committed = [p.relative_to(again) for p in sorted(again.rglob("*")) if p.is_file()
                  and p.parts[len(again.parts)] not in ("data", "runs")
                  and not p.name.startswith("timings.") and ".timing" not in p.name and p.suffix != ".svg"]
     assert {"REPORT.md", "targets.csv"} <= {str(p) for p in committed} and len(committed) > 30
     for relative in committed:
         assert (again / relative).read_bytes() == (reproduction / relative).read_bytes(), relative
+
+
+def test_a_controller_fmu_at_no_pipelines_rate_is_refused_before_any_work(tmp_path, capsys):
+    fast = tmp_path / "pi_2ms.fmu"
+    assert main(["--no-progress", "export-controller", "pi", "--kp", "0.0015", "--ki", "15.6", "--control-period",
+                 "2e-3", "--out", str(fast)]) == 0
+    capsys.readouterr()
+    assert main(["--no-progress", "reproduce", "--quick", "--out", str(tmp_path / "r"), "--controller", str(fast)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {fast}: sample period 0.002 s matches no pipeline of the "
+                   "reproduction (expected one of 1 ms, 13.33 µs)")
+    assert not (tmp_path / "r" / "pipelines").exists()
+
+
+def test_a_controller_fmu_named_like_a_built_in_controller_is_refused(tmp_path, capsys):
+    clash = tmp_path / "binding.toml"
+    fmu = tmp_path / "pi.fmu"
+    assert main(["--no-progress", "export-controller", "pi", "--kp", "0.0015", "--ki", "15.6", "--out", str(fmu)]) == 0
+    clash.write_text(f'fmu = "{fmu.name}"\nlabel = "NNPC"\n'
+                     + "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("reference", "measured_output_voltage",
+                                                                           "duty_cycle", "sample_period")))
+    capsys.readouterr()
+    assert main(["--no-progress", "reproduce", "--quick", "--out", str(tmp_path / "r"), "--controller", str(clash)]) == 2
+    assert capsys.readouterr().err.strip() == (f"error: {clash}: the controller name 'NNPC' is taken (by a built-in "
+                                               "controller): give it a 'label' in a controller-binding file")

@@ -113,3 +113,38 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers
+
+
+def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[float, tuple[str, ...]]:
+    """Controller FMUs / controller-binding files for the reproduction, checked before any work:
+    each must open, carry a name no built-in controller has, and sample at one of ``periods`` [s]
+    (within 1e-9 relative). Returns the paths by the period whose pipelines run them."""
+    from cosim.base.labels import period_text
+    from cosim.fmi.controller import FmuController, controller_binding
+
+    builtin = set(CONTROLLERS.values())
+    chosen: dict[float, list[str]] = {}
+    names: dict[str, str] = {}
+    for path in paths:
+        controller = FmuController(controller_binding(path), name=external_name(path))
+        try:
+            if controller.name in builtin or controller.name in names:
+                raise ConfigError(f"{path}: the controller name {controller.name!r} is taken (by "
+                                  f"{names.get(controller.name, 'a built-in controller')}): give it a 'label' in a "
+                                  "controller-binding file")
+            names[controller.name] = path
+            period = next((p for p in periods if abs(controller.sample_period - p) <= 1e-9 * p), None)
+            if period is None:
+                raise ConfigError(f"{path}: sample period {controller.sample_period:.6g} s matches no pipeline of the "
+                                  f"reproduction (expected one of {', '.join(period_text(p) for p in periods)})")
+            chosen.setdefault(period, []).append(str(Path(path).resolve()))
+        finally:
+            controller.close()
+    return {period: tuple(found) for period, found in chosen.items()}
+
+
+def external_name(path: str) -> str | None:
+    """How a controller FMU is named in runs and figures: a binding file's ``label``, else
+    ``<file stem> (FMU)`` -- never a built-in controller's name."""
+    return None if str(path).endswith(".toml") else f"{Path(path).stem} (FMU)"
+

@@ -35,6 +35,7 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
+from cosim.study.controller_factory import external_controllers
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import (
     collection_settings,
@@ -136,7 +137,7 @@ def log(message: str) -> None:
 
 
 def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
-                 implementation: str = "c") -> PipelineOutput:
+                 implementation: str = "c", controller_files: tuple[str, ...] = ()) -> PipelineOutput:
     import torch
 
     from controllers.nn_model import TrainingSettings, save_model, train
@@ -184,6 +185,11 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         wrong_name = MPC_NOMINAL if pipeline.variant == "mismatch" else MPC_MISMATCHED
         controllers += [model_mpc(true_parameters, period, MPC_ORACLE, binding=binding),
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
+    if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
+        from cosim.fmi.controller import FmuController, controller_binding
+        from cosim.study.controller_factory import external_name
+
+        controllers += [FmuController(controller_binding(path), name=external_name(path)) for path in controller_files]
     scenarios = []
     for scenario in scenarios_for(period, profile.scenarios):
         missing = scenario.required_roles() - set(binding.roles)
@@ -274,17 +280,25 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
               implementation: str = "c",
               profile: Profile = FULL, binding_file: str | None = None,
-              control_periods: tuple[float, ...] = ()) -> Path:
+              control_periods: tuple[float, ...] = (), controller_files: tuple[str, ...] = ()) -> Path:
     """Run every pipeline and write ``REPORT.md``; returns the report path.
 
     With ``binding_file``, the pipeline runs on that external plant at ``control_periods``
     (default 1 ms) instead of the built-in plants. ``implementation``: the controllers' C twins
     ("c", equivalent at every sample and faster) or their Python references ("python").
+    ``controller_files``: controller FMUs / controller-binding files run next to the built-in
+    controllers in every pipeline at their sample period (checked before any work starts).
     """
     from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
     started = time.perf_counter()
+    if binding_file:
+        selected = [Pipeline("bound", "", period, str(Path(binding_file).resolve()))
+                    for period in (control_periods or (PAPER_PERIOD,))]
+    else:
+        selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
+    extra = external_controllers(list(controller_files), tuple(dict.fromkeys(p.control_period for p in selected)))
     fmu_path()  # build once, before workers start
     if implementation == "c":
         from controllers.native import library
@@ -295,11 +309,6 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
             stale.unlink()
     outputs: dict[Pipeline, PipelineOutput] = {}
     todo = []
-    if binding_file:
-        selected = [Pipeline("bound", "", period, str(Path(binding_file).resolve()))
-                    for period in (control_periods or (PAPER_PERIOD,))]
-    else:
-        selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
     for pipeline in selected:
         finished = _load_finished(out_dir, pipeline) if resume else None
         if finished is not None:
@@ -311,11 +320,12 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
     if workers <= 1:
         for done, p in enumerate(todo, start=1):
-            outputs[p] = run_pipeline(p, out_dir, profile, seed, implementation)
+            outputs[p] = run_pipeline(p, out_dir, profile, seed, implementation, extra.get(p.control_period, ()))
             log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
     elif todo:
         # longest first (the fast-rate pipelines), so the workers finish together
-        jobs = [(p, out_dir, profile, seed, implementation) for p in sorted(todo, key=lambda p: p.control_period)]
+        jobs = [(p, out_dir, profile, seed, implementation, extra.get(p.control_period, ()))
+                for p in sorted(todo, key=lambda p: p.control_period)]
         # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
         # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
         executor = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
