@@ -57,7 +57,8 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
 def test_report_has_every_section_and_checks_the_targets(reproduction):
     report = (reproduction / "REPORT.md").read_text()
     for heading in ("## Summary", "## Targets", "## Setup", "## PI gains", "## NN identification",
-                    "## Results at the paper's rate", "## Results at one switching period", "## Ablations",
+                    "## Results at the paper's rate", "## Results at one switching period",
+                    "## What the NNPC costs in C", "## Ablations",
                     "## Discussion", "## Reproducing"):
         assert heading in report
     assert "Quick profile" in report
@@ -68,6 +69,9 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     overshoot = targets[targets["target"] == "NNPC start-up overshoot <= 5 % at 1/fsw, switched"]
     assert overshoot["note"].iloc[0].startswith("NNPC identified from other seeds' data: NNPC (seed 1): ")
     assert "**Seed sensitivity at 13.33 us**" in report
+    cost = report.split("## What the NNPC costs in C")[1].split("\n## ")[0]
+    rows = [line for line in cost.splitlines() if line.startswith(("| 1 ms |", "| 13.33 µs |"))]
+    assert len(rows) == 2 and rows[0].endswith("| yes |")  # the 1 ms NNPC fits a Cortex-M4F, counted
     for figure in report.split("](figures/")[1:]:
         assert (reproduction / "figures" / figure.split(")")[0]).is_file()
 

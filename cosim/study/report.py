@@ -14,6 +14,7 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
+from cosim.study.c_cost import section as c_cost_section
 from cosim.study.experiments import horizon_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import markdown_table, ratio_table, seed_study, value
@@ -31,6 +32,7 @@ from cosim.study.vocabulary import (
     NNPC_PAPER,
     PAPER_PERIOD,
     PI,
+    STUDY_PERIODS,
     SWITCHING_PERIOD,
     horizon_variant,
 )
@@ -108,6 +110,9 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
                                    key=lambda s: list(metrics["scenario"]).index(s)):
                 lines.append(f"![{scenario}, {tag}](figures/{scenario}__{o.pipeline.plant_tag}__{rate}.png)")
             lines.append("")
+    cost = c_cost_section(out_dir, STUDY_PERIODS, profile.scenarios)
+    if cost:
+        lines += ["## What the NNPC costs in C", ""] + cost + [""]
     lines += ["## Ablations", ""] + _ablations(metrics) + [""]
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",
