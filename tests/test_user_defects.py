@@ -243,10 +243,16 @@ def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
     from cosim.study.experiments import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached: the command goes straight to collecting
+    private_tmp = tmp_path / "tmp"  # where fmpy extracts the plant FMU: a folder appears once collecting starts
+    private_tmp.mkdir()
     process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "collect-data", "--samples",
-                                "2000000", "--work-dir", str(tmp_path), "--out", str(tmp_path / "d.parquet")],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
-    time.sleep(6.0)
+                                "300000", "--work-dir", str(tmp_path), "--out", str(tmp_path / "d.parquet")],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
+                               env={**os.environ, "TMPDIR": str(private_tmp)})
+    deadline = time.monotonic() + 120.0
+    while not any(private_tmp.iterdir()) and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.1)
+    time.sleep(2.0)  # well into the collection (300 000 samples, 300 s of plant time, take many seconds)
     process.send_signal(signal.SIGTERM)
     _, err = process.communicate(timeout=60)
     assert process.returncode == 130
