@@ -279,28 +279,48 @@ class NNPlantModel:
         return out
 
     def rmse_report(self, frame, horizon: int) -> dict[str, float]:
-        """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table."""
+        """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table.
+
+        The open-loop simulation feeds the recorded duties *and* the recorded extra signals (the
+        load estimate) at every step, its own predicted states back: the simulation error of the
+        network. ``*_held_extras`` holds the extra signals at their first value instead, as the
+        controller does over its horizon: a load step inside the window then counts as model error.
+        """
         x, y = build_dataset(frame, self.config)
         one = self.predict(x) - y
         report = {"one_step_rmse_current_A": float(np.sqrt(np.mean(one[:, 0] ** 2))),
                   "one_step_rmse_voltage_V": float(np.sqrt(np.mean(one[:, 1] ** 2)))}
-        states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
-        duty = frame["duty_cycle"].to_numpy(dtype=float)
-        extras = frame[extra_columns(self.config)].to_numpy(dtype=float) if self.config.extra_signals else None
         d = self.config.delays
-        starts = np.arange(d - 1, len(frame) - horizon - 1)
-        if len(starts) == 0:
+        if len(frame) - horizon - 1 <= d - 1:
             return report
-        history = np.stack([np.column_stack([states[starts - lag], duty[starts - lag]]) for lag in range(d)], axis=1)
-        duties = np.stack([duty[starts + j] for j in range(horizon)], axis=1)
-        ex = extras[starts] if extras is not None else None
-        predicted = self.rollout(history, duties, ex)
-        actual = np.stack([states[starts + j + 1] for j in range(horizon)], axis=1)
-        error = predicted - actual
-        report[f"{horizon}_step_rmse_current_A"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
-        report[f"{horizon}_step_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
-        report["horizon_mean_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
+        windows = simulation_windows(frame, self.config, horizon)
+        history = np.concatenate([windows["states"], np.zeros((*windows["states"].shape[:2], 1))], axis=2)
+        history[:, 1:, 2] = windows["past_duties"]
+        extras = windows["extras"]
+        held = self.rollout(history, windows["duties"], extras[:, 0] if extras.shape[2] else None)
+        recorded = self._rollout_recorded(history, windows["duties"], extras)
+        for suffix, predicted in (("", recorded), ("_held_extras", held)):
+            error = predicted - windows["targets"]
+            report[f"{horizon}_step_rmse_current_A{suffix}"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
+            report[f"{horizon}_step_rmse_voltage_V{suffix}"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
+            report[f"horizon_mean_rmse_voltage_V{suffix}"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
         return report
+
+    def _rollout_recorded(self, history: np.ndarray, duties: np.ndarray, extras: np.ndarray) -> np.ndarray:
+        """:meth:`rollout` with the extra signals given per step, extras (M, N, n_extra)."""
+        m, n = duties.shape
+        delays = self.config.delays
+        window = history.copy()
+        out = np.empty((m, n, 2))
+        for j in range(n):
+            window[:, 0, 2] = duties[:, j]
+            flat = window.reshape(m, 3 * delays)
+            state = self.predict(np.hstack([flat, extras[:, j]]) if extras.shape[2] else flat)
+            out[:, j] = state
+            if delays > 1:
+                window[:, 1:] = window[:, :-1]
+            window[:, 0, :2] = state
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
