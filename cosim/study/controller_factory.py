@@ -13,7 +13,8 @@ from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.experiments import adaptive_nnpc, collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.identification import Recipe, identify
 from cosim.study.pi_tuning import PITuning, load_or_tune
 from cosim.study.vocabulary import CONTROLLERS, MPC_NOMINAL, MPC_ORACLE, NETWORKS, NOMINAL, pipeline_tag
 
@@ -27,24 +28,34 @@ def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool
 
 def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path, *, samples: int, seed: int,
                   model_path: str | None, progress: bool = False) -> NNPlantModel:
-    """Load ``model_path``, or collect data on this plant with its tuned PI and train (cached in out_dir)."""
+    """Load ``model_path``, or identify the network on this plant (cached in out_dir): the
+    workbench's NNPC network by the recipe of :mod:`cosim.study.identification` (PI data, one-step
+    and simulation-error training, NNPC-in-the-loop data at fast rates), the paper's network by
+    one-step training on the PI data."""
     config = nn_configs(period)[name]
     if model_path:
         return load_model(Path(model_path), expect_period=period)
     path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__{name}.pt"
     settings = collection_settings(period, samples, seed)
     collection = json.loads(json.dumps(asdict(settings)))  # as the model file stores it
+    recipe = Recipe(samples=samples)
+    wanted = json.loads(json.dumps(asdict(recipe)))
     if path.is_file():
         model = load_model(path, expect_period=period, expect_config=config)
-        if model.metadata.get("plant") == binding.label and model.metadata.get("collection") == collection:
-            return model  # same plant, identification settings (samples, seed, dither) and network
+        meta = model.metadata
+        if meta.get("plant") == binding.label and meta.get("collection") == collection \
+                and (name != "nnpc" or meta.get("recipe") == wanted):
+            return model  # same plant, identification settings (samples, seed, dither, recipe) and network
     pi = tuned_pi(binding, period, out_dir, progress)
-    print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
+    print(f"collecting {samples} samples on {binding.label} and identifying {config.label} ...", file=sys.stderr)
     data = collect(binding, pi.controller(), settings, progress=progress)
     save_samples(data, out_dir / "data" / f"{pipeline_tag(binding.tag, period)}.parquet")
-    model = train(data, config, TrainingSettings(seed=seed), progress=progress,
-                  metadata={"control_period_s": period, "plant": binding.label, "seed": seed,
-                            "collection": collection})
+    meta = {"control_period_s": period, "plant": binding.label, "seed": seed, "collection": collection}
+    if name == "nnpc":
+        model = identify(binding, pi.controller(), period, config, seed, recipe, metadata={**meta, "recipe": wanted},
+                         data=data, progress=progress).model
+    else:
+        model = train(data, config, TrainingSettings(seed=seed), progress=progress, metadata=meta)
     save_model(model, path)
     return model
 
@@ -81,12 +92,16 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                                     tuning={"method": "given on the command line"}))
                 else:
                     controllers.append(tuned_pi(binding, period, out_dir, progress).controller(duty_limits))
-            elif name in NETWORKS:
+            elif name in NETWORKS or name == "nnpc-adaptive":
                 if not binding.has("inductor_current"):
                     raise ConfigError(f"{name} needs the inductor_current role, which {binding.origin} does not bind")
-                model = trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
+                network = "nnpc" if name == "nnpc-adaptive" else name
+                model = trained_model(network, binding, period, out_dir, samples=samples, seed=seed,
                                       model_path=model_path, progress=progress)
-                controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                if name == "nnpc-adaptive":
+                    controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                else:
+                    controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
                 controllers.append(model_mpc(true_parameters(binding), period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":
