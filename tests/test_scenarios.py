@@ -38,6 +38,11 @@ def test_shipped_scenarios_are_the_papers_four_plus_extras():
     assert load.events[0].changes == {"load_resistance": 5.0} and load.required_roles() == {"load_resistance"}
     assert load_scenario("reference_up").events[0].changes == {"reference": 15.0}
     assert load_scenario("reference_down").events[0].changes == {"reference": 9.0}
+    ageing = load_scenario("capacitor_ageing")  # the drift study's: the mismatch plant's C and DCR drift
+    drift = [e.parameters for e in ageing.parameter_events]
+    assert len(drift) == 8 and drift[-1] == pytest.approx({"capacitance": 5.6e-6, "inductor_resistance": 0.3})
+    assert all(a["capacitance"] > b["capacitance"] for a, b in zip(drift, drift[1:]))
+    assert ageing.metrics_start > max(e.time for e in ageing.parameter_events)
 
 
 def test_a_user_scenario_parses_with_sorted_events_and_schedules(tmp_path):
@@ -87,7 +92,7 @@ def test_event_without_changes_and_missing_keys(tmp_path):
 
 
 def test_unknown_scenario_name_lists_the_shipped_ones():
-    with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(load_change"):
+    with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(capacitor_ageing, load_change"):
         load_scenario("nope")
 
 
