@@ -33,12 +33,13 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
             "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)",
-            "MPC-nominal (no disturbance estimate)", "NNPC (7 hidden, one-step)", "NNPC (multi-step)",
-            "NNPC (multi-step) (seed 1)", "NNPC-adaptive", "NNPC (identified on the drifted plant)"} <= controllers
+            "MPC-nominal (no disturbance estimate)", "NNPC (7 hidden, one-step)", "NNPC (+ closed-loop round)",
+            "NNPC (+ closed-loop round) (seed 1)", "NNPC-adaptive", "NNPC (identified on the drifted plant)"} <= controllers
     # 4 pipelines x 2 scenarios x 5 controllers, + the no-estimate MPC on the mismatch plant, + the
-    # ablations (N = 3 at 1 ms; eq. 3, sync. sample and two identification variants at 13.33 us),
-    # + seed 1 on the three nominal pipelines (with its identification variants at 13.33 us), + the drift study
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 4 + 2 + 2 + 2 * 3 + 3
+    # ablations (N = 3 at 1 ms; eq. 3 and sync. sample at 13.33 us, and two identification variants
+    # there on the start-up), + seed 1 on the three nominal pipelines (with its identification
+    # variants at 13.33 us), + the drift study
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 2 + 2 + 2 + (2 + 2) + 3
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
     assert set(seed_study["pipeline"]) == {"nominal-averaged__1ms", "nominal-switched__1ms", "nominal-switched__13p33us"}
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
@@ -50,8 +51,9 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     assert set(summary["study"]["prediction_after_drift"]) == {"NNPC", "NNPC-adaptive",
                                                               "NNPC (identified on the drifted plant)"}
     seed = json.loads((reproduction / "pipelines" / "nominal-switched__13p33us__seed1.json").read_text())
-    assert {"nnpc (seed 1)", "nnpc (one-step) (seed 1)", "nnpc (multi-step) (seed 1)"} <= set(seed["models"])
-    assert seed["models"]["nnpc (seed 1)"]["identification"]["stage"] == "closed-loop 1"
+    assert {"nnpc (seed 1)", "nnpc (one-step) (seed 1)", "nnpc (+ closed-loop round) (seed 1)"} <= set(seed["models"])
+    assert seed["models"]["nnpc (seed 1)"]["identification"]["stage"] == "multi-step"
+    assert seed["models"]["nnpc (+ closed-loop round) (seed 1)"]["identification"]["stage"] == "closed-loop 1"
 
 
 def test_report_has_every_section_and_checks_the_targets(reproduction):

@@ -5,8 +5,8 @@ rate (1 ms, one switching period). Each pipeline, all seeded:
 
 1. tunes the PI on that plant at that rate (:mod:`cosim.study.pi_tuning`);
 2. identifies the workbench's NNPC network by the recipe of :mod:`cosim.study.identification`
-   (PI data, one-step then simulation-error training, NNPC-in-the-loop data at the fast rate) and
-   trains the paper's 3-7-2 network on the PI data;
+   (PI data, one-step then simulation-error training over the horizon) and trains the paper's
+   3-7-2 network on the PI data;
 3. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
    model of that plant) and the mismatched MPC (nominal model on the mismatch plant -- also
    without its disturbance estimate; on the nominal plant, the mismatch plant's parameters);
@@ -45,11 +45,12 @@ from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (adaptive_nnpc, implemented, model_mpc, multiply_accumulates, nn_configs, nnpc,
                                     plant_binding, scenarios_for, small_network)
-from cosim.study.identification import MULTI_STEP, ONE_STEP, Recipe, identify
+from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, identify
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
+    ABLATION_SCENARIOS,
     CLOSED_LOOP_SAMPLES,
     MULTI_STEP_ITERATIONS,
     CONTROLLER_STYLES,
@@ -68,7 +69,7 @@ from cosim.study.vocabulary import (
     NNPC,
     NNPC_ADAPTIVE,
     NNPC_DRIFTED,
-    NNPC_MULTI_STEP,
+    NNPC_CLOSED_LOOP,
     NNPC_ONE_STEP,
     NNPC_PAPER,
     NNPC_SMALL_ONE_STEP,
@@ -306,7 +307,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                                                              binding=synchronous.binding)],
                                      out_dir, seed=seed, figures=False).metrics)
     if profile.ablations and pipeline.identification_ablation:
-        ablation, meta = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch)
+        ablation, meta = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                                                   profile)
         metrics.append(ablation)
         model_meta.update(meta)
     metrics = pd.concat(metrics, ignore_index=True)
@@ -324,9 +326,11 @@ def _paper_training(seed: int):
     return TrainingSettings(seed=seed)  # the paper's network keeps the paper's (one-step) training
 
 
-def _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch) -> tuple[pd.DataFrame, dict]:
-    """The NNPC after each stage of the recipe, and the 7-hidden network with one-step training (the
-    workbench's earlier NNPC), on the same data; named with the seed unless it is seed 0."""
+def _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                             profile: Profile) -> tuple[pd.DataFrame, dict]:
+    """The earlier 7-hidden network with one-step training (the workbench's NNPC before this study),
+    the NNPC's network after its one-step stage, and the NNPC refined on a round of data with itself
+    in the loop, all from the same data; named with the seed unless it is seed 0."""
     from controllers.nn_model import TrainingSettings, train
 
     def named(name):
@@ -335,19 +339,21 @@ def _identification_ablation(identified, binding, period, seed, batch, out_dir, 
     small = small_network(period)
     earlier = train(identified.data, small, TrainingSettings(seed=seed),
                     metadata={"control_period_s": period, "plant": binding.label, "seed": seed})
-    variants = [(NNPC_SMALL_ONE_STEP, earlier, small), (NNPC_ONE_STEP, identified.stages[ONE_STEP], None),
-                (NNPC_MULTI_STEP, identified.stages[MULTI_STEP], None)]
-    # closed-loop runs for the earlier NNPC and the multi-step stage; the one-step 7-10-2 by its RMSE
-    # only (what growing the network buys in prediction; a run each would cost the time target)
-    controllers = [nnpc(model, period, named(name)) for name, model, _ in variants if name in ABLATION_RUNS]
-    metrics = run_batch(batch, controllers, out_dir, seed=seed, figures=False).metrics
     config = nn_configs(period)["nnpc"]
+    looped = closed_loop_round(identified, binding, period, config, seed, _recipe(profile)).model
+    variants = [(NNPC_SMALL_ONE_STEP, earlier, small), (NNPC_ONE_STEP, identified.stages[ONE_STEP], None),
+                (NNPC_CLOSED_LOOP, looped, None)]
+    # closed-loop runs for the earlier NNPC and the closed-loop round; the one-step 7-10-2 by its
+    # RMSE only (what growing the network buys in prediction; a run each would cost the time target)
+    controllers = [nnpc(model, period, named(name)) for name, model, _ in variants if name in ABLATION_RUNS]
+    scenarios = [s for s in batch.scenarios if s.name in ABLATION_SCENARIOS] or list(batch.scenarios)
+    metrics = run_batch(Batch(batch.binding, scenarios), controllers, out_dir, seed=seed, figures=False).metrics
     meta = {named(name).lower(): _model_summary(model, cfg or config) for name, model, cfg in variants}
     return metrics, meta
 
 
 #: the identification-ablation variants run in closed loop (the others are compared by their RMSE)
-ABLATION_RUNS = (NNPC_SMALL_ONE_STEP, NNPC_MULTI_STEP)
+ABLATION_RUNS = (NNPC_SMALL_ONE_STEP, NNPC_CLOSED_LOOP)
 
 
 def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, implementation: str = "c") -> PipelineOutput:
@@ -369,7 +375,8 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, imp
     metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
     meta = {name.lower(): _model_summary(identified.model, config)}
     if profile.ablations and pipeline.identification_ablation:
-        ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch)
+        ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                                                   profile)
         metrics.append(ablation)
         meta.update(extra)
     metrics = pd.concat(metrics, ignore_index=True)
