@@ -353,6 +353,10 @@ def _mismatch(metrics: pd.DataFrame, pipelines: list[str]) -> list[str]:
     return lines + (markdown_table(pd.DataFrame(rows), list(rows[0]), digits=3) if rows else [])
 
 
+#: the adaptation's counters in the report's order (a resumed reproduction reads them back sorted)
+_COUNTER_ORDER = ("samples", "updates", "saturated", "steady", "load_step", "bounded", "fallbacks", "checkpoints")
+
+
 def _drift(rows: pd.DataFrame, drift) -> list[str]:
     study = drift.study
     start = study.get("analysis_start_s", math.nan)
@@ -384,7 +388,9 @@ def _drift(rows: pd.DataFrame, drift) -> list[str]:
         "",
         *markdown_table(pd.DataFrame(table), list(table[0]), digits=3),
         "",
-        "Adaptation over the run: " + ", ".join(f"{k} {v}" for k, v in counters.items()) + ".",
+        "Adaptation over the run (samples seen, RLS updates, and why the others were skipped): "
+        + ", ".join(f"{k} {counters[k]}" for k in sorted(counters, key=_COUNTER_ORDER.index if set(counters) <=
+                                                                set(_COUNTER_ORDER) else str)) + ".",
         "",
         f"![{DRIFT_SCENARIO}]({figure})",
     ]
