@@ -595,7 +595,13 @@ class NativePredictiveController:
 
 
 def native_twin(controller):
-    """The C twin of a Python PI or predictive controller; any other controller is returned as it is."""
+    """The C twin of a Python PI or predictive controller (an adaptive NNPC: the same adaptation
+    around the twin of its NNPC); any other controller is returned as it is."""
+    from controllers.adaptation import AdaptiveNNPC
+
+    if isinstance(controller, AdaptiveNNPC):
+        twin = native_twin(controller.inner)
+        return controller if twin is controller.inner else controller.with_inner(twin)
     if isinstance(controller, PIController):
         return NativePIController.from_python(controller)
     if isinstance(controller, PredictiveController):

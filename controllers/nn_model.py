@@ -90,13 +90,33 @@ class NNConfig:
 
 @dataclass(frozen=True)
 class TrainingSettings:
+    """How :func:`train` identifies the network.
+
+    Stage 1 minimises the one-step error (the paper's training). With ``multi_step_horizon`` > 1
+    a second stage starts from that solution and minimises the *simulation* error: the network
+    rolls out ``multi_step_horizon`` steps from each measured history with the recorded duties
+    (and extra signals), its own predictions fed back, and the standardised error is averaged over
+    every step -- what the predictive controller does with it over its horizon. Both stages are
+    full-batch L-BFGS, seeded and single-threaded, with early stopping on a random validation
+    share of the samples (stage 1) or of the windows (stage 2): the same data give the same weights.
+    """
+
     seed: int = 0
     validation_fraction: float = 0.15  # random share of the training span used for early stopping
     test_fraction: float = 0.2  # the last share of the record, held out (time order kept)
-    max_iterations: int = 3000  # L-BFGS iterations
+    max_iterations: int = 3000  # L-BFGS iterations of the one-step stage
     check_every: int = 25
     patience: int = 8  # checks without validation improvement before stopping
     horizon: int = 10  # steps of the multi-step (open-loop) RMSE report
+    multi_step_horizon: int = 1  # steps of the simulation-error stage (1: one-step training only)
+    multi_step_iterations: int = 400  # L-BFGS iterations of the simulation-error stage, at most
+    multi_step_stride: int = 1  # one window every this many samples (fewer windows: cheaper, coarser)
+
+    def __post_init__(self):
+        if self.multi_step_horizon < 1:
+            raise ValueError(f"multi_step_horizon = {self.multi_step_horizon} is invalid: expected >= 1 (steps)")
+        if self.multi_step_iterations < 0 or self.multi_step_stride < 1:
+            raise ValueError("multi_step_iterations must be >= 0 and multi_step_stride >= 1")
 
 
 def build_dataset(frame, config: NNConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -260,107 +280,222 @@ class NNPlantModel:
         return out
 
     def rmse_report(self, frame, horizon: int) -> dict[str, float]:
-        """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table."""
+        """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table.
+
+        The open-loop simulation feeds the recorded duties *and* the recorded extra signals (the
+        load estimate) at every step, its own predicted states back: the simulation error of the
+        network. ``*_held_extras`` holds the extra signals at their first value instead, as the
+        controller does over its horizon: a load step inside the window then counts as model error.
+        """
         x, y = build_dataset(frame, self.config)
         one = self.predict(x) - y
         report = {"one_step_rmse_current_A": float(np.sqrt(np.mean(one[:, 0] ** 2))),
                   "one_step_rmse_voltage_V": float(np.sqrt(np.mean(one[:, 1] ** 2)))}
-        states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
-        duty = frame["duty_cycle"].to_numpy(dtype=float)
-        extras = frame[extra_columns(self.config)].to_numpy(dtype=float) if self.config.extra_signals else None
         d = self.config.delays
-        starts = np.arange(d - 1, len(frame) - horizon - 1)
-        if len(starts) == 0:
+        if len(frame) - horizon - 1 <= d - 1:
             return report
-        history = np.stack([np.column_stack([states[starts - lag], duty[starts - lag]]) for lag in range(d)], axis=1)
-        duties = np.stack([duty[starts + j] for j in range(horizon)], axis=1)
-        ex = extras[starts] if extras is not None else None
-        predicted = self.rollout(history, duties, ex)
-        actual = np.stack([states[starts + j + 1] for j in range(horizon)], axis=1)
-        error = predicted - actual
-        report[f"{horizon}_step_rmse_current_A"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
-        report[f"{horizon}_step_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
-        report["horizon_mean_rmse_voltage_V"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
+        windows = simulation_windows(frame, self.config, horizon)
+        history = np.concatenate([windows["states"], np.zeros((*windows["states"].shape[:2], 1))], axis=2)
+        history[:, 1:, 2] = windows["past_duties"]
+        extras = windows["extras"]
+        held = self.rollout(history, windows["duties"], extras[:, 0] if extras.shape[2] else None)
+        recorded = self._rollout_recorded(history, windows["duties"], extras)
+        for suffix, predicted in (("", recorded), ("_held_extras", held)):
+            error = predicted - windows["targets"]
+            report[f"{horizon}_step_rmse_current_A{suffix}"] = float(np.sqrt(np.mean(error[:, -1, 0] ** 2)))
+            report[f"{horizon}_step_rmse_voltage_V{suffix}"] = float(np.sqrt(np.mean(error[:, -1, 1] ** 2)))
+            report[f"horizon_mean_rmse_voltage_V{suffix}"] = float(np.sqrt(np.mean(error[:, :, 1] ** 2)))
         return report
+
+    def _rollout_recorded(self, history: np.ndarray, duties: np.ndarray, extras: np.ndarray) -> np.ndarray:
+        """:meth:`rollout` with the extra signals given per step, extras (M, N, n_extra)."""
+        m, n = duties.shape
+        delays = self.config.delays
+        window = history.copy()
+        out = np.empty((m, n, 2))
+        for j in range(n):
+            window[:, 0, 2] = duties[:, j]
+            flat = window.reshape(m, 3 * delays)
+            state = self.predict(np.hstack([flat, extras[:, j]]) if extras.shape[2] else flat)
+            out[:, j] = state
+            if delays > 1:
+                window[:, 1:] = window[:, :-1]
+            window[:, 0, :2] = state
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
 # Training
 
 
+def simulation_windows(frame, config: NNConfig, horizon: int, stride: int = 1) -> dict[str, np.ndarray]:
+    """Open-loop windows of a sample table for the simulation-error loss (time order kept).
+
+    A window starts at sample s with the measured history (states at s, s-1, ... and the duties
+    applied before s) and holds the recorded duties d(s) .. d(s+H-1), the extra signals measured
+    at s .. s+H-1 (the inputs the network is fed at each step) and the measured states
+    s+1 .. s+H it must predict. Returns arrays keyed ``states`` (W, delays, 2), ``past_duties``
+    (W, delays-1), ``duties`` (W, H), ``extras`` (W, H, n_extra) and ``targets`` (W, H, 2).
+    """
+    states = frame[list(STATE_SIGNALS)].to_numpy(dtype=float)
+    duty = frame["duty_cycle"].to_numpy(dtype=float)
+    n, d = len(frame), config.delays
+    extras = frame[extra_columns(config)].to_numpy(dtype=float) if config.extra_signals else np.zeros((n, 0))
+    starts = np.arange(d - 1, n - horizon, stride)
+    return {
+        "states": np.stack([states[starts - lag] for lag in range(d)], axis=1).reshape(len(starts), d, 2),
+        "past_duties": np.stack([duty[starts - lag] for lag in range(1, d)], axis=1) if d > 1
+        else np.zeros((len(starts), 0)),
+        "duties": np.stack([duty[starts + j] for j in range(horizon)], axis=1),
+        "extras": np.stack([extras[starts + j] for j in range(horizon)], axis=1),
+        "targets": np.stack([states[starts + j + 1] for j in range(horizon)], axis=1),
+    }
+
+
+def _torch_rollout(network: PlantNetwork, config: NNConfig, norm: tuple, windows: dict) -> torch.Tensor:
+    """The network rolled out over each window in physical units, differentiable: (W, H, 2)."""
+    in_mean, in_std, out_mean, out_std = norm
+    d = config.delays
+    recent = [windows["states"][:, lag] for lag in range(d)]  # most recent first
+    duties = windows["duties"]
+    applied = [duties[:, :1]] + [windows["past_duties"][:, lag:lag + 1] for lag in range(d - 1)]
+    extras = windows["extras"]
+    outputs = []
+    for j in range(duties.shape[1]):
+        applied[0] = duties[:, j:j + 1]
+        parts = []
+        for lag in range(d):
+            parts += [recent[lag], applied[lag]]
+        if extras.shape[2]:
+            parts.append(extras[:, j])
+        z = (torch.cat(parts, dim=1) - in_mean) / in_std
+        y = network(z) * out_std + out_mean
+        if config.residual:
+            y = y + recent[0]
+        outputs.append(y)
+        recent = [y] + recent[:-1]
+        applied = [None] + applied[:-1]
+    return torch.stack(outputs, dim=1)
+
+
+def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: TrainingSettings, bar=None):
+    """Full-batch L-BFGS with early stopping on ``validation_of``; ``evaluate()`` returns the loss
+    with the gradients of ``network``'s parameters set. Returns (best validation loss, iteration
+    of the best, iterations run) and leaves the best weights in ``network``."""
+    optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
+                                  history_size=20, line_search_fn="strong_wolfe",
+                                  tolerance_grad=1e-12, tolerance_change=1e-15)
+    with torch.no_grad():
+        start = float(validation_of())
+    best = (start, {k: v.clone() for k, v in network.state_dict().items()}, 0)
+    checks_without_gain = 0
+    iterations = 0
+    while iterations < max_iterations:
+        optimizer.step(evaluate)
+        iterations += settings.check_every
+        if bar is not None:
+            bar.update(settings.check_every)
+        with torch.no_grad():
+            val = float(validation_of())
+        if val < best[0] * (1 - 1e-4):
+            best = (val, {k: v.clone() for k, v in network.state_dict().items()}, iterations)
+            checks_without_gain = 0
+        else:
+            checks_without_gain += 1
+            if checks_without_gain >= settings.patience:
+                break
+    network.load_state_dict(best[1])
+    return best[0], best[2], iterations
+
+
+def _autograd(network, loss_of):
+    """An ``evaluate`` for :func:`_lbfgs` from a differentiable loss."""
+    def evaluate():
+        network.zero_grad()
+        loss = loss_of()
+        loss.backward()
+        return loss
+    return evaluate
+
+
 def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = TrainingSettings(),
-          metadata: dict | None = None, progress: bool = False) -> NNPlantModel:
-    """Identify the network from a sample table (time order); RMSEs on the held-out tail in metadata."""
+          metadata: dict | None = None, progress: bool = False, extra_frames=(),
+          initial: "NNPlantModel | None" = None) -> NNPlantModel:
+    """Identify the network from a sample table (time order); RMSEs on the held-out tail in metadata.
+
+    ``extra_frames``: further records used for training only (e.g. data collected with the NNPC
+    in the loop); each is its own time series, so no window spans two records, and the held-out
+    tail stays the last ``test_fraction`` of ``frame``. ``initial``: a model of the same
+    configuration to start from -- its normalisation is kept and the one-step stage is skipped
+    (a refinement on more data, e.g. a closed-loop data round).
+    """
     n = len(frame)
     if n < 100:
         raise ValueError(f"{n} samples are too few to train on: expected at least 100")
+    if initial is not None and initial.config != config:
+        raise ValueError(f"the initial model is a {initial.config.label}; expected {config.label}")
     test_start = int(round(n * (1 - settings.test_fraction)))
     train_frame, test_frame = frame.iloc[:test_start], frame.iloc[test_start:]
     columns = [*STATE_SIGNALS, "duty_cycle", *extra_columns(config)]
-    finite = np.isfinite(frame[columns].to_numpy(dtype=float)).all(axis=1)
-    if not finite.all():
-        raise ValueError(f"{int((~finite).sum())} of {n} samples hold NaN or infinite values in "
-                         f"{', '.join(columns)} (first: row {int(np.argmin(finite))}): expected finite measurements")
-    x, y = build_dataset(train_frame, config)
+    for label, records in (("", frame), *((f" of extra records {k + 1}", f) for k, f in enumerate(extra_frames))):
+        finite = np.isfinite(records[columns].to_numpy(dtype=float)).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"{int((~finite).sum())} of {len(records)} samples{label} hold NaN or infinite values in "
+                             f"{', '.join(columns)} (first: row {int(np.argmin(finite))}): expected finite measurements")
+    segments = [train_frame, *extra_frames]
+    pairs = [build_dataset(segment, config) for segment in segments if len(segment) > config.delays]
+    x = np.vstack([p[0] for p in pairs])
+    y = np.vstack([p[1] for p in pairs])
     if config.residual:
         y = y - x[:, :2]  # the network learns the change over one sample
     rng = np.random.default_rng(settings.seed)
     order = rng.permutation(len(x))
     n_val = max(1, int(round(len(x) * settings.validation_fraction)))
     val_idx, fit_idx = order[:n_val], order[n_val:]
-    in_mean, in_std = x[fit_idx].mean(axis=0), x[fit_idx].std(axis=0)
-    out_mean, out_std = y[fit_idx].mean(axis=0), y[fit_idx].std(axis=0)
-    in_std[in_std < 1e-12] = 1.0
-    out_std[out_std < 1e-12] = 1.0
+    if initial is None:
+        in_mean, in_std = x[fit_idx].mean(axis=0), x[fit_idx].std(axis=0)
+        out_mean, out_std = y[fit_idx].mean(axis=0), y[fit_idx].std(axis=0)
+        in_std[in_std < 1e-12] = 1.0
+        out_std[out_std < 1e-12] = 1.0
+    else:
+        in_mean, in_std = initial.input_mean.copy(), initial.input_std.copy()
+        out_mean, out_std = initial.output_mean.copy(), initial.output_std.copy()
     xn = torch.from_numpy((x - in_mean) / in_std)
     yn = torch.from_numpy((y - out_mean) / out_std)
     fit_x, fit_y, val_x, val_y = xn[fit_idx], yn[fit_idx], xn[val_idx], yn[val_idx]
+    states_scale = (y + x[:, :2] if config.residual else y)[fit_idx].std(axis=0)
+    states_scale[states_scale < 1e-12] = 1.0
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    bar = None
     try:
         torch.manual_seed(settings.seed)
         network = PlantNetwork(config)
-        optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
-                                      history_size=20, line_search_fn="strong_wolfe",
-                                      tolerance_grad=1e-12, tolerance_change=1e-15)
+        if initial is not None:
+            network.load_state_dict(initial.network.state_dict())
         loss_fn = torch.nn.MSELoss()
-
-        def closure():
-            optimizer.zero_grad()
-            loss = loss_fn(network(fit_x), fit_y)
-            loss.backward()
-            return loss
-
-        best = (math.inf, None, 0)
-        checks_without_gain = 0
-        iterations = 0
-        bar = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=settings.max_iterations, desc=f"training {config.label}", unit="it", leave=False,
-                       delay=1.0)
-        while iterations < settings.max_iterations:
-            optimizer.step(closure)
-            iterations += settings.check_every
-            if bar is not None:
-                bar.update(settings.check_every)
-            with torch.no_grad():
-                val = float(loss_fn(network(val_x), val_y))
-            if val < best[0] * (1 - 1e-4):
-                best = (val, {k: v.clone() for k, v in network.state_dict().items()}, iterations)
-                checks_without_gain = 0
-            else:
-                checks_without_gain += 1
-                if checks_without_gain >= settings.patience:
-                    break
-        if bar is not None:
-            bar.close()
-        network.load_state_dict(best[1])
+            total = (0 if initial is not None else settings.max_iterations) + \
+                (settings.multi_step_iterations if settings.multi_step_horizon > 1 else 0)
+            bar = tqdm(total=total, desc=f"training {config.label}", unit="it", leave=False, delay=1.0)
+        one_step = {"iterations": 0, "best_iteration": 0, "validation_loss_standardised": None}
+        if initial is None:
+            val, best_it, its = _lbfgs(network, _autograd(network, lambda: loss_fn(network(fit_x), fit_y)),
+                                       lambda: loss_fn(network(val_x), val_y), settings.max_iterations, settings, bar)
+            one_step = {"iterations": its, "best_iteration": best_it, "validation_loss_standardised": val}
+        multi = None
+        if settings.multi_step_horizon > 1 and settings.multi_step_iterations > 0:
+            multi = _fit_simulation_error(network, config, segments, (in_mean, in_std, out_mean, out_std),
+                                          states_scale, settings, bar)
         with torch.no_grad():
             fit_loss = float(loss_fn(network(fit_x), fit_y))
+            val_loss = float(loss_fn(network(val_x), val_y))
     finally:
+        if bar is not None:
+            bar.close()
         torch.set_num_threads(threads)
 
     model = NNPlantModel(config, network, in_mean, in_std, out_mean, out_std)
@@ -368,13 +503,45 @@ def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = Tra
     model.metadata = {
         **(metadata or {}),
         "config": asdict(config),
-        "training": {**asdict(settings), "iterations": iterations, "best_iteration": best[2],
-                     "fit_loss_standardised": fit_loss, "validation_loss_standardised": best[0],
-                     "samples": n, "train_samples": int(len(fit_idx)), "validation_samples": int(n_val),
+        "training": {**asdict(settings), "iterations": one_step["iterations"],
+                     "best_iteration": one_step["best_iteration"],
+                     "fit_loss_standardised": fit_loss, "validation_loss_standardised": val_loss,
+                     "multi_step": multi, "refined_from_initial": initial is not None,
+                     "samples": n, "extra_samples": int(sum(len(f) for f in extra_frames)),
+                     "train_samples": int(len(fit_idx)), "validation_samples": int(n_val),
                      "test_samples": int(len(test_frame))},
         "held_out_rmse": report,
     }
     return model
+
+
+def _fit_simulation_error(network: PlantNetwork, config: NNConfig, segments, norm, states_scale: np.ndarray,
+                          settings: TrainingSettings, bar=None) -> dict:
+    """Stage 2 of :func:`train`: minimise the standardised simulation error over the horizon."""
+    horizon = settings.multi_step_horizon
+    parts = [simulation_windows(s, config, horizon, settings.multi_step_stride) for s in segments
+             if len(s) > horizon + config.delays]
+    windows = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    count = len(windows["duties"])
+    order = np.random.default_rng(settings.seed + 1).permutation(count)
+    n_val = max(1, int(round(count * settings.validation_fraction)))
+    val_idx, fit_idx = np.sort(order[:n_val]), np.sort(order[n_val:])
+    fit = {k: torch.from_numpy(np.ascontiguousarray(v[fit_idx])) for k, v in windows.items()}
+    val = {k: torch.from_numpy(np.ascontiguousarray(v[val_idx])) for k, v in windows.items()}
+    norm = tuple(np.asarray(a, dtype=np.float64) for a in norm)
+    norm_t = tuple(torch.from_numpy(a) for a in norm)
+    scale = torch.from_numpy(states_scale)
+
+    def loss(part):
+        error = (_torch_rollout(network, config, norm_t, part) - part["targets"]) / scale
+        return (error * error).mean()
+
+    evaluate = _autograd(network, lambda: loss(fit))
+    with torch.no_grad():
+        before = float(loss(val))
+    best, best_it, its = _lbfgs(network, evaluate, lambda: loss(val), settings.multi_step_iterations, settings, bar)
+    return {"horizon": horizon, "windows": int(count), "iterations": its, "best_iteration": best_it,
+            "validation_loss_before": before, "validation_loss": best}
 
 
 # ---------------------------------------------------------------------------------------------

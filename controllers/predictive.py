@@ -55,7 +55,8 @@ class HorizonSettings:
     levels: int = 21  # grid points per block in the first stage (full grid if few blocks)
     refine_iterations: int = 8  # at most this many refinement passes after the first stage
     duty_tolerance: float = 1e-4  # stop zooming once the lattice step is this fine
-    bias_filter: float = 0.5  # weight of the newest disturbance estimate (1 = no filtering)
+    bias_filter: float = 0.5  # weight of the newest disturbance estimate (1 = no filtering, 0 = no estimate:
+    # the controller is then not offset-free, like the paper's MPC)
 
     def __post_init__(self):
         if self.horizon < 1:
@@ -68,8 +69,8 @@ class HorizonSettings:
             raise ValueError(f"discount = {self.discount} is invalid: expected 0 < gamma <= 1")
         if self.levels < 2 or self.refine_iterations < 0:
             raise ValueError("levels must be >= 2 and refine_iterations >= 0")
-        if not 0 < self.bias_filter <= 1:
-            raise ValueError(f"bias_filter = {self.bias_filter} is invalid: expected 0 < alpha <= 1")
+        if not 0 <= self.bias_filter <= 1:
+            raise ValueError(f"bias_filter = {self.bias_filter} is invalid: expected 0 <= alpha <= 1")
 
 
 #: a full grid/lattice over the blocks is used while it has at most this many points

@@ -297,24 +297,32 @@ def cmd_collect(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from controllers.nn_model import NNConfig, TrainingSettings, extra_columns, save_model, train
+    from controllers.nn_model import NNConfig, TrainingSettings, extra_columns, load_model, save_model, train
     from cosim.results import read_parquet
 
     try:  # arguments first, before any file is read
         config = NNConfig(hidden=tuple(args.hidden), activation=args.activation, delays=args.delays,
                           extra_signals=tuple(args.extra or ()), residual=args.residual)
+        settings = TrainingSettings(seed=args.seed, multi_step_horizon=args.multi_step_horizon,
+                                    multi_step_iterations=args.multi_step_iterations,
+                                    multi_step_stride=args.multi_step_stride)
     except ValueError as error:
         raise ConfigError(str(error)) from None
     output_file(args.out)
-    source = input_file(args.data, "data file", "write one with buck-cosim collect-data")
-    try:
-        frame, metadata = read_parquet(source)
-    except Exception as error:
-        raise ConfigError(f"{source}: cannot read samples ({str(error).splitlines()[0]})") from None
     needed = ["measured_inductor_current", "measured_output_voltage", "duty_cycle", *extra_columns(config)]
-    missing = [c for c in needed if c not in frame.columns]
-    if missing:
-        raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
+
+    def samples(name: str):
+        source = input_file(name, "data file", "write one with buck-cosim collect-data")
+        try:
+            frame, metadata = read_parquet(source)
+        except Exception as error:
+            raise ConfigError(f"{source}: cannot read samples ({str(error).splitlines()[0]})") from None
+        missing = [c for c in needed if c not in frame.columns]
+        if missing:
+            raise ConfigError(f"{source} lacks column(s) {', '.join(missing)} needed by {config.label}")
+        return source, frame, metadata
+
+    source, frame, metadata = samples(args.data)
     period = metadata.get("control_period_s")
     if args.control_period is not None:
         if period is not None and not math.isclose(period, args.control_period, rel_tol=1e-9):
@@ -324,16 +332,27 @@ def cmd_train(args) -> int:
     if period is None:
         raise ConfigError(f"{source} has no workbench metadata naming its control period (not written by "
                           "buck-cosim collect-data?): give the period the samples were taken at with --control-period")
+    extra = []
+    for name in args.extra_data or ():
+        other, more, more_meta = samples(name)
+        other_period = more_meta.get("control_period_s")
+        if other_period is not None and not math.isclose(period, other_period, rel_tol=1e-9):
+            raise ConfigError(f"{other} was collected at a control period of {other_period:.6g} s, "
+                              f"{source} at {period:.6g} s: train on data of one rate")
+        extra.append(more)
+    initial = load_model(Path(args.init), expect_period=period, expect_config=config) if args.init else None
     try:
-        model = train(frame, config, TrainingSettings(seed=args.seed), progress=args.progress,
+        model = train(frame, config, settings, progress=args.progress, extra_frames=extra, initial=initial,
                       metadata={"control_period_s": period, "plant": metadata.get("plant"),
-                                "data_file": str(source), "seed": args.seed})
+                                "data_file": str(source), "extra_data_files": [str(n) for n in args.extra_data or ()],
+                                "seed": args.seed})
         save_model(model, Path(args.out))
     except ValueError as error:
         raise ConfigError(f"{source}: {error}") from None
     rmse = model.metadata["held_out_rmse"]
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
-          f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step {rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
+          f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step (recorded duties and load) "
+          f"{rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
     print(f"wrote {args.out}")
     return 0
 
@@ -489,6 +508,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--control-period", type=parse_period, metavar="SECONDS",
                    help="the period the samples were taken at, in s -- needed only for data without the workbench's "
                         "metadata (collect-data writes it); the model is then refused at any other period")
+    p.add_argument("--multi-step-horizon", type=bounded(int, 1), default=1, metavar="SAMPLES",
+                   help="after one-step training, minimise the simulation error over this many control samples "
+                        "(the network rolled out with the recorded duties and extra inputs, its predictions fed "
+                        "back); use the predictive controller's horizon, e.g. 23 at 13.33 us (default: 1 = one-step "
+                        "training only)")
+    p.add_argument("--multi-step-iterations", type=bounded(int, 0), default=400, metavar="N",
+                   help="L-BFGS iterations of that stage, at most (early stopping on held-back windows; default: 400)")
+    p.add_argument("--multi-step-stride", type=bounded(int, 1), default=1, metavar="SAMPLES",
+                   help="one simulation window every this many samples (neighbours share all but one step; 6 "
+                        "costs a sixth; default: 1)")
+    p.add_argument("--extra-data", action="append", metavar="DATA.parquet",
+                   help="more training records, e.g. collected with the NNPC in the loop (repeatable; used for "
+                        "training only, the held-out tail stays that of DATA)")
+    p.add_argument("--init", metavar="MODEL.pt",
+                   help="refine this model (same network): keep its normalisation, skip the one-step stage")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
     p.set_defaults(func=cmd_train)

@@ -4,7 +4,8 @@ The plant runs on the merged grid of :mod:`cosim.timeline` (controller samples, 
 and plant events). Between instants the FMU is stepped with its inputs held (zero-order hold of
 the duty cycle).
 
-Order at an instant t: (1) step the plant to t; (2) apply load / input-voltage events due at t;
+Order at an instant t: (1) step the plant to t; (2) apply load / input-voltage and tunable-parameter
+events due at t (parameters through :meth:`~cosim.fmi.plant.FmuPlant.set_parameters`);
 (3) at a control sample, measure, call the controller, set the new duty; (4) at a recording
 point, record outputs with the inputs now in effect. Reference changes reach the controller at
 its first sample at or after the event time.
@@ -28,8 +29,8 @@ from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import FmuPlant, open_plant
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
 from cosim.results import RunInfo, RunResult, RunStream, run_details
-from cosim.scenarios import Scenario
-from cosim.timeline import CONTROL, MERGE_TOLERANCE, RECORD, TimelinePlan, plan_timeline, signal_at
+from cosim.scenarios import Scenario, check_parameter_events
+from cosim.timeline import CONTROL, EVENT, MERGE_TOLERANCE, RECORD, TimelinePlan, plan_timeline, signal_at
 
 STREAM_CHUNK = 16_384  # rows held in memory between writes when streaming
 #: the values the loop records per row, in this order (the recorder's MASTER_FIELDS), then the
@@ -72,14 +73,21 @@ def check_step_sizes(plant: FmuPlant, plan: TimelinePlan) -> None:
         )
 
 
-def check_plant_supports(binding: PlantBinding, scenario: Scenario) -> None:
-    """Refuse, before anything runs, a scenario that needs a role the plant binding lacks."""
+def check_plant_supports(binding: PlantBinding, scenario: Scenario, model_description=None) -> None:
+    """Refuse, before anything runs, a scenario that needs a role the plant binding lacks, or a
+    parameter event the FMU cannot take during a run (:func:`cosim.scenarios.check_parameter_events`)."""
     for role in sorted(scenario.required_roles()):
         if not binding.has(role):
             raise ConfigError(
                 f"scenario {scenario.name} changes {role}, but {binding.origin} binds no variable to the "
                 f"role {role!r}"
             )
+    if scenario.parameter_events:
+        if model_description is None:
+            from cosim.fmi.archive import check_fmu
+
+            model_description = check_fmu(binding.fmu_path).model_description
+        check_parameter_events(scenario, model_description, binding.origin)
 
 
 def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float = 1e-5,
@@ -97,7 +105,7 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     bounded however long the run); the returned result then has an empty frame and the file's
     metadata, complete or not.
     """
-    check_plant_supports(plant.binding, scenario)
+    check_plant_supports(plant.binding, scenario, plant.model_description)
     return run_checked(plant, controller, scenario, record_period=record_period, seed=seed, progress=progress,
                        extra_metadata=extra_metadata, stream_to=stream_to)
 
@@ -134,6 +142,10 @@ class _Run:
         self.recorder = Recorder(roles)
         self.stream = RunStream(stream_to) if stream_to is not None else None
         self.stream_to = stream_to
+        # tunable-parameter events in plant time, applied in order (the timeline has an EVENT instant for each)
+        self.parameter_events = [(plan.settle + e.time, dict(e.parameters), e.where, i)
+                                 for i, e in enumerate(scenario.events) if e.parameters]
+        self.next_parameter_event = 0
         self.t = 0.0  # plant time reached [s]
         self.duty = 0.0  # in effect
         self.load, self.supply = self.inputs["load_resistance"], self.inputs["input_voltage"]
@@ -145,9 +157,26 @@ class _Run:
     # ------------------------------------------------------------------ steps
     def start(self) -> None:
         """Initialise the plant at rest with the first inputs (a refusal is a configuration
-        error) and reset the controller."""
+        error) and reset the controller. Parameter events are first tried on the FMU itself, so a
+        value it refuses (e.g. a capacitance of 0) stops the run before its first step."""
+        if self.parameter_events:
+            refused = self.plant.trial_parameters([values for _, values, _, _ in self.parameter_events])
+            if refused is not None:
+                position, message = refused
+                _, values, where, index = self.parameter_events[position]
+                names = ", ".join(values)
+                raise ConfigError(f"{where or self.scenario.name}: events[{index}].parameters ({names}): the plant "
+                                  f"FMU refuses the value: {message}")
         self.plant.initialize([self.inputs[r] for r in self.plant.input_roles], start_time=0.0)
         self.controller.reset()
+        self.next_parameter_event = 0
+
+    def apply_parameter_events(self, t: float) -> None:
+        """Set every tunable-parameter event due at plant time ``t`` (between plant steps)."""
+        events = self.parameter_events
+        while self.next_parameter_event < len(events) and events[self.next_parameter_event][0] <= t + MERGE_TOLERANCE:
+            self.plant.set_parameters(events[self.next_parameter_event][1])
+            self.next_parameter_event += 1
 
     def execute(self, progress: bool) -> RunResult:
         bar = _progress_bar(progress, self.plan.instants, f"{self.scenario.name} / {self.controller.name}")
@@ -189,6 +218,7 @@ class _Run:
         recorded |= ((window.flags & CONTROL) != 0) & (window.times >= settle - MERGE_TOLERANCE)
         record_flags = recorded.tolist()
         advance, outputs, set_inputs = plant.advance_to, plant.outputs, plant.set_inputs
+        parameter_events = bool(self.parameter_events)
         roles_in, roles_out, inputs = plant.input_roles, plant.output_roles, self.inputs
         record = self.recorder.record
         control_sample, duty_feedthrough = self._control_sample(), self.duty_feedthrough
@@ -205,6 +235,8 @@ class _Run:
                     load, supply = loads[i], supplies[i]
                     inputs["load_resistance"], inputs["input_voltage"] = load, supply
                     set_inputs([inputs[r] for r in roles_in])
+                if parameter_events and flag & EVENT:
+                    self.apply_parameter_events(t)
                 compute = nan
                 if flag & CONTROL:
                     y = outputs()

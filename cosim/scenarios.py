@@ -22,9 +22,23 @@ time, or 0 without events; metrics start here). ``[initial]`` keys: ``reference`
 ``load_resistance`` (> 0 Ohm, default: Table II's 6 Ohm), ``input_voltage`` (> 0 V, default: Table II's
 48 V). Each
 ``[[events]]`` entry has ``time`` (0 <= time < duration) and at least one of ``reference``,
-``load_resistance``, ``input_voltage``. The plant starts at rest (zero current and voltage) at
-the beginning of the settle interval. Reference changes reach the controller at its next sample;
-load and input-voltage changes act on the plant at the exact event time.
+``load_resistance``, ``input_voltage``, ``parameters``. The plant starts at rest (zero current and
+voltage) at the beginning of the settle interval. Reference changes reach the controller at its
+next sample; load and input-voltage changes act on the plant at the exact event time.
+
+Tunable-parameter events change plant parameters during the run, e.g. an ageing capacitor::
+
+    [[events]]
+    time = 0.02
+    parameters = { capacitance = 7e-6, inductor_resistance = 0.3 }
+
+The names are the plant FMU's own variable names (values in its units, like a binding file's
+``[parameters]``); each must be a Real parameter the FMU declares ``variability="tunable"`` (the
+built-in FMU: inductance, capacitance, inductor_resistance, switch_on_resistance,
+diode_forward_voltage, capacitor_esr) and the value finite and within the variable's declared
+min/max. The parser checks types and finiteness; :func:`check_parameter_events` checks names and
+ranges against the FMU before anything runs, with the file, key and line. The master applies them
+at the exact event time, between plant steps, like load steps.
 """
 
 from __future__ import annotations
@@ -45,7 +59,7 @@ EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
 SIGNAL_UNITS = {"reference": "V", "load_resistance": "Ohm", "input_voltage": "V"}
 TOP_KEYS = {"name", "description", "duration", "settle", "analysis_start", "initial", "events"}
 INITIAL_KEYS = {"reference", "load_resistance", "input_voltage"}
-EVENT_KEYS = {"time", *EVENT_SIGNALS}
+EVENT_KEYS = {"time", "parameters", *EVENT_SIGNALS}
 #: role each event signal needs from the plant binding (the reference is the controller's own input)
 SIGNAL_ROLES = {"load_resistance": "load_resistance", "input_voltage": "input_voltage"}
 
@@ -54,6 +68,13 @@ SIGNAL_ROLES = {"load_resistance": "load_resistance", "input_voltage": "input_vo
 class ScenarioEvent:
     time: float  # [s]
     changes: dict[str, float]  # signal -> new value
+    parameters: dict[str, float] = field(default_factory=dict)  # plant FMU parameter -> new value
+    where: str | None = None  # "file:line" of the event's parameters, for errors found later
+
+    @property
+    def plant_event(self) -> bool:
+        """Does it act on the plant at its exact time (load, supply or parameters)?"""
+        return bool(self.parameters) or any(k != "reference" for k in self.changes)
 
 
 @dataclass(frozen=True)
@@ -87,6 +108,10 @@ class Scenario:
                 points.append((event.time, event.changes[signal]))
         return points
 
+    @property
+    def parameter_events(self) -> tuple[ScenarioEvent, ...]:
+        return tuple(e for e in self.events if e.parameters)
+
     def required_roles(self) -> set[str]:
         """Plant roles this scenario needs because it changes them during the run."""
         return {SIGNAL_ROLES[s] for e in self.events for s in e.changes if s in SIGNAL_ROLES}
@@ -99,7 +124,8 @@ class Scenario:
             "settle_s": self.settle,
             "metrics_start_s": self.metrics_start,
             "initial": dict(self.initial),
-            "events": [{"time_s": e.time, **e.changes} for e in self.events],
+            "events": [{"time_s": e.time, **e.changes, **({"parameters": dict(e.parameters)} if e.parameters else {})}
+                       for e in self.events],
             "source": str(self.source) if self.source else None,
         }
 
@@ -186,12 +212,16 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
                 value = _number(entry[key], path, loc, key, f"{label}.{key}", "events", i)
                 _check_signal(key, value, path, loc, f"{label}.{key}", key, "events", i)
                 changes[key] = value
-        if not changes:
+        parameters = _parameters(entry.get("parameters"), path, loc, label, i) if "parameters" in entry else {}
+        if not changes and not parameters:
             raise ConfigError(
                 f"{_where(path, loc, None, 'events', i)}: {label} changes nothing: "
-                f"expected at least one of {', '.join(EVENT_SIGNALS)}"
+                f"expected at least one of {', '.join((*EVENT_SIGNALS, 'parameters'))}"
             )
-        events.append(ScenarioEvent(time=time, changes=changes))
+        at = _where(path, loc, "parameters", "events", i) if parameters else None
+        if at is not None and ":" not in at:  # a [events.parameters] sub-table: name the event's own line
+            at = _where(path, loc, None, "events", i)
+        events.append(ScenarioEvent(time=time, changes=changes, parameters=parameters, where=at))
     indexed = list(enumerate(events))  # the file's order, for messages
     events.sort(key=lambda e: e.time)
 
@@ -227,6 +257,67 @@ def _check_reachable(initial: dict, events: list[tuple[int, "ScenarioEvent"]], p
                 place = _where(path, loc, key, "events", index)
             raise ConfigError(f"{place}: the reference {reference:g} V at t = {time:g} s exceeds the input voltage "
                               f"{supply:g} V in effect then: a buck converter's output cannot exceed its input")
+
+
+def _parameters(table, path, loc, label, index) -> dict[str, float]:
+    """An event's ``parameters`` table: names to finite numbers (the FMU check comes later)."""
+    at = _where(path, loc, "parameters", "events", index)
+    if ":" not in at:
+        at = _where(path, loc, None, "events", index)
+    if not isinstance(table, dict):
+        raise ConfigError(f"{at}: {label}.parameters = {table!r} has the wrong type: expected a table of "
+                          "parameter names and values, e.g. parameters = {{ capacitance = 7e-6 }}")
+    if not table:
+        raise ConfigError(f"{at}: {label}.parameters is empty: name at least one tunable plant parameter")
+    values = {}
+    for name, value in table.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{at}: {label}.parameters.{name} = {value!r} has the wrong type: expected a number")
+        if not math.isfinite(float(value)):
+            raise ConfigError(f"{at}: {label}.parameters.{name} = {value} is not finite")
+        values[name] = float(value)
+    return values
+
+
+def check_parameter_events(scenario: Scenario, model_description, origin: str) -> None:
+    """Refuse, before anything runs, a parameter event the plant FMU cannot take during a run:
+    a name that is not a Real parameter with ``variability="tunable"``, or a value outside the
+    variable's declared min/max. Messages name the scenario file, the key and its line."""
+    variables = {v.name: v for v in model_description.modelVariables}
+    tunable = sorted(v.name for v in model_description.modelVariables
+                     if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real")
+    choices = ", ".join(tunable) if tunable else "none: the FMU declares no tunable Real parameter"
+    for i, event in enumerate(scenario.events):
+        if not event.parameters:
+            continue
+        at = event.where or (str(scenario.source) if scenario.source else f"scenario {scenario.name}")
+        label = f"events[{i}].parameters"
+        for name, value in event.parameters.items():
+            variable = variables.get(name)
+            if variable is None:
+                raise ConfigError(f"{at}: {label}.{name}: {origin} has no variable {name!r} (tunable: {choices})")
+            if variable.causality != "parameter" or variable.variability != "tunable" or variable.type != "Real":
+                kind = f"a {variable.variability} {variable.causality}" + ("" if variable.type == "Real" else
+                                                                           f" of type {variable.type}")
+                raise ConfigError(f"{at}: {label}.{name}: {name!r} is {kind}; only tunable Real parameters can "
+                                  f"change during a run (tunable: {choices})")
+            low, high = _declared_range(variable)
+            if (low is not None and value < low) or (high is not None and value > high):
+                unit = _declared_unit(variable)
+                raise ConfigError(f"{at}: {label}.{name} = {value:g}{unit} is outside the range the FMU declares "
+                                  f"[{'-inf' if low is None else f'{low:g}'}, {'inf' if high is None else f'{high:g}'}]")
+
+
+def _declared_range(variable) -> tuple[float | None, float | None]:
+    declared = variable.declaredType
+    low = variable.min if variable.min is not None else (declared.min if declared is not None else None)
+    high = variable.max if variable.max is not None else (declared.max if declared is not None else None)
+    return (None if low is None else float(low)), (None if high is None else float(high))
+
+
+def _declared_unit(variable) -> str:
+    unit = variable.unit or (variable.declaredType.unit if variable.declaredType is not None else None)
+    return f" {unit}" if unit else ""
 
 
 def _check_signal(signal, value, path, loc, label, key, table, index) -> None:

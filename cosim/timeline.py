@@ -2,7 +2,7 @@
 
 The plant runs on one merged grid of instants: controller samples (every control period),
 recording points (every record period, finer, e.g. 10 us so figures show the LC ringing inside
-a control period) and the exact times of load and input-voltage events. The two periods need
+a control period) and the exact times of load, input-voltage and plant-parameter events. The two periods need
 not divide each other: the grids are merged (instants closer than :data:`MERGE_TOLERANCE` are
 one), and each instant carries flags saying what happens there. Long runs are generated a
 window at a time, so memory stays bounded however long the run.
@@ -120,8 +120,7 @@ def plan_timeline(scenario: Scenario, control_period: float, record_period: floa
             f"{MIN_CONTROL_SAMPLES} (a shorter control period or a longer duration)")
     control_count = int(math.floor(end / control_period * (1 + 1e-12) + 1e-9)) + 1
     record_count = int(math.floor(scenario.duration / record_period * (1 + 1e-12) + 1e-9)) + 1
-    events = np.array([settle + e.time for e in scenario.events if any(k != "reference" for k in e.changes)],
-                      dtype=float)
+    events = np.array([settle + e.time for e in scenario.events if e.plant_event], dtype=float)
     return TimelinePlan(control_period, record_period, settle, end, control_count, record_count, events)
 
 

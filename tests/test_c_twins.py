@@ -573,3 +573,71 @@ def test_the_load_estimate_twin_follows_the_python_rule():
     cases += [tuple(x) for x in rng.uniform(-1, 15, (200, 3))]
     for vo, io, il in cases:
         assert lib.buckc_estimate_conductance(vo, io, il, 0.125) == load_estimate.estimate_conductance(vo, io, il, 0.125)
+
+
+def test_adaptive_nnpc_on_the_c_twin_drives_the_plant_like_on_the_python_one():
+    """The adaptation rewrites the output layer of whichever NNPC it wraps (numpy arrays or the C
+    config); with a parameter event in the run, both learn the same weights and give the same duties."""
+    from cosim.master import simulate
+    from cosim.scenarios import parse_scenario
+    from cosim.study.experiments import adaptive_nnpc, plant_binding
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    scenario = parse_scenario("""
+name = "drift-short"
+duration = 0.0024
+settle = 0.0005
+[initial]
+reference = 12.0
+[[events]]
+time = 0.0002
+parameters = { capacitance = 6e-6, inductor_resistance = 0.3 }
+[[events]]
+time = 0.0004
+reference = 15.0
+[[events]]
+time = 0.0012
+load_resistance = 5.0
+[[events]]
+time = 0.0018
+reference = 12.0
+""")
+    python = adaptive_nnpc(model, TS)
+    twin = native.native_twin(adaptive_nnpc(model, TS))
+    assert isinstance(twin.inner, native.NativePredictiveController) and native.native_twin(twin) is twin
+    binding = plant_binding("mismatch", "switched")
+    runs = [simulate(binding, c, scenario, record_period=TS) for c in (python, twin)]
+    duties = [r.frame.loc[r.frame["control_sample"], "duty_cycle"].to_numpy() for r in runs]
+    assert np.max(np.abs(duties[1] - duties[0])) <= DUTY_TOLERANCE
+    assert python.counters == twin.counters and python.counters["updates"] > 0
+    np.testing.assert_allclose(twin.output_weights, python.output_weights, rtol=1e-9, atol=1e-12)
+    # the C config holds the adapted layer; the shared offline model is untouched
+    w, b = native_output_layer(twin.inner)
+    np.testing.assert_array_equal(w, twin.output_weights[:-1])
+    assert not np.array_equal(model._weights[-1], python.output_weights[:-1])
+
+
+def native_output_layer(controller):
+    from controllers.adaptation import output_layer
+
+    return output_layer(controller)
+
+
+def test_mpc_without_the_disturbance_estimate_twin_keeps_the_model_error():
+    """bias_filter = 0 (the paper's kind of MPC): no estimate in either twin, so the nominal model on
+    the mismatch plant leaves a steady-state error; the duty traces agree."""
+    from cosim.master import simulate
+    from cosim.metrics import run_metrics
+    from cosim.scenarios import load_scenario
+    from cosim.study.experiments import model_mpc, plant_binding
+
+    binding = plant_binding("mismatch", "switched")
+    controller = model_mpc(NOMINAL, TS, "MPC-nominal (no disturbance estimate)", binding=binding, offset_free=False)
+    assert controller.settings.bias_filter == 0.0
+    twin = native.NativePredictiveController.from_python(controller)
+    scenario = replace(load_scenario("startup"), duration=0.0015)
+    runs = [simulate(binding, c, scenario, record_period=TS) for c in (controller, twin)]
+    duties = [r.frame.loc[r.frame["control_sample"], "duty_cycle"].to_numpy() for r in runs]
+    assert np.max(np.abs(duties[1] - duties[0])) <= DUTY_TOLERANCE
+    assert list(np.ctypeslib.as_array(twin.state.bias)) == [0.0, 0.0] and controller._bias.tolist() == [0.0, 0.0]
+    assert abs(run_metrics(runs[0])["steady_state_error_pct"]) > 1.0  # the model error stays an error

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -124,6 +125,27 @@ def test_collect_train_and_run_an_nnpc(tmp_path):
     assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=2e-3)
 
 
+def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_path):
+    from controllers.nn_model import load_model
+
+    data, more = tmp_path / "data.parquet", tmp_path / "more.parquet"
+    for path, seed in ((data, "0"), (more, "1")):
+        assert main(["--no-progress", "collect-data", "--samples", "500", "--seed", seed, "--out", str(path),
+                     "--work-dir", str(tmp_path)]) == 0
+    first, refined = tmp_path / "first.pt", tmp_path / "refined.pt"
+    assert main(["--no-progress", "train", str(data), "--extra", "load_conductance", "--multi-step-horizon", "5",
+                 "--multi-step-iterations", "25", "--multi-step-stride", "3", "--out", str(first)]) == 0
+    stage = load_model(first).metadata["training"]["multi_step"]
+    assert stage["horizon"] == 5 and stage["iterations"] <= 25 and stage["windows"] == len(range(0, 400 - 5, 3))
+    assert main(["--no-progress", "train", str(data), "--extra", "load_conductance", "--extra-data", str(more),
+                 "--init", str(first), "--multi-step-horizon", "5", "--multi-step-iterations", "25",
+                 "--out", str(refined)]) == 0
+    model = load_model(refined)
+    assert model.metadata["training"]["refined_from_initial"] and model.metadata["training"]["extra_samples"] == 500
+    assert model.metadata["extra_data_files"] == [str(more)]
+    np.testing.assert_array_equal(model.input_mean, load_model(first).input_mean)
+
+
 def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
     args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--kp", "0", "--ki", "14",
             "--out", str(tmp_path), "--no-figures"]
@@ -138,6 +160,8 @@ def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
     (None, ["train", "missing.parquet", "--out", "m.pt"], "error: data file missing.parquet does not exist"),
     ("garbage", ["run", "startup", "--controller", "nnpc", "--model", "bad.pt"], "model file bad.pt is not a model written by buck-cosim train"),
     (None, ["train", "x.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
+    (None, ["train", "x.parquet", "--multi-step-horizon", "0", "--out", "m.pt"],
+     "argument --multi-step-horizon: 0 is invalid: expected a whole number >= 1"),
 ])
 def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):
     if make == "garbage":

@@ -253,3 +253,78 @@ def test_model_exchange_state_restore_replays_exactly():
         plant.advance_to(1e-3 + 5.5 / 75e3)
         np.testing.assert_allclose(plant.outputs(), first, rtol=1e-7)
         plant.free_state(state)
+
+
+def test_parameter_events_act_on_the_plant_at_their_exact_time(averaged):
+    """C -30 % and a DCR between recording points, during a held duty: from the state at the event
+    the recorded trajectory is the closed form of the new circuit."""
+    t_event = 0.01003
+    text = f"[[events]]\ntime = {t_event}\nparameters = {{ capacitance = {0.7 * C}, inductor_resistance = 0.3 }}\n"
+    frame = simulate(averaged, Probe(duty=lambda k: 0.25 if k < 10 else 0.3), scenario(text)).frame
+    at = frame[np.isclose(frame["time"], t_event, atol=1e-12)]
+    assert len(at) == 1  # the event instant was added to the grid
+    rows = frame[(frame["time"] >= t_event - 1e-12) & (frame["time"] <= 0.011 + 1e-12)]
+    x0 = rows[["inductor_current", "output_voltage"]].to_numpy()[0]
+    c2, r2 = 0.7 * C, 0.3
+    a = np.array([[-r2 / L, -1.0 / L], [1.0 / c2, -1.0 / (R * c2)]])
+    x_eq = -np.linalg.solve(a, [0.3 * VS / L, 0.0])
+    expected = np.array([x_eq + expm(a * (t - t_event)) @ (x0 - x_eq) for t in rows["time"]])
+    np.testing.assert_allclose(rows[["inductor_current", "output_voltage"]].to_numpy(), expected, rtol=1e-9)
+    # before the event the old circuit: the same run without the event agrees up to it, and not after
+    plain = simulate(averaged, Probe(duty=lambda k: 0.25 if k < 10 else 0.3), scenario()).frame
+    before = frame["time"] < t_event - 1e-12
+    np.testing.assert_array_equal(frame.loc[before, "output_voltage"].to_numpy(),
+                                  plain.loc[plain["time"] < t_event - 1e-12, "output_voltage"].to_numpy())
+    assert abs(frame["output_voltage"].iloc[-1] - plain["output_voltage"].iloc[-1]) > 0.05  # the DCR drop
+
+
+@pytest.mark.parametrize("interface", ["cs", "me"])
+def test_a_parameter_event_equals_a_run_with_those_parameters_from_the_start(interface):
+    """Switched plant: an event at t = 0 gives the run of a plant bound with those parameters
+    before initialisation (co-simulation exactly; model exchange through its event, to CVode's
+    tolerance)."""
+    new = {"capacitance": 7e-6, "inductor_resistance": 0.2}
+    text = "[[events]]\ntime = 0.0\nparameters = { capacitance = 7e-6, inductor_resistance = 0.2 }\n"
+    changed = simulate(builtin_binding("switched"), Probe(), scenario(text, duration=0.004), interface=interface,
+                       relative_tolerance=1e-10).frame
+    from_start = simulate(builtin_binding("switched", new), Probe(), scenario(duration=0.004), interface=interface,
+                          relative_tolerance=1e-10).frame
+    columns = ["inductor_current", "output_voltage", "measured_output_voltage"]
+    tolerance = 1e-12 if interface == "cs" else 1e-7
+    np.testing.assert_allclose(changed[columns].to_numpy(), from_start[columns].to_numpy(), rtol=tolerance,
+                               atol=tolerance)
+
+
+def test_model_exchange_applies_a_parameter_event_mid_run_like_co_simulation():
+    text = "[[events]]\ntime = 0.0021\nparameters = { capacitance = 7e-6, capacitor_esr = 0.05 }\n"
+    runs = [simulate(builtin_binding("switched"), Probe(), scenario(text, duration=0.004), interface=interface,
+                     relative_tolerance=1e-10).frame for interface in ("cs", "me")]
+    columns = ["inductor_current", "output_voltage", "measured_output_voltage"]
+    np.testing.assert_allclose(runs[1][columns].to_numpy(), runs[0][columns].to_numpy(), rtol=1e-5, atol=1e-5)
+
+
+def test_a_value_the_fmu_refuses_stops_the_run_before_its_first_step(averaged, tmp_path):
+    path = tmp_path / "zero.toml"
+    path.write_text('name = "zero"\nduration = 0.01\n[initial]\nreference = 12.0\n\n[[events]]\ntime = 0.005\n'
+                    'parameters = { capacitance = 0.0 }\n')
+    probe = Probe()
+    with pytest.raises(ConfigError, match=r"zero.toml:8: events\[0\].parameters \(capacitance\): the plant FMU "
+                                          r"refuses the value: fmi2SetReal: capacitance = 0 F is invalid"):
+        simulate(averaged, probe, load_scenario(path))
+    assert probe.seen == []  # not a single step
+
+
+def test_an_isolated_plant_applies_parameter_events_like_the_in_process_plant(tmp_path):
+    """The plant process (binding files' default) forwards parameter events in order with the steps,
+    and tries them before the first step like the in-process plant."""
+    text = "[[events]]\ntime = 0.0021\nparameters = { capacitance = 7e-6, capacitor_esr = 0.05 }\n"
+    runs = [simulate(replace(builtin_binding("switched"), isolate=isolate), Probe(), scenario(text, duration=0.004))
+            .frame for isolate in (False, True)]
+    columns = ["inductor_current", "output_voltage", "measured_output_voltage"]
+    np.testing.assert_array_equal(runs[1][columns].to_numpy(), runs[0][columns].to_numpy())
+    path = tmp_path / "zero.toml"
+    path.write_text('name = "zero"\nduration = 0.01\n[initial]\nreference = 12.0\n\n[[events]]\ntime = 0.005\n'
+                    'parameters = { capacitance = 0.0 }\n')
+    with pytest.raises(ConfigError, match=r"zero.toml:8: events\[0\].parameters \(capacitance\): the plant FMU "
+                                          r"refuses the value: fmi2SetReal: capacitance = 0 F is invalid"):
+        simulate(replace(builtin_binding("averaged"), isolate=True), Probe(), load_scenario(path))

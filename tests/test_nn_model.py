@@ -159,3 +159,76 @@ def test_load_refuses_a_model_made_for_other_inputs_or_rate(model, tmp_path):
 def test_invalid_configurations_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         NNConfig(**kwargs)
+
+
+# ------------------------------------------------------------------------------------------ simulation error
+
+
+@pytest.fixture(scope="module")
+def switched_data():
+    """PI identification data on the switched plant at one switching period (seeded, 4000 samples)."""
+    from controllers.pi import PIController
+    from cosim.study.data_collection import collect
+    from cosim.study.experiments import collection_settings, plant_binding
+
+    period = 1 / 75e3
+    pi = PIController(0.336 / 48, 0.111 / (period * 48), period)
+    return collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 4000, seed=0))
+
+
+SWITCHED_NN = NNConfig(hidden=(7,), delays=2, extra_signals=("load_conductance",))
+
+
+def test_simulation_error_training_lowers_the_held_out_10_step_error(switched_data):
+    """The network trained on one-step errors drifts off over a 10-sample open-loop rollout; the
+    second stage over the horizon (from the same one-step solution, same seed) cuts that error."""
+    one = train(switched_data, SWITCHED_NN, TrainingSettings(seed=0, max_iterations=400))
+    multi = train(switched_data, SWITCHED_NN, TrainingSettings(seed=0, max_iterations=400, multi_step_horizon=23,
+                                                               multi_step_stride=4, multi_step_iterations=150))
+    a, b = one.metadata["held_out_rmse"], multi.metadata["held_out_rmse"]
+    assert b["10_step_rmse_voltage_V"] < 0.8 * a["10_step_rmse_voltage_V"], (a, b)
+    assert b["horizon_mean_rmse_voltage_V"] < a["horizon_mean_rmse_voltage_V"]
+    stage = multi.metadata["training"]["multi_step"]
+    assert stage["horizon"] == 23 and stage["validation_loss"] < stage["validation_loss_before"]
+    assert one.metadata["training"]["multi_step"] is None
+
+
+def test_simulation_error_training_is_deterministic(switched_data):
+    settings = TrainingSettings(seed=4, max_iterations=50, multi_step_horizon=8, multi_step_stride=8,
+                                multi_step_iterations=25)
+    a, b = (train(switched_data, SWITCHED_NN, settings) for _ in range(2))
+    for (name, pa), pb in zip(a.network.state_dict().items(), b.network.state_dict().values()):
+        assert torch.equal(pa, pb), name
+
+
+def test_refining_keeps_the_normalisation_and_uses_the_extra_records(switched_data):
+    base = train(switched_data.iloc[:2000], SWITCHED_NN, TrainingSettings(seed=0, max_iterations=100))
+    settings = TrainingSettings(seed=0, multi_step_horizon=6, multi_step_stride=4, multi_step_iterations=25)
+    refined = train(switched_data.iloc[:2000], SWITCHED_NN, settings, extra_frames=[switched_data.iloc[2000:]],
+                    initial=base)
+    np.testing.assert_array_equal(refined.input_mean, base.input_mean)
+    training = refined.metadata["training"]
+    assert training["refined_from_initial"] and training["iterations"] == 0  # no one-step stage
+    assert training["extra_samples"] == 2000 and training["test_samples"] == 400  # held out: the first record's tail
+    with pytest.raises(ValueError, match="the initial model is a 3-7-2"):
+        train(switched_data, SWITCHED_NN, settings, initial=train(switched_data.iloc[:500], NNConfig(),
+                                                                  TrainingSettings(max_iterations=10)))
+
+
+def test_the_10_step_report_feeds_the_recorded_load(switched_data):
+    """With a load step inside a window, holding the load at its first value is a model error the
+    network cannot avoid; the simulation error feeds the recorded load estimate at every step."""
+    model = train(switched_data, SWITCHED_NN, TrainingSettings(seed=0, max_iterations=200))
+    rmse = model.metadata["held_out_rmse"]
+    assert rmse["10_step_rmse_voltage_V"] < rmse["10_step_rmse_voltage_V_held_extras"]
+    frame = switched_data.iloc[3200:]
+    steady = frame.assign(load_conductance=frame["load_conductance"].iloc[0])  # no change: both the same
+    report = model.rmse_report(steady, 10)
+    assert report["10_step_rmse_voltage_V"] == report["10_step_rmse_voltage_V_held_extras"]
+
+
+@pytest.mark.parametrize("kwargs", [{"multi_step_horizon": 0}, {"multi_step_stride": 0},
+                                    {"multi_step_iterations": -1}])
+def test_invalid_training_settings_are_refused(kwargs):
+    with pytest.raises(ValueError):
+        TrainingSettings(**kwargs)

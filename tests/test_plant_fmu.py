@@ -289,8 +289,101 @@ def test_fixed_parameters_cannot_change_after_initialization(raw_slave_factory):
     log: list = []
     slave = raw_slave_factory({}, log=log)
     with pytest.raises(FMICallException):
-        slave.fmu.setReal([slave.vr["inductance"]], [300e-6])
-    assert any("inductance can only be set before fmi2ExitInitializationMode" in m for _, m in log)
+        slave.fmu.setReal([slave.vr["switching_frequency"]], [50e3])
+    assert any("switching_frequency can only be set before fmi2ExitInitializationMode" in m for _, m in log)
+    with pytest.raises(FMICallException):
+        slave.fmu.setInteger([slave.vr["plant_mode"]], [SWITCHED])
+
+
+TUNABLE = ("inductance", "capacitance", "inductor_resistance", "switch_on_resistance", "diode_forward_voltage",
+           "capacitor_esr")
+
+
+def test_circuit_parameters_are_tunable_and_the_rest_fixed(buck_fmu):
+    md = fmpy.read_model_description(str(buck_fmu))
+    variability = {v.name: v.variability for v in md.modelVariables if v.causality == "parameter"}
+    assert {n for n, v in variability.items() if v == "tunable"} == set(TUNABLE)
+    assert variability["switching_frequency"] == variability["plant_mode"] == variability["pwm_carrier"] == "fixed"
+
+
+def test_a_tunable_change_between_steps_is_exact_against_the_closed_form(raw_slave_factory):
+    """Averaged CCM: C -30 % and a DCR at t1; from the state at t1 the FMU must follow the matrix
+    exponential of the new circuit exactly (DCR r: di/dt = (d Vs - r i - v) / L)."""
+    slave = raw_slave_factory({"plant_mode": AVERAGED, "duty_cycle": 0.25, "inductor_current": 2.0,
+                               "capacitor_voltage": 8.0})
+    t1 = 0.7e-3
+    slave.step_to(t1)
+    x1 = slave.get("inductor_current", "capacitor_voltage")
+    c2, r2 = 0.7 * C, 0.3
+    slave.set({"capacitance": c2, "inductor_resistance": r2})
+    assert slave.get("capacitance", "inductor_resistance").tolist() == [c2, r2]
+    a = np.array([[-r2 / L, -1.0 / L], [1.0 / c2, -1.0 / (R * c2)]])
+    x_eq = -np.linalg.solve(a, [0.25 * VS / L, 0.0])
+    for t in np.arange(1, 11) * 1e-4:
+        slave.step_to(t1 + t)
+        expected = x_eq + expm(a * t) @ (x1 - x_eq)
+        np.testing.assert_allclose(slave.get("inductor_current", "capacitor_voltage"), expected, rtol=1e-9)
+
+
+def test_a_tunable_change_equals_a_run_with_the_new_parameters_from_that_state(raw_slave_factory):
+    """Switched mode: a change at a PWM period boundary t1, then on; against a second instance that
+    starts at rest-free initial state x(t1) with the new parameters from its start (same PWM phase)."""
+    duty = 0.3
+    changed = raw_slave_factory({"plant_mode": SWITCHED, "duty_cycle": duty})
+    t1 = 150 * TS  # a whole number of PWM periods: the second instance starts at the same phase
+    changed.step_to(t1)
+    x1 = changed.get("inductor_current", "capacitor_voltage")
+    new = {"capacitance": 7e-6, "inductor_resistance": 0.2, "capacitor_esr": 0.05, "switch_on_resistance": 0.1}
+    changed.set(new)
+    fresh = raw_slave_factory({"plant_mode": SWITCHED, "duty_cycle": duty, **new,
+                               "inductor_current": x1[0], "capacitor_voltage": x1[1]})
+    for k in range(1, 121):
+        changed.step_to(t1 + k * TS / 4)
+        fresh.step_to(k * TS / 4)
+        np.testing.assert_allclose(changed.get("inductor_current", "capacitor_voltage", "output_voltage"),
+                                   fresh.get("inductor_current", "capacitor_voltage", "output_voltage"),
+                                   rtol=1e-9, atol=1e-12)
+        if k % 4 == 0 and k > 4:  # whole periods after the change: the sensors' means agree too
+            np.testing.assert_allclose(changed.get("average_output_voltage", "average_inductor_current"),
+                                       fresh.get("average_output_voltage", "average_inductor_current"), rtol=1e-9)
+
+
+def test_tunable_values_are_still_checked(raw_slave_factory):
+    log: list = []
+    slave = raw_slave_factory({}, log=log)
+    with pytest.raises(FMICallException):
+        slave.set({"capacitance": 0.0})
+    assert any("capacitance = 0 F is invalid" in m for _, m in log)
+    assert slave.get("capacitance")[0] == C
+
+
+def test_model_exchange_takes_tunable_parameters_in_event_mode_only(buck_fmu):
+    from fmpy.fmi2 import FMU2Model
+
+    md = fmpy.read_model_description(str(buck_fmu))
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    unzipdir = fmpy.extract(str(buck_fmu))
+    fmu = FMU2Model(guid=md.guid, unzipDirectory=unzipdir, modelIdentifier=md.modelExchange.modelIdentifier,
+                    instanceName="me")
+    try:
+        fmu.instantiate()
+        fmu.setupExperiment(startTime=0.0)
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+        fmu.setReal([vr["capacitance"]], [8e-6])  # event mode after initialisation: allowed
+        fmu.newDiscreteStates()
+        fmu.enterContinuousTimeMode()
+        with pytest.raises(FMICallException):
+            fmu.setReal([vr["capacitance"]], [7e-6])
+        fmu.enterEventMode()
+        fmu.setReal([vr["capacitance"]], [7e-6])
+        assert fmu.getReal([vr["capacitance"]]) == [7e-6]
+        fmu.terminate()
+        fmu.freeInstance()
+    finally:
+        import shutil
+
+        shutil.rmtree(unzipdir, ignore_errors=True)
 
 
 # ------------------------------------------------------------------------------------------ importers

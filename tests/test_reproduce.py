@@ -41,34 +41,54 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     metrics = pd.read_csv(reproduction / "metrics" / "metrics_all.csv")
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
-            "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)"} <= controllers
-    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us;
-    # + the controller FMU in the three 1 ms pipelines
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 3 * 2
+            "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)",
+            "MPC-nominal (no disturbance estimate)", "NNPC (7 hidden, one-step)", "NNPC (+ closed-loop round)",
+            "NNPC (+ closed-loop round) (seed 1)", "NNPC-adaptive", "NNPC (identified on the drifted plant)"} <= controllers
+    # 4 pipelines x 2 scenarios x 5 controllers, + the no-estimate MPC on the mismatch plant, + the
+    # ablations (N = 3 at 1 ms; eq. 3 and sync. sample at 13.33 us, and two identification variants
+    # there on the start-up), + seed 1 on the three nominal pipelines (with its identification
+    # variants at 13.33 us), + the drift study, + the controller FMU in the three 1 ms pipelines
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 2 + 2 + 2 + (2 + 2) + 3 + 3 * 2
     fmu = metrics[metrics["controller"] == "my_pi (FMU)"]
     assert set(fmu["pipeline"]) == {t for t in QUICK.pipelines if t.endswith("__1ms")} and len(fmu) == 3 * 2
     assert fmu["iae_Vs"].notna().all() and (fmu["iae_Vs"] > 0).all()
     assert (reproduction / "runs" / "startup__my-pi-fmu__nominal-switched__1ms.parquet").is_file()
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
-    assert set(seed_study["pipeline"]) == {"nominal-switched__13p33us"}
+    assert set(seed_study["pipeline"]) == {"nominal-averaged__1ms", "nominal-switched__1ms", "nominal-switched__13p33us"}
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
+    drift = metrics[metrics["pipeline"] == "drift"]
+    assert set(drift["scenario"]) == {"capacitor_ageing"} and len(drift) == 3
+    assert (reproduction / "figures" / "capacitor_ageing__mismatch-switched__13p33us.png").is_file()
+    summary = json.loads((reproduction / "pipelines" / "drift.json").read_text())
+    assert summary["study"]["adaptation"]["samples"] > 0
+    assert set(summary["study"]["prediction_after_drift"]) == {"NNPC", "NNPC-adaptive",
+                                                              "NNPC (identified on the drifted plant)"}
+    seed = json.loads((reproduction / "pipelines" / "nominal-switched__13p33us__seed1.json").read_text())
+    assert {"nnpc (seed 1)", "nnpc (one-step) (seed 1)", "nnpc (+ closed-loop round) (seed 1)"} <= set(seed["models"])
+    assert seed["models"]["nnpc (seed 1)"]["identification"]["stage"] == "multi-step"
+    assert seed["models"]["nnpc (+ closed-loop round) (seed 1)"]["identification"]["stage"] == "closed-loop 1"
 
 
 def test_report_has_every_section_and_checks_the_targets(reproduction):
     report = (reproduction / "REPORT.md").read_text()
     for heading in ("## Summary", "## Targets", "## Setup", "## PI gains", "## NN identification",
                     "## Results at the paper's rate", "## Results at one switching period",
-                    "## What the NNPC costs in C", "## Ablations",
-                    "## Discussion", "## Reproducing"):
+                    "## What the NNPC costs in C", "## Seeds", "## Ablations",
+                    "## Model mismatch", "## Drift and online adaptation", "## Discussion", "## Reproducing"):
         assert heading in report
     assert "Quick profile" in report
     targets = pd.read_csv(reproduction / "targets.csv")
     assert set(targets["met"]) <= {"yes", "**no**"}
     assert not targets["target"].str.contains("Whole reproduction|compute per step").any()  # wall clock: timings
     assert targets["target"].str.contains("NNPC IAE <= 1.10 x oracle-MPC IAE").any()
-    overshoot = targets[targets["target"] == "NNPC start-up overshoot <= 5 % at 1/fsw, switched"]
-    assert overshoot["note"].iloc[0].startswith("NNPC identified from other seeds' data: NNPC (seed 1): ")
-    assert "**Seed sensitivity at 13.33 us**" in report
+    overshoot = targets[targets["target"] == "NNPC start-up overshoot <= 5 % at 1/fsw, switched, every seed"]
+    assert overshoot["note"].iloc[0].startswith("seed 0: ") and "seed 1: " in overshoot["note"].iloc[0]
+    assert overshoot["measured"].iloc[0].endswith(")")  # the worst seed named
+    assert targets["target"].str.contains("10-step held-out vo RMSE <= 150 mV").any()
+    assert targets["target"].str.contains("Under mismatch: NNPC IAE <= 1.05 x oracle-MPC IAE").any()
+    assert not targets["target"].str.contains("0.8 x nominal-model MPC").any()  # withdrawn
+    assert targets["target"].str.contains("Drift: adapted NNPC IAE").any()
+    assert "**Identification** (nominal switched plant" in report
     cost = report.split("## What the NNPC costs in C")[1].split("\n## ")[0]
     rows = [line for line in cost.splitlines() if line.startswith(("| 1 ms |", "| 13.33 µs |"))]
     assert len(rows) == 2 and rows[0].endswith("| yes |")  # the 1 ms NNPC fits a Cortex-M4F, counted
@@ -78,7 +98,8 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
 
 def test_resume_keeps_finished_pipelines(reproduction, capsys):
     assert main(["--no-progress", "reproduce", "--quick", "--resume", "--out", str(reproduction)]) == 0
-    assert capsys.readouterr().err.count("finished earlier, kept (--resume)") == len(QUICK.pipelines)
+    jobs = len(QUICK.pipelines) + 3 + 1  # the pipelines, seed 1 of the three nominal ones, the drift study
+    assert capsys.readouterr().err.count("finished earlier, kept (--resume)") == jobs
 
 
 def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):

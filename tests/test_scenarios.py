@@ -38,6 +38,11 @@ def test_shipped_scenarios_are_the_papers_four_plus_extras():
     assert load.events[0].changes == {"load_resistance": 5.0} and load.required_roles() == {"load_resistance"}
     assert load_scenario("reference_up").events[0].changes == {"reference": 15.0}
     assert load_scenario("reference_down").events[0].changes == {"reference": 9.0}
+    ageing = load_scenario("capacitor_ageing")  # the drift study's: the mismatch plant's C and DCR drift
+    drift = [e.parameters for e in ageing.parameter_events]
+    assert len(drift) == 8 and drift[-1] == pytest.approx({"capacitance": 5.6e-6, "inductor_resistance": 0.3})
+    assert all(a["capacitance"] > b["capacitance"] for a, b in zip(drift, drift[1:]))
+    assert ageing.metrics_start > max(e.time for e in ageing.parameter_events)
 
 
 def test_a_user_scenario_parses_with_sorted_events_and_schedules(tmp_path):
@@ -87,10 +92,74 @@ def test_event_without_changes_and_missing_keys(tmp_path):
 
 
 def test_unknown_scenario_name_lists_the_shipped_ones():
-    with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(load_change"):
+    with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(capacitor_ageing, load_change"):
         load_scenario("nope")
 
 
 def test_analysis_start_must_be_inside_the_run():
     with pytest.raises(ConfigError, match=r"analysis_start = 1.0 s is outside"):
         parse_scenario('name = "x"\nduration = 0.1\nanalysis_start = 1.0\n[initial]\nreference = 1.0\n')
+
+
+# ------------------------------------------------------------------------------------------ parameter events
+
+DRIFT = """\
+name = "drift"
+duration = 0.02
+
+[initial]
+reference = 12.0
+
+[[events]]
+time = 0.005
+reference = 13.0
+
+[[events]]
+time = 0.01
+parameters = { capacitance = 7e-6, inductor_resistance = 0.3 }
+"""
+
+
+def test_parameter_events_parse_with_their_line(tmp_path):
+    path = tmp_path / "drift.toml"
+    path.write_text(DRIFT)
+    s = load_scenario(path)
+    event = s.events[1]
+    assert event.parameters == {"capacitance": 7e-6, "inductor_resistance": 0.3} and event.changes == {}
+    assert event.where == f"{path}:13" and event.plant_event and not s.events[0].plant_event
+    assert s.parameter_events == (event,) and s.required_roles() == set()
+    assert s.describe()["events"][1] == {"time_s": 0.01, "parameters": {"capacitance": 7e-6, "inductor_resistance": 0.3}}
+
+
+@pytest.mark.parametrize("value,message", [
+    ('{ capacitance = "big" }', r"drift.toml:13: events\[1\].parameters.capacitance = 'big' has the wrong type"),
+    ("{ capacitance = nan }", r"drift.toml:13: events\[1\].parameters.capacitance = nan is not finite"),
+    ("{ capacitance = inf }", r"drift.toml:13: events\[1\].parameters.capacitance = inf is not finite"),
+    ("{ capacitance = true }", r"drift.toml:13: events\[1\].parameters.capacitance = True has the wrong type"),
+    ("{}", r"drift.toml:13: events\[1\].parameters is empty"),
+    ("7e-6", r"drift.toml:13: events\[1\].parameters = 7e-06 has the wrong type: expected a table"),
+])
+def test_parameter_event_mistakes_name_file_key_and_line(tmp_path, value, message):
+    path = tmp_path / "drift.toml"
+    path.write_text(DRIFT.replace("{ capacitance = 7e-6, inductor_resistance = 0.3 }", value))
+    with pytest.raises(ConfigError, match=message):
+        load_scenario(path)
+
+
+@pytest.mark.parametrize("parameters,message", [
+    ("{ switching_frequency = 50e3 }", r"drift.toml:13: events\[1\].parameters.switching_frequency: "
+                                       r"'switching_frequency' is a fixed parameter; only tunable Real parameters"),
+    ("{ capacitor = 7e-6 }", r"drift.toml:13: events\[1\].parameters.capacitor: plant FMU .* has no variable "
+                             r"'capacitor' \(tunable: capacitance, capacitor_esr, diode_forward_voltage"),
+    ("{ load_resistance = 5.0 }", r"'load_resistance' is a continuous input"),
+    ("{ inductor_resistance = -0.1 }", r"events\[1\].parameters.inductor_resistance = -0.1 Ohm is outside the range "
+                                       r"the FMU declares \[0, inf\]"),
+])
+def test_parameter_events_the_fmu_cannot_take_are_refused_before_the_run(tmp_path, parameters, message):
+    from cosim.batch import Batch
+    from cosim.fmi.binding import builtin_binding
+
+    path = tmp_path / "drift.toml"
+    path.write_text(DRIFT.replace("{ capacitance = 7e-6, inductor_resistance = 0.3 }", parameters))
+    with pytest.raises(ConfigError, match=message):
+        Batch(builtin_binding("averaged"), [load_scenario(path)])

@@ -90,8 +90,8 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
         FAIL(BUCKC_ERR_INVALID, "levels must be >= 2 and refine_iterations >= 0");
     if (s.levels > BUCKC_MAX_LEVELS)
         FAIL(BUCKC_ERR_LIMIT, "levels: above BUCKC_MAX_LEVELS");
-    if (!(s.bias_filter > 0.0 && s.bias_filter <= 1.0))
-        FAIL(BUCKC_ERR_INVALID, "bias_filter: expected 0 < alpha <= 1");
+    if (!(s.bias_filter >= 0.0 && s.bias_filter <= 1.0))
+        FAIL(BUCKC_ERR_INVALID, "bias_filter: expected 0 <= alpha <= 1");
     if (!(0.0 <= low && low < high && high <= 1.0))
         FAIL(BUCKC_ERR_INVALID, "duty limits: expected 0 <= min < max <= 1");
 

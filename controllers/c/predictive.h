@@ -32,7 +32,7 @@ typedef struct {
     int levels;                   /* grid points per block in stage 1, 2..BUCKC_MAX_LEVELS */
     int refine_iterations;        /* at most this many refinement passes */
     double duty_tolerance;        /* stop zooming once the lattice step is this fine */
-    double bias_filter;           /* weight of the newest disturbance estimate, 0 < alpha <= 1 */
+    double bias_filter;           /* weight of the newest disturbance estimate, 0 <= alpha <= 1 (0: none) */
 } BuckcHorizonSettings;
 
 /* The stage-1 and refinement structure HorizonOptimizer.__init__ derives from its settings,

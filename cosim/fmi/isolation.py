@@ -78,6 +78,8 @@ def _answer_request(plant, states: dict, request: tuple):
                 plant.set_inputs(op[1])
             elif op[0] == "advance":
                 plant.advance_to(op[1])
+            elif op[0] == "parameters":
+                plant.set_parameters(op[1])
             else:
                 result = plant.outputs()
         return result
@@ -85,6 +87,8 @@ def _answer_request(plant, states: dict, request: tuple):
         return plant.initialize(request[1], request[2], request[3])
     if kind == "reset":
         return plant.reset()
+    if kind == "trial_parameters":
+        return plant.trial_parameters(request[1])
     if kind == "get_state":
         handle = len(states) + 1
         states[handle] = plant.get_state()
@@ -212,6 +216,24 @@ class IsolatedPlant:
 
     def outputs(self) -> list[float]:
         return self._flush_into(("outputs",))
+
+    @property
+    def tunable_parameters(self) -> dict[str, int]:
+        """As :attr:`cosim.fmi.plant.FmuPlant.tunable_parameters` (read off the model description)."""
+        return {v.name: v.valueReference for v in self.model_description.modelVariables
+                if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real"}
+
+    def set_parameters(self, values: Mapping[str, float]) -> None:
+        """As :meth:`cosim.fmi.plant.FmuPlant.set_parameters`, in order with the queued steps."""
+        self._queue.append(("parameters", dict(values)))
+
+    def trial_parameters(self, changes: Sequence[Mapping[str, float]]):
+        """As :meth:`cosim.fmi.plant.FmuPlant.trial_parameters`, in the plant process."""
+        self._refuse_if_dead()
+        self._queue.clear()
+        result = self._call("trying the parameter events", "trial_parameters", [dict(c) for c in changes])
+        self._initialized = False
+        return None if result is None else tuple(result)
 
     def get_state(self):
         return self._call("saving the FMU state", "get_state")

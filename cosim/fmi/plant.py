@@ -345,6 +345,49 @@ class FmuPlant:
         """Advance the plant from :attr:`time` to ``t_next`` with the inputs held."""
         raise NotImplementedError
 
+    # ------------------------------------------------------------------ tunable parameters
+    @property
+    def tunable_parameters(self) -> dict[str, int]:
+        """Real parameters the FMU lets change during a run (``variability="tunable"``): name -> value reference."""
+        return {v.name: v.valueReference for v in self.model_description.modelVariables
+                if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real"}
+
+    def _write_parameters(self, values: Mapping[str, float]) -> None:
+        tunable = self.tunable_parameters
+        unknown = [name for name in values if name not in tunable]
+        if unknown:
+            raise ConfigError(f"{self.binding.origin}: {', '.join(map(repr, unknown))} is not a tunable Real parameter "
+                              f"of {self.binding.fmu_path.name} (tunable: {', '.join(sorted(tunable)) or 'none'})")
+        self._fmu.setReal([tunable[name] for name in values], [float(v) for v in values.values()])
+
+    def set_parameters(self, values: Mapping[str, float]) -> None:
+        """Change tunable parameters (FMU names and units) between two steps of a run, e.g. a
+        drifting capacitance; the FMU's states carry over (co-simulation: fmi2SetReal at the
+        communication point; model exchange overrides this with an event)."""
+        try:
+            self._write_parameters(values)
+        except FMICallException as error:
+            raise self._fail(error.function, error.status) from None
+
+    def trial_parameters(self, changes: Sequence[Mapping[str, float]]) -> tuple[int, str] | None:
+        """Before a run: try each set of parameter values on the fresh instance, so the FMU's own
+        checks refuse a bad value before the first step. Returns (position, the FMU's message) of
+        the first refused set, or None; the instance is reset afterwards either way."""
+        self._refuse_if_fatal()
+        if self._initialized:
+            self.reset()
+        try:
+            for position, values in enumerate(changes):
+                try:
+                    self._write_parameters(values)
+                except FMICallException as error:
+                    message = self._last_log_suffix().removeprefix(": ") or f"{error.function} failed"
+                    return position, message
+            return None
+        finally:
+            self._fmu.reset()
+            self.log.clear()
+
     # ------------------------------------------------------------------ FMU state
     def get_state(self):
         """Snapshot of the FMU (fmi2GetFMUstate); free it with :meth:`free_state`."""
@@ -512,6 +555,20 @@ class ModelExchangePlant(FmuPlant):
         except RuntimeError as error:  # CVode failure
             raise PlantError(f"{self.binding.origin}: the model-exchange solver failed at t = {t:.9g} s ({error})") from None
         self.time = t_next
+
+    def set_parameters(self, values: Mapping[str, float]) -> None:
+        """Tunable parameters change in event mode (FMI 2.0): enter it, set, update the discrete
+        states (e.g. the diode) and restart the solver from the same state."""
+        fmu = self._fmu
+        try:
+            fmu.setTime(self.time)
+            fmu.enterEventMode()
+            self._write_parameters(values)
+            self._event_update()
+            fmu.enterContinuousTimeMode()
+        except FMICallException as error:
+            raise self._fail(error.function, error.status) from None
+        self._solver.reset(self.time)
 
     def set_state(self, state, time: float) -> None:
         """Restore a snapshot taken at ``time``; the discrete part (the next PWM edge) is re-derived

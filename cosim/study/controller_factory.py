@@ -13,7 +13,8 @@ from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.experiments import collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.experiments import adaptive_nnpc, collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.identification import Recipe, identify
 from cosim.study.pi_tuning import PITuning, load_or_tune
 from cosim.study.vocabulary import CONTROLLERS, MPC_NOMINAL, MPC_ORACLE, NETWORKS, NOMINAL, pipeline_tag
 
@@ -27,24 +28,34 @@ def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool
 
 def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path, *, samples: int, seed: int,
                   model_path: str | None, progress: bool = False) -> NNPlantModel:
-    """Load ``model_path``, or collect data on this plant with its tuned PI and train (cached in out_dir)."""
+    """Load ``model_path``, or identify the network on this plant (cached in out_dir): the
+    workbench's NNPC network by the recipe of :mod:`cosim.study.identification` (PI data, one-step
+    and simulation-error training, NNPC-in-the-loop data at fast rates), the paper's network by
+    one-step training on the PI data."""
     config = nn_configs(period)[name]
     if model_path:
         return load_model(Path(model_path), expect_period=period)
     path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__{name}.pt"
     settings = collection_settings(period, samples, seed)
     collection = json.loads(json.dumps(asdict(settings)))  # as the model file stores it
+    recipe = Recipe(samples=samples)
+    wanted = json.loads(json.dumps(asdict(recipe)))
     if path.is_file():
         model = load_model(path, expect_period=period, expect_config=config)
-        if model.metadata.get("plant") == binding.label and model.metadata.get("collection") == collection:
-            return model  # same plant, identification settings (samples, seed, dither) and network
+        meta = model.metadata
+        if meta.get("plant") == binding.label and meta.get("collection") == collection \
+                and (name != "nnpc" or meta.get("recipe") == wanted):
+            return model  # same plant, identification settings (samples, seed, dither, recipe) and network
     pi = tuned_pi(binding, period, out_dir, progress)
-    print(f"collecting {samples} samples on {binding.label} and training {config.label} ...", file=sys.stderr)
+    print(f"collecting {samples} samples on {binding.label} and identifying {config.label} ...", file=sys.stderr)
     data = collect(binding, pi.controller(), settings, progress=progress)
     save_samples(data, out_dir / "data" / f"{pipeline_tag(binding.tag, period)}.parquet")
-    model = train(data, config, TrainingSettings(seed=seed), progress=progress,
-                  metadata={"control_period_s": period, "plant": binding.label, "seed": seed,
-                            "collection": collection})
+    meta = {"control_period_s": period, "plant": binding.label, "seed": seed, "collection": collection}
+    if name == "nnpc":
+        model = identify(binding, pi.controller(), period, config, seed, recipe, metadata={**meta, "recipe": wanted},
+                         data=data, progress=progress).model
+    else:
+        model = train(data, config, TrainingSettings(seed=seed), progress=progress, metadata=meta)
     save_model(model, path)
     return model
 
@@ -76,8 +87,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS}  # FMUs or binding files, checked now
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
-    if model_path and sum(n in NETWORKS for n in names) > 1:
-        raise ConfigError("--model gives one network: run nnpc and nnpc-paper separately when you pass --model")
+    networks = [n for n in names if n in NETWORKS or n == "nnpc-adaptive"]
+    if model_path and len(networks) > 1:
+        raise ConfigError("--model gives one network: run nnpc, nnpc-paper and nnpc-adaptive separately when you "
+                          "pass --model")
     if not (period > 0 and math.isfinite(period)):
         raise ConfigError(f"control period {period} s is invalid: expected a finite value > 0")
     try:
@@ -86,9 +99,8 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
             check_gains(kp, ki)
     except ValueError as error:
         raise ConfigError(str(error)) from None
-    if any(n in NETWORKS for n in names) and not binding.has("inductor_current"):
-        raise ConfigError(f"{next(n for n in names if n in NETWORKS)} needs the inductor_current role, which "
-                          f"{binding.origin} does not bind")
+    if networks and not binding.has("inductor_current"):
+        raise ConfigError(f"{networks[0]} needs the inductor_current role, which {binding.origin} does not bind")
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
     given = load_model(Path(model_path), expect_period=period) if model_path else None
     controllers = []
@@ -100,10 +112,14 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                                     tuning={"method": "given on the command line"}))
                 else:
                     controllers.append(tuned_pi(binding, period, out_dir, progress).controller(duty_limits))
-            elif name in NETWORKS:
-                model = given or trained_model(name, binding, period, out_dir, samples=samples, seed=seed,
+            elif name in NETWORKS or name == "nnpc-adaptive":
+                network = "nnpc" if name == "nnpc-adaptive" else name
+                model = given or trained_model(network, binding, period, out_dir, samples=samples, seed=seed,
                                                model_path=None, progress=progress)
-                controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                if name == "nnpc-adaptive":
+                    controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                else:
+                    controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
             elif name == "mpc-oracle":
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":

@@ -4,29 +4,36 @@ One pipeline per plant (nominal averaged, nominal switched, mismatch-study switc
 rate (1 ms, one switching period). Each pipeline, all seeded:
 
 1. tunes the PI on that plant at that rate (:mod:`cosim.study.pi_tuning`);
-2. collects the NN training data with that PI (:mod:`cosim.study.data_collection`, 10 000 samples);
-3. trains the paper's 3-7-2 network and the workbench's NNPC network (+ load conductance);
-4. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
-   averaged model of that plant) and the mismatched MPC (nominal model on the mismatch plant;
-   on the nominal plant, the mismatch plant's parameters);
-5. writes runs, metrics and figures as it goes.
+2. identifies the workbench's NNPC network by the recipe of :mod:`cosim.study.identification`
+   (PI data, one-step then simulation-error training over the horizon) and trains the paper's
+   3-7-2 network on the PI data;
+3. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
+   model of that plant) and the mismatched MPC (nominal model on the mismatch plant -- also
+   without its disturbance estimate; on the nominal plant, the mismatch plant's parameters);
+4. writes runs, metrics and figures as it goes.
 
-Pipelines are independent and run in parallel worker processes; files are written atomically,
-so an interrupted reproduction keeps what finished, and ``--resume`` skips finished pipelines.
+Beside the pipelines (seed 0), *seed jobs* identify the NNPC again from the data of every other
+study seed on the nominal plants at both rates and run it (with the identification ablation on
+the nominal switched plant at one switching period), and the *drift job* runs the drift study
+on the mismatch-study plant. The tuned PI gains come first (all pipelines in parallel); then
+every job runs in parallel worker processes, longest first. Files are written atomically, so an
+interrupted reproduction keeps what finished, and ``--resume`` skips finished jobs.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from cosim.base.errors import PlantError
@@ -34,35 +41,53 @@ from cosim.base.files import atomic_write_json, atomic_write_text, json_text, re
 from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
-from cosim.scenarios import PAPER_SCENARIOS
-from cosim.study.controller_factory import external_controllers
-from cosim.study.data_collection import collect, save_samples
+from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+from cosim.study.controller_factory import external_controllers, external_name
+from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
-    collection_settings,
+    adaptive_nnpc,
     implemented,
     model_mpc,
+    multiply_accumulates,
     nn_configs,
     nnpc,
     plant_binding,
     scenarios_for,
+    small_network,
 )
+from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, identify
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
+    ABLATION_SCENARIOS,
+    CLOSED_LOOP_SAMPLES,
     CONTROLLER_STYLES,
+    DRIFT_CAPACITANCE_FACTOR,
+    DRIFT_RESISTANCE_FACTOR,
+    DRIFT_SCENARIO,
+    DRIFT_STUDY,
     MISMATCH,
     MPC_MISMATCHED,
     MPC_NOMINAL,
+    MPC_NOMINAL_NO_ESTIMATE,
     MPC_ORACLE,
     MPC_ORACLE_AVERAGED,
     MPC_ORACLE_SYNC,
+    MULTI_STEP_ITERATIONS,
     NNPC,
+    NNPC_ADAPTIVE,
+    NNPC_CLOSED_LOOP,
+    NNPC_DRIFTED,
+    NNPC_ONE_STEP,
     NNPC_PAPER,
+    NNPC_SMALL_ONE_STEP,
     NOMINAL,
     PAPER_PERIOD,
     PLANT_VARIANTS,
     STUDY_PERIODS,
+    STUDY_SEEDS,
+    SWITCHING_PERIOD,
     horizon_variant,
     pipeline_tag,
     plant_tag,
@@ -77,17 +102,21 @@ class Profile:
 
     samples: int = 10_000
     scenarios: tuple[str, ...] = PAPER_SCENARIOS
-    ablations: bool = True  # horizon N = 3 at 1 ms; at 13.33 us the oracle with eq. 3, and a synchronous sample
-    seed_study: tuple[int, ...] = (1, 2)  # at 13.33 us on the nominal switched plant: NNPC identified again
-    # with these seed offsets (data and training), to show how much the NNPC depends on its data
+    ablations: bool = True  # horizon N = 3 at 1 ms; at 13.33 us the oracle with eq. 3, a synchronous sample,
+    # and the identification ablation (each stage of the recipe, and the 7-hidden network)
+    seeds: tuple[int, ...] = STUDY_SEEDS  # the NNPC identified from each seed's data on the nominal plants
+    drift: bool = True  # the drift study (mismatch-study plant at one switching period)
+    closed_loop_samples: int = CLOSED_LOOP_SAMPLES  # per NNPC-in-the-loop identification round
+    multi_step_iterations: int = MULTI_STEP_ITERATIONS  # per simulation-error training stage, at most
+    drift_duration: float | None = None  # [s] shorten the drift scenario (quick profile)
     quick: bool = False
     pipelines: tuple[str, ...] | None = None  # tags to run (default: all)
 
 
 FULL = Profile()
-QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True, seed_study=(1,),
-                pipelines=("nominal-averaged__1ms", "nominal-switched__1ms", "mismatch-switched__1ms",
-                           "nominal-switched__13p33us"))
+QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True, seeds=(0, 1), closed_loop_samples=150,
+                multi_step_iterations=50, drift_duration=0.009, pipelines=("nominal-averaged__1ms", "nominal-switched__1ms",
+                                                 "mismatch-switched__1ms", "nominal-switched__13p33us"))
 
 
 @dataclass(frozen=True)
@@ -112,10 +141,46 @@ class Pipeline:
     def tag(self) -> str:
         return pipeline_tag(self.plant_tag, self.control_period)
 
+    @property
+    def seed_study(self) -> bool:
+        """The nominal plants are identified from every study seed's data."""
+        return self.variant == "nominal"
+
+    @property
+    def identification_ablation(self) -> bool:
+        return self.variant == "nominal" and self.mode == "switched" and not transient_within_sample(self.control_period)
+
 
 PIPELINES = tuple(Pipeline(variant, mode, period)
                   for period in STUDY_PERIODS
                   for variant, mode in (("nominal", "averaged"), ("nominal", "switched"), ("mismatch", "switched")))
+DRIFT_PIPELINE = Pipeline("mismatch", "switched", SWITCHING_PERIOD)
+DRIFT_KEY = DRIFT_STUDY  # the drift study's job key and its rows' "pipeline" in the metrics tables
+
+
+@dataclass(frozen=True)
+class Job:
+    """One unit of work for a worker: a pipeline (seed 0), a seed job, or the drift study."""
+
+    kind: str  # "pipeline", "seed" or "drift"
+    pipeline: Pipeline
+    seed: int = 0
+    after: str | None = None  # key of a job that must finish first (the drift study reuses its model)
+    controllers: tuple[str, ...] = ()  # controller FMUs / binding files run next to the built-in ones (pipelines)
+
+    @property
+    def key(self) -> str:
+        """File stem of the job's summary and metrics: the pipeline tag, ``<tag>__seed<s>`` or ``drift``."""
+        return {"pipeline": self.pipeline.tag, "seed": f"{self.pipeline.tag}__seed{self.seed}",
+                "drift": DRIFT_KEY}[self.kind]
+
+    def cost(self) -> float:
+        """A rough relative cost, so the longest jobs start first and the workers finish together."""
+        fast = not transient_within_sample(self.pipeline.control_period)
+        weight = {"pipeline": 4.0, "seed": 1.0, "drift": 4.0 if self.after is None else 2.5}[self.kind]
+        if self.kind == "seed" and self.pipeline.identification_ablation:
+            weight = 2.2
+        return weight * (8.0 if fast else 1.0)
 
 
 @dataclass
@@ -125,58 +190,104 @@ class PipelineOutput:
     pi: dict
     models: dict[str, dict]  # name -> metadata (held-out RMSE, training)
     timings: dict[str, float] = field(default_factory=dict)
+    key: str = ""  # the job that wrote it (default: the pipeline tag)
+    study: dict = field(default_factory=dict)  # the drift study's own figures (prediction errors, adaptation)
+
+    def __post_init__(self):
+        self.key = self.key or self.pipeline.tag
 
     def to_json(self) -> str:
-        """The summary written to ``pipelines/<tag>.json`` (no wall-clock figures: those are
-        ``pipelines/<tag>.timings.json``, not committed, and ``timings.md``)."""
-        return json_text({"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models})
+        """The summary written to ``pipelines/<key>.json`` (no wall-clock figures: those are
+        ``pipelines/<key>.timings.json``, not committed, and ``timings.md``)."""
+        payload = {"pipeline": asdict(self.pipeline), "pi": self.pi, "models": self.models}
+        if self.study:
+            payload["study"] = self.study
+        return json_text(payload)
 
 
 def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def _tuned(pipeline: Pipeline, out_dir: Path, profile: Profile):
+    return load_or_tune(out_dir / "tuning" / f"pi__{pipeline.tag}.json", pipeline.binding(), pipeline.control_period,
+                        record_period=2e-5, quick=profile.quick)
+
+
+def _tune_job(job) -> tuple[str, float]:
+    pipeline, out_dir, profile = job
+    start = time.perf_counter()
+    pi = _tuned(pipeline, out_dir, profile)
+    log(f"  {pipeline.tag}: PI Kp = {pi.kp:.4g} 1/V, Ki = {pi.ki:.4g} 1/(V s) ({pi.evaluations} simulations)")
+    return pipeline.tag, time.perf_counter() - start
+
+
+def _recipe(profile: Profile) -> Recipe:
+    return Recipe(samples=profile.samples, closed_loop_samples=profile.closed_loop_samples,
+                  multi_step_iterations=profile.multi_step_iterations)
+
+
+def _model_summary(model, config) -> dict:
+    return {"architecture": config.label, "multiply_accumulates": multiply_accumulates(config), **model.metadata}
+
+
+def _runner(implementation: str):
+    def run_batch(batch, controllers, out_dir, **options):  # every run with the chosen implementation
+        return batch_runs(batch, [implemented(c, implementation) for c in controllers], out_dir, **options)
+    return run_batch
+
+
+def _scenarios(pipeline: Pipeline, binding, profile: Profile) -> list:
+    scenarios = []
+    for scenario in scenarios_for(pipeline.control_period, profile.scenarios):
+        missing = scenario.required_roles() - set(binding.roles)
+        if missing:
+            log(f"  {pipeline.tag}: skipping {scenario.name}: {binding.origin} binds no {', '.join(sorted(missing))}")
+        else:
+            scenarios.append(scenario)
+    return scenarios
+
+
 def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                  implementation: str = "c", controller_files: tuple[str, ...] = ()) -> PipelineOutput:
     import torch
 
-    from controllers.nn_model import TrainingSettings, save_model, train
+    from controllers.nn_model import save_model, train
 
-    torch.set_num_threads(1)  # two pipelines share two cores
+    torch.set_num_threads(1)  # two workers share two cores
     timings: dict[str, float] = {}
     tag, period = pipeline.tag, pipeline.control_period
     binding = pipeline.binding()
+    run_batch = _runner(implementation)
 
     start = time.perf_counter()
-    pi = load_or_tune(out_dir / "tuning" / f"pi__{tag}.json", binding, period, record_period=2e-5,
-                      quick=profile.quick)
+    pi = _tuned(pipeline, out_dir, profile)
     timings["pi_tuning_s"] = time.perf_counter() - start
-    log(f"  {tag}: PI Kp = {pi.kp:.4g} 1/V, Ki = {pi.ki:.4g} 1/(V s) ({pi.evaluations} simulations, "
-        f"{timings['pi_tuning_s']:.1f} s)")
 
     start = time.perf_counter()
-    data = collect(binding, pi.controller(), collection_settings(period, profile.samples, seed))
+    configs = nn_configs(period)
+    identified = identify(binding, pi.controller(), period, configs["nnpc"], seed, _recipe(profile),
+                          metadata={"data_file": f"data/{tag}.parquet"})
+    timings["identification_nnpc_s"] = time.perf_counter() - start
+    data = identified.data
     data.attrs["metadata"]["seed"] = seed
-    data_path = out_dir / "data" / f"{tag}.parquet"
-    save_samples(data, data_path)
-    timings["data_collection_s"] = time.perf_counter() - start
-
-    models, model_meta = {}, {}
-    for name, config in nn_configs(period).items():
-        start = time.perf_counter()
-        model = train(data, config, TrainingSettings(seed=seed),
-                      metadata={"control_period_s": period, "plant": binding.label,
-                                "data_file": f"data/{tag}.parquet", "seed": seed})
-        timings[f"training_{name}_s"] = time.perf_counter() - start
+    save_samples(data, out_dir / "data" / f"{tag}.parquet")
+    models = {"nnpc": identified.model}
+    start = time.perf_counter()
+    models["nnpc-paper"] = train(data, configs["nnpc-paper"], _paper_training(seed),
+                                 metadata={"control_period_s": period, "plant": binding.label,
+                                           "data_file": f"data/{tag}.parquet", "seed": seed})
+    timings["training_nnpc-paper_s"] = time.perf_counter() - start
+    model_meta = {}
+    for name, model in models.items():
         save_model(model, out_dir / "models" / f"{tag}__{name}.pt")
-        models[name] = model
-        model_meta[name] = {"architecture": config.label, **model.metadata}
+        model_meta[name] = _model_summary(model, configs[name])
         rmse = model.metadata["held_out_rmse"]
-        log(f"  {tag}: {name} {config.label}: one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
-            f"{rmse['one_step_rmse_current_A'] * 1e3:.1f} mA ({timings[f'training_{name}_s']:.1f} s)")
+        log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
+            f"10 steps {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV")
 
-    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC),
-                   nnpc(models["nnpc-paper"], period, NNPC_PAPER)]
+    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC), nnpc(models["nnpc-paper"], period, NNPC_PAPER)]
+    true_parameters = None
     if pipeline.binding_file:  # an external plant: only the Table II model is known
         controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, binding=binding))
     else:
@@ -185,57 +296,219 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         wrong_name = MPC_NOMINAL if pipeline.variant == "mismatch" else MPC_MISMATCHED
         controllers += [model_mpc(true_parameters, period, MPC_ORACLE, binding=binding),
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
+        if pipeline.variant == "mismatch":  # what the disturbance estimate buys: the paper's kind of MPC
+            controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL_NO_ESTIMATE, binding=binding, offset_free=False))
     if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
         from cosim.fmi.controller import FmuController, controller_binding
-        from cosim.study.controller_factory import external_name
 
         controllers += [FmuController(controller_binding(path), name=external_name(path)) for path in controller_files]
-    scenarios = []
-    for scenario in scenarios_for(period, profile.scenarios):
-        missing = scenario.required_roles() - set(binding.roles)
-        if missing:
-            log(f"  {tag}: skipping {scenario.name}: {binding.origin} binds no {', '.join(sorted(missing))}")
-        else:
-            scenarios.append(scenario)
+    scenarios = _scenarios(pipeline, binding, profile)
     batch = Batch(binding, scenarios)
-    def run_batch(batch, controllers, out_dir, **options):  # every run with the chosen implementation
-        return batch_runs(batch, [implemented(c, implementation) for c in controllers], out_dir, **options)
 
     start = time.perf_counter()
     output = run_batch(batch, controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
                        extra_metadata={"pipeline": asdict(pipeline)})
-    metrics = output.metrics
+    metrics = [output.metrics]
     if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
         if transient_within_sample(period):  # does a longer horizon change anything at 1 ms?
-            ablation = run_batch(batch, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
-                                 out_dir, seed=seed, figures=False)
+            metrics.append(run_batch(batch, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
+                                     out_dir, seed=seed, figures=False).metrics)
         else:  # the oracle blind to the sensor (eq. 3), and a synchronous point sample instead of the mean
-            blind = run_batch(batch, [model_mpc(true_parameters, period, MPC_ORACLE_AVERAGED)], out_dir, seed=seed,
-                              figures=False)
+            metrics.append(run_batch(batch, [model_mpc(true_parameters, period, MPC_ORACLE_AVERAGED)], out_dir,
+                                     seed=seed, figures=False).metrics)
             synchronous = Batch(plant_binding(pipeline.variant, pipeline.mode, sensor="synchronous"), scenarios)
-            ablation = run_batch(synchronous, [model_mpc(true_parameters, period, MPC_ORACLE_SYNC,
-                                                         binding=synchronous.binding)],
-                                 out_dir, seed=seed, figures=False)
-            studies = [blind.metrics, ablation.metrics]
-            for offset in profile.seed_study:  # the same NNPC identified from other seeded data
-                other = seed + offset
-                data = collect(binding, pi.controller(), collection_settings(period, profile.samples, other))
-                model = train(data, nn_configs(period)["nnpc"], TrainingSettings(seed=other),
-                              metadata={"control_period_s": period, "plant": binding.label, "seed": other})
-                studies.append(run_batch(batch, [nnpc(model, period, seed_variant(NNPC, other))], out_dir,
-                                         seed=other, figures=False).metrics)
-            ablation.metrics = pd.concat(studies, ignore_index=True)
-        ablation.metrics["plant_tag"] = pipeline.plant_tag
-        metrics = pd.concat([metrics, ablation.metrics], ignore_index=True)
+            metrics.append(run_batch(synchronous, [model_mpc(true_parameters, period, MPC_ORACLE_SYNC,
+                                                             binding=synchronous.binding)],
+                                     out_dir, seed=seed, figures=False).metrics)
+    if profile.ablations and pipeline.identification_ablation:
+        ablation, meta = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                                                   profile)
+        metrics.append(ablation)
+        model_meta.update(meta)
+    metrics = pd.concat(metrics, ignore_index=True)
+    metrics["plant_tag"] = pipeline.plant_tag
     timings["runs_s"] = time.perf_counter() - start
     metrics.insert(0, "pipeline", tag)
     log(f"  {tag}: {len(metrics)} runs ({timings['runs_s']:.1f} s)")
-    output = PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
-                            timings=timings)
-    write_metrics(metrics, out_dir / "metrics" / f"metrics__{tag}")
-    atomic_write_json(out_dir / "pipelines" / f"{tag}.timings.json", timings)
-    atomic_write_text(out_dir / "pipelines" / f"{tag}.json", output.to_json() + "\n")
+    return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
+                                  timings=timings), out_dir)
+
+
+def _paper_training(seed: int):
+    from controllers.nn_model import TrainingSettings
+
+    return TrainingSettings(seed=seed)  # the paper's network keeps the paper's (one-step) training
+
+
+def _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                             profile: Profile) -> tuple[pd.DataFrame, dict]:
+    """The earlier 7-hidden network with one-step training (the workbench's NNPC before this study),
+    the NNPC's network after its one-step stage, and the NNPC refined on a round of data with itself
+    in the loop, all from the same data; named with the seed unless it is seed 0."""
+    from controllers.nn_model import TrainingSettings, train
+
+    def named(name):
+        return name if seed == 0 else seed_variant(name, seed)
+
+    small = small_network(period)
+    earlier = train(identified.data, small, TrainingSettings(seed=seed),
+                    metadata={"control_period_s": period, "plant": binding.label, "seed": seed})
+    config = nn_configs(period)["nnpc"]
+    looped = closed_loop_round(identified, binding, period, config, seed, _recipe(profile)).model
+    variants = [(NNPC_SMALL_ONE_STEP, earlier, small), (NNPC_ONE_STEP, identified.stages[ONE_STEP], None),
+                (NNPC_CLOSED_LOOP, looped, None)]
+    # closed-loop runs for the earlier NNPC and the closed-loop round; the one-step 7-10-2 by its
+    # RMSE only (what growing the network buys in prediction; a run each would cost the time target)
+    controllers = [nnpc(model, period, named(name)) for name, model, _ in variants if name in ABLATION_RUNS]
+    scenarios = [s for s in batch.scenarios if s.name in ABLATION_SCENARIOS] or list(batch.scenarios)
+    metrics = run_batch(Batch(batch.binding, scenarios), controllers, out_dir, seed=seed, figures=False).metrics
+    meta = {named(name).lower(): _model_summary(model, cfg or config) for name, model, cfg in variants}
+    return metrics, meta
+
+
+#: the identification-ablation variants run in closed loop (the others are compared by their RMSE)
+ABLATION_RUNS = (NNPC_SMALL_ONE_STEP, NNPC_CLOSED_LOOP)
+
+
+def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, implementation: str = "c") -> PipelineOutput:
+    """The NNPC identified from seed ``seed``'s data (same PI, same recipe) and run on the paper's scenarios."""
+    import torch
+
+    torch.set_num_threads(1)
+    period, binding = pipeline.control_period, pipeline.binding()
+    run_batch = _runner(implementation)
+    timings = {}
+    pi = _tuned(pipeline, out_dir, profile)
+    start = time.perf_counter()
+    config = nn_configs(period)["nnpc"]
+    identified = identify(binding, pi.controller(), period, config, seed, _recipe(profile))
+    timings["identification_nnpc_s"] = time.perf_counter() - start
+    name = seed_variant(NNPC, seed)
+    start = time.perf_counter()
+    batch = Batch(binding, _scenarios(pipeline, binding, profile))
+    metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
+    meta = {name.lower(): _model_summary(identified.model, config)}
+    if profile.ablations and pipeline.identification_ablation:
+        ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
+                                                   profile)
+        metrics.append(ablation)
+        meta.update(extra)
+    metrics = pd.concat(metrics, ignore_index=True)
+    metrics["plant_tag"] = pipeline.plant_tag
+    timings["runs_s"] = time.perf_counter() - start
+    metrics.insert(0, "pipeline", pipeline.tag)
+    rmse = identified.model.metadata["held_out_rmse"]
+    log(f"  {pipeline.tag}: {name}: 10-step RMSE {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV, "
+        f"{len(metrics)} runs")
+    return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi={}, models=meta, timings=timings,
+                                  key=f"{pipeline.tag}__seed{seed}"), out_dir)
+
+
+def drift_scenario(profile: Profile):
+    """The shipped drift scenario (shortened for the quick profile)."""
+    scenario = load_scenario(DRIFT_SCENARIO)
+    if profile.drift_duration is not None:
+        end = profile.drift_duration
+        scenario = replace(scenario, duration=end, events=tuple(e for e in scenario.events if e.time < end),
+                           analysis_start=end / 2)
+    return scenario
+
+
+def drifted_binding(binding):
+    """The mismatch-study plant after the drift: C -30 %, DCR doubled (bound from the start)."""
+    p = binding.parameters
+    parameters = {**p, "capacitance": p["capacitance"] * DRIFT_CAPACITANCE_FACTOR,
+                  "inductor_resistance": p["inductor_resistance"] * DRIFT_RESISTANCE_FACTOR}
+    return replace(binding, parameters=parameters, label=binding.label.replace(")", ", drifted)"),
+                   tag_override=f"{binding.tag}-drifted")
+
+
+def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = "c",
+              reuse: bool = False) -> PipelineOutput:
+    """The drift study: the NNPC identified on the mismatch-study plant, without and with online
+    adaptation, and one identified offline on the drifted plant, on the drift scenario.
+
+    ``reuse``: the mismatch-study pipeline at this rate has run in this reproduction, so its NNPC
+    (the same recipe and seed) is read from its model file instead of being identified again."""
+    import torch
+
+    from controllers.load_estimate import conductance_series
+    from controllers.nn_model import build_dataset
+
+    torch.set_num_threads(1)
+    pipeline = DRIFT_PIPELINE
+    period, binding = pipeline.control_period, pipeline.binding()
+    run_batch = _runner(implementation)
+    timings = {}
+    pi = _tuned(pipeline, out_dir, profile)
+    config = nn_configs(period)["nnpc"]
+    start = time.perf_counter()
+    model_file = out_dir / "models" / f"{pipeline.tag}__nnpc.pt"
+    if reuse and model_file.is_file():
+        from controllers.nn_model import load_model
+
+        before_model = load_model(model_file, expect_period=period, expect_config=config)
+    else:
+        before_model = identify(binding, pi.controller(), period, config, seed, _recipe(profile)).model
+    after_binding = drifted_binding(binding)
+    after = identify(after_binding, pi.controller(), period, config, seed, _recipe(profile))
+    timings["identification_nnpc_s"] = time.perf_counter() - start
+    scenario = drift_scenario(profile)
+    final = load_scenario(DRIFT_SCENARIO).parameter_events[-1].parameters
+    for name, value in final.items():  # the scenario ends where the offline identification's plant is
+        if not math.isclose(value, after_binding.parameters[name], rel_tol=1e-6):
+            raise ValueError(f"{DRIFT_SCENARIO}: {name} ends at {value}, the drifted plant has "
+                             f"{after_binding.parameters[name]}")
+    controllers = [nnpc(before_model, period, NNPC), implemented(adaptive_nnpc(before_model, period, NNPC_ADAPTIVE),
+                                                                 implementation),
+                   nnpc(after.model, period, NNPC_DRIFTED)]
+    start = time.perf_counter()
+    output = run_batch(Batch(binding, [scenario]), controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
+                       extra_metadata={"pipeline": asdict(pipeline), "study": "drift"})
+    timings["runs_s"] = time.perf_counter() - start
+    adaptive = controllers[1]
+    # one-step prediction error after the drift, on the non-adapting NNPC's closed-loop data
+    frame = output.results[0].frame
+    samples = frame[frame["control_sample"] & (frame["time"] >= scenario.metrics_start)].reset_index(drop=True)
+    samples["load_conductance"] = conductance_series(samples["measured_output_voltage"].to_numpy(),
+                                                     samples["measured_load_current"].to_numpy(),
+                                                     samples["measured_inductor_current"].to_numpy(), initial=1 / 6)
+    x, y = build_dataset(samples, config)
+    adapted = adaptive.model.__class__(config, adaptive.model.network, adaptive.model.input_mean,
+                                       adaptive.model.input_std, adaptive.model.output_mean, adaptive.model.output_std)
+    theta = adaptive.output_weights
+    adapted._weights[-1][...], adapted._biases[-1][...] = theta[:-1], theta[-1]
+    prediction = {}
+    for name, model in ((NNPC, before_model), (NNPC_ADAPTIVE, adapted), (NNPC_DRIFTED, after.model)):
+        error = model.predict(x) - y
+        prediction[name] = {"one_step_rmse_current_A": float(np.sqrt(np.mean(error[:, 0] ** 2))),
+                            "one_step_rmse_voltage_V": float(np.sqrt(np.mean(error[:, 1] ** 2)))}
+    metrics = output.metrics
+    metrics["plant_tag"] = pipeline.plant_tag
+    metrics.insert(0, "pipeline", DRIFT_KEY)
+    study = {"scenario": scenario.name, "analysis_start_s": scenario.metrics_start,
+             "drifted_parameters": {k: after_binding.parameters[k] for k in final},
+             "prediction_after_drift": prediction, "adaptation": dict(adaptive.counters),
+             "adaptation_settings": asdict(adaptive.settings)}
+    models = {NNPC.lower(): _model_summary(before_model, config), NNPC_DRIFTED.lower(): _model_summary(after.model, config)}
+    log(f"  drift: {len(metrics)} runs ({timings['runs_s']:.1f} s); adaptation {adaptive.counters}")
+    return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi={}, models=models, timings=timings,
+                                  key=DRIFT_KEY, study=study), out_dir)
+
+
+def _finish(output: PipelineOutput, out_dir: Path) -> PipelineOutput:
+    write_metrics(output.metrics, out_dir / "metrics" / f"metrics__{output.key}")
+    atomic_write_json(out_dir / "pipelines" / f"{output.key}.timings.json", output.timings)
+    atomic_write_text(out_dir / "pipelines" / f"{output.key}.json", output.to_json() + "\n")
     return output
+
+
+def run_job(job: Job, out_dir: Path, profile: Profile, implementation: str = "c") -> PipelineOutput:
+    if job.kind == "pipeline":
+        return run_pipeline(job.pipeline, out_dir, profile, job.seed, implementation, job.controllers)
+    if job.kind == "seed":
+        return run_seed(job.pipeline, out_dir, profile, job.seed, implementation)
+    return run_drift(out_dir, profile, job.seed, implementation, reuse=job.after is not None)
 
 
 def _worker_signals() -> None:
@@ -245,7 +518,7 @@ def _worker_signals() -> None:
 
 
 def _run_job(job) -> PipelineOutput:
-    return run_pipeline(*job)
+    return run_job(*job)
 
 
 def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
@@ -260,10 +533,10 @@ def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
     remove_temporary_files(out_dir)
 
 
-def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
-    """A pipeline whose summary and metrics were written by an earlier (interrupted) run."""
-    summary = out_dir / "pipelines" / f"{pipeline.tag}.json"
-    metrics = out_dir / "metrics" / f"metrics__{pipeline.tag}.csv"
+def _load_finished(out_dir: Path, job: Job) -> PipelineOutput | None:
+    """A job whose summary and metrics were written by an earlier (interrupted) run."""
+    summary = out_dir / "pipelines" / f"{job.key}.json"
+    metrics = out_dir / "metrics" / f"metrics__{job.key}.csv"
     if not (summary.is_file() and metrics.is_file()):
         return None
     data = json.loads(summary.read_text(encoding="utf-8"))
@@ -272,22 +545,44 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
     if timing.is_file():  # the wall-clock metrics, in the same row order
         for column in WALLCLOCK_METRICS:
             table[column] = pd.read_csv(timing)[column].to_numpy()
-    timings_file = summary.with_name(f"{pipeline.tag}.timings.json")
+    timings_file = summary.with_name(f"{job.key}.timings.json")
     timings = json.loads(timings_file.read_text(encoding="utf-8")) if timings_file.is_file() else {}
-    return PipelineOutput(pipeline=pipeline, metrics=table, pi=data["pi"], models=data["models"], timings=timings)
+    return PipelineOutput(pipeline=job.pipeline, metrics=table, pi=data["pi"], models=data["models"], timings=timings,
+                          key=job.key, study=data.get("study", {}))
+
+
+def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_file: str | None,
+              controllers: dict[float, tuple[str, ...]] | None = None) -> list[Job]:
+    """Every job of a reproduction: the pipelines (with the controller FMUs ``controllers`` maps to
+    their period), the seed jobs of the nominal plants, the drift study."""
+    jobs = [Job("pipeline", p, seed, controllers=(controllers or {}).get(p.control_period, ())) for p in selected]
+    if not binding_file:
+        jobs += [Job("seed", p, seed + offset) for p in selected if p.seed_study for offset in profile.seeds[1:]]
+        if profile.drift:
+            after = DRIFT_PIPELINE.tag if DRIFT_PIPELINE in selected else None
+            jobs.append(Job("drift", DRIFT_PIPELINE, seed, after))
+    return jobs
+
+
+def _pool(workers: int, jobs: int) -> ProcessPoolExecutor:
+    # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
+    # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
+    return ProcessPoolExecutor(min(workers, jobs), mp_context=multiprocessing.get_context("fork"),
+                               initializer=_worker_signals)
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
               implementation: str = "c",
               profile: Profile = FULL, binding_file: str | None = None,
               control_periods: tuple[float, ...] = (), controller_files: tuple[str, ...] = ()) -> Path:
-    """Run every pipeline and write ``REPORT.md``; returns the report path.
+    """Run every job and write ``REPORT.md``; returns the report path.
 
     With ``binding_file``, the pipeline runs on that external plant at ``control_periods``
-    (default 1 ms) instead of the built-in plants. ``implementation``: the controllers' C twins
-    ("c", equivalent at every sample and faster) or their Python references ("python").
-    ``controller_files``: controller FMUs / controller-binding files run next to the built-in
-    controllers in every pipeline at their sample period (checked before any work starts).
+    (default 1 ms) instead of the built-in plants (no seed jobs, no drift study).
+    ``implementation``: the controllers' C twins ("c", equivalent at every sample and faster) or
+    their Python references ("python"). ``controller_files``: controller FMUs / controller-binding
+    files run next to the built-in controllers in every pipeline at their sample period (checked
+    before any work starts).
     """
     from plant_fmu import fmu_path
 
@@ -307,49 +602,76 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     if not resume:  # a fresh reproduction recomputes everything, tuned gains included
         for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
             stale.unlink()
-    outputs: dict[Pipeline, PipelineOutput] = {}
+    jobs = plan_jobs(selected, profile, seed, binding_file, extra)
+    outputs: dict[Job, PipelineOutput] = {}
     todo = []
-    for pipeline in selected:
-        finished = _load_finished(out_dir, pipeline) if resume else None
+    for job in jobs:
+        finished = _load_finished(out_dir, job) if resume else None
         if finished is not None:
-            outputs[pipeline] = finished
-            log(f"  {pipeline.tag}: finished earlier, kept (--resume)")
+            outputs[job] = finished
+            log(f"  {job.key}: finished earlier, kept (--resume)")
         else:
-            todo.append(pipeline)
-    log(f"reproduction: {len(todo)} pipeline(s) on {workers} worker(s) -> {out_dir}/"
+            todo.append(job)
+    tunings = sorted({job.pipeline for job in todo}, key=lambda p: p.control_period)
+    log(f"reproduction: {len(todo)} job(s) on {workers} worker(s) -> {out_dir}/"
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
+    # longest first, so the workers finish together; a job waits for the one it depends on
+    todo.sort(key=lambda job: -job.cost())
+    waiting = [job for job in todo if job.after is not None and job.after in {j.key for j in todo}]
     if workers <= 1:
-        for done, p in enumerate(todo, start=1):
-            outputs[p] = run_pipeline(p, out_dir, profile, seed, implementation, extra.get(p.control_period, ()))
-            log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
+        for pipeline in tunings:
+            _tune_job((pipeline, out_dir, profile))
+        order = [job for job in todo if job not in waiting] + waiting
+        for done, job in enumerate(order, start=1):
+            outputs[job] = run_job(job, out_dir, profile, implementation)
+            log(f"[{done}/{len(todo)}] {job.key} finished in {sum(outputs[job].timings.values()):.1f} s")
     elif todo:
-        # longest first (the fast-rate pipelines), so the workers finish together
-        jobs = [(p, out_dir, profile, seed, implementation, extra.get(p.control_period, ()))
-                for p in sorted(todo, key=lambda p: p.control_period)]
-        # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
-        # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
-        executor = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
-                                       initializer=_worker_signals)
+        executor = _pool(workers, len(todo))
         try:
-            futures = [executor.submit(_run_job, job) for job in jobs]
-            for done, future in enumerate(as_completed(futures), start=1):
-                output = future.result()
-                outputs[output.pipeline] = output
-                log(f"[{done}/{len(todo)}] {output.pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
+            # the tuned PI gains first (every job of a plant and rate needs them), then every job
+            for future in as_completed([executor.submit(_tune_job, (p, out_dir, profile)) for p in tunings]):
+                future.result()
+            futures = {executor.submit(_run_job, (job, out_dir, profile, implementation)): job
+                       for job in todo if job not in waiting}
+            done = 0
+            while futures:
+                future = next(as_completed(futures))
+                job = futures.pop(future)
+                outputs[job] = future.result()
+                done += 1
+                log(f"[{done}/{len(todo)}] {job.key} finished in {sum(outputs[job].timings.values()):.1f} s")
+                for ready in [j for j in waiting if j.after == job.key]:
+                    waiting.remove(ready)
+                    futures[executor.submit(_run_job, (ready, out_dir, profile, implementation))] = ready
         except BrokenProcessPool:
             _stop_workers(executor, out_dir)
-            raise PlantError("a reproduction worker process died (a plant FMU crashed it?); pipelines that "
-                                 f"finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
+            raise PlantError("a reproduction worker process died (a plant FMU crashed it?); jobs that "
+                             f"finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
         except BaseException:
-            _stop_workers(executor, out_dir)  # stop unfinished pipelines now; finished ones are on disk
+            _stop_workers(executor, out_dir)  # stop unfinished jobs now; finished ones are on disk
             raise
         executor.shutdown()
-    ordered = [outputs[p] for p in selected]
+    ordered = [outputs[job] for job in jobs]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
     elapsed = time.perf_counter() - started
-    report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed)
+    pipelines = _per_pipeline(selected, jobs, outputs)
+    drift = next((outputs[job] for job in jobs if job.kind == "drift"), None)
+    report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift)
     write_timings(out_dir, ordered, metrics, elapsed, workers)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 
+
+def _per_pipeline(selected: list[Pipeline], jobs: list[Job], outputs: dict[Job, PipelineOutput]) -> list[PipelineOutput]:
+    """Each pipeline's output with its seed jobs' metrics and models merged in (for the report)."""
+    merged = []
+    for pipeline in selected:
+        main = outputs[next(j for j in jobs if j.kind == "pipeline" and j.pipeline == pipeline)]
+        parts = [main] + [outputs[j] for j in jobs if j.kind == "seed" and j.pipeline == pipeline]
+        models = {}
+        for part in parts:
+            models.update(part.models)
+        merged.append(PipelineOutput(pipeline=pipeline, metrics=pd.concat([p.metrics for p in parts], ignore_index=True),
+                                     pi=main.pi, models=models, timings=main.timings))
+    return merged

@@ -7,7 +7,7 @@ import math
 
 import pandas as pd
 
-from cosim.study.vocabulary import is_seed_variant
+from cosim.study.vocabulary import NNPC, is_seed_variant, seed_of
 
 
 def fmt(value, digits: int = 3) -> str:
@@ -47,3 +47,21 @@ def value(metrics, pipeline, controller, scenario, column):
     rows = metrics[(metrics["pipeline"] == pipeline) & (metrics["controller"] == controller)
                    & (metrics["scenario"] == scenario)]
     return float(rows[column].iloc[0]) if len(rows) else math.nan
+
+
+def seed_controllers(metrics, pipeline, base: str = NNPC) -> dict[int, str]:
+    """The NNPC of each identification seed of a pipeline: {0: "NNPC", 1: "NNPC (seed 1)", ...}."""
+    names = set(metrics.loc[metrics["pipeline"] == pipeline, "controller"])
+    found = {seed_of(n, base): n for n in names}
+    return {s: found[s] for s in sorted(k for k in found if k is not None)}
+
+
+def model_key(name: str) -> str:
+    """The key of a controller's network in a pipeline's model summaries ("NNPC (seed 2)" -> "nnpc (seed 2)")."""
+    return name.lower()
+
+
+def worst(values: dict) -> tuple:
+    """(key, value) of the largest value of a dict (NaN counts as the worst)."""
+    key = max(values, key=lambda k: math.inf if math.isnan(values[k]) else values[k])
+    return key, values[key]

@@ -22,12 +22,13 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
     what, value, unit)."""
     out_dir = Path(out_dir)
     targets = TimingTargets(metrics, elapsed, out_dir).frame()
-    stages = pd.DataFrame([{"pipeline": o.pipeline.tag, **o.timings} for o in outputs])
+    stages = pd.DataFrame([{"job": getattr(o, "key", "") or o.pipeline.tag, **o.timings} for o in outputs])
     compute = metrics[["pipeline", "scenario", "controller", "controller_p50_us", "controller_p99_us"]]
     rows = [{"kind": "reproduction", "pipeline": "", "what": f"wall time on {workers} worker process(es)",
              "value": elapsed, "unit": "s"}]
     for o in outputs:
-        rows += [{"kind": "stage", "pipeline": o.pipeline.tag, "what": stage, "value": seconds, "unit": "s"}
+        rows += [{"kind": "stage", "pipeline": getattr(o, "key", "") or o.pipeline.tag, "what": stage, "value": seconds,
+                  "unit": "s"}
                  for stage, seconds in o.timings.items()]
     for _, r in compute.iterrows():
         for q in ("p50", "p99"):
@@ -43,7 +44,7 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
              f"Whole reproduction: {elapsed:.1f} s on {workers} worker process(es).", "",
              "## Timing targets", ""]
     lines += markdown_table(targets, ["target", "measured", "met", "note"])
-    lines += ["", "## Pipeline stages [s]", ""]
+    lines += ["", "## Stages per job [s] (a pipeline, a seed job of it, or the drift study)", ""]
     lines += markdown_table(stages, list(stages.columns), digits=3) if len(stages) else []
     lines += ["", "## Controller compute time per step [us] (per run, two pipelines sharing the cores)", ""]
     lines += markdown_table(compute, list(compute.columns), ["pipeline", "scenario", "controller", "p50 [us]",

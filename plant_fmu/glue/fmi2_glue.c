@@ -57,6 +57,10 @@ void fmu_log(FmuInstance *fmu, fmi2Status status, const char *category, const ch
     va_end(args);
 }
 
+int fmu_in_continuous_time(const FmuInstance *fmu) {
+    return fmu->state == STATE_CONTINUOUS_TIME;
+}
+
 static fmi2Status fail(FmuInstance *inst, const char *function, const char *message) {
     fmu_log(inst, fmi2Error, "logStatusError", "%s: %s", function, message);
     return fmi2Error;

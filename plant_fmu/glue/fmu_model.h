@@ -64,4 +64,8 @@ int model_update_discrete(FmuInstance *fmu, void *data, double *next_event_time,
 /* Log through the importer's logger: fmi2OK messages only when logging is on. */
 void fmu_log(FmuInstance *fmu, fmi2Status status, const char *category, const char *format, ...);
 
+/* 1 in model exchange's continuous-time mode, where FMI 2.0 forbids changing tunable parameters
+ * (a model refuses them there; event mode and co-simulation between steps accept them). */
+int fmu_in_continuous_time(const FmuInstance *fmu);
+
 #endif

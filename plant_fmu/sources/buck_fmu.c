@@ -16,7 +16,7 @@ typedef struct {
 } PlantData;
 
 const FmuModelInfo FMU_MODEL = {
-    "{1fc7eec8-9895-4c05-9356-993203d5c731}", /* must equal modelDescription.xml */
+    "{4c1e9f2a-7d3b-4e58-9a61-2b8f0d5e7c42}", /* must equal modelDescription.xml */
     "BuckConverter",
     sizeof(PlantData),
     BUCK_STATES,
@@ -84,17 +84,27 @@ fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
 
 static const char *fixed_parameter_name(fmi2ValueReference vr) {
     switch (vr) {
-    case VR_INDUCTANCE: return "inductance";
-    case VR_CAPACITANCE: return "capacitance";
     case VR_SWITCHING_FREQUENCY: return "switching_frequency";
-    case VR_INDUCTOR_RESISTANCE: return "inductor_resistance";
-    case VR_SWITCH_ON_RESISTANCE: return "switch_on_resistance";
-    case VR_DIODE_FORWARD_VOLTAGE: return "diode_forward_voltage";
-    case VR_CAPACITOR_ESR: return "capacitor_esr";
     case VR_INDUCTOR_CURRENT: return "inductor_current";
     case VR_CAPACITOR_VOLTAGE: return "capacitor_voltage";
     case VR_PLANT_MODE: return "plant_mode";
     case VR_PWM_CARRIER: return "pwm_carrier";
+    default: return NULL;
+    }
+}
+
+/* Circuit parameters with variability="tunable": settable during a run -- co-simulation between
+ * steps, model exchange in event mode (FMI 2.0 forbids it in continuous-time mode). The states
+ * i_L and v_C carry over, so a change at a communication point is exact: every interval after it
+ * is solved with the new values and the period means integrate across it. */
+static const char *tunable_parameter_name(fmi2ValueReference vr) {
+    switch (vr) {
+    case VR_INDUCTANCE: return "inductance";
+    case VR_CAPACITANCE: return "capacitance";
+    case VR_INDUCTOR_RESISTANCE: return "inductor_resistance";
+    case VR_SWITCH_ON_RESISTANCE: return "switch_on_resistance";
+    case VR_DIODE_FORWARD_VOLTAGE: return "diode_forward_voltage";
+    case VR_CAPACITOR_ESR: return "capacitor_esr";
     default: return NULL;
     }
 }
@@ -109,6 +119,12 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
     if (fixed != NULL && !initializing) {
         fmu_log(fmu, fmi2Error, "logStatusError",
                 "fmi2SetReal: %s can only be set before fmi2ExitInitializationMode", fixed);
+        return fmi2Error;
+    }
+    const char *tunable = tunable_parameter_name(vr);
+    if (tunable != NULL && fmu_in_continuous_time(fmu)) {
+        fmu_log(fmu, fmi2Error, "logStatusError",
+                "fmi2SetReal: %s is tunable in event mode only (call fmi2EnterEventMode first)", tunable);
         return fmi2Error;
     }
     switch (vr) {
