@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import fmpy
@@ -12,10 +13,17 @@ import fmpy.validation
 import numpy as np
 import pytest
 from fmpy.fmi2 import FMU2Slave
+from lxml import etree
 
+from controllers.pi import PIController
+from cosim.base.errors import ConfigError
+from cosim.fmi.controller_export import export_controller
+from cosim.master import simulate
 from cosim.scenarios import load_scenario, parse_scenario
+from cosim.ssp.engines import ENGINES, run_ssp
+from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp
 from cosim.ssp.scenario_source import OUTPUTS, scenario_fmu, scenario_toml, settle_time
-from cosim.study.experiments import scenarios_for
+from cosim.study.experiments import implemented, plant_binding, scenarios_for
 
 
 def cli(*args, cwd=None):
@@ -73,17 +81,6 @@ def test_the_scenario_is_rounded_to_whole_control_periods_and_survives_its_toml_
 
 
 # ------------------------------------------------------------------ the archive
-
-import zipfile  # noqa: E402
-
-from lxml import etree  # noqa: E402
-
-from controllers.pi import PIController  # noqa: E402
-from cosim.fmi.controller_export import export_controller  # noqa: E402
-from cosim.master import simulate  # noqa: E402
-from cosim.ssp.engines import ENGINES, run_ssp  # noqa: E402
-from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp  # noqa: E402
-from cosim.study.experiments import implemented, plant_binding  # noqa: E402
 
 #: short versions of the paper's scenario kinds (a settled loop, then a step): fast to run
 SHORT = {
@@ -288,3 +285,123 @@ def test_a_predictive_controller_fmu_can_be_read_in_initialization_mode(work, nn
     assert fmu.getReal([vr["duty_cycle"]])[0] > 0.0  # computed once configured (start-up: full duty)
     fmu.terminate()
     fmu.freeInstance()
+
+
+# ------------------------------------------------------------------ bad input: one line, exit 2, nothing written
+
+
+def _rewrite(source: Path, target: Path, members: dict[str, bytes | None]) -> Path:
+    """A copy of an archive with some members replaced (bytes) or left out (None)."""
+    with zipfile.ZipFile(source) as old, zipfile.ZipFile(target, "w") as new:
+        for info in old.infolist():
+            if info.filename in members:
+                if members[info.filename] is not None:
+                    new.writestr(info, members[info.filename])
+            else:
+                new.writestr(info, old.read(info.filename))
+    return target
+
+
+def _ssd(path: Path) -> str:
+    with zipfile.ZipFile(path) as archive:
+        return archive.read("SystemStructure.ssd").decode()
+
+
+@pytest.fixture(scope="module")
+def bad_archives(loops, work) -> dict[str, tuple[Path, str]]:
+    good = loops[("ref_step", "averaged")]
+    ssd = _ssd(good)
+    truncated = work / "truncated.ssp"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    junk = work / "junk.ssp"
+    junk.write_text("not an archive")
+    return {
+        "not a zip": (junk, "is not a zip archive"),
+        "truncated": (truncated, "is not a zip archive"),
+        "malformed ssd": (_rewrite(good, work / "malformed.ssp", {"SystemStructure.ssd": ssd[:500].encode()}),
+                          "SystemStructure.ssd is not well-formed XML"),
+        "not ssp 1.0": (_rewrite(good, work / "invalid.ssp", {"SystemStructure.ssd": ssd.replace(
+            'kind="output"', 'kind="sideways"', 1).encode()}), "not valid SSP 1.0"),
+        "connection to a missing connector": (_rewrite(good, work / "missing-connector.ssp", {
+            "SystemStructure.ssd": ssd.replace('endConnector="measured_output_voltage"',
+                                               'endConnector="measured_voltage"').encode()}),
+            "component 'controller' has no connector 'measured_voltage'"),
+        "connector naming a missing variable": (_rewrite(good, work / "missing-variable.ssp", {
+            "SystemStructure.ssd": ssd.replace('name="average_output_voltage"', 'name="avg_vo"').replace(
+                'startConnector="average_output_voltage"', 'startConnector="avg_vo"').encode()}),
+            "component 'plant' has a connector 'avg_vo', but BuckConverter.fmu has no such variable"),
+        "FMU missing": (_rewrite(good, work / "no-fmu.ssp", {"resources/PI.fmu": None}),
+                        "component 'controller' names resources/PI.fmu, which the archive does not contain"),
+        "parameter set missing": (_rewrite(good, work / "no-ssv.ssp", {"resources/plant.ssv": None}),
+                                  "names resources/plant.ssv, which the archive does not contain"),
+    }
+
+
+@pytest.mark.parametrize("case", ["not a zip", "truncated", "malformed ssd", "not ssp 1.0",
+                                  "connection to a missing connector", "connector naming a missing variable",
+                                  "FMU missing", "parameter set missing"])
+def test_a_bad_archive_is_refused_in_one_line(bad_archives, case):
+    path, message = bad_archives[case]
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        read_ssp(path)
+
+
+@pytest.mark.parametrize("case", ["truncated", "connection to a missing connector", "FMU missing"])
+def test_run_ssp_refuses_a_bad_archive_with_exit_2_and_writes_nothing(bad_archives, case, tmp_path):
+    path, message = bad_archives[case]
+    result = cli("run-ssp", str(path), "--engine", "fmpy", "--out", str(tmp_path / "out"))
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_engine_that_is_not_installed_is_refused_before_anything_runs(loops, tmp_path):
+    shim = tmp_path / "shim" / "libcosimpy"
+    shim.mkdir(parents=True)
+    (shim / "__init__.py").write_text("raise ImportError('no libcosimpy here')\n")
+    import os
+
+    env = {**os.environ, "PYTHONPATH": str(shim.parent)}
+    result = subprocess.run([sys.executable, "-m", "cosim.cli", "run-ssp", str(loops[("ref_step", "averaged")]),
+                             "--engine", "libcosim", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                            cwd=Path(__file__).resolve().parents[1], env=env, timeout=300)
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("error: engine libcosim: libcosimpy is not installed or does not load here "
+                                     "(ImportError: no libcosimpy here); install it with pip install "
+                                     "'libcosimpy==0.0.6'")
+    assert not (tmp_path / "out").exists()
+
+
+def test_export_ssp_refuses_a_step_off_the_control_grid_and_writes_nothing(pi_fmu, tmp_path):
+    target = tmp_path / "loop.ssp"
+    result = cli("export-ssp", "reference_up", "--controller", str(pi_fmu), "--communication-step", "3e-4",
+                 "--out", str(target))
+    assert result.returncode == 2
+    assert "communication step 0.0003 s does not divide the control period 0.001 s" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not target.exists()
+    result = cli("export-ssp", "reference_up", "--controller", "nonsense", "--out", str(target))
+    assert result.returncode == 2 and "expected pi, nnpc" in result.stderr and not target.exists()
+
+
+def test_the_commands_write_run_tables_that_read_back(pi_fmu, tmp_path):
+    from cosim.results import read_run
+
+    target = tmp_path / "loop.ssp"
+    result = cli("export-ssp", str(_short_file(tmp_path)), "--controller", str(pi_fmu), "--out", str(target))
+    assert result.returncode == 0, result.stderr
+    for engine in ENGINES:
+        result = cli("run-ssp", str(target), "--engine", engine, "--out", str(tmp_path / "out"))
+        assert result.returncode == 0, result.stderr
+    runs = sorted((tmp_path / "out" / "runs").glob("*.parquet"))
+    assert [p.name for p in runs] == [f"ref_step__pi__nominal-averaged__1ms__ssp-{e}.parquet"
+                                      for e in ("fmpy", "libcosim", "workbench")]
+    for path in runs:
+        run = read_run(path)
+        assert run.complete and run.metadata["engine"]["name"] in ENGINES and len(run.frame) == 601
+
+
+def _short_file(folder: Path) -> Path:
+    path = folder / "ref_step.toml"
+    path.write_text(SHORT["ref_step"])
+    return path
