@@ -339,6 +339,9 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
     elapsed = time.perf_counter() - started
     report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed)
+    if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
+        from cosim.study.ssp_agreement import append_to_report
+        append_to_report(out_dir, report, quick=profile.quick)
     write_timings(out_dir, ordered, metrics, elapsed, workers)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
