@@ -28,9 +28,10 @@
   the C function it wraps, trimmed by the count that function returns.
 
 Expected difference (both Jacobi engines): a communication point t exchanges the outputs each FMU
-had *before* any input at t was set. The plant's and the scenario's outputs depend on their
-state only, so they arrive undelayed; the controller's duty depends directly on its inputs, so
-the duty read at a sample t_k is computed from the inputs of t_k - h. The plant therefore runs
+had *before* any input at t was set. The scenario's outputs and the plant's voltages and currents
+depend on their state only, so they arrive undelayed (not the plant's load current vo/R, which
+depends on its load input directly: at a load step the controller's sample sees the old one, at
+any h); the controller's duty depends directly on its inputs, so the duty read at a sample t_k is computed from the inputs of t_k - h. The plant therefore runs
 [t_k, t_k + h) on that stale duty and gets the workbench's duty d_k from t_k + h on: one
 communication step h of delay on the measurement-to-duty path, which shrinks with h (the
 controller's own state is committed with the inputs of t_k, as in the workbench). The switched

@@ -30,13 +30,17 @@ from __future__ import annotations
 
 import math
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from fmpy.fmi2 import fmi2True
 
+from controllers.base import Measurement
+from cosim.base.errors import ControllerError
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.fmi.controller import FmuController, builtin_controller_binding
 from cosim.master import simulate
 from cosim.metrics import metrics_table
 from cosim.scenarios import PAPER_SCENARIOS
@@ -68,6 +72,7 @@ class Case:
     mode: str  # averaged or switched
     controller: str  # PI or NNPC
     ssp: Path
+    controller_fmu: Path | None = None  # for the one-sample-delay prediction
 
 
 def delay_of(mode: str, step: float) -> float:
@@ -94,6 +99,60 @@ def controllers_for(out_dir: Path, mode: str) -> dict:
     return {PI: pi, NNPC: nnpc(model, PAPER_PERIOD, NNPC)}
 
 
+class PreviousSampleController(FmuController):
+    """A controller FMU in the workbench's master in the order a Jacobi engine uses it at a
+    communication step of one control period: at a sample t_k the duty is read *before* the
+    measurement of t_k is set, i.e. computed from the previous sample's measurement (the state
+    is committed with each measurement, as the engines do); the first sample reads its own
+    measurement, as both engines propagate initial values. The prediction for h = Ts: a
+    one-sample delay inside the feedback loop."""
+
+    def step(self, measurement: Measurement) -> float:
+        t = measurement.time
+        first = not self._initialized
+        if first:
+            self._initialize(t)
+        elif t > self.time:
+            if self._do_step(self._component, self.time, t - self.time, fmi2True) > 1:
+                raise ControllerError(f"{self.binding.origin}: fmi2DoStep failed at t = {t:.9g} s")
+            self.time = t
+        if not first:
+            self._get_real(self._component, self._out_vr, 1, self._out_value)  # from the previous inputs
+        buffer = self._in_value
+        for i, (name, (scale, offset)) in enumerate(zip(self._fields, self._in_maps)):
+            buffer[i] = scale * getattr(measurement, name) + offset
+        self._set_real(self._component, self._in_vr, len(buffer), buffer)
+        if first:
+            self._get_real(self._component, self._out_vr, 1, self._out_value)
+        scale, offset = self._duty_map
+        return (self._out_value[0] - offset) / scale
+
+
+class OldLoadCurrentAtLoadStep:
+    """A controller whose sample at a load step reads the load current of the *old* load (vo / R
+    before the step), as the Jacobi engines hand it over: the averaged plant's load_current output
+    depends directly on its load input, which changes at that communication point. Everything
+    else as ``inner``: the prediction of case (iii)."""
+
+    def __init__(self, inner, scenario):
+        self.inner, self.name = inner, inner.name
+        self.sample_period, self.duty_limits = inner.sample_period, inner.duty_limits
+        schedule = scenario.schedule("load_resistance")
+        self.steps = [(t, before) for (t, _), (_, before) in zip(schedule[1:], schedule[:-1])]
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def describe(self) -> dict:
+        return self.inner.describe()
+
+    def step(self, m: Measurement) -> float:
+        for time, old in self.steps:
+            if abs(m.time - time) <= 1e-12:
+                m = replace(m, load_current=m.output_voltage / old)
+        return self.inner.step(m)
+
+
 def _max_difference(a: pd.DataFrame, b: pd.DataFrame, columns) -> float:
     worst = 0.0
     for column in columns:
@@ -106,6 +165,30 @@ def _max_difference(a: pd.DataFrame, b: pd.DataFrame, columns) -> float:
 def _on_grid(fine: pd.DataFrame, times: np.ndarray, column: str) -> np.ndarray:
     """A fine-grid workbench column at ``times`` (the engines' grid is a subset of the fine one)."""
     return np.interp(times, fine["time"].to_numpy(), fine[column].to_numpy())
+
+
+def prediction(case: Case, step: float, tau: float, fine: pd.DataFrame, binding, scenario, controllers,
+               cache: dict):
+    """(model name, f(times, column) -> predicted engine-minus-workbench difference) for a
+    communication step, from the engines' algorithm; (model, None) where only the order is
+    predicted (second order in h: the controller's inputs move by O(h) within a step)."""
+    if math.isclose(step, PAPER_PERIOD, rel_tol=1e-9) and case.controller_fmu is not None:
+        # h = Ts: every duty is computed from the previous sample's measurement
+        controller = PreviousSampleController(builtin_controller_binding(case.controller_fmu))
+        try:
+            delayed = simulate(binding, controller, scenario, record_period=FINE_STEP).frame
+        finally:
+            controller.close()
+        return "one-sample loop delay", lambda t, c: _on_grid(delayed, t, c) - _on_grid(fine, t, c)
+    if case.scenario in SHIFTED:
+        return "shift by tau", lambda t, c: _on_grid(fine, t, c) - _on_grid(fine, t - tau, c)
+    if case_of(case.scenario, case.mode, case.controller) == "(iii)":
+        if "old load" not in cache:
+            controller = OldLoadCurrentAtLoadStep(implemented(controllers[case.mode][case.controller]), scenario)
+            cache["old load"] = simulate(binding, controller, scenario, record_period=FINE_STEP).frame
+        late = cache["old load"]
+        return "old load current at the step", lambda t, c: _on_grid(late, t, c) - _on_grid(fine, t, c)
+    return "second order in h", None
 
 
 def run_cases(cases: list[Case], controllers: dict, work: Path, ladder: tuple[float, ...],
@@ -131,23 +214,20 @@ def run_cases(cases: list[Case], controllers: dict, work: Path, ladder: tuple[fl
             "libcosim_iL_A": _max_difference(lc, wb, ("inductor_current",))})
         if case.scenario in ladder_scenarios and ladder:
             fine = run_ssp(case.ssp, "workbench", FINE_STEP).frame
+            late = {}
             for step in ladder:
                 tau = delay_of(case.mode, step)
+                model, predicted = prediction(case, step, tau, fine, binding, scenario, controllers, late)
                 for engine in (("libcosim", "fmpy") if step >= 5e-6 else ("libcosim",)):
                     frame = run_ssp(case.ssp, engine, step).frame
                     t = frame["time"].to_numpy()
-                    measured_v = np.abs(frame["output_voltage"].to_numpy() - _on_grid(fine, t, "output_voltage"))
-                    measured_i = np.abs(frame["inductor_current"].to_numpy() - _on_grid(fine, t, "inductor_current"))
-                    shifted_v = _on_grid(fine, t, "output_voltage") - _on_grid(fine, t - tau, "output_voltage")
-                    shifted_i = _on_grid(fine, t, "inductor_current") - _on_grid(fine, t - tau, "inductor_current")
-                    if case.scenario not in SHIFTED:
-                        shifted_v = shifted_i = np.full(1, math.nan)
-                    convergence.append({
-                        "scenario": case.scenario, "plant": case.mode, "controller": case.controller,
-                        "engine": engine, "step_s": step, "predicted_delay_s": tau,
-                        "max_dvo_V": float(measured_v.max()), "predicted_dvo_V": float(np.abs(shifted_v).max()),
-                        "max_diL_A": float(measured_i.max()), "predicted_diL_A": float(np.abs(shifted_i).max()),
-                        })
+                    row = {"scenario": case.scenario, "plant": case.mode, "controller": case.controller,
+                           "engine": engine, "step_s": step, "predicted_delay_s": tau, "model": model}
+                    for column, label in (("output_voltage", "dvo_V"), ("inductor_current", "diL_A")):
+                        measured = np.abs(frame[column].to_numpy() - _on_grid(fine, t, column))
+                        row[f"max_{label}"] = float(measured.max())
+                        row[f"predicted_{label}"] = float(np.max(np.abs(predicted(t, column)))) if predicted else math.nan
+                    convergence.append(row)
     metrics = pd.concat(rows, ignore_index=True)
     columns = ["scenario", "plant", "controller", "engine", *METRICS]
     return {"metrics": metrics[columns], "equality": pd.DataFrame(equality), "convergence": pd.DataFrame(convergence),
@@ -172,7 +252,7 @@ def _overlay_figure(frames: dict, path: Path, scenario: str = "reference_up") ->
     for j, case in enumerate(cases):
         for engine, result in frames[case].items():
             f = result.frame
-            window = (f["time"] >= 4.8e-3) & (f["time"] <= 6.5e-3)
+            window = (f["time"] >= 4.9e-3) & (f["time"] <= 5.6e-3)
             color, style, width = styles[engine]
             axes[0, j].plot(f["time"][window] * 1e3, f["output_voltage"][window], color=color, linestyle=style,
                             linewidth=width, label=engine)
@@ -240,10 +320,14 @@ NOISE = 1e-9
 
 
 def case_of(scenario: str, mode: str, controller: str) -> str:
-    """(i): a controller input jumps at the sample (the duty response is delayed, first order);
-    (ii): the inputs move smoothly within a step (second order)."""
-    if scenario in SHIFTED or (scenario == "load_change" and controller == NNPC and mode == "averaged"):
+    """(i): the reference jumps at the sample (the duty response is delayed by tau, first order);
+    (iii): the load steps at a sample and the controller reads the load current, which the
+    averaged plant's output changes with the load at once (feedthrough): the controller's sample
+    there sees the old load, at any h; (ii): the inputs move smoothly within a step (second order)."""
+    if scenario in SHIFTED:
         return "(i)"
+    if scenario in ("load_change", "supply_dip") and controller == NNPC and mode == "averaged":
+        return "(iii)"
     return "(ii)"
 
 
@@ -277,12 +361,12 @@ def agreement_section(out_dir: Path, quick: bool = False) -> str:
         for mode in PLANT_MODES:
             binding = plant_binding("nominal", mode)
             for name in CONTROLLER_NAMES:
-                fmu = export_controller(implemented(controllers[mode][name], "python"), work / f"{name}.fmu")[0]
+                fmu = export_controller(controllers[mode][name], work / f"{name}.fmu")[0]
                 for scenario in scenarios_for(PAPER_PERIOD, scenarios):
                     path = work / f"{scenario.name}__{name}__{mode}.ssp"
                     export_ssp(scenario, binding, fmu, path)
-                    cases.append(Case(scenario.name, mode, name, path))
-                (work / f"{name}.fmu").unlink()
+                    cases.append(Case(scenario.name, mode, name, path, work / f"{name}-{mode}.fmu"))
+                fmu.rename(work / f"{name}-{mode}.fmu")
         results = run_cases(cases, controllers, work, ladder,
                             scenarios)
     tables = out_dir / "ssp"
@@ -311,22 +395,29 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
         "(`simulate_ssp`: every component sets its inputs, steps, reads its outputs; then the connections are "
         "applied) and libcosim (`fixed_step_algorithm`: all simulators step in parallel, then outputs are "
         "transferred) are fixed-step **Jacobi**: a communication point passes on the outputs each FMU had before "
-        "any input at that point was set. The plant's and the scenario's outputs depend on their state only and "
-        "arrive undelayed; the controller's duty depends directly on its inputs, so at t_k the plant receives the "
-        "duty computed from the inputs of t_k - h and runs [t_k, t_k + h) on it: **one communication step of delay "
-        "on the measurement-to-duty path**, tau = h. The switched plant latches the duty at each PWM period start, "
-        "so there tau = ceil(h / T_pwm) T_pwm: one PWM period (13.33 us) for every h up to it -- the difference "
-        "stops shrinking below h = 13.33 us. How much the stale duty differs from the workbench's depends on how far "
-        "the controller's inputs move within [t_k - h, t_k]: (i) where an input *jumps* at the sample -- the "
-        "reference at a reference step; the measured load current at a load step for the NNPC, which reads it, on "
-        "the averaged plant (there it follows the load at once; the switched plant's period-mean sensor does not "
-        "move at the instant) -- the plant runs tau on the old duty: the whole duty response is delayed, the "
-        "predicted difference is the workbench's trajectory shifted by tau, vo(t) - vo(t - tau), **first order "
-        "in h** (max |dvo| ~ tau max |dvo/dt|); (ii) elsewhere the inputs move by O(h) within h, and the "
-        "difference is **second order in h** (start-up: libcosim propagates initial values by iterating its "
-        "transfers before the first step, and the fmpy engine does the same, so the first sample is not "
-        "delayed; the load step for the PI). On the switched plant a stale duty is held a whole PWM period, so "
-        "below h = 13.33 us case (i) stops shrinking and case (ii) becomes first order.", "",
+        "any input at that point was set. The scenario's outputs and the plant's voltages and currents depend on "
+        "their state only and arrive undelayed; the controller's duty depends directly on its inputs, so at t_k "
+        "the plant receives the duty computed from the inputs of t_k - h and runs [t_k, t_k + h) on it: **one "
+        "communication step of delay on the measurement-to-duty path**, tau = h. The switched plant latches the "
+        "duty at each PWM period start, so there tau = ceil(h / T_pwm) T_pwm. Both engines propagate initial "
+        "values before the first step (libcosim iterates its transfers; the fmpy engine does the same), so the "
+        "first sample is not delayed. What that does to vo and iL depends on how far the controller's inputs "
+        "move within [t_k - h, t_k]:", "",
+        "- (i) an input *jumps* at the sample -- the reference at a reference step: the plant runs tau on the old "
+        "duty, the whole duty response is delayed, and the difference is the workbench's own trajectory shifted "
+        "by tau, vo(t) - vo(t - tau): **first order in h** (max |dvo| ~ tau max |dvo/dt|);",
+        "- (ii) the inputs move by O(h) within h (start-up after the first sample, the load step for the PI, "
+        "which does not read the load current): **second order in h**;",
+        "- (iii) one plant output is not a state: the load current vo/R depends directly on the load input, so it "
+        "crosses a Jacobi connection one step late too -- at the sample that coincides with the load step the "
+        "controller gets the old load current, **whatever h is**. Only the NNPC reads it, and only on the "
+        "averaged plant does it move at that instant (the switched plant's sensor is the mean over the last "
+        "completed PWM period): there the difference does not shrink with h;",
+        "- on the switched plant the duty is latched and the sensor updated once per PWM period: below h = 13.33 "
+        "us a stale duty is held a whole period and computed from the previous period's reading, so no case "
+        "shrinks any more;",
+        "- at h = Ts every duty is computed from the previous sample's measurement: a one-sample delay *inside* "
+        "the feedback loop, a different closed loop.", "",
         f"**Workbench master on the SSP vs its normal run**: largest difference of any recorded column over all "
         f"{len(equality)} loops: **{worst_equal:.3g}** (required <= 1e-12).", "",
         f"**fmpy vs libcosim**: largest difference in vo, iL or duty: **{worst_engines:.3g}** -- the same Jacobi "
@@ -339,20 +430,45 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
                                                 "fmpy_vo_V": "fmpy vo", "libcosim_vo_V": "libcosim vo",
                                                 "libcosim_iL_A": "libcosim iL"}),
                        {"workbench(SSP) - normal": ".2g", "fmpy - libcosim": ".2g"})
-    lines += ["", "**The difference against the communication step** (libcosim over the ladder, fmpy at h >= 10 us; "
-              "'predicted': the workbench's trajectory shifted by the predicted delay tau):", ""]
-    shown = convergence[["scenario", "plant", "controller", "engine", "step_s", "predicted_delay_s", "max_dvo_V",
-                         "predicted_dvo_V", "max_diL_A", "predicted_diL_A"]].copy()
-    shown["step_s"] = shown["step_s"] * 1e6
-    shown["predicted_delay_s"] = shown["predicted_delay_s"] * 1e6
-    shown = shown.rename(columns={"step_s": "h [us]", "predicted_delay_s": "tau [us]", "max_dvo_V": "max|dvo| [V]",
-                                  "predicted_dvo_V": "predicted [V]", "max_diL_A": "max|diL| [A]",
-                                  "predicted_diL_A": "predicted [A]"})
-    lines += _markdown(shown, {"h [us]": "g", "tau [us]": ".4g"})
+    libcosim = convergence[convergence["engine"] == "libcosim"]
+
+    def ladder_table(rows: pd.DataFrame) -> list[str]:
+        shown = rows[["scenario", "plant", "controller", "step_s", "predicted_delay_s", "model", "max_dvo_V",
+                      "predicted_dvo_V", "max_diL_A", "predicted_diL_A"]].copy()
+        shown["step_s"] = shown["step_s"] * 1e6
+        shown["predicted_delay_s"] = shown["predicted_delay_s"] * 1e6
+        shown = shown.rename(columns={"step_s": "h [us]", "predicted_delay_s": "tau [us]",
+                                      "max_dvo_V": "max|dvo| [V]", "predicted_dvo_V": "predicted [V]",
+                                      "max_diL_A": "max|diL| [A]", "predicted_diL_A": "predicted [A]"})
+        return _markdown(shown, {"h [us]": "g", "tau [us]": ".4g"})
+
+    lines += ["", "**The difference against the communication step** (libcosim; fmpy gives the same to ~1e-11 at "
+              "every h it ran, all rows in `ssp/ssp_convergence.csv`). 'predicted' is the engine-minus-workbench "
+              "difference the algorithm predicts: *shift by tau* -- the workbench's own trajectory delayed by tau; "
+              "*one-sample loop delay* (h = Ts) -- the workbench's master with every duty computed from the previous "
+              "sample's measurement (`PreviousSampleController`); *old load current at the step* -- the workbench's "
+              "master with the controller's sample at the load step reading vo / R_old (`OldLoadCurrentAtLoadStep`). "
+              "Reference step up (on the switched plant the shift also moves the iL ripple, which stays on the PWM "
+              "grid in the engines: the shift model overstates diL there; vo's ripple is small):", ""]
+    lines += ladder_table(libcosim[libcosim["scenario"] == "reference_up"])
+    late = libcosim[libcosim["model"] == "old load current at the step"]
+    if len(late):
+        lines += ["", "Case (iii), the NNPC on the averaged plant at the load step (the plant's load_current "
+                  "output depends directly on its load_resistance input, so at the sample that coincides with the "
+                  "load step the engines hand the controller the old load current, at every h):", ""]
+        lines += ladder_table(late)
+    whole = libcosim[np.isclose(libcosim["step_s"], PAPER_PERIOD)]
+    if len(whole):
+        lines += ["", "h = Ts = 1 ms, every scenario: each duty is computed from the previous sample's measurement, a "
+                  "one-sample delay inside the feedback loop -- a different closed loop, predicted by the "
+                  "workbench's master with the same delay:", ""]
+        lines += ladder_table(whole)
     slopes = _slopes(convergence)
     if len(slopes):
         lines += ["", "Order of max|dvo| in h between consecutive steps, every scenario (libcosim; 1 = first order, "
-                  "2 = second, 0 = no longer shrinking; expected: (i) 1, (ii) 2 on the averaged plant):", ""]
+                  "2 = second, 0 = not shrinking; expected on the averaged plant for h < Ts: (i) 1, (ii) 2, (iii) 0; "
+                  "on the switched plant below one PWM period (13.33 us): 0; n/a: the differences "
+                  "are rounding, below 1e-9 V):", ""]
         lines += _markdown(slopes, {c: ".2f" for c in slopes.columns})
     lines += ["", f"![engines overlaid]({overlay.as_posix()})", "", f"![difference vs step]({converge.as_posix()})",
               "", "**Metrics from the three engines** (h = 10 us):", ""]
