@@ -480,7 +480,8 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
               "0.0 and sets inputs from them at the first step, so the plant receives load_resistance = 0 and "
               "refuses it (fmi2Error). It also stamps each row with the start t of the step whose end values "
               "(t + h) it holds, never applies the SSD's parameter bindings (.ssv) or connection transformations, "
-              "and accumulates time (t += h). The `fmpy` engine is fmpy's reader and per-component step "
+              "and accumulates time (t += h); its command `python -m fmpy.ssp.simulate` ignores the SSD's default "
+              "experiment (stop 1 s, step 1 % of it, past the controller's sample instants). The `fmpy` engine is fmpy's reader and per-component step "
               "(`read_ssd`, `get_connections`, `do_step`, `set_parameters`) in `simulate_ssp`'s loop with these "
               "four things corrected (listed in each run's metadata).",
               "- libcosimpy 0.0.6 `CosimObserver.time_series_real_samples` drops the last sample: it trims the "
