@@ -254,12 +254,15 @@ def cmd_export_ssp(args) -> int:
             if Path(args.controller).suffix.lower() != ".fmu":
                 raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(CONTROLLERS)} or a "
                                   "controller FMU (.fmu) with the workbench's role names")
+            from cosim.fmi.archive import check_fmu
+            from cosim.ssp.package import controller_sample_period
+
             fmu = controller_binding(args.controller).fmu_path
+            own = controller_sample_period(check_fmu(fmu))
+            if args.control_period and abs(own - args.control_period) > 1e-9 * args.control_period:
+                raise ConfigError(f"controller FMU {args.controller} samples every {own:.6g} s, not the "
+                                  f"--control-period {args.control_period:.6g} s given")
         loop = export_ssp(scenario, binding, Path(fmu), out, step=args.communication_step)
-    if args.control_period and abs(loop.control_period - args.control_period) > 1e-9 * args.control_period:
-        out.unlink()
-        raise ConfigError(f"controller FMU {args.controller} samples every {loop.control_period:.6g} s, not the "
-                          f"--control-period {args.control_period:.6g} s given")
     print(f"wrote {out}: scenario {scenario.name}, controller {Path(loop.components['controller'].source).stem} "
           f"every {loop.control_period:.6g} s, plant {loop.plant_label}; stop time {loop.stop_time:.6g} s, "
           f"communication step {loop.step:.6g} s (plant time: the scenario's t = 0 at {loop.settle:.6g} s)")

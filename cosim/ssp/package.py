@@ -44,7 +44,7 @@ from pathlib import Path, PurePosixPath
 import fmpy.ssp
 from lxml import etree
 
-from cosim.base.errors import ConfigError
+from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.files import atomic_write
 from cosim.fmi.archive import CheckedFmu, _member_problem, check_fmu
 from cosim.fmi.binding import INPUT_ROLES, PLANT_MODE_CODES, PlantBinding, RoleMap
@@ -535,7 +535,7 @@ def _read_loop(archive: zipfile.ZipFile, path: Path) -> Loop:
             target.write_bytes(data)
             try:
                 fmus[name] = check_fmu(target)
-            except ConfigError as error:
+            except WorkbenchError as error:
                 raise SspError(f"{path}!{component.source}: {str(error).split(': ', 1)[-1]}") from None
         _check_connectors(components, fmus, where)
     connections = []
