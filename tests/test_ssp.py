@@ -399,6 +399,11 @@ def test_the_commands_write_run_tables_that_read_back(pi_fmu, tmp_path):
     for path in runs:
         run = read_run(path)
         assert run.complete and run.metadata["engine"]["name"] in ENGINES and len(run.frame) == 601
+    # the same command twice writes the same bytes
+    assert cli("run-ssp", str(target), "--engine", "libcosim", "--out", str(tmp_path / "again")).returncode == 0
+    for path in (tmp_path / "again" / "runs").iterdir():
+        if ".timing." not in path.name:  # wall clock, kept apart for exactly this reason
+            assert path.read_bytes() == (tmp_path / "out" / "runs" / path.name).read_bytes(), path.name
 
 
 def _short_file(folder: Path) -> Path:
