@@ -51,9 +51,12 @@ import math
 import platform
 import shutil
 import tempfile
+import zipfile
 from ctypes import c_double, c_int, c_int64, c_size_t, c_uint32
 from pathlib import Path, PurePosixPath
+from xml.etree import ElementTree
 
+import fmpy
 import numpy as np
 
 from cosim.base.errors import ConfigError, WorkbenchError
@@ -153,8 +156,6 @@ def _roles_from_connections(loop: Loop) -> dict[str, RoleMap]:
 
 def _extract(loop: Loop, folder: Path) -> dict[str, Path]:
     """The three FMUs of the archive, extracted (as files) into ``folder``."""
-    import zipfile
-
     paths = {}
     with zipfile.ZipFile(loop.archive) as archive:
         for name, component in loop.components.items():
@@ -165,16 +166,11 @@ def _extract(loop: Loop, folder: Path) -> dict[str, Path]:
 
 
 def _check_scenario_fmu(loop: Loop, scenario_path: Path) -> None:
-    import fmpy
-
+    """The archive's scenario FMU must be the one its scenario file generates (same GUID: the
+    GUID is a hash of the generated data), or the workbench would run another scenario."""
     guid = fmpy.read_model_description(str(scenario_path), validate=False).guid
-    expected = None
-    try:
-        from xml.etree import ElementTree
-
-        expected = ElementTree.fromstring(scenario_sources(loop.scenario, loop.control_period).model_description).get("guid")
-    except Exception:
-        pass
+    md = scenario_sources(loop.scenario, loop.control_period).model_description
+    expected = ElementTree.fromstring(md).get("guid")
     if guid != expected:
         raise SspError(f"{loop.archive}: the scenario FMU (GUID {guid}) was not generated from the archive's "
                        "scenario file at its control period: the archive was edited")
@@ -363,7 +359,6 @@ def _steps(loop: Loop, step: float) -> int:
 
 
 def _run_fmpy(loop: Loop, step: float) -> RunResult:
-    import fmpy
     from fmpy.fmi1 import FMICallException
     from fmpy.fmi2 import FMU2Slave
     from fmpy.ssp.simulation import add_path, do_step, get_value, set_parameters, set_value
@@ -490,7 +485,6 @@ def _time_series(observer, slave: int, reference: int, count: int) -> tuple[np.n
 
 
 def _run_libcosim(loop: Loop, step: float) -> RunResult:
-    import fmpy
     from libcosimpy._internal import get_last_error_message
     from libcosimpy.CosimEnums import CosimVariableType
     from libcosimpy.CosimExecution import CosimExecution
@@ -505,8 +499,6 @@ def _run_libcosim(loop: Loop, step: float) -> RunResult:
     except AssertionError:
         raise EngineError(f"engine libcosim: cannot load {loop.archive} ({get_last_error_message()})") from None
     guids, names, references, slaves = {}, {}, {}, {}
-    import zipfile
-
     with zipfile.ZipFile(loop.archive) as archive:
         for name, component in loop.components.items():
             with tempfile.TemporaryDirectory(prefix="buck-cosim-md-") as tmp:
