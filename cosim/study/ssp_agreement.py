@@ -476,8 +476,7 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
               "", "**Metrics from the three engines** (h = 10 us):", ""]
     wide = metrics.rename(columns=METRICS)
     lines += _markdown(wide)
-    lines += ["", "**Defects found in the engines** (none in the workbench's master: it matches its normal run to "
-              "the bit):", "",
+    lines += ["", "**Defects found** (none in the workbench's master: it matches its normal run to the bit):", "",
               "- fmpy 0.3.32 `fmpy.ssp.simulation.simulate_ssp` cannot run the loop: it starts every connector at "
               "0.0 and sets inputs from them at the first step, so the plant receives load_resistance = 0 and "
               "refuses it (fmi2Error). It also stamps each row with the start t of the step whose end values "
@@ -488,7 +487,11 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
               "four things corrected (listed in each run's metadata).",
               "- libcosimpy 0.0.6 `CosimObserver.time_series_real_samples` drops the last sample: it trims the "
               "result by counting step numbers equal to 0, and the first sample is step 0. The `libcosim` engine "
-              "reads the samples with libcosimc's own function and the count it returns.", ""]
+              "reads the samples with libcosimc's own function and the count it returns.",
+              "- libcosim found one in the workbench's controller FMUs (not in its master): reading duty_cycle in "
+              "Initialization Mode -- which libcosim does while it iterates initial values -- computed a duty with "
+              "the controller not yet configured, and the predictive one (NNPC) crashed the process. Fixed in "
+              "`controller_fmu.c`: the duty reads 0 until initialisation ends.", ""]
     return "\n".join(lines)
 
 
