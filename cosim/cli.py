@@ -217,6 +217,86 @@ def cmd_export_controller(args) -> int:
     return 0
 
 
+def cmd_export_ssp(args) -> int:
+    import re
+    import tempfile
+
+    from cosim.fmi.controller_export import export_controller
+    from cosim.master import check_plant_supports
+    from cosim.scenarios import load_scenario
+    from cosim.ssp.package import export_ssp
+    from cosim.study.controller_factory import make_controllers
+    from cosim.timeline import plan_timeline
+
+    out = output_file(args.out)
+    if out.suffix.lower() != ".ssp":
+        raise ConfigError(f"--out {out} is invalid: expected a file name ending in .ssp")
+    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
+        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    scenario = load_scenario(args.scenario)
+    binding = _plant_binding(args)
+    check_plant_supports(binding, scenario)  # before any tuning or training
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-export-ssp-") as tmp:
+        if args.controller in CONTROLLERS:
+            period = args.control_period or PAPER_PERIOD
+            plan_timeline(scenario, period, period)
+            work_dir = output_dir(args.work_dir)
+            [controller] = make_controllers([args.controller], binding, period, work_dir,
+                                            duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
+                                            model_path=args.model, samples=args.samples, seed=args.seed,
+                                            progress=args.progress)
+            try:
+                fmu, _ = export_controller(controller, Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu")
+            except ValueError as error:  # a configuration the C twins cannot hold
+                raise ConfigError(f"{controller.name}: {error}") from None
+        else:
+            from cosim.fmi.controller import controller_binding
+
+            if Path(args.controller).suffix.lower() != ".fmu":
+                raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(CONTROLLERS)} or a "
+                                  "controller FMU (.fmu) with the workbench's role names")
+            from cosim.fmi.archive import check_fmu
+            from cosim.ssp.package import controller_sample_period
+
+            fmu = controller_binding(args.controller).fmu_path
+            own = controller_sample_period(check_fmu(fmu))
+            if args.control_period and abs(own - args.control_period) > 1e-9 * args.control_period:
+                raise ConfigError(f"controller FMU {args.controller} samples every {own:.6g} s, not the "
+                                  f"--control-period {args.control_period:.6g} s given")
+        loop = export_ssp(scenario, binding, Path(fmu), out, step=args.communication_step)
+    print(f"wrote {out}: scenario {scenario.name}, controller {Path(loop.components['controller'].source).stem} "
+          f"every {loop.control_period:.6g} s, plant {loop.plant_label}; stop time {loop.stop_time:.6g} s, "
+          f"communication step {loop.step:.6g} s (plant time: the scenario's t = 0 at {loop.settle:.6g} s)")
+    return 0
+
+
+def cmd_run_ssp(args) -> int:
+    from cosim.batch import write_metrics
+    from cosim.master import RunFailed
+    from cosim.metrics import metrics_table
+    from cosim.results import write_run
+    from cosim.ssp.engines import prepare, run_ssp, run_stem
+
+    source = input_file(args.ssp, "SSP file", "write one with buck-cosim export-ssp")
+    loop, step = prepare(source, args.engine, args.communication_step)  # everything checked before any output
+    out_dir = output_dir(args.out)
+    stem = run_stem(loop, args.engine)
+    try:
+        result = run_ssp(source, args.engine, step)
+    except RunFailed as error:
+        write_run(error.partial, out_dir / "runs", stem)
+        raise
+    files = list(write_run(result, out_dir / "runs", stem).values())
+    table = metrics_table([result])
+    table.insert(2, "engine", args.engine)
+    files += write_metrics(table, out_dir / "metrics" / f"metrics__{stem}")
+    columns = ["scenario", "controller", "engine", "rise_time_ms", "overshoot_pct", "settling_time_ms",
+               "steady_state_error_pct", "iae_Vs"]
+    print(table[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print(f"engine {args.engine}, communication step {step:.6g} s: wrote {len(files)} files under {out_dir}/")
+    return 0
+
+
 def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
@@ -553,6 +633,50 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where tuned gains and trained networks are cached (default: results/runs-cli)")
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)
+
+    p = sub.add_parser("export-ssp", help="the closed loop as an SSP 1.0 archive (scenario, controller, plant FMUs)",
+                       description="Write the closed loop of SCENARIO as an SSP 1.0 archive: the scenario as a "
+                                   "signal-source FMU, the controller FMU, the plant FMU, their connections, the "
+                                   "parameter values (.ssv), units and a default experiment (stop time, a "
+                                   "communication step on every control sample and event). Time in the archive is "
+                                   "plant time: the scenario's t = 0 at the end of its settle interval. Run it with "
+                                   "'buck-cosim run-ssp', fmpy or libcosim.")
+    p.add_argument("scenario", metavar="SCENARIO", help="shipped scenario name or path to a scenario TOML file")
+    p.add_argument("--controller", required=True, metavar="NAME|FMU",
+                   help=f"{', '.join(CONTROLLERS)} (exported as with export-controller) or a controller FMU with the "
+                        "workbench's role names")
+    p.add_argument("--control-period", type=parse_period, default=None, metavar="SECONDS",
+                   help="controller sample period in s (default: 1e-3; a controller FMU's own period)")
+    p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",
+                   help="the engines' communication step in s; must divide the control period and land on every "
+                        "event (default: 1e-5, the workbench's recording period)")
+    p.add_argument("--out", required=True, metavar="LOOP.ssp", help="the archive to write")
+    p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand)")
+    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned on the plant)")
+    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned on the plant)")
+    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
+    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
+    p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                   help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+    _add_plant_options(p)
+    p.set_defaults(func=cmd_export_ssp)
+
+    p = sub.add_parser("run-ssp", help="run an SSP of the loop with the workbench, fmpy or libcosim",
+                       description="Run an archive written by export-ssp with the workbench's master (reading the "
+                                   "SSP), fmpy's SSP simulation (fixed-step Jacobi) or libcosim (libcosimpy, "
+                                   "fixed-step Jacobi), and write the result as a workbench run table (OUT/runs: "
+                                   "the columns of 'run', metadata naming the engine; controller_compute_time is "
+                                   "NaN for fmpy and libcosim) and its metrics (OUT/metrics).")
+    p.add_argument("ssp", metavar="LOOP.ssp", help="an archive written by buck-cosim export-ssp")
+    p.add_argument("--engine", choices=["workbench", "fmpy", "libcosim"], required=True, help="co-simulation engine")
+    p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",
+                   help="communication step in s (default: the archive's); must divide the control period and land "
+                        "on every event")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.set_defaults(func=cmd_run_ssp)
 
     p = sub.add_parser("inspect", help="describe any FMU (and draft a binding file for it)",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "

@@ -5,7 +5,8 @@ Layers, lowest first (a module belongs to the longest prefix that names it):
 0. ``cosim.base``            errors, labels, atomic files, line-aware TOML -- everyone may use them
 1. ``controllers``, ``plant_fmu``   algorithms (no FMI) and the plant FMU's sources and build
 2. ``cosim.fmi``             FMU adapters, archive checks, bindings and binding files, inspect
-3. ``cosim`` (the rest)      core: master, timeline, scenarios, recorder, results, metrics, plots, batch
+3. ``cosim`` (the rest)      core: master, timeline, scenarios, recorder, results, metrics, plots, batch;
+   ``cosim.ssp``             with the core: the scenario FMU, the SSP archive and the engines that run it
 4. ``cosim.study``           the paper study: vocabulary, experiments, tuning, data, reproduction, report
 5. ``cosim.cli``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points and the C timing harness
 
@@ -26,6 +27,7 @@ LAYERS = {
     "plant_fmu": 1,
     "cosim.fmi": 2,
     "cosim": 3,
+    "cosim.ssp": 3,
     "cosim.study": 4,
     "cosim.cli": 5,
     "cosim.benchmarks": 5,

@@ -58,6 +58,7 @@ from cosim.study.experiments import (
 from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, identify
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
+from cosim.study.ssp_agreement import append_to_report
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
@@ -658,6 +659,8 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     pipelines = _per_pipeline(selected, jobs, outputs)
     drift = next((outputs[job] for job in jobs if job.kind == "drift"), None)
     report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift)
+    if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
+        append_to_report(out_dir, report, quick=profile.quick)
     write_timings(out_dir, ordered, metrics, elapsed, workers)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report

@@ -34,6 +34,7 @@ typedef struct {
     int computed;         /* a duty has been computed for sample `next` from the inputs now set */
     double pending_duty;  /* that duty */
     double duty;          /* the duty in effect between samples */
+    int started;          /* initialisation has ended: the controller is configured and may compute */
     BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
     BuckcPi pi, pi_pending;
     BuckcPredictiveState predictive_pending;
@@ -47,7 +48,7 @@ const FmuModelInfo FMU_MODEL = {
     0, /* co-simulation only */
     0,
     0x42434354u, /* "BCCT" */
-    1u,
+    2u,
 };
 
 static double sample_period(const ControllerData *d) {
@@ -88,6 +89,7 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
     d->next = 0;
     d->computed = 0;
     d->duty = d->pending_duty = 0.0;
+    d->started = 1;
     return NULL;
 }
 
@@ -140,6 +142,13 @@ fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
     }
     switch (vr) {
     case VR_DUTY_CYCLE:
+        /* In Initialization Mode the controller is not configured yet (that happens when
+         * initialisation ends, after the last parameter change): the duty reads 0, the value held
+         * before the first sample. A master that iterates initial values (libcosim) reads it. */
+        if (!d->started) {
+            *value = 0.0;
+            return fmi2OK;
+        }
         if (at_sample(d) && !d->computed) {
             fmi2Status status = compute(fmu, d);
             if (status != fmi2OK) return status;
