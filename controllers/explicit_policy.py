@@ -147,6 +147,38 @@ class ExplicitPolicy:
         return h[0]
 
 
+class PolicyInputs:
+    """What the policy remembers between samples to form its inputs: iL and vo at the last sample,
+    the duty applied since, and the load estimate (starting from the nominal load)."""
+
+    def __init__(self, nominal_load: float):
+        self.nominal_load = float(nominal_load)
+        if not (self.nominal_load > 0 and math.isfinite(self.nominal_load)):
+            raise ValueError(f"nominal load {nominal_load} Ohm is invalid: expected a finite value > 0")
+        self.reset()
+
+    def reset(self) -> None:
+        self.have_history = False
+        self.previous = (0.0, 0.0)  # [A], [V]
+        self.previous_duty = 0.0
+        self.conductance = 1.0 / self.nominal_load  # [S]
+
+    def features(self, m: Measurement) -> list[float]:
+        """The inputs at this sample (:data:`FEATURES`); the state is not advanced."""
+        current, voltage = m.inductor_current, m.output_voltage
+        conductance = estimate_conductance(voltage, m.load_current, current, self.conductance)
+        previous_current, previous_voltage = self.previous if self.have_history else (current, voltage)
+        return policy_features(current, voltage, previous_current, previous_voltage, self.previous_duty,
+                               m.reference, conductance)
+
+    def advance(self, m: Measurement, features: list[float], duty: float) -> None:
+        """Remember this sample and the duty applied until the next one."""
+        self.conductance = features[6]
+        self.previous = (m.inductor_current, m.output_voltage)
+        self.have_history = True
+        self.previous_duty = duty
+
+
 class ExplicitPolicyController:
     """The explicit NNPC as a controller (:class:`controllers.base.Controller`); see the module docstring."""
 
@@ -156,34 +188,21 @@ class ExplicitPolicyController:
         self.name = name
         self.sample_period = policy.sample_period
         self.duty_limits = policy.duty_limits
-        self.nominal_load = float(nominal_load)
-        if not (self.nominal_load > 0 and math.isfinite(self.nominal_load)):
-            raise ValueError(f"{name}: nominal load {nominal_load} Ohm is invalid: expected a finite value > 0")
+        self.inputs = PolicyInputs(nominal_load)
+        self.nominal_load = self.inputs.nominal_load
         self._ki_ts = policy.config.integral_gain * policy.sample_period  # as the C twin: (Ki Ts) e
         self.reset()
 
     def reset(self) -> None:
-        self._have_history = False
-        self._previous = (0.0, 0.0)  # iL, vo at the last sample
-        self.previous_duty = 0.0
+        self.inputs.reset()
         self.integral = 0.0
-        self._conductance = 1.0 / self.nominal_load
         self.last_features: list[float] | None = None
         self.last_output = math.nan
-
-    def features(self, m: Measurement) -> list[float]:
-        """The inputs at this sample (the state is not advanced; :meth:`step` does that)."""
-        current, voltage = m.inductor_current, m.output_voltage
-        conductance = estimate_conductance(voltage, m.load_current, current, self._conductance)
-        previous_current, previous_voltage = self._previous if self._have_history else (current, voltage)
-        return policy_features(current, voltage, previous_current, previous_voltage, self.previous_duty,
-                               m.reference, conductance)
 
     def step(self, m: Measurement) -> float:
         if not math.isfinite(m.inductor_current):
             raise ValueError(f"{self.name} needs the inductor current: the plant binding has no inductor_current role")
-        x = self.features(m)
-        self._conductance = x[6]
+        x = self.inputs.features(m)
         u = self.policy.forward(x)
         low, high = self.duty_limits
         error = m.reference - m.output_voltage
@@ -200,9 +219,7 @@ class ExplicitPolicyController:
         pushing_low = unclamped < low and error < 0
         if not (pushing_high or pushing_low):
             self.integral = integral
-        self._previous = (m.inductor_current, m.output_voltage)
-        self._have_history = True
-        self.previous_duty = duty
+        self.inputs.advance(m, x, duty)
         self.last_features, self.last_output = x, u
         return duty
 

@@ -129,6 +129,14 @@ def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon
                                 duty_limits, name=name, **NOMINAL_OPERATING_POINT)
 
 
+def explicit_nnpc(policy, name: str = "NNPC-explicit"):
+    """The explicit NNPC (:mod:`controllers.explicit_policy`) of a distilled policy; its load estimate
+    starts from the nominal load, as the online NNPC's does."""
+    from controllers.explicit_policy import ExplicitPolicyController
+
+    return ExplicitPolicyController(policy, name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+
+
 def model_predictor(parameters: CircuitParameters, control_period: float, name: str,
                     binding: PlantBinding | None = None):
     """The circuit model an MPC baseline predicts with, believing ``parameters``.
