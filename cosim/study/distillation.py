@@ -44,7 +44,6 @@ from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.study.data_collection import CollectionSettings, random_scenario
 from cosim.study.experiments import NOMINAL_OPERATING_POINT, explicit_nnpc, implemented, nnpc
-from cosim.study.vocabulary import NNPC_EXPLICIT
 
 
 @dataclass(frozen=True)
@@ -227,15 +226,27 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
         if bar is not None:
             bar.close()
     policy.metadata = {**(metadata or {}), **policy.metadata, "control_period_s": control_period,
+                       "expert_model": expert_fingerprint(model),
                        "plant": binding.label, "expert": online.describe()["predictor"],
-                       "distillation": {**_settings_dict(settings), "labels": int(len(labels)), "rounds": rounds}}
+                       "distillation": {**settings_dict(settings), "labels": int(len(labels)), "rounds": rounds}}
     return policy
 
 
-def _settings_dict(settings: DistillationSettings) -> dict:
+def settings_dict(settings: DistillationSettings) -> dict:
+    """The settings as the policy file's metadata stores them (JSON-ready)."""
     data = asdict(settings)
     data["policy"]["hidden"] = list(settings.policy.hidden)
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in data.items()}
+
+
+def expert_fingerprint(model: NNPlantModel) -> str:
+    """A short SHA-256 of the expert network's folded weights (which NNPC a policy imitates)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for array in (*model._weights, *model._biases):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()[:16]
 
 
 def first_move_errors(policy: ExplicitPolicy, features: np.ndarray, labels: np.ndarray) -> dict[str, float]:
@@ -246,4 +257,4 @@ def first_move_errors(policy: ExplicitPolicy, features: np.ndarray, labels: np.n
 
 
 __all__ = ["DistillationSettings", "FULL_DISTILLATION", "SMALL_DISTILLATION", "ShadowExpert", "DaggerEpisode",
-           "distill", "first_move_errors", "NNPC_EXPLICIT"]
+           "distill", "expert_fingerprint", "first_move_errors", "settings_dict"]
