@@ -13,6 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.labels import period_label
+from cosim.study.explicit import target_rows as explicit_target_rows
 from cosim.study.summaries import ratio_table, seed_study, value
 from cosim.study.vocabulary import MPC_NOMINAL, MPC_ORACLE, NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD
 
@@ -41,7 +42,8 @@ class Targets:
     """The project's quality targets, each checked against the reproduction's metrics (numbers that
     are the same from run to run; the wall-clock targets are :class:`TimingTargets`)."""
 
-    def __init__(self, metrics: pd.DataFrame, pipelines: list[str]):
+    def __init__(self, metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | None = None):
+        """``out_dir``: where the reproduction wrote its files (the explicit NNPC's map and policies)."""
         self.rows: list[dict] = []
         m = metrics
         fast = period_label(SWITCHING_PERIOD)
@@ -81,6 +83,7 @@ class Targets:
                 r = ratio_table(m, tag, NNPC, MPC_NOMINAL)
                 add(f"Under mismatch: NNPC IAE <= 0.8 x nominal-model MPC IAE, {rate}",
                     "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= 0.8).all()))
+        self.rows += explicit_target_rows(m, pipelines, out_dir)  # the explicit NNPC (cosim/study/explicit.py)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows, columns=["target", "measured", "met", "note"])
