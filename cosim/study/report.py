@@ -14,6 +14,7 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
+from cosim.study import explicit
 from cosim.study.experiments import horizon_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import markdown_table, ratio_table, seed_study, value
@@ -51,7 +52,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics.
     Nothing in either depends on the wall clock (that is :func:`cosim.study.timings.write_timings`'s)."""
     pipelines = [o.pipeline.tag for o in outputs]
-    targets = Targets(metrics, pipelines)
+    targets = Targets(metrics, pipelines, out_dir)
     target_frame = targets.frame()
     atomic_write(out_dir / "targets.csv", lambda tmp: target_frame.to_csv(tmp, index=False))
     physics = lc_physics()
@@ -108,6 +109,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
                                    key=lambda s: list(metrics["scenario"]).index(s)):
                 lines.append(f"![{scenario}, {tag}](figures/{scenario}__{o.pipeline.plant_tag}__{rate}.png)")
             lines.append("")
+    lines += explicit.report_section(out_dir, metrics, pipelines)
     lines += ["## Ablations", ""] + _ablations(metrics) + [""]
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",

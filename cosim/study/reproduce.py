@@ -35,6 +35,7 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
+from cosim.study import explicit
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import (
     collection_settings,
@@ -184,6 +185,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         wrong_name = MPC_NOMINAL if pipeline.variant == "mismatch" else MPC_MISMATCHED
         controllers += [model_mpc(true_parameters, period, MPC_ORACLE, binding=binding),
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
+    controllers += explicit.in_pipeline(pipeline, binding, models["nnpc"], pi.controller(), out_dir, profile, seed,
+                                        implementation, timings, log)  # the explicit NNPC at 1/fsw, and its map
     scenarios = []
     for scenario in scenarios_for(period, profile.scenarios):
         missing = scenario.required_roles() - set(binding.roles)
