@@ -14,6 +14,7 @@ import signal
 import sys
 from pathlib import Path
 
+from controllers.explicit_policy import PolicyConfig
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
@@ -340,7 +341,7 @@ def cmd_train(args) -> int:
 def cmd_distill(args) -> int:
     from dataclasses import replace
 
-    from controllers.explicit_policy import PolicyConfig, save_policy
+    from controllers.explicit_policy import save_policy
     from controllers.nn_model import load_model
     from cosim.study.distillation import FULL_DISTILLATION, distill
 
@@ -562,10 +563,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "about 1 ms at 13.33 us")
     p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=[12],
                    help="tanh units per hidden layer of the policy (default: 12; 7 inputs, so 12 -> 98 MACs)")
-    p.add_argument("--integral-gain", type=bounded(float, 0.0), default=2000.0,
-                   help="Ki of the offset-free integral term [1/(V s)] (default: 2000)")
-    p.add_argument("--integral-band", type=bounded(float, 0.0, 1.0), default=0.02,
-                   help="integrate only while |reference - vo| <= band x reference [1] (default: 0.02)")
+    p.add_argument("--integral-gain", type=bounded(float, 0.0), default=PolicyConfig.integral_gain,
+                   help="Ki of the offset-free integral term [1/(V s)] (default: %(default)g)")
+    p.add_argument("--integral-band", type=bounded(float, 0.0, 1.0), default=PolicyConfig.integral_band,
+                   help="integrate only while |reference - vo| <= band x reference [1] (default: %(default)g)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     _add_plant_options(p)
     p.set_defaults(func=cmd_distill)
