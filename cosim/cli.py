@@ -558,7 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DAgger rounds after the first, expert-driven one (default: 4)")
     p.add_argument("--episodes", type=bounded(int, 1, 1000), default=6,
                    help="closed-loop episodes per round (default: 6)")
-    p.add_argument("--samples", type=bounded(int, 20, 10**6), default=600,
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES, 10**6), default=600,
                    help="control samples per episode (default: 600, 8 ms at 13.33 us); each costs one NNPC label, "
                         "about 1 ms at 13.33 us")
     p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=[12],

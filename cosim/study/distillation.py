@@ -42,7 +42,7 @@ from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
-from cosim.study.data_collection import CollectionSettings, random_scenario
+from cosim.study.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
 from cosim.study.experiments import NOMINAL_OPERATING_POINT, explicit_nnpc, implemented, nnpc
 
 
@@ -64,9 +64,9 @@ class DistillationSettings:
     training: PolicyTrainingSettings = field(default_factory=PolicyTrainingSettings)
 
     def check(self) -> None:
-        if self.rounds < 0 or self.episodes < 1 or self.samples < 20:
+        if self.rounds < 0 or self.episodes < 1 or self.samples < MIN_SAMPLES:
             raise ConfigError(f"DAgger budget rounds = {self.rounds}, episodes = {self.episodes}, samples = "
-                              f"{self.samples} is invalid: expected rounds >= 0, episodes >= 1, samples >= 20")
+                              f"{self.samples} is invalid: expected rounds >= 0, episodes >= 1, samples >= {MIN_SAMPLES}")
         if not 0 <= self.expert_mixing <= 1:
             raise ConfigError(f"expert mixing {self.expert_mixing} is invalid: expected 0 <= beta <= 1")
         self.collection(0).check()
