@@ -39,7 +39,7 @@ from __future__ import annotations
 import io
 import math
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,15 @@ FEATURES = ("output_voltage_error[k]", "inductor_current_error[k]", "output_volt
             "inductor_current_error[k-1]", "duty_cycle[k-1]", "reference[k]", "load_conductance[k]")
 N_FEATURES = len(FEATURES)
 ACTIVATIONS = ("tanh",)
+#: the integral term's default gain per sample, K_i T_s [1/V]: K_i = 200 1/(V s) at 13.33 us (about the
+#: tuned PI's there); the same per-sample gain at other rates (a K_i of 200 at 1 ms would add 0.2 duty per
+#: volt and sample and make the loop oscillate)
+INTEGRAL_GAIN_PER_SAMPLE = 200.0 / 75e3
+
+
+def default_integral_gain(sample_period: float) -> float:
+    """K_i [1/(V s)] of the integral term for a sample period [s] (:data:`INTEGRAL_GAIN_PER_SAMPLE` / T_s)."""
+    return INTEGRAL_GAIN_PER_SAMPLE / sample_period
 
 
 def policy_features(current: float, voltage: float, previous_current: float, previous_voltage: float,
@@ -72,8 +81,9 @@ class PolicyConfig:
 
     hidden: tuple[int, ...] = (12,)  # tanh units per hidden layer
     activation: str = "tanh"
-    integral_gain: float = 200.0  # K_i [1/(V s)]: duty per volt-second of error near the reference (about
-    # the tuned PI's at 13.33 us; ten times more destabilises a policy of moderate proportional gain)
+    integral_gain: float | None = None  # K_i [1/(V s)]: duty per volt-second of error near the reference;
+    # None: default_integral_gain(T_s) when trained (200 at 13.33 us; ten times more destabilises a policy
+    # of moderate proportional gain)
     integral_band: float = 0.05  # integrate only while |r - vo| <= band * |r| (relative) [1]
 
     def __post_init__(self):
@@ -82,7 +92,7 @@ class PolicyConfig:
         object.__setattr__(self, "hidden", tuple(int(n) for n in self.hidden))
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation {self.activation!r} is unknown: expected one of {', '.join(ACTIVATIONS)}")
-        if not (math.isfinite(self.integral_gain) and self.integral_gain >= 0):
+        if self.integral_gain is not None and not (math.isfinite(self.integral_gain) and self.integral_gain >= 0):
             raise ValueError(f"integral gain {self.integral_gain} is invalid: expected a finite value >= 0 1/(V s)")
         if not (math.isfinite(self.integral_band) and self.integral_band >= 0):
             raise ValueError(f"integral band {self.integral_band} is invalid: expected a finite value >= 0")
@@ -110,6 +120,8 @@ class ExplicitPolicy:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        if self.config.integral_gain is None:
+            raise ValueError("explicit policy: the integral gain must be a number (train_policy sets the default)")
         self.sample_period = check_sample_period(self.sample_period, "explicit policy")
         self.duty_limits = check_duty_limits(self.duty_limits, "explicit policy")
         widths = [N_FEATURES, *self.config.hidden, 1]
@@ -276,6 +288,8 @@ def train_policy(features: np.ndarray, labels: np.ndarray, sample_period: float,
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise ValueError("the labelled samples hold NaN or infinite values")
     low, high = check_duty_limits(duty_limits, "explicit policy")
+    if config.integral_gain is None:
+        config = replace(config, integral_gain=default_integral_gain(sample_period))
     rng = np.random.default_rng(settings.seed)
     order = rng.permutation(len(x))
     n_val = max(1, int(round(len(x) * settings.validation_fraction)))

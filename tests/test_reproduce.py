@@ -33,8 +33,13 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     controllers = set(metrics["controller"])
     assert {"PI", "NNPC", "NNPC-paper", "MPC-oracle", "MPC-mismatched", "MPC-nominal", "NNPC (N=3)",
             "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)"} <= controllers
-    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2
+    # + the ablations: N = 3 at 1 ms; eq. 3, sync. sample and an NNPC from other seeded data at 13.33 us;
+    # + the explicit NNPC at 13.33 us, with its policy and the operating-region map
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 2
+    assert set(metrics.loc[metrics["controller"] == "NNPC-explicit", "pipeline"]) == {"nominal-switched__13p33us"}
+    assert (reproduction / "models" / "nominal-switched__13p33us__nnpc-explicit.pt").is_file()
+    for name in ("map", "first_move"):
+        assert (reproduction / "explicit" / f"{name}__nominal-switched__13p33us.csv").is_file()
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
     assert set(seed_study["pipeline"]) == {"nominal-switched__13p33us"}
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
@@ -54,6 +59,9 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     overshoot = targets[targets["target"] == "NNPC start-up overshoot <= 5 % at 1/fsw, switched"]
     assert overshoot["note"].iloc[0].startswith("NNPC identified from other seeds' data: NNPC (seed 1): ")
     assert "**Seed sensitivity at 13.33 us**" in report
+    assert "## Explicit NNPC" in report and "**Operating-region map**" in report
+    assert targets["target"].str.startswith("Operating-region map").any()
+    assert targets["target"].str.startswith("NNPC-explicit IAE <= 1.05 x online NNPC IAE").any()
     for figure in report.split("](figures/")[1:]:
         assert (reproduction / "figures" / figure.split(")")[0]).is_file()
 
