@@ -372,9 +372,9 @@ def cmd_distill(args) -> int:
                      metadata={"expert_file": str(source)})
     save_policy(policy, Path(args.out))
     training = policy.metadata["training"]
-    last = policy.metadata["distillation"]["rounds"][-1]  # the last round's on-policy error
+    last = policy.metadata["distillation"]["history"][-1]  # the last round's on-policy error
     distillation = policy.metadata["distillation"]
-    print(f"{policy_config.label} policy ({policy_config.macs()} MACs per step): {len(distillation['rounds'])} "
+    print(f"{policy_config.label} policy ({policy_config.macs()} MACs per step): {len(distillation['history'])} "
           f"DAgger rounds, {distillation['labels']} labels; validation RMS first-move error "
           f"{training['validation_rms_duty']:.4f}"
           + (f", last round on-policy before retraining {last['first_move_rms_before_retraining']:.4f}"

@@ -196,7 +196,7 @@ def distilled(expert) -> ExplicitPolicy:
 def test_a_small_distillation_regulates_the_averaged_plant_at_one_switching_period(expert, distilled):
     """1800 labels: every paper scenario within 0.2 % steady-state error, 5 % overshoot, 0.5 ms 2 %
     settling and twice the online NNPC's IAE."""
-    rounds = distilled.metadata["distillation"]["rounds"]
+    rounds = distilled.metadata["distillation"]["history"]
     assert [r["round"] for r in rounds] == [0, 1, 2] and distilled.metadata["distillation"]["labels"] == 1800
     assert rounds[0]["policy_share"] == 0 and 0 < rounds[1]["policy_share"] < rounds[2]["policy_share"] < 1
     assert distilled.metadata["training"]["validation_rms_duty"] < 0.05
@@ -299,3 +299,20 @@ def test_distill_then_run_and_export_from_the_command_line(tmp_path, capsys):
     assert main(["--no-progress", "export-controller", "nnpc-explicit", "--policy", str(policy), "--control-period",
                  "1/75e3", "--out", str(tmp_path / "e.fmu"), "--work-dir", str(tmp_path / "w")]) == 0
     assert (tmp_path / "e.fmu").is_file()
+
+
+def test_nnpc_explicit_on_demand_is_distilled_once_and_then_read_from_the_cache(tmp_path, monkeypatch, capsys):
+    import cosim.study.distillation as distillation
+    from cosim.study.controller_factory import make_controllers
+
+    monkeypatch.setattr(distillation, "FULL_DISTILLATION", replace(SMALL_DISTILLATION, rounds=1, episodes=1,
+                                                                    samples=100))
+    made = []
+    for _ in range(2):
+        [controller] = make_controllers(["nnpc-explicit"], plant_binding("nominal", "averaged"), SWITCHING_PERIOD,
+                                        tmp_path, duty_limits=(0.0, 1.0), model_path=str(EXPERT))
+        made.append(controller)
+    assert capsys.readouterr().err.count("distilling the NNPC into an explicit policy") == 1
+    assert (tmp_path / "models" / "nominal-averaged__13p33us__nnpc-explicit.pt").is_file()
+    x = [0.1, -0.2, 0.3, 0.0, 0.25, 12.0, 1 / 6]
+    assert made[0].policy.forward(x) == made[1].policy.forward(x)

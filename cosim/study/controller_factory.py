@@ -72,7 +72,7 @@ def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, 
         policy = load_policy(path, expect_period=period)
         meta = policy.metadata
         if (meta.get("plant") == binding.label and meta.get("expert_model") == expert
-                and {k: v for k, v in meta.get("distillation", {}).items() if k not in ("labels", "rounds")}
+                and {k: v for k, v in meta.get("distillation", {}).items() if k not in ("labels", "history")}
                 == json.loads(json.dumps(settings_dict(settings)))):
             return policy
     print(f"distilling the NNPC into an explicit policy on {binding.label} ({settings.labels} labels, saved to "

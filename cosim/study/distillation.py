@@ -229,7 +229,7 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     policy.metadata = {**(metadata or {}), **policy.metadata, "control_period_s": control_period,
                        "expert_model": expert_fingerprint(model),
                        "plant": binding.label, "expert": online.describe()["predictor"],
-                       "distillation": {**settings_dict(settings), "labels": int(len(labels)), "rounds": rounds}}
+                       "distillation": {**settings_dict(settings), "labels": int(len(labels)), "history": rounds}}
     return policy
 
 

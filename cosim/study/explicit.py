@@ -396,7 +396,7 @@ def report_section(out_dir: Path, metrics: pd.DataFrame, pipelines: list[str]) -
         if not path.is_file():
             continue
         policy = load_policy(path)
-        for r in policy.metadata.get("distillation", {}).get("rounds", []):
+        for r in policy.metadata.get("distillation", {}).get("history", []):
             rounds.append({"pipeline": tag, "network": policy.config.label, "round": r["round"],
                            "beta": r["beta"], "labels": r["labels"], "aggregate": r["aggregate_labels"],
                            "on_policy": r.get("first_move_rms_before_retraining", math.nan),
