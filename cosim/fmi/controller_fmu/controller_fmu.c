@@ -125,6 +125,7 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
         m.load_current = d->inputs[VR_MEASURED_LOAD_CURRENT];
         m.input_voltage = d->inputs[VR_INPUT_VOLTAGE];
         if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) {
+            d->policy.config = &POLICY_CONFIG; /* again: a deserialized FMU state may come from another process */
             d->policy_pending = d->policy; /* committed by fmi2DoStep, not by reading the duty */
             status = buckc_policy_step(&d->policy_pending, &m, &duty);
         } else {
