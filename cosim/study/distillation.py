@@ -170,10 +170,7 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     """Distill the online NNPC on ``model`` into an explicit policy, with DAgger on ``binding``'s
     plant at ``control_period`` [s]. ``log`` gets one line per round (None: silent); ``progress``
     shows a bar over the episodes."""
-    import torch
-
-    settings.check()
-    torch.set_num_threads(1)
+    settings.check()  # torch trains on one thread (train_policy), and nothing else here uses it
     online = nnpc(model, control_period)
     expert = ShadowExpert(implemented(online, "c"))
     nominal_load = NOMINAL_OPERATING_POINT["nominal_load"]
