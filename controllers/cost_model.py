@@ -26,6 +26,7 @@ class CostModel:
     sqrt: float = 14.0  # VSQRT.F32 (ARM Cortex-M4 TRM)
     candidate: float = 30.0  # per candidate: lattice generation, clipping, compare (an assumption)
     interrupt: float = 200.0  # per control sample: ADC read, PWM update, ISR entry and exit (an allowance)
+    division: float = 14.0  # VDIV.F32 (ARM Cortex-M4 TRM)
 
 
 CORTEX_M4F = CostModel()
@@ -58,7 +59,17 @@ def operation_counts(controller, evaluations: np.ndarray) -> dict[str, np.ndarra
             "sqrt": evaluations * horizon, "candidates": evaluations}
 
 
+def policy_operation_counts(config) -> dict[str, float]:
+    """Operations per step of the explicit NNPC (``controllers/c/explicit_policy.c``), the same at
+    every step: the layers' multiply-accumulates plus the feature product G r and the integral
+    term's (Ki Ts) e (:meth:`controllers.explicit_policy.PolicyConfig.macs`), one tanh per hidden
+    unit, one division (the load estimate io / vo); the feature differences, the integral's
+    condition and the clipping count as one candidate's bookkeeping."""
+    return {"macs": float(config.macs()), "tanh": float(sum(config.hidden)), "sqrt": 0.0, "division": 1.0,
+            "candidates": 1.0}
+
+
 def cortex_m4f_cycles(counts: dict[str, np.ndarray], model: CostModel = CORTEX_M4F) -> np.ndarray:
     """Cycles per step of a float32 port on a Cortex-M4F under ``model`` (interrupt allowance included)."""
     return (counts["macs"] * model.mac + counts["tanh"] * model.tanh + counts["sqrt"] * model.sqrt
-            + counts["candidates"] * model.candidate + model.interrupt)
+            + counts.get("division", 0.0) * model.division + counts["candidates"] * model.candidate + model.interrupt)

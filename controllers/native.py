@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.base import Measurement, check_duty_limits, check_sample_period
+from controllers.explicit_policy import N_FEATURES, ExplicitPolicyController
 from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
 from controllers.pi import PIController, check_gains
 from controllers.predictive import PredictiveController
@@ -184,6 +185,10 @@ MAX_BLOCKS = LIMITS["BUCKC_MAX_BLOCKS"]
 MAX_LEVELS = LIMITS["BUCKC_MAX_LEVELS"]
 MAX_LATTICE = LIMITS["BUCKC_MAX_LATTICE"]
 NEAR_OFFSETS = LIMITS["BUCKC_NEAR_OFFSETS"]
+POLICY_MAX_HIDDEN_LAYERS = LIMITS["BUCKC_POLICY_MAX_HIDDEN_LAYERS"]
+POLICY_MAX_WIDTH = LIMITS["BUCKC_POLICY_MAX_WIDTH"]
+POLICY_MAX_LAYERS = POLICY_MAX_HIDDEN_LAYERS + 1
+assert LIMITS["BUCKC_POLICY_INPUTS"] == N_FEATURES, "explicit_policy.h and explicit_policy.FEATURES disagree"
 
 OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT, ERR_UNSUPPORTED = 0, -1, -2, -3, -4, -5
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
@@ -302,13 +307,27 @@ class PredictiveState(ctypes.Structure):
                 ("best_call", c_int), ("best_row", c_int)]
 
 
+class PolicyConfigC(ctypes.Structure):
+    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
+                ("nominal_load", c_double), ("integral_gain", c_double), ("integral_band", c_double),
+                ("n_hidden", c_int), ("hidden", _array(c_int, POLICY_MAX_HIDDEN_LAYERS)),
+                ("weights", _array(c_double, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH, POLICY_MAX_WIDTH)),
+                ("biases", _array(c_double, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH))]
+
+
+class PolicyC(ctypes.Structure):
+    _fields_ = [("config", ctypes.c_void_p), ("have_history", c_int), ("previous_current", c_double),
+                ("previous_voltage", c_double), ("previous_duty", c_double), ("conductance", c_double),
+                ("integral", c_double), ("last_output", c_double)]
+
+
 #: ctypes mirror -> C type name, checked against sizeof() in the library when it is loaded
 MIRRORS = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
            CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
            AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig", SwitchedTable: "BuckcSwitchedTable",
            HorizonSettingsC: "BuckcHorizonSettings", Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
            PredictiveConfig: "BuckcPredictiveConfig", MeasurementC: "BuckcMeasurement",
-           PredictiveState: "BuckcPredictiveState"}
+           PredictiveState: "BuckcPredictiveState", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy"}
 
 COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
 
@@ -350,6 +369,10 @@ _SIGNATURES = {
     "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
     "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
+    "buckc_policy_init": (c_int, [_P(PolicyC), _P(PolicyConfigC), _P(ctypes.c_char_p)]),
+    "buckc_policy_reset": (None, [_P(PolicyC)]),
+    "buckc_policy_forward": (c_double, [_P(PolicyConfigC), _D]),
+    "buckc_policy_step": (c_int, [_P(PolicyC), _P(MeasurementC), _D]),
 }
 
 
@@ -594,9 +617,93 @@ class NativePredictiveController:
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
 
 
+def policy_config(controller: ExplicitPolicyController) -> PolicyConfigC:
+    """The explicit policy's folded weights and settings as a C configuration (ValueError above the C maxima)."""
+    policy = controller.policy
+    hidden = policy.config.hidden
+    problems = []
+    if len(hidden) > POLICY_MAX_HIDDEN_LAYERS:
+        problems.append(f"{len(hidden)} hidden layers > BUCKC_POLICY_MAX_HIDDEN_LAYERS ({POLICY_MAX_HIDDEN_LAYERS})")
+    if max(hidden) > POLICY_MAX_WIDTH:
+        problems.append(f"hidden layer of {max(hidden)} units > BUCKC_POLICY_MAX_WIDTH ({POLICY_MAX_WIDTH})")
+    if problems:
+        raise ValueError(f"policy {policy.config.label} has no C twin: " + "; ".join(problems))
+    c = PolicyConfigC()
+    c.sample_period = policy.sample_period
+    c.duty_min, c.duty_max = policy.duty_limits
+    c.nominal_load = controller.nominal_load
+    c.integral_gain = policy.config.integral_gain
+    c.integral_band = policy.config.integral_band
+    c.n_hidden = len(hidden)
+    for i, size in enumerate(hidden):
+        c.hidden[i] = size
+    weights = np.ctypeslib.as_array(c.weights)
+    biases = np.ctypeslib.as_array(c.biases)
+    for layer, (w, b) in enumerate(zip(policy.weights, policy.biases)):
+        rows, cols = w.shape
+        weights[layer, :rows, :cols] = w
+        biases[layer, :cols] = b
+    return c
+
+
+class NativeExplicitPolicyController:
+    """:class:`controllers.explicit_policy.ExplicitPolicyController` in C (``controllers/c/explicit_policy.c``)."""
+
+    def __init__(self, config: PolicyConfigC, name: str, description: dict | None = None):
+        self._lib = library()
+        self._config = config  # the C policy keeps a pointer to it
+        self.name = name
+        self.sample_period = check_sample_period(config.sample_period, name)
+        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
+        self._description = description or {}
+        self._policy = PolicyC()
+        what = ctypes.c_char_p()
+        _check(self._lib.buckc_policy_init(ctypes.byref(self._policy), ctypes.byref(config), ctypes.byref(what)),
+               what, name)
+        self._measurement = MeasurementC()
+        self._duty = c_double()
+        self._step = self._lib.buckc_policy_step
+        self._args = (ctypes.byref(self._policy), ctypes.byref(self._measurement), ctypes.byref(self._duty))
+
+    @classmethod
+    def from_python(cls, controller: ExplicitPolicyController) -> "NativeExplicitPolicyController":
+        return cls(policy_config(controller), controller.name, controller.describe())
+
+    @property
+    def config(self) -> PolicyConfigC:
+        return self._config
+
+    @property
+    def state(self) -> PolicyC:
+        """The C policy's state between samples (a live view: read, do not write)."""
+        return self._policy
+
+    def reset(self) -> None:
+        self._lib.buckc_policy_reset(ctypes.byref(self._policy))
+
+    def forward(self, x) -> float:
+        x = np.ascontiguousarray(x, dtype=float)
+        return self._lib.buckc_policy_forward(ctypes.byref(self._config), _pointer(x))
+
+    def step(self, m: Measurement) -> float:
+        c = self._measurement
+        c.time, c.reference, c.output_voltage = m.time, m.reference, m.output_voltage
+        c.inductor_current, c.load_current, c.input_voltage = m.inductor_current, m.load_current, m.input_voltage
+        status = self._step(*self._args)
+        if status != OK:
+            if status == ERR_NO_INDUCTOR_CURRENT:
+                raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
+                                 "inductor_current role")
+            raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
+        return self._duty.value
+
+    def describe(self) -> dict:
+        return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/explicit_policy.c)"}
+
+
 def native_twin(controller):
-    """The C twin of a Python PI or predictive controller (an adaptive NNPC: the same adaptation
-    around the twin of its NNPC); any other controller is returned as it is."""
+    """The C twin of a Python PI, predictive or explicit-policy controller (an adaptive NNPC: the
+    same adaptation around the twin of its NNPC); any other controller is returned as it is."""
     from controllers.adaptation import AdaptiveNNPC
 
     if isinstance(controller, AdaptiveNNPC):
@@ -606,6 +713,8 @@ def native_twin(controller):
         return NativePIController.from_python(controller)
     if isinstance(controller, PredictiveController):
         return NativePredictiveController.from_python(controller)
+    if isinstance(controller, ExplicitPolicyController):
+        return NativeExplicitPolicyController.from_python(controller)
     return controller
 
 

@@ -533,12 +533,98 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
     return rows
 
 
+# ---------------------------------------------------------------------------------------------
+# 8. the explicit NNPC: what one forward pass costs
+
+
+def _explicit_policy(quick: bool):
+    """The reproduction's distilled policy if results/ has it, else one distilled here (small budget)."""
+    from dataclasses import replace
+
+    from controllers.explicit_policy import load_policy
+    from cosim.base.errors import ModelFileError
+    from cosim.study.distillation import SMALL_DISTILLATION, distill
+    from cosim.study.experiments import plant_binding
+    from cosim.study.vocabulary import pipeline_tag
+
+    path = Path("results") / "models" / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
+    if path.is_file() and not quick:
+        try:
+            return load_policy(path, expect_period=SWITCHING_PERIOD), str(path)
+        except ModelFileError:
+            pass
+    model, _ = _nn_model("nnpc", SWITCHING_PERIOD, quick)
+    budget = replace(SMALL_DISTILLATION, rounds=1, episodes=1, samples=100) if quick else SMALL_DISTILLATION
+    return distill(model, plant_binding("nominal", "switched"), SWITCHING_PERIOD, budget, log=None), \
+        "distilled for the benchmark (small budget)"
+
+
+def bench_explicit(quick: bool) -> list[BenchRow]:
+    """The explicit NNPC's C step (the FMU's sources) replaying closed-loop measurements, next to its
+    Python step and the online NNPC's C step on the same inputs; operations counted and the
+    Cortex-M4F cycle estimate (cosim.benchmark_harness, the c-controllers group's cost model)."""
+    from controllers.base import Measurement
+    from cosim.benchmark_harness import (
+        CORTEX_M4F,
+        cortex_m4f_cycles,
+        policy_operation_counts,
+        record_measurements,
+        replay,
+    )
+    from cosim.study.experiments import explicit_nnpc, implemented, nnpc, plant_binding
+    from cosim.study.vocabulary import NNPC_EXPLICIT
+
+    period, label = SWITCHING_PERIOD, "13.33 us"
+    binding = plant_binding("nominal", "switched")
+    policy, origin = _explicit_policy(quick)
+    controller = explicit_nnpc(policy, NNPC_EXPLICIT)
+    samples = 40 if quick else 3000
+    measurements = record_measurements(binding, implemented(controller), _mixed_scenario(period, samples))
+    result = replay(controller, measurements, repeats=1 if quick else 20)
+    twin = implemented(controller)
+    twin.reset()
+    assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, result.duty)), \
+        "the harness and the in-process twin disagree"
+    python = []
+    controller.reset()
+    for row in measurements:
+        start = time.perf_counter_ns()
+        controller.step(Measurement(*row))
+        python.append(time.perf_counter_ns() - start)
+    c_p50, c_p99 = float(np.median(result.ns)) * 1e-3, _p99(result.ns) * 1e-3
+    py_p50, py_p99 = float(np.median(python)) * 1e-3, _p99(python) * 1e-3
+    model, _ = _nn_model("nnpc", period, quick)
+    online = replay(nnpc(model, period, NNPC), measurements[:40 if quick else 600], repeats=1)
+    online_p50 = float(np.median(online.ns)) * 1e-3
+    counts = policy_operation_counts(policy.config)
+    cycles = float(cortex_m4f_cycles(counts))
+    budget = CORTEX_M4F.clock_hz * period
+    note = f"policy: {origin}"
+    return [
+        BenchRow(f"C step, {NNPC_EXPLICIT}, {label} ({len(measurements)} replayed samples x "
+                 f"{1 if quick else 20} passes, {100 * c_p99 / (period * 1e6):.3g} % of the period at p99)",
+                 c_p50, c_p99, "us", "p99 <= 0.5 us", c_p99 <= 0.5, note),
+        BenchRow(f"Python step, {NNPC_EXPLICIT}, {label} (same inputs)", py_p50, py_p99, "us"),
+        BenchRow(f"C step time, online NNPC / {NNPC_EXPLICIT}, {label} (same inputs, p50)", online_p50 / c_p50, None,
+                 "ratio"),
+        BenchRow(f"{NNPC_EXPLICIT} {label} per step: multiply-accumulates (counted)", counts["macs"], None, "count",
+                 "<= 300", counts["macs"] <= 300, f"{policy.config.label}: layers + G r + (Ki Ts) e"),
+        BenchRow(f"{NNPC_EXPLICIT} {label} per step: tanh calls (counted)", counts["tanh"], None, "count"),
+        BenchRow(f"{NNPC_EXPLICIT} {label} per step on a 170 MHz Cortex-M4F (float32 port, estimated cycles)", cycles,
+                 None, "cycles", f"fits {budget:.0f} cycles", cycles <= budget,
+                 f"{cycles / budget:.3g} x the period; cost model: {CORTEX_M4F.mac} cycles/MAC, {CORTEX_M4F.tanh}/tanh, "
+                 f"{CORTEX_M4F.division}/division, {CORTEX_M4F.candidate} for the features, clip and integral, "
+                 f"{CORTEX_M4F.interrupt} per sample for ADC/PWM/ISR (cosim/benchmark_harness)"),
+    ]
+
+
 BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "plant": bench_plant,
     "master": bench_master,
     "controllers": bench_controllers,
     "c-controllers": bench_c_controllers,
     "adaptation": bench_adaptation,
+    "explicit": bench_explicit,
     "training": bench_training,
     "inference": bench_inference,
     "reproduction": bench_reproduction,

@@ -14,6 +14,7 @@ import signal
 import sys
 from pathlib import Path
 
+from controllers.explicit_policy import INTEGRAL_GAIN_PER_SAMPLE, PolicyConfig
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
@@ -175,7 +176,7 @@ def cmd_run(args) -> int:
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,
-                                   progress=args.progress)
+                                   progress=args.progress, policy_path=args.policy)
     controllers = [implemented(c, args.implementation) for c in controllers]
     output = run_batch(batch, controllers, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
                        record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
@@ -206,7 +207,7 @@ def cmd_export_controller(args) -> int:
     [controller] = make_controllers([args.controller], binding, args.control_period, work_dir,
                                     duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                     model_path=args.model, samples=args.samples, seed=args.seed,
-                                    progress=args.progress)
+                                    progress=args.progress, policy_path=args.policy)
     try:
         binary, source = export_controller(controller, out)
     except ValueError as error:  # a configuration the C twins cannot hold
@@ -437,6 +438,51 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_distill(args) -> int:
+    from dataclasses import replace
+
+    from controllers.explicit_policy import save_policy
+    from controllers.nn_model import load_model
+    from cosim.study.distillation import FULL_DISTILLATION, distill
+
+    try:  # arguments first, before any file is read or any work starts
+        policy_config = PolicyConfig(hidden=tuple(args.hidden), integral_gain=args.integral_gain,
+                                     integral_band=args.integral_band)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    settings = replace(FULL_DISTILLATION, rounds=args.rounds, episodes=args.episodes, samples=args.samples,
+                       seed=args.seed, policy=policy_config)
+    settings.check()
+    output_file(args.out)
+    source = input_file(args.model, "model file", "train one with buck-cosim train")
+    model = load_model(source, expect_period=args.control_period)
+    period = args.control_period or model.metadata.get("control_period_s")
+    if period is None:
+        raise ConfigError(f"model file {source} names no control period: give --control-period")
+    binding = _plant_binding(args)
+    if not binding.has("inductor_current"):
+        raise ConfigError(f"the NNPC needs the inductor_current role, which {binding.origin} does not bind")
+    from cosim.study.experiments import implemented, nnpc
+
+    implemented(nnpc(model, period))  # refuses a network the C twin cannot hold, before any work
+    print(f"distilling the NNPC of {source} on {binding.label} at {period * 1e6:.4g} us: {settings.rounds + 1} "
+          f"rounds x {settings.episodes} episodes x {settings.samples} samples = {settings.labels} labels",
+          file=sys.stderr)
+    policy = distill(model, binding, period, settings, progress=args.progress,
+                     metadata={"expert_file": str(source)})
+    save_policy(policy, Path(args.out))
+    training = policy.metadata["training"]
+    last = policy.metadata["distillation"]["history"][-1]  # the last round's on-policy error
+    distillation = policy.metadata["distillation"]
+    print(f"{policy_config.label} policy ({policy_config.macs()} MACs per step): {len(distillation['history'])} "
+          f"DAgger rounds, {distillation['labels']} labels; validation RMS first-move error "
+          f"{training['validation_rms_duty']:.4f}"
+          + (f", last round on-policy before retraining {last['first_move_rms_before_retraining']:.4f}"
+             if "first_move_rms_before_retraining" in last else ""))
+    print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_reproduce(args) -> int:
     from cosim.study.reproduce import FULL, QUICK, reproduce
 
@@ -544,6 +590,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
     p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")
+    p.add_argument("--policy", metavar="POLICY.pt",
+                   help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand from "
+                        "the nnpc network, about a minute at 13.33 us)")
     p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
                    help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
     p.add_argument("--seed", type=seed_value, default=0,
@@ -607,12 +656,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
     p.set_defaults(func=cmd_train)
 
+    p = sub.add_parser("distill", help="distill the NNPC into an explicit policy network (DAgger on the plant FMU)",
+                       description="Train a small policy network to return the online NNPC's first move: DAgger on "
+                                   "the plant FMU -- the current policy drives seeded random episodes (references "
+                                   "3-20 V, loads 4-100 Ohm, start-ups from rest), the NNPC's C twin labels every "
+                                   "visited state, labels are aggregated and the policy retrained, for a few rounds. "
+                                   "The policy adds an integral term near the reference (offset-free) and saturates "
+                                   "to the duty limits; run it with --controller nnpc-explicit --policy POLICY.pt or "
+                                   "export it with export-controller nnpc-explicit.")
+    p.add_argument("--model", required=True, metavar="NNPC.pt", help="the NNPC's NN plant model (buck-cosim train)")
+    p.add_argument("--control-period", type=parse_period, metavar="SECONDS",
+                   help="sample period in s, e.g. 1/75e3 (default: the model's); the model must have been trained "
+                        "at it")
+    p.add_argument("--out", required=True, metavar="POLICY.pt", help="the policy file to write")
+    p.add_argument("--rounds", type=bounded(int, 0, 50), default=4,
+                   help="DAgger rounds after the first, expert-driven one (default: 4)")
+    p.add_argument("--episodes", type=bounded(int, 1, 1000), default=6,
+                   help="closed-loop episodes per round (default: 6)")
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES, 10**6), default=600,
+                   help="control samples per episode (default: 600, 8 ms at 13.33 us); each costs one NNPC label, "
+                        "about 1 ms at 13.33 us")
+    p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=[12],
+                   help="tanh units per hidden layer of the policy (default: 12; 7 inputs, so 12 -> 98 MACs)")
+    p.add_argument("--integral-gain", type=bounded(float, 0.0), default=None,
+                   help=f"Ki of the offset-free integral term [1/(V s)] (default: {INTEGRAL_GAIN_PER_SAMPLE:.4g} / the "
+                        "control period: 200 at 13.33 us, 2.67 at 1 ms)")
+    p.add_argument("--integral-band", type=bounded(float, 0.0, 1.0), default=PolicyConfig.integral_band,
+                   help="integrate only while |reference - vo| <= band x reference [1] (default: %(default)g)")
+    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
+    _add_plant_options(p)
+    p.set_defaults(func=cmd_distill)
+
     p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 co-simulation FMU (C99)",
-                       description="Write the workbench's PI or predictive controller (NNPC, MPC) as an FMI 2.0 "
-                                   "co-simulation FMU built from the hand-written C99 twins of controllers/c and a "
-                                   "generated header of data (gains, or the horizon settings and the network's "
-                                   "weights), plus its source FMU. Its variables carry the workbench's role names "
-                                   "(reference, measured_output_voltage, measured_inductor_current, "
+                       description="Write the workbench's PI, predictive controller (NNPC, MPC) or explicit NNPC as "
+                                   "an FMI 2.0 co-simulation FMU built from the hand-written C99 twins of "
+                                   "controllers/c and a generated header of data (gains, the horizon settings and the "
+                                   "network's weights, or the policy's weights), plus its source FMU. Its variables "
+                                   "carry the workbench's role names (reference, measured_output_voltage, measured_inductor_current, "
                                    "measured_load_current, input_voltage -> duty_cycle; parameter sample_period "
                                    "[s]); run it with 'buck-cosim run --controller NAME.fmu'.")
     p.add_argument("controller", choices=list(CONTROLLERS), help="which controller")
@@ -622,6 +702,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="NAME.fmu", help="the FMU to write (NAME-source.fmu beside it)")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand "
                                                      "on the plant below)")
+    p.add_argument("--policy", metavar="POLICY.pt",
+                   help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand)")
     p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned on the plant)")
     p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned on the plant)")
     p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")

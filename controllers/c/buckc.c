@@ -4,6 +4,7 @@
 #include <string.h>
 
 #include "buckc.h"
+#include "explicit_policy.h"
 #include "nn_model.h"
 #include "pi.h"
 #include "predictive.h"
@@ -43,6 +44,8 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcMeasurement);
     SIZE(BuckcPredictiveState);
     SIZE(BuckcPredictive);
+    SIZE(BuckcPolicyConfig);
+    SIZE(BuckcPolicy);
 #undef SIZE
     return 0;
 }

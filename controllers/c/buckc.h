@@ -2,8 +2,8 @@
  * buckc.h -- what every C twin shares: status codes and the struct-size query.
  *
  * Not an algorithm file. The twins themselves are pi.c (controllers/pi.py), nn_model.c
- * (controllers/nn_model.py), predictors.c (controllers/predictors.py) and predictive.c
- * (controllers/predictive.py).
+ * (controllers/nn_model.py), predictors.c (controllers/predictors.py), predictive.c
+ * (controllers/predictive.py) and explicit_policy.c (controllers/explicit_policy.py).
  *
  * Conventions of all twins:
  *  - C99, libm only, no allocation, no mutable globals: every instance lives in a caller-owned

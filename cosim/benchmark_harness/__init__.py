@@ -23,7 +23,13 @@ import numpy as np
 
 from controllers.base import Measurement
 from controllers.codegen import config_header
-from controllers.cost_model import CORTEX_M4F, CostModel, cortex_m4f_cycles, operation_counts  # noqa: F401
+from controllers.cost_model import (  # noqa: F401  (re-exported)
+    CORTEX_M4F,
+    CostModel,
+    cortex_m4f_cycles,
+    operation_counts,
+    policy_operation_counts,
+)
 from controllers.native import FLAGS, SOURCE_DIR, NativeBuildError, build_c
 
 HARNESS = Path(__file__).parent / "controller_step.c"

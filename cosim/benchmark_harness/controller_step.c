@@ -16,6 +16,7 @@
 #include <time.h>
 
 #include "controller_config.h"
+#include "explicit_policy.h"
 #include "pi.h"
 #include "predictive.h"
 
@@ -53,15 +54,18 @@ int main(int argc, char **argv) {
     if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL) return 2;
     static BuckcPredictive predictive; /* big: not on the stack */
     BuckcPi pi;
+    BuckcPolicy policy;
     const char *what = NULL;
-    int status = CONTROLLER_KIND == CONTROLLER_PI ? buckc_pi_init(&pi, &PI_CONFIG, &what)
-                                                  : buckc_predictive_init(&predictive, &PREDICTIVE_CONFIG, &what);
+    int status = CONTROLLER_KIND == CONTROLLER_PI         ? buckc_pi_init(&pi, &PI_CONFIG, &what)
+                 : CONTROLLER_KIND == CONTROLLER_EXPLICIT ? buckc_policy_init(&policy, &POLICY_CONFIG, &what)
+                                                          : buckc_predictive_init(&predictive, &PREDICTIVE_CONFIG, &what);
     if (status != BUCKC_OK) {
         fprintf(stderr, "the configuration is refused: %s\n", what ? what : "");
         return 2;
     }
     for (int r = 0; r < repeats; ++r) {
         if (CONTROLLER_KIND == CONTROLLER_PI) buckc_pi_reset(&pi);
+        else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) buckc_policy_reset(&policy);
         else buckc_predictive_reset(&predictive);
         for (size_t k = 0; k < rows; ++k) {
             const double *row = m + 6 * k;
@@ -69,6 +73,9 @@ int main(int argc, char **argv) {
             long long start = now_ns();
             if (CONTROLLER_KIND == CONTROLLER_PI) {
                 duty = buckc_pi_step(&pi, row[1], row[2]);
+            } else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) {
+                BuckcMeasurement x = {row[0], row[1], row[2], row[3], row[4], row[5]};
+                if (buckc_policy_step(&policy, &x, &duty) != BUCKC_OK) return 3;
             } else {
                 BuckcMeasurement x = {row[0], row[1], row[2], row[3], row[4], row[5]};
                 if (buckc_predictive_step(&predictive, &x, &duty) != BUCKC_OK) return 3;
@@ -78,8 +85,8 @@ int main(int argc, char **argv) {
             const BuckcPredictiveState *s = buckc_predictive_state(&predictive);
             ns[i] = elapsed;
             duties[i] = duty;
-            evaluations[i] = CONTROLLER_KIND == CONTROLLER_PI ? 0 : s->evaluations;
-            passes[i] = CONTROLLER_KIND == CONTROLLER_PI ? 0 : s->passes;
+            evaluations[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->evaluations : 0;
+            passes[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->passes : 0;
         }
     }
     for (size_t i = 0; i < total; ++i) printf("%lld %.17g %d %d\n", ns[i], duties[i], evaluations[i], passes[i]);

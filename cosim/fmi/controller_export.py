@@ -19,17 +19,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
-from controllers.codegen import KIND_PI, config_header, controller_kind, header_guid
+from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
 from plant_fmu.build import FmuSources, export, glue_files, read_files
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
-                   "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h")
+                   "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
+                   "explicit_policy.h")
 #: compiled files (the glue, the model, the algorithms), in modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c", "predictors.c", "predictive.c",
-            "load_estimate.c")
+            "load_estimate.c", "explicit_policy.c")
 
 
 @dataclass(frozen=True)
@@ -109,18 +110,19 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
 
 
 def controller_sources(controller, identifier: str) -> FmuSources:
-    """What the FMU of a Python PI or predictive controller is built from."""
+    """What the FMU of a Python PI, predictive or explicit-policy controller is built from."""
     header = config_header(controller, name=identifier)
-    pi = controller_kind(controller) == KIND_PI
+    kind = controller_kind(controller)
+    pi = kind == KIND_PI
     low, high = controller.duty_limits
     starts = {"sample_period": repr(float(controller.sample_period)), "duty_min": repr(float(low)),
               "duty_max": repr(float(high)),
               "input_voltage": repr(float(getattr(controller, "nominal_input_voltage", 48.0)))}
     if pi:
         starts.update(kp=repr(float(controller.kp)), ki=repr(float(controller.ki)))
+    algorithm = "PI" if pi else "explicit policy" if kind == KIND_EXPLICIT else "predictive"
     description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
-                   f"{controller.sample_period:.6g} s ({'PI' if pi else 'predictive'}; hand-written C99, "
-                   "generated configuration)")
+                   f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration)")
     md = model_description(identifier, controller.name, header_guid(header), description, starts, pi)
     files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + read_files(ALGORITHM_DIR, ALGORITHM_FILES)
     return FmuSources(identifier, md, files + (("controller_config.h", header.encode()),))

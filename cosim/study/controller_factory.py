@@ -1,11 +1,12 @@
-"""Controllers by name for the command line: PI, NNPC (workbench or paper network), MPC baselines."""
+"""Controllers by name for the command line: PI, NNPC (workbench or paper network), the explicit
+NNPC (a policy distilled from the NNPC), MPC baselines."""
 
 from __future__ import annotations
 
 import json
 import math
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
@@ -13,10 +14,18 @@ from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.experiments import adaptive_nnpc, collection_settings, model_mpc, nn_configs, nnpc
+from cosim.study.experiments import adaptive_nnpc, collection_settings, explicit_nnpc, model_mpc, nn_configs, nnpc
 from cosim.study.identification import Recipe, identify
 from cosim.study.pi_tuning import PITuning, load_or_tune
-from cosim.study.vocabulary import CONTROLLERS, MPC_NOMINAL, MPC_ORACLE, NETWORKS, NOMINAL, pipeline_tag
+from cosim.study.vocabulary import (
+    CONTROLLERS,
+    MPC_NOMINAL,
+    MPC_ORACLE,
+    NETWORKS,
+    NNPC_EXPLICIT,
+    NOMINAL,
+    pipeline_tag,
+)
 
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
@@ -60,6 +69,30 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     return model
 
 
+def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, out_dir: Path, *, seed: int,
+                     progress: bool = False):
+    """The explicit policy distilled from ``model``'s NNPC on this plant (cached in out_dir/models
+    for the same plant, expert network, budget and seed)."""
+    from controllers.explicit_policy import load_policy, save_policy
+    from cosim.study.distillation import FULL_DISTILLATION, distill, expert_fingerprint, settings_dict
+
+    settings = replace(FULL_DISTILLATION, seed=seed)
+    path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__nnpc-explicit.pt"
+    expert = expert_fingerprint(model)
+    if path.is_file():
+        policy = load_policy(path, expect_period=period)
+        meta = policy.metadata
+        if (meta.get("plant") == binding.label and meta.get("expert_model") == expert
+                and {k: v for k, v in meta.get("distillation", {}).items() if k not in ("labels", "history")}
+                == json.loads(json.dumps(settings_dict(settings)))):
+            return policy
+    print(f"distilling the NNPC into an explicit policy on {binding.label} ({settings.labels} labels, saved to "
+          f"{path}) ...", file=sys.stderr)
+    policy = distill(model, binding, period, settings, progress=progress)
+    save_policy(policy, path)
+    return policy
+
+
 def true_parameters(binding: PlantBinding) -> CircuitParameters:
     """Circuit parameters of a built-in plant binding (the oracle's model)."""
     if binding.source is not None:
@@ -74,12 +107,14 @@ def true_parameters(binding: PlantBinding) -> CircuitParameters:
 def make_controllers(names: list[str], binding: PlantBinding, period: float, out_dir: Path, *,
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int = 10_000, seed: int = 0,
-                     progress: bool = False) -> list:
+                     progress: bool = False, policy_path: str | None = None) -> list:
     """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`)
     or paths of controller FMUs / controller-binding files (which run at their own sample period).
     Everything is checked first (names, gains, duty limits, the period, the roles each controller
-    needs, a given model file, controller FMUs and their bindings), then the PI is tuned and
-    networks trained where needed -- so a mistake is refused before minutes of work."""
+    needs, a given model or policy file, controller FMUs and their bindings), then the PI is tuned,
+    networks trained and the explicit NNPC distilled where needed -- so a mistake is refused before
+    minutes of work. ``policy_path``: a distilled policy for nnpc-explicit (else distilled on demand
+    from the nnpc network)."""
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
     from cosim.fmi.controller import FmuController, controller_binding
@@ -99,10 +134,20 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
             check_gains(kp, ki)
     except ValueError as error:
         raise ConfigError(str(error)) from None
-    if networks and not binding.has("inductor_current"):
-        raise ConfigError(f"{networks[0]} needs the inductor_current role, which {binding.origin} does not bind")
+    needs_current = [n for n in names if n in (*NETWORKS, "nnpc-adaptive", "nnpc-explicit")]
+    if needs_current and not binding.has("inductor_current"):
+        raise ConfigError(f"{needs_current[0]} needs the inductor_current role, which {binding.origin} does not bind")
+    if policy_path and "nnpc-explicit" not in names:
+        raise ConfigError("--policy gives the explicit NNPC's policy: add --controller nnpc-explicit (or drop --policy)")
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
     given = load_model(Path(model_path), expect_period=period) if model_path else None
+    if policy_path:
+        from controllers.explicit_policy import load_policy
+
+        policy = load_policy(Path(policy_path), expect_period=period)
+        if tuple(duty_limits) != tuple(policy.duty_limits):
+            raise ConfigError(f"policy file {policy_path} was distilled for duty limits {policy.duty_limits}, not "
+                              f"the ({duty_limits[0]}, {duty_limits[1]}) asked for")
     controllers = []
     try:
         for name in names:
@@ -120,6 +165,14 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                     controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
                 else:
                     controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+            elif name == "nnpc-explicit":
+                if not policy_path:
+                    if tuple(duty_limits) != (0.0, 1.0):
+                        raise ConfigError("nnpc-explicit is distilled for duty limits (0, 1): give --policy for others")
+                    model = given or trained_model("nnpc", binding, period, out_dir, samples=samples, seed=seed,
+                                                   model_path=None, progress=progress)
+                    policy = distilled_policy(model, binding, period, out_dir, seed=seed, progress=progress)
+                controllers.append(explicit_nnpc(policy, NNPC_EXPLICIT))
             elif name == "mpc-oracle":
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":

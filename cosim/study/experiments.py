@@ -156,6 +156,12 @@ def adaptive_nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC-
     own = copy.deepcopy(model)
     return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits), own, settings, name,
                         nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+def explicit_nnpc(policy, name: str = "NNPC-explicit"):
+    """The explicit NNPC (:mod:`controllers.explicit_policy`) of a distilled policy; its load estimate
+    starts from the nominal load, as the online NNPC's does."""
+    from controllers.explicit_policy import ExplicitPolicyController
+
+    return ExplicitPolicyController(policy, name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
 
 
 def model_predictor(parameters: CircuitParameters, control_period: float, name: str,

@@ -14,6 +14,7 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
+from cosim.study import explicit
 from cosim.study.c_cost import section as c_cost_section
 from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_configs, small_network
 from cosim.study.identification import training_settings
@@ -81,7 +82,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     models = {o.pipeline.tag: o.models for o in outputs}
     drift_rows = metrics[metrics["pipeline"] == DRIFT_STUDY]
     metrics = metrics[metrics["pipeline"] != DRIFT_STUDY]
-    targets = Targets(metrics, pipelines, models, drift_rows)
+    targets = Targets(metrics, pipelines, models, drift_rows, out_dir)
     target_frame = targets.frame()
     atomic_write(out_dir / "targets.csv", lambda tmp: target_frame.to_csv(tmp, index=False))
     physics = lc_physics()
@@ -130,6 +131,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     cost = c_cost_section(out_dir, STUDY_PERIODS, profile.scenarios)
     if cost:
         lines += ["## What the NNPC costs in C", ""] + cost + [""]
+    lines += explicit.report_section(out_dir, metrics, pipelines)
     lines += ["## Seeds", ""] + _seeds(outputs, metrics, models) + [""]
     lines += ["## Ablations", ""] + _ablations(metrics, models) + [""]
     lines += ["## Model mismatch", ""] + _mismatch(metrics, pipelines) + [""]

@@ -42,6 +42,7 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+from cosim.study import explicit
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
@@ -299,6 +300,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
         if pipeline.variant == "mismatch":  # what the disturbance estimate buys: the paper's kind of MPC
             controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL_NO_ESTIMATE, binding=binding, offset_free=False))
+    controllers += explicit.in_pipeline(pipeline, binding, models["nnpc"], pi.controller(), out_dir, profile, seed,
+                                        implementation, timings, log)  # the explicit NNPC at 1/fsw, and its map
     if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
         from cosim.fmi.controller import FmuController, controller_binding
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.labels import period_label
+from cosim.study.explicit import target_rows as explicit_target_rows
 from cosim.study.summaries import model_key, ratio_table, seed_controllers, value, worst
 from cosim.study.vocabulary import (
     DRIFT_SCENARIO,
@@ -60,7 +61,8 @@ class Targets:
     """
 
     def __init__(self, metrics: pd.DataFrame, pipelines: list[str], models: dict[str, dict] | None = None,
-                 drift: pd.DataFrame | None = None):
+                 drift: pd.DataFrame | None = None, out_dir: Path | None = None):
+        """``out_dir``: where the reproduction wrote its files (the explicit NNPC's map and policies)."""
         self.rows: list[dict] = []
         m = metrics
         models = models or {}
@@ -135,6 +137,7 @@ class Targets:
             add("Drift: adapted NNPC IAE after the drift <= 1.10 x NNPC identified offline on the drifted plant",
                 f"{adapted / offline:.3f}", adapted / offline <= 1.10,
                 f"non-adapting NNPC: {frozen / offline:.3f}")
+        self.rows += explicit_target_rows(m, pipelines, out_dir)  # the explicit NNPC (cosim/study/explicit.py)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows, columns=["target", "measured", "met", "note"])

@@ -102,9 +102,11 @@ NNPC_PAPER = "NNPC-paper"
 MPC_ORACLE = "MPC-oracle"
 MPC_NOMINAL = "MPC-nominal"
 MPC_MISMATCHED = "MPC-mismatched"
+#: the explicit NNPC: a policy network distilled from the online NNPC (cosim.study.distillation)
+NNPC_EXPLICIT = "NNPC-explicit"
 #: command-line key -> the name a run, a metrics row and a figure legend carry
 CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-adaptive": f"{NNPC}-adaptive", "nnpc-paper": NNPC_PAPER,
-               "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL}
+               "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT}
 #: the NN plant models per rate, by command-line key
 NETWORKS = ("nnpc", "nnpc-paper")
 #: ablation variants (reproduction only)
@@ -171,6 +173,7 @@ CONTROLLER_STYLES = {
     MPC_NOMINAL_NO_ESTIMATE: ("tab:brown", (0, (3, 1, 1, 1))),
     NNPC_ADAPTIVE: ("tab:green", "-"),
     NNPC_DRIFTED: ("tab:gray", (0, (4, 2))),
+    NNPC_EXPLICIT: ("tab:brown", (0, (5, 1))),
 }
 
 # ---------------------------------------------------------------------------------------------

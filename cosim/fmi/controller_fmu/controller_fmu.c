@@ -1,8 +1,9 @@
-/* A workbench controller as an FMU model (fmu_model.h): the PI or the predictive controller of
- * controllers/c/, sampled on the FMU's own clock.
+/* A workbench controller as an FMU model (fmu_model.h): the PI, the predictive controller or the
+ * explicit NNPC (explicit policy) of controllers/c/, sampled on the FMU's own clock.
  *
  * The algorithm and its settings come from the generated controller_config.h (data only: the
- * kind, the PI gains or the predictive configuration with the network's weights) -- the
+ * kind, the PI gains, the predictive configuration with the network's weights, or the explicit
+ * policy's weights) -- the
  * algorithms themselves are the hand-written C twins in controllers/c/. The FMI 2.0 glue is the
  * one the plant FMU uses (fmi2_glue.c).
  *
@@ -19,12 +20,13 @@
 #include <string.h>
 
 #include "controller_variables.h"
+#include "explicit_policy.h"
 #include "fmu_model.h"
 #include "pi.h"
 #include "predictive.h"
 
 #include "controller_config.h" /* generated: CONTROLLER_KIND, CONTROLLER_NAME, CONTROLLER_GUID, PI_CONFIG,
-                                  PREDICTIVE_CONFIG */
+                                  PREDICTIVE_CONFIG, POLICY_CONFIG */
 
 typedef struct {
     double time;          /* the FMU's clock [s] */
@@ -37,6 +39,7 @@ typedef struct {
     int started;          /* initialisation has ended: the controller is configured and may compute */
     BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
     BuckcPi pi, pi_pending;
+    BuckcPolicy policy, policy_pending;
     BuckcPredictiveState predictive_pending;
     BuckcPredictive predictive; /* last: the big one (the predictors' caches) */
 } ControllerData;
@@ -51,8 +54,19 @@ const FmuModelInfo FMU_MODEL = {
     2u,
 };
 
+/* a configuration value of the controller this FMU was generated for (the PI's may be set) */
+static double fixed_sample_period(void) {
+    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.sample_period : PREDICTIVE_CONFIG.sample_period;
+}
+static double fixed_duty_min(void) {
+    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_min : PREDICTIVE_CONFIG.duty_min;
+}
+static double fixed_duty_max(void) {
+    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_max : PREDICTIVE_CONFIG.duty_max;
+}
+
 static double sample_period(const ControllerData *d) {
-    return CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.sample_period : PREDICTIVE_CONFIG.sample_period;
+    return CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.sample_period : fixed_sample_period();
 }
 
 static double sample_time(const ControllerData *d, long long k) {
@@ -79,6 +93,7 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
     int status;
     (void)fmu;
     if (CONTROLLER_KIND == CONTROLLER_PI) status = buckc_pi_init(&d->pi, &d->pi_config, &what);
+    else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) status = buckc_policy_init(&d->policy, &POLICY_CONFIG, &what);
     else status = buckc_predictive_init(&d->predictive, &PREDICTIVE_CONFIG, &what);
     if (status != BUCKC_OK) {
         snprintf(buffer, size, "%s refuses its configuration: %s (%s)", CONTROLLER_NAME, what ? what : "",
@@ -104,16 +119,23 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
         duty = buckc_pi_step(&d->pi_pending, d->inputs[VR_REFERENCE], d->inputs[VR_MEASURED_OUTPUT_VOLTAGE]);
     } else {
         BuckcMeasurement m;
-        BuckcPredictiveState committed = d->predictive.state;
+        int status;
         m.time = d->time;
         m.reference = d->inputs[VR_REFERENCE];
         m.output_voltage = d->inputs[VR_MEASURED_OUTPUT_VOLTAGE];
         m.inductor_current = d->inputs[VR_MEASURED_INDUCTOR_CURRENT];
         m.load_current = d->inputs[VR_MEASURED_LOAD_CURRENT];
         m.input_voltage = d->inputs[VR_INPUT_VOLTAGE];
-        int status = buckc_predictive_step(&d->predictive, &m, &duty);
-        d->predictive_pending = d->predictive.state;
-        d->predictive.state = committed; /* committed by fmi2DoStep, not by reading the duty */
+        if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) {
+            d->policy.config = &POLICY_CONFIG; /* again: a deserialized FMU state may come from another process */
+            d->policy_pending = d->policy; /* committed by fmi2DoStep, not by reading the duty */
+            status = buckc_policy_step(&d->policy_pending, &m, &duty);
+        } else {
+            BuckcPredictiveState committed = d->predictive.state;
+            status = buckc_predictive_step(&d->predictive, &m, &duty);
+            d->predictive_pending = d->predictive.state;
+            d->predictive.state = committed; /* committed by fmi2DoStep, not by reading the duty */
+        }
         if (status != BUCKC_OK) {
             fmu_log(fmu, fmi2Error, "logStatusError", "%s at t = %.9g s: %s%s", CONTROLLER_NAME, d->time,
                     buckc_status_text(status),
@@ -157,10 +179,10 @@ fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         return fmi2OK;
     case VR_SAMPLE_PERIOD: *value = sample_period(d); return fmi2OK;
     case VR_DUTY_MIN:
-        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_min : PREDICTIVE_CONFIG.duty_min;
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_min : fixed_duty_min();
         return fmi2OK;
     case VR_DUTY_MAX:
-        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_max : PREDICTIVE_CONFIG.duty_max;
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_max : fixed_duty_max();
         return fmi2OK;
     case VR_KP:
         if (CONTROLLER_KIND != CONTROLLER_PI) break;
@@ -194,9 +216,9 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         default: break;
         }
     } else if (vr == VR_SAMPLE_PERIOD || vr == VR_DUTY_MIN || vr == VR_DUTY_MAX) {
-        double fixed = vr == VR_SAMPLE_PERIOD ? PREDICTIVE_CONFIG.sample_period
-                       : vr == VR_DUTY_MIN   ? PREDICTIVE_CONFIG.duty_min
-                                             : PREDICTIVE_CONFIG.duty_max;
+        double fixed = vr == VR_SAMPLE_PERIOD ? fixed_sample_period()
+                       : vr == VR_DUTY_MIN   ? fixed_duty_min()
+                                             : fixed_duty_max();
         if (value == fixed || fabs(value - fixed) <= 1e-12 * fabs(fixed)) return fmi2OK;
         fmu_log(fmu, fmi2Error, "logStatusError",
                 "fmi2SetReal: %s was generated for %s = %.17g; its network and optimizer hold only for that value "
@@ -249,6 +271,7 @@ fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step)
             if (status != fmi2OK) return status;
         }
         if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
+        else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
         else d->predictive.state = d->predictive_pending;
         d->duty = d->pending_duty;
         d->next += 1;

@@ -1,0 +1,138 @@
+/*
+ * explicit_policy.c -- twin of controllers/explicit_policy.py: ExplicitPolicy.forward and
+ * ExplicitPolicyController.reset() / step(). Layout and conventions: explicit_policy.h.
+ * No allocation, libm only.
+ */
+#include <math.h>
+
+#include "explicit_policy.h"
+#include "load_estimate.h"
+
+#define W BUCKC_POLICY_MAX_WIDTH
+
+int buckc_policy_init(BuckcPolicy *policy, const BuckcPolicyConfig *config, const char **what)
+{
+    int i;
+    if (policy == NULL || config == NULL) {
+        if (what) *what = "policy or config is NULL";
+        return BUCKC_ERR_NULL;
+    }
+    if (!(config->sample_period > 0.0 && isfinite(config->sample_period))) {
+        if (what) *what = "sample_period: expected a finite value > 0";
+        return BUCKC_ERR_INVALID;
+    }
+    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0)) {
+        if (what) *what = "duty_min, duty_max: expected 0 <= min < max <= 1";
+        return BUCKC_ERR_INVALID;
+    }
+    if (!(config->nominal_load > 0.0 && isfinite(config->nominal_load))) {
+        if (what) *what = "nominal_load: expected a finite value > 0";
+        return BUCKC_ERR_INVALID;
+    }
+    if (!(config->integral_gain >= 0.0 && isfinite(config->integral_gain) && config->integral_band >= 0.0 &&
+          isfinite(config->integral_band))) {
+        if (what) *what = "integral_gain, integral_band: expected finite values >= 0";
+        return BUCKC_ERR_INVALID;
+    }
+    if (config->n_hidden < 1) {
+        if (what) *what = "policy n_hidden: expected one or more hidden layers";
+        return BUCKC_ERR_INVALID;
+    }
+    if (config->n_hidden > BUCKC_POLICY_MAX_HIDDEN_LAYERS) {
+        if (what) *what = "policy n_hidden: above BUCKC_POLICY_MAX_HIDDEN_LAYERS";
+        return BUCKC_ERR_LIMIT;
+    }
+    for (i = 0; i < config->n_hidden; ++i) {
+        if (config->hidden[i] < 1) {
+            if (what) *what = "policy hidden: expected sizes >= 1";
+            return BUCKC_ERR_INVALID;
+        }
+        if (config->hidden[i] > W) {
+            if (what) *what = "policy hidden: a layer wider than BUCKC_POLICY_MAX_WIDTH";
+            return BUCKC_ERR_LIMIT;
+        }
+    }
+    policy->config = config;
+    buckc_policy_reset(policy);
+    return BUCKC_OK;
+}
+
+void buckc_policy_reset(BuckcPolicy *policy)
+{
+    policy->have_history = 0;
+    policy->previous_current = 0.0;
+    policy->previous_voltage = 0.0;
+    policy->previous_duty = 0.0;
+    policy->conductance = 1.0 / policy->config->nominal_load;
+    policy->integral = 0.0;
+    policy->last_output = NAN;
+}
+
+double buckc_policy_forward(const BuckcPolicyConfig *config, const double *x)
+{
+    double a[W], b[W];
+    const double *in = x;
+    double *out = a;
+    int width = BUCKC_POLICY_INPUTS, layer, i, j;
+    for (layer = 0; layer <= config->n_hidden; ++layer) {
+        int last = layer == config->n_hidden;
+        int units = last ? 1 : config->hidden[layer];
+        for (j = 0; j < units; ++j) {
+            double s = config->biases[layer][j];
+            for (i = 0; i < width; ++i)
+                s += in[i] * config->weights[layer][i][j];
+            out[j] = last ? s : tanh(s);
+        }
+        in = out;
+        out = out == a ? b : a;
+        width = units;
+    }
+    return in[0];
+}
+
+int buckc_policy_step(BuckcPolicy *p, const BuckcMeasurement *m, double *duty)
+{
+    const BuckcPolicyConfig *c;
+    double x[BUCKC_POLICY_INPUTS], current, voltage, previous_current, previous_voltage, conductance, iref;
+    double u, error, integral, unclamped, d;
+    int pushing_high, pushing_low;
+    if (p == NULL || m == NULL || duty == NULL)
+        return BUCKC_ERR_NULL;
+    if (!isfinite(m->inductor_current))
+        return BUCKC_ERR_NO_INDUCTOR_CURRENT;
+    c = p->config;
+    current = m->inductor_current;
+    voltage = m->output_voltage;
+    conductance = buckc_estimate_conductance(voltage, m->load_current, current, p->conductance);
+    previous_current = p->have_history ? p->previous_current : current;
+    previous_voltage = p->have_history ? p->previous_voltage : voltage;
+    iref = conductance * m->reference;
+    x[0] = voltage - m->reference;
+    x[1] = current - iref;
+    x[2] = previous_voltage - m->reference;
+    x[3] = previous_current - iref;
+    x[4] = p->previous_duty;
+    x[5] = m->reference;
+    x[6] = conductance;
+    p->conductance = conductance;
+    u = buckc_policy_forward(c, x);
+    error = m->reference - voltage;
+    integral = p->integral;
+    if (fabs(error) <= c->integral_band * fabs(m->reference))
+        integral = integral + c->integral_gain * c->sample_period * error; /* (Ki Ts) e, as Python */
+    unclamped = u + integral;
+    d = unclamped;
+    if (c->duty_min > d) d = c->duty_min; /* Python's clip order, NaN kept */
+    if (c->duty_max < d) d = c->duty_max;
+    pushing_high = unclamped > c->duty_max && error > 0.0;
+    pushing_low = unclamped < c->duty_min && error < 0.0;
+    if (!(pushing_high || pushing_low))
+        p->integral = integral;
+    p->previous_current = current;
+    p->previous_voltage = voltage;
+    p->have_history = 1;
+    p->previous_duty = d;
+    p->last_output = u;
+    *duty = d;
+    return BUCKC_OK;
+}
