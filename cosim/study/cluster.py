@@ -1,0 +1,130 @@
+"""The dask cluster the study's parallel work runs on: a LocalCluster on this machine, or a running one.
+
+* :func:`dask_client` -- ``scheduler=None``: a ``LocalCluster`` on the loopback interface, one
+  worker process per core and one thread each (the FMU loops and the controllers hold the GIL, so
+  threads would not run in parallel), closed on the way out whatever happens (the worker processes
+  end with it); ``scheduler="tcp://HOST:PORT"``: a client of a cluster started with the standard
+  ``dask scheduler`` / ``dask worker`` commands, which is left running.
+* Worker processes ignore Ctrl-C (:class:`IgnoreInterrupts`): the terminal sends SIGINT to the whole
+  process group, and the workbench's own process decides what an interrupt means (cancel, close the
+  cluster, keep what is done) -- without it every worker prints a KeyboardInterrupt traceback.
+* dask's own log lines are silenced below CRITICAL (``DASK_LOGGING__DISTRIBUTED`` set in the
+  environment overrides this): the workbench reports a worker death or a failed task itself, in one
+  line, and dask would print the task's traceback even for a fault the workbench handles.
+
+A crash in a task's native code (an FMU that segfaults) kills its worker process; the nanny starts
+a new one and the scheduler runs the task again, up to ``allowed_failures`` times on a local
+cluster, then the task's future raises ``KilledWorker`` and the caller decides.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import signal
+from contextlib import contextmanager
+from typing import Iterator
+
+from distributed.diagnostics.plugin import WorkerPlugin
+
+from cosim.base.errors import ConfigError
+
+#: how long to try to reach a scheduler before refusing the address [s]
+CONNECT_TIMEOUT = 10.0
+#: a task whose worker died running it is run again this many times, then reported as killed
+ALLOWED_FAILURES = 1
+LOOPBACK = "127.0.0.1"
+_ADDRESS = re.compile(r"(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})")
+
+
+def local_cores() -> int:
+    """Cores this process may use (the default number of local workers)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_address(address: str) -> str:
+    """A scheduler address ``tcp://HOST:PORT`` (or ``tls://``), refused with one line otherwise."""
+    match = _ADDRESS.fullmatch(address.strip())
+    if not match or not 0 < int(match.group(3)) < 65536:
+        raise ConfigError(f"--scheduler {address!r} is not a dask scheduler address: expected tcp://HOST:PORT "
+                          "(what `dask scheduler` prints as 'Scheduler at:')")
+    return address.strip()
+
+
+def _log_level() -> int:
+    """dask's log level for this process and its local workers: CRITICAL unless the user set one."""
+    configured = os.environ.get("DASK_LOGGING__DISTRIBUTED", "")
+    level = logging.getLevelName(configured.upper()) if configured else logging.CRITICAL
+    return level if isinstance(level, int) else logging.WARNING
+
+
+
+
+class IgnoreInterrupts(WorkerPlugin):
+    """Worker processes leave Ctrl-C to the workbench's process (set up on every worker, restarted ones too)."""
+
+    name = "buck-cosim-ignore-interrupts"
+
+    def setup(self, worker) -> None:
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        except ValueError:  # not the main thread of the process (a threaded worker's setup)
+            pass
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, workers: int | None = None, *,
+                connect_timeout: float = CONNECT_TIMEOUT, allowed_failures: int = ALLOWED_FAILURES) -> Iterator:
+    """A dask ``Client``: of a new LocalCluster (``workers`` processes, default one per core) or of
+    the running scheduler at ``scheduler``. An unreachable scheduler is a :class:`ConfigError`
+    raised before anything is submitted. The local cluster is always closed on the way out."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    level = _log_level()
+    for name in ("distributed", "tornado"):
+        logging.getLogger(name).setLevel(level)
+    cluster = None
+    if scheduler is not None:
+        address = check_address(scheduler)
+        try:
+            client = Client(address, timeout=connect_timeout, set_as_default=False)
+        except (OSError, TimeoutError) as error:
+            reason = " ".join(str(error).split()) or type(error).__name__
+            raise ConfigError(f"cannot reach the dask scheduler at {address} within {connect_timeout:g} s ({reason}): "
+                              "start one with `dask scheduler` and workers with `dask worker "
+                              f"{address}`, or leave out --scheduler to use this machine") from None
+        try:
+            client.wait_for_workers(1, timeout=connect_timeout)
+        except (OSError, TimeoutError):
+            client.close()
+            raise ConfigError(f"the dask scheduler at {address} has no workers (waited {connect_timeout:g} s): start "
+                              f"some with `dask worker {address}`") from None
+    else:
+        workers = workers or local_cores()
+        with dask.config.set({"distributed.scheduler.allowed-failures": allowed_failures}):
+            cluster = LocalCluster(host=LOOPBACK, n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=f"{LOOPBACK}:0", silence_logs=level)
+        client = Client(cluster, set_as_default=False)
+    try:
+        client.register_plugin(IgnoreInterrupts())
+        yield client
+    finally:
+        try:
+            client.close(timeout=10)
+        finally:
+            if cluster is not None:
+                cluster.close(timeout=20)
+
+
+def cluster_text(client) -> str:
+    """``a LocalCluster of 2 workers`` / ``the cluster at tcp://host:8786 (4 workers)`` for log lines."""
+    workers = len(client.scheduler_info().get("workers", {}))
+    address = client.scheduler.address
+    if address.startswith(f"tcp://{LOOPBACK}:") and getattr(client, "cluster", None) is not None:
+        return f"a LocalCluster of {workers} worker process(es)"
+    return f"the cluster at {address} ({workers} worker(s))"
