@@ -1,11 +1,14 @@
 """A deliberately faulty plant (pythonfmu): at fault_time it fails in the way fault_kind selects.
 
 fault_kind: 0 none, 1 do_step reports failure (fmi2Discard), 2 do_step raises (fmi2Error),
-3 the output turns NaN. Until then it is a first-order stand-in: Vout follows D * Vin with a
+3 the output turns NaN, 4 the process dies (SIGKILL, as a segfault in an FMU's native code would
+kill it). Until then it is a first-order stand-in: Vout follows D * Vin with a
 0.1 ms time constant; IL = Vout / Rload.
 """
 
 import math
+import os
+import signal
 
 from pythonfmu import Fmi2Causality, Fmi2Slave, Fmi2Variability, Integer, Real
 
@@ -39,6 +42,8 @@ class FaultyBuck(Fmi2Slave):
             if self.fault_kind == 3:
                 self.Vout = math.nan
                 return True
+            if self.fault_kind == 4:
+                os.kill(os.getpid(), signal.SIGKILL)
         target = 48.0 * self.duty
         self.Vout = target + (self.Vout - target) * math.exp(-step_size / 1e-4)
         self.IL = self.Vout / self.Rload
