@@ -78,10 +78,16 @@ class IgnoreInterrupts(WorkerPlugin):
 
 @contextmanager
 def dask_client(scheduler: str | None = None, workers: int | None = None, *,
-                connect_timeout: float = CONNECT_TIMEOUT, allowed_failures: int = ALLOWED_FAILURES) -> Iterator:
+                connect_timeout: float = CONNECT_TIMEOUT, allowed_failures: int = ALLOWED_FAILURES,
+                worker_saturation: float | None = None) -> Iterator:
     """A dask ``Client``: of a new LocalCluster (``workers`` processes, default one per core) or of
     the running scheduler at ``scheduler``. An unreachable scheduler is a :class:`ConfigError`
-    raised before anything is submitted. The local cluster is always closed on the way out."""
+    raised before anything is submitted. The local cluster is always closed on the way out.
+
+    ``worker_saturation`` (local cluster): tasks in flight per worker thread; 1.0 keeps every task
+    not yet running in the scheduler's queue, in priority order -- right for a few long tasks of
+    very different lengths (the reproduction's pipelines); dask's default (1.1, so one task waits on
+    each worker) suits many short ones (a sweep's batches)."""
     import dask
     from distributed import Client, LocalCluster
 
@@ -106,19 +112,41 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
                               f"some with `dask worker {address}`") from None
     else:
         workers = workers or local_cores()
-        with dask.config.set({"distributed.scheduler.allowed-failures": allowed_failures}):
+        settings = {"distributed.scheduler.allowed-failures": allowed_failures}
+        if worker_saturation is not None:
+            settings["distributed.scheduler.worker-saturation"] = worker_saturation
+        with dask.config.set(settings):
             cluster = LocalCluster(host=LOOPBACK, n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=f"{LOOPBACK}:0", silence_logs=level)
         client = Client(cluster, set_as_default=False)
+    stopping = False
     try:
         client.register_plugin(IgnoreInterrupts())
         yield client
+    except BaseException:
+        stopping = True  # a fault or an interrupt: the local workers end now, not after their tasks
+        raise
     finally:
         try:
             client.close(timeout=10)
         finally:
             if cluster is not None:
+                if stopping:
+                    cluster.sync(_kill_workers, cluster, KILL_TIMEOUT)
                 cluster.close(timeout=20)
+
+
+#: on a fault or an interrupt, a local worker gets this long [s] to stop before it is killed
+KILL_TIMEOUT = 0.5
+
+
+async def _kill_workers(cluster, timeout: float) -> None:
+    """``Nanny.kill`` every local worker with a short timeout: a closing cluster otherwise waits
+    seconds for each running task (an FMU loop does not stop for a close request)."""
+    import asyncio
+
+    await asyncio.gather(*(worker.kill(timeout=timeout) for worker in list(cluster.workers.values())),
+                         return_exceptions=True)
 
 
 def cluster_text(client) -> str:
