@@ -17,6 +17,7 @@ from cosim.results import package_versions
 from cosim.study.experiments import horizon_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import markdown_table, ratio_table, seed_study, value
+from cosim.study.sweeps.summary import report_section
 from cosim.study.targets import Targets
 from cosim.study.vocabulary import (
     DITHER_FAST,
@@ -32,6 +33,7 @@ from cosim.study.vocabulary import (
     PAPER_PERIOD,
     PI,
     SWITCHING_PERIOD,
+    TOLERANCE_STUDY_DIR,
     horizon_variant,
 )
 from plant_fmu.table_ii import TABLE_II
@@ -47,8 +49,9 @@ def lc_physics(resistance: float = TABLE_II.load_resistance) -> dict[str, float]
             "settling_ms": 4 / (zeta * wn) * 1e3}
 
 
-def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed: int) -> Path:
-    """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics.
+def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed: int, tolerance=None) -> Path:
+    """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics
+    (``tolerance``: the tolerance study's :class:`~cosim.study.sweeps.summary.SweepSummary`).
     Nothing in either depends on the wall clock (that is :func:`cosim.study.timings.write_timings`'s)."""
     pipelines = [o.pipeline.tag for o in outputs]
     targets = Targets(metrics, pipelines)
@@ -109,6 +112,8 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
                 lines.append(f"![{scenario}, {tag}](figures/{scenario}__{o.pipeline.plant_tag}__{rate}.png)")
             lines.append("")
     lines += ["## Ablations", ""] + _ablations(metrics) + [""]
+    if tolerance is not None:
+        lines += report_section(tolerance, TOLERANCE_STUDY_DIR) + [""]
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",
               "make bench            # the benchmark table (results/benchmarks.md)", "```", "",

@@ -11,25 +11,24 @@ rate (1 ms, one switching period). Each pipeline, all seeded:
    on the nominal plant, the mismatch plant's parameters);
 5. writes runs, metrics and figures as it goes.
 
-Pipelines are independent and run in parallel worker processes; files are written atomically,
-so an interrupted reproduction keeps what finished, and ``--resume`` skips finished pipelines.
+Pipelines are independent and run as dask tasks on a LocalCluster (:mod:`cosim.study.cluster`,
+one single-threaded worker process each); files are written atomically, so an interrupted
+reproduction keeps what finished, and ``--resume`` skips finished pipelines. Once the nominal
+switched 1 ms pipeline has finished, the tolerance study (:mod:`cosim.study.tolerance_study`) runs
+its controllers on production units through the sweep engine, on the same cluster.
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
-import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import pandas as pd
 
-from cosim.base.errors import PlantError
+from cosim.base.errors import PlantError, WorkbenchError
 from cosim.base.files import atomic_write_text, remove_temporary_files
 from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
@@ -39,6 +38,7 @@ from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import (collection_settings, implemented, model_mpc, nn_configs, nnpc, plant_binding,
                                     scenarios_for)
 from cosim.study.pi_tuning import load_or_tune
+from cosim.study import tolerance_study
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
@@ -74,10 +74,11 @@ class Profile:
     # with these seed offsets (data and training), to show how much the NNPC depends on its data
     quick: bool = False
     pipelines: tuple[str, ...] | None = None  # tags to run (default: all)
+    tolerance_samples: int | None = None  # units of the tolerance study (default: its sweep file's)
 
 
 FULL = Profile()
-QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True, seed_study=(1,),
+QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True, seed_study=(1,), tolerance_samples=3,
                 pipelines=("nominal-averaged__1ms", "nominal-switched__1ms", "mismatch-switched__1ms",
                            "nominal-switched__13p33us"))
 
@@ -226,26 +227,36 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     return output
 
 
-def _worker_signals() -> None:
-    """Workers leave Ctrl-C to the main process and die quietly when it terminates them."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+@dataclass
+class _Failed:
+    """A pipeline's fault, returned (not raised) by its task: the workbench reports it in one line,
+    where a raised exception would have dask print the task's traceback first."""
+
+    error: WorkbenchError
 
 
-def _run_job(job) -> PipelineOutput:
-    return run_pipeline(*job)
+def _run_job(job) -> PipelineOutput | _Failed:
+    try:
+        return run_pipeline(*job)
+    except WorkbenchError as error:
+        return _Failed(error)
 
 
-def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
-    """Terminate the pool's workers at once and delete what their unfinished writes left behind."""
-    processes = list((getattr(executor, "_processes", None) or {}).values())
-    executor.shutdown(wait=False, cancel_futures=True)
-    for process in processes:
-        if process.is_alive():
-            process.terminate()
-    for process in processes:
-        process.join(timeout=10)
-    remove_temporary_files(out_dir)
+def _pipeline_output(future, tag: str, out_dir: Path) -> PipelineOutput:
+    """A finished pipeline task's output; its fault, or its worker's death, raised here."""
+    from distributed.scheduler import KilledWorker
+
+    if future.status != "finished":
+        error = future.exception()
+        if isinstance(error, KilledWorker):
+            raise PlantError(f"a reproduction worker process died twice running pipeline {tag} (a plant FMU "
+                             f"crashed it?); pipelines that finished are in {out_dir}/pipelines -- rerun with "
+                             "--resume to continue") from None
+        raise error
+    output = future.result()
+    if isinstance(output, _Failed):
+        raise output.error
+    return output
 
 
 def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
@@ -263,6 +274,87 @@ def _load_finished(out_dir: Path, pipeline: Pipeline) -> PipelineOutput | None:
     timings_file = summary.with_name(f"{pipeline.tag}.timings.json")
     timings = json.loads(timings_file.read_text(encoding="utf-8")) if timings_file.is_file() else {}
     return PipelineOutput(pipeline=pipeline, metrics=table, pi=data["pi"], models=data["models"], timings=timings)
+
+
+#: dask priorities (higher first): the tolerance study's source pipeline, then the pipelines longest
+#: first (so the workers finish together), the study's tasks whenever no pipeline waits for a worker
+SOURCE_PRIORITY, STUDY_PRIORITY = 100, -10
+
+
+def _run_on_cluster(todo: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile, seed: int,
+                    implementation: str, workers: int, resume: bool, study_wanted: bool):
+    """The pipelines as dask tasks on a LocalCluster (longest first, so the workers finish together),
+    and the tolerance study's tasks as soon as its source pipeline is done; returns the study and its
+    execution counts (or None, None).
+    On a fault or an interrupt the cluster is closed at once (its worker processes end with it)."""
+    from distributed import as_completed
+
+    from cosim.study.cluster import dask_client
+
+    with dask_client(workers=max(1, workers), worker_saturation=1.0) as client:
+        futures, submitted = {}, []
+        # submitted in the order they should start (idle workers take the first ones at once; the
+        # rest wait in the scheduler's queue by priority)
+        order = sorted(todo, key=lambda p: (p.tag != tolerance_study.SOURCE_PIPELINE, _expected_length(p)))
+        for rank, p in enumerate(order):
+            priority = SOURCE_PRIORITY if p.tag == tolerance_study.SOURCE_PIPELINE else len(todo) - rank
+            future = client.submit(_run_job, (p, out_dir, profile, seed, implementation), pure=False,
+                                   key=f"buck-cosim-pipeline-{p.tag}", priority=priority)
+            futures[future.key] = p
+            submitted.append(future)
+        queue = as_completed(submitted, loop=client.loop)
+        study, execution = None, None
+
+        def start_study():
+            nonlocal study, execution
+            study = tolerance_study.start(out_dir, resume, profile.tolerance_samples)
+            execution = study.execution()
+            log(f"  {study.describe_start('the same cluster')}")
+            for future in execution.submit(client, priority=STUDY_PRIORITY):
+                queue.add(future)
+
+        if study_wanted and tolerance_study.ready(p.tag for p in outputs):
+            start_study()
+        try:
+            done = 0
+            for future in queue:
+                if execution is not None and execution.owns(future):
+                    for new in execution.handle(future):
+                        queue.add(new)
+                    continue
+                pipeline = futures.pop(future.key)
+                output = _pipeline_output(future, pipeline.tag, out_dir)
+                outputs[pipeline] = output
+                done += 1
+                log(f"[{done}/{len(todo)}] {pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
+                if study_wanted and study is None and tolerance_study.ready(p.tag for p in outputs):
+                    start_study()
+        except BaseException:
+            if execution is not None:
+                execution.cancel()
+            raise
+        if execution is None:
+            return None, None
+        execution.close()
+        log(f"  tolerance study: {execution.counts.runs} run(s) written ({execution.counts.failed} failed)")
+        return study, execution.counts
+
+
+def _expected_length(pipeline: Pipeline) -> tuple:
+    """Sort key, longest first: the fast rate, and there the nominal switched plant (the switched
+    oracle and its ablations)."""
+    return (pipeline.control_period, not (pipeline.variant == "nominal" and pipeline.mode == "switched"))
+
+
+def _study_timing(study, counts) -> dict | None:
+    """The tolerance study's wall-clock figures for timings.md: its runs' worker time, and when its
+    last part landed (its tasks share the cluster with the pipelines, so neither is its added cost)."""
+    if study is None:
+        return None
+    from cosim.study.sweeps.dataset import read_timing
+
+    worker_time = float(read_timing(study.out_dir)["wall_time_s"].astype(float).sum())
+    return {"runs": counts.runs if counts else 0, "worker_s": worker_time, "last_part_s": counts.elapsed if counts else 0.0}
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
@@ -303,37 +395,21 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
             todo.append(pipeline)
     log(f"reproduction: {len(todo)} pipeline(s) on {workers} worker(s) -> {out_dir}/"
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
-    if workers <= 1:
-        for done, p in enumerate(todo, start=1):
-            outputs[p] = run_pipeline(p, out_dir, profile, seed, implementation)
-            log(f"[{done}/{len(todo)}] {p.tag} finished in {sum(outputs[p].timings.values()):.1f} s")
-    elif todo:
-        # longest first (the fast-rate pipelines), so the workers finish together
-        jobs = [(p, out_dir, profile, seed, implementation) for p in sorted(todo, key=lambda p: p.control_period)]
-        # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
-        # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
-        executor = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("fork"),
-                                       initializer=_worker_signals)
+    study_wanted = not binding_file and tolerance_study.SOURCE_PIPELINE in {p.tag for p in selected}
+    study = study_counts = None
+    if todo or study_wanted:
         try:
-            futures = [executor.submit(_run_job, job) for job in jobs]
-            for done, future in enumerate(as_completed(futures), start=1):
-                output = future.result()
-                outputs[output.pipeline] = output
-                log(f"[{done}/{len(todo)}] {output.pipeline.tag} finished in {sum(output.timings.values()):.1f} s")
-        except BrokenProcessPool:
-            _stop_workers(executor, out_dir)
-            raise PlantError("a reproduction worker process died (a plant FMU crashed it?); pipelines that "
-                                 f"finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
-        except BaseException:
-            _stop_workers(executor, out_dir)  # stop unfinished pipelines now; finished ones are on disk
-            raise
-        executor.shutdown()
+            study, study_counts = _run_on_cluster(todo, outputs, out_dir, profile, seed, implementation, workers,
+                                                  resume, study_wanted)
+        finally:
+            remove_temporary_files(out_dir)  # what unfinished writes left, once the workers are gone
     ordered = [outputs[p] for p in selected]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
+    tolerance = study.summarise() if study is not None else None
     elapsed = time.perf_counter() - started
-    report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed)
-    write_timings(out_dir, ordered, metrics, elapsed, workers)
+    report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed, tolerance=tolerance)
+    write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts))
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 

@@ -36,7 +36,8 @@ def _json(settings: dict) -> str:
 def _design_pi(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
                progress: bool) -> ControllerRecipe:
     if entry.kp is not None:
-        settings = {"kp_per_V": entry.kp, "ki_per_V_s": entry.ki, "tuning": {"method": "given in the sweep file"}}
+        settings = {"kp_per_V": entry.kp, "ki_per_V_s": entry.ki,
+                    "tuning": {"method": entry.origin or "given in the sweep file"}}
     else:
         from cosim.study.controller_factory import tuned_pi
 
@@ -59,7 +60,7 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
             model = load_model(entry.model, expect_period=period, expect_config=config)
         except ModelFileError as error:
             raise ConfigError(f"{entry.place}: {error}") from None
-        path, origin = Path(entry.model), f"model file {entry.model}"
+        path, origin = Path(entry.model), entry.origin or f"model file {Path(entry.model).name}"
     else:
         if not binding.has("inductor_current"):
             raise ConfigError(f"{entry.place}: {entry.kind} needs the inductor_current role, which {binding.origin} "

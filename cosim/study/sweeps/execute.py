@@ -47,7 +47,7 @@ class SweepExecution:
         self.counts = ExecutionCounts()
         self._pending: dict[str, BatchTask] = {}  # future key -> task
         self._futures: dict[str, object] = {}
-        self._client = None
+        self._client, self._priority = None, 0
         self._started = None
         self._bar = None
         if progress and tasks:
@@ -60,9 +60,9 @@ class SweepExecution:
     def pending(self) -> int:
         return len(self._pending)
 
-    def submit(self, client) -> list:
-        """Every task to ``client``; the futures to wait on."""
-        self._client = client
+    def submit(self, client, priority: int = 0) -> list:
+        """Every task to ``client`` (dask ``priority``: higher runs first); the futures to wait on."""
+        self._client, self._priority = client, priority
         self._started = time.perf_counter()
         return [self._submit(task) for task in self.tasks]
 
@@ -70,7 +70,7 @@ class SweepExecution:
         key = f"buck-cosim-sweep-{task.key}"
         future = self._client.submit(run_batch, self.plant, self.controllers[task.controller],
                                      self.scenarios[task.scenario], task.runs, self.settings, key=key, pure=False,
-                                     retries=0)
+                                     retries=0, priority=self._priority)
         self._pending[future.key] = task
         self._futures[future.key] = future
         return future

@@ -22,10 +22,12 @@ from cosim.fmi.binding import PlantBinding, RoleMap
 
 
 def digest(*parts: bytes | str) -> str:
+    """SHA-256 (hex) of the parts; of one part, the plain SHA-256 of its bytes (what ``sha256sum`` prints)."""
     h = hashlib.sha256()
-    for part in parts:
+    for i, part in enumerate(parts):
+        if i:
+            h.update(b"\0")  # a separator, so ("ab", "c") and ("a", "bc") differ
         h.update(part.encode() if isinstance(part, str) else part)
-        h.update(b"\0")
     return h.hexdigest()
 
 

@@ -172,6 +172,7 @@ class ControllerEntry:
     samples: int = 10_000  # identification samples (nnpc)
     seed: int = 0  # identification seed (nnpc)
     place: str = ""
+    origin: str = ""  # how given gains or a given model were made, for the summary (set by code, not the file)
 
     def describe(self) -> dict:
         return {"kind": self.kind, "name": self.name, "kp": self.kp, "ki": self.ki,

@@ -68,6 +68,11 @@ def spec_mask(rows: pd.DataFrame, thresholds) -> pd.Series:
     return mask.astype(bool)
 
 
+def _md(text: str) -> str:
+    """Text for a Markdown table cell (a ``|`` would end the cell)."""
+    return text.replace("|", "\\|")
+
+
 def threshold_label(threshold: Threshold) -> str:
     """``overshoot <= 5 %``, ``|steady-state error| <= 0.5 %`` for figures."""
     name = HEADLINE.get(threshold.metric, threshold.metric).split(" [")[0]
@@ -99,6 +104,10 @@ class SweepSummary:
     figures: dict[str, str] = field(default_factory=dict)  # name -> path relative to out_dir
     thresholds: tuple[Threshold, ...] = ()
     influence: pd.DataFrame | None = None
+    units: int = 0  # grid points x samples
+    axes: list[str] = field(default_factory=list)  # "parameters.inductance: uniform, nominal x [0.8, 1.2]"
+    control_period: float = 0.0  # [s]
+    seed: int = 0
 
 
 class _Summary:
@@ -194,8 +203,8 @@ class _Summary:
                     record[axis] = worst[axis]
                 for metric in WORST_METRICS:
                     record[metric] = worst[metric]
-                record["violates"] = ", ".join(t.text() for t in self.spec.thresholds
-                                               if not meets(group.loc[[worst.name]], t).iloc[0]) or "none"
+                record["violates"] = _md(", ".join(t.text() for t in self.spec.thresholds
+                                                   if not meets(group.loc[[worst.name]], t).iloc[0]) or "none")
                 records.append(record)
         return pd.DataFrame(records)
 
@@ -323,7 +332,7 @@ class _Summary:
                  f"{ok} complete, {failed} failed. One row per run in [`{DATASET_DIR}/`]({DATASET_DIR}/) (wall-clock "
                  f"figures apart, in `{TIMING_DIR}/` and `timings.json`).", "",
                  "## What was swept", "",
-                 f"- **Plant**: {plan.binding.label} ({plan.binding.origin}); control period "
+                 f"- **Plant**: {plan.binding.label} ({_origin(plan.binding)}); control period "
                  f"{period_text(spec.control_period)}, recording every {spec.record_period * 1e6:g} us; "
                  f"controllers as {'C twins' if spec.implementation == 'c' else 'Python references'}.",
                  "- **Scenarios**: " + "; ".join(f"`{s.name}` ({s.description})" for s in spec.scenarios) + ".",
@@ -366,7 +375,7 @@ class _Summary:
             columns = ["controller", "scenario", "runs", "meet_spec", "yield_pct", "ci95_low_pct", "ci95_high_pct",
                        *[f"pass_{t.metric}_pct" for t in spec.thresholds], "failed_runs"]
             headers = ["controller", "scenario", "runs", "meet spec", "yield [%]", "CI low [%]", "CI high [%]",
-                       *[f"{t.text()} [%]" for t in spec.thresholds], "failed"]
+                       *[_md(f"{t.text()} [%]") for t in spec.thresholds], "failed"]
             lines += markdown_table(yield_table, columns, headers, digits=3)
             if "yield" in figures:
                 lines += ["", f"![yield]({figures['yield']})"]
@@ -415,7 +424,8 @@ class _Summary:
         if len(failed_rows):
             lines += [f"{len(failed_rows)} run(s) failed; each is a row with status `failed` and its cause in `error`"
                       + (" (the first 20 below)." if len(failed_rows) > 20 else "."), ""]
-            lines += markdown_table(failed_rows.head(20), ["controller", "scenario", "run_id", "error"])
+            shown = failed_rows.head(20).assign(error=lambda f: f["error"].map(lambda e: _md(str(e))))
+            lines += markdown_table(shown, ["controller", "scenario", "run_id", "error"])
         else:
             lines.append("None.")
         lines += ["", "## Reading the dataset", "", "```python", "import pyarrow.dataset as ds",
@@ -423,6 +433,13 @@ class _Summary:
                   "# one row per run: run_id, point, sample, the swept values, status, error, metrics;",
                   "# controller and scenario come from the folder names", "```"]
         return "\n".join(lines) + "\n"
+
+
+def _origin(binding) -> str:
+    """The plant by its file's name (not a path, so the summary reads the same on every machine)."""
+    if binding.source is not None:
+        return f"binding file {Path(binding.source).name}"
+    return f"FMU {Path(binding.fmu_path).name}"
 
 
 def summarise(spec: SweepSpec, plan, recipes, rows: pd.DataFrame, out_dir: Path, sweep_id: str) -> SweepSummary:
@@ -439,4 +456,39 @@ def summarise(spec: SweepSpec, plan, recipes, rows: pd.DataFrame, out_dir: Path,
     atomic_write_text(out_dir / "SWEEP.md", summary.markdown(figures, yield_table, distributions, influence, worst))
     statuses = rows["status"].value_counts() if len(rows) else pd.Series(dtype=int)
     counts = {"runs": len(rows), "ok": int(statuses.get(OK, 0)), "failed": int(statuses.get(FAILED, 0))}
-    return SweepSummary(out_dir, yield_table, counts, figures, spec.thresholds, influence)
+    axes = [f"{i.axis.name}: {i.axis.describe(i.unit)}" for i in plan.axes]
+    return SweepSummary(out_dir, yield_table, counts, figures, spec.thresholds, influence,
+                        spec.grid_points * spec.samples, axes, spec.control_period, spec.seed)
+
+
+def report_section(summary: SweepSummary, folder: str) -> list[str]:
+    """The report's section on a tolerance study: what it swept, its yield table and figures, and
+    which threshold decides each controller's yield (links relative to the report, in ``folder``)."""
+    lines = ["## Tolerance study", "",
+             f"The 1 ms controllers of the nominal switched pipeline, unchanged, on {summary.units} production "
+             f"units of the switched converter (seed {summary.seed}): " + "; ".join(summary.axes) + ". "
+             f"{summary.counts['ok']} of {summary.counts['runs']} runs complete. Spec: "
+             + "; ".join(threshold_label(t) for t in summary.thresholds)
+             + f". Distributions, the most influential parameter and the worst units: [SWEEP.md]({folder}/SWEEP.md).",
+             ""]
+    table = summary.yield_table
+    if not len(table):
+        return lines
+    shown = table.assign(ci=[f"{lo:.0f} ... {hi:.0f}" for lo, hi in zip(table["ci95_low_pct"], table["ci95_high_pct"])])
+    pass_columns = [f"pass_{t.metric}_pct" for t in summary.thresholds]
+    lines += markdown_table(shown, ["controller", "scenario", "runs", "yield_pct", "ci", *pass_columns],
+                            ["controller", "scenario", "units", "yield [%]", "95 % CI [%]",
+                             *[_md(f"{threshold_label(t)} [%]") for t in summary.thresholds]], digits=3)
+    lines.append("")
+    deciding = []
+    for controller, group in table[table["scenario"] == ALL_SCENARIOS].groupby("controller", sort=False):
+        row = group.iloc[0]
+        worst = min(summary.thresholds, key=lambda t: row[f"pass_{t.metric}_pct"])
+        deciding.append(f"{controller}: {row['yield_pct']:.0f} % of the units meet the spec in every scenario; the "
+                        f"limiting threshold is {threshold_label(worst)} ({row[f'pass_{worst.metric}_pct']:.0f} % "
+                        "pass it)")
+    lines += ["- " + line + "." for line in deciding]
+    for name in ("yield", *[k for k in summary.figures if k.startswith("distributions__")]):
+        if name in summary.figures:
+            lines += ["", f"![{name.replace('__', ', ')}]({folder}/{summary.figures[name]})"]
+    return lines

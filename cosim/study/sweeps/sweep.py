@@ -117,7 +117,7 @@ class PreparedSweep:
     def write_manifest(self) -> None:
         spec = self.spec
         manifest = {"format": MANIFEST_FORMAT, "sweep_id": self.sweep_id, "name": spec.name,
-                    "description": spec.description, "sweep_file": str(spec.path) if spec.path else None,
+                    "description": spec.description, "sweep_file": spec.path.name if spec.path else None,
                     "identity": self.plan.identity(), "controllers": describe(self.recipes),
                     "runs": len(self.runs), "thresholds": [t.text() for t in spec.thresholds]}
         dataset.write_manifest(self.out_dir, json.loads(json.dumps(manifest, default=str)))
