@@ -87,7 +87,10 @@ class SweepExecution:
         if future.status == "finished":
             self._write(task, future.result())
             return []
-        error = future.exception()
+        try:
+            error = future.exception()
+        except Exception as cancelled:  # a future the scheduler cancelled has no exception to give
+            error = cancelled
         if isinstance(error, KilledWorker) and len(task.runs) > 1:  # find the run that kills: one task per run
             return [self._submit(BatchTask(batch_key((run,)), task.controller, task.scenario, (run,)))
                     for run in task.runs]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 from cosim.fmi.binding import PlantBinding, RoleMap
@@ -59,7 +60,7 @@ class PlantRecipe:
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
                    label=binding.label, tag=binding.tag)
 
-    @property
+    @cached_property
     def fmu_digest(self) -> str:
         return digest(self.fmu_bytes)
 
@@ -95,7 +96,7 @@ class ControllerRecipe:
     def settings(self) -> dict:
         return json.loads(self.settings_json)
 
-    @property
+    @cached_property
     def digest(self) -> str:
         return digest(self.kind, self.name, repr(self.control_period), self.settings_json, self.blob or b"")
 
