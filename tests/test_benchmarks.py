@@ -18,7 +18,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms",
                 "controller compute per step, MPC-mismatched, 13.33 us", "data collection, 500 samples",
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
-                "NNPC IAE / oracle-MPC IAE, startup"):
+                "NNPC IAE / oracle-MPC IAE, startup", "sweep throughput on a LocalCluster of 2 workers",
+                "sweep overhead per run"):
         assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
     assert table["machine"].iloc[0].endswith("cores)")
