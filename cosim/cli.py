@@ -441,7 +441,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "MPC baselines, and write data, models, runs, metrics, figures and "
                                    "REPORT.md under OUT.")
     p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
-    p.add_argument("--workers", type=int, default=2, help="parallel worker processes (default: 2)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="worker processes of the local dask cluster the pipelines run on (default: 2)")
     p.add_argument("--resume", action="store_true",
                    help="keep pipelines an interrupted reproduction finished, and their tuned gains")
     p.add_argument("--quick", action="store_true",
@@ -462,8 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "dataset (one row per run: values, status, metrics) under DIR/dataset, the "
                                    "summary DIR/SWEEP.md (yield against the file's [spec], distributions, most "
                                    "influential parameter, worst case) with figures, and DIR/timings.json (wall "
-                                   "clock). Exit 3 if some runs failed (each is a row saying why), 130 if "
-                                   "interrupted (--resume finishes).")
+                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz (README, "
+                                   "'Sweeps and Monte Carlo'). Exit 2 on a mistake, before any work; 3 if some "
+                                   "runs failed (each is a row saying why); 130 if interrupted (--resume finishes).")
     p.add_argument("spec", metavar="SPEC.toml", help="sweep file, or the name of a shipped study (e.g. tolerance)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder for the dataset and the summary")
     p.add_argument("--scheduler", metavar="ADDRESS",

@@ -282,6 +282,26 @@ def test_operating_point_axes_move_the_scenario_and_run_ids_hash_the_whole_run(t
     assert all(len({(r.controller, r.scenario) for r in t.runs}) == 1 for t in tasks)
 
 
+@pytest.mark.parametrize("name,runs", [("tolerance", 8000), ("tolerance-reproduction", 600), ("tolerance-fast", 1200)])
+def test_the_shipped_studies_are_valid_against_the_built_in_plant(name, runs):
+    from cosim.study.sweeps.spec import shipped_studies
+
+    assert name in shipped_studies()
+    spec = load_sweep(name)  # by name, like shipped scenarios
+    plan = SweepPlan(spec)  # every axis against the FMU, every draw within its bounds
+    assert spec.run_count == runs and spec.thresholds and plan.binding.tag == "nominal-switched"
+
+
+def test_the_sweep_help_states_units_and_exit_codes(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["sweep", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert done.value.code == 0
+    for phrase in ("--scheduler-timeout SECONDS", "tcp://HOST:PORT", "one per core", "SI: s, V, A, Ohm, H, F, Hz",
+                   "Exit 2 on a mistake, before any work; 3 if some runs failed", "130 if interrupted"):
+        assert phrase in text, phrase
+
+
 def test_wilson_interval_and_the_spec_mask():
     assert wilson_interval(0, 12) == (0.0, pytest.approx(0.2425, abs=1e-4))
     low, high = wilson_interval(10, 20)
