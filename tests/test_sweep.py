@@ -419,7 +419,11 @@ def _alive(pid: int) -> bool:
     return Path(f"/proc/{pid}").exists() and "Z" not in (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1][:3])
 
 
-def test_sigterm_shuts_the_cluster_down_and_resume_finishes_without_recomputing(tmp_path, nn_model, cluster):
+@pytest.mark.parametrize("interrupt", ["SIGTERM to the process", "Ctrl-C: SIGINT to the process group"])
+def test_an_interrupt_shuts_the_cluster_down_and_resume_finishes_without_recomputing(tmp_path, cluster, interrupt):
+    """SIGTERM (a batch system) or Ctrl-C (the terminal signals every process of the group, the
+    workers too): exit 130 in one line, no worker outlives the sweep, only complete parts; --resume
+    runs exactly the rest and writes nothing that was done."""
     local, _ = cluster
     scenario = tmp_path / "long_startup.toml"
     scenario.write_text('name = "long_startup"\nduration = 0.1\n[initial]\nreference = 12.0\n')
@@ -436,15 +440,20 @@ def test_sigterm_shuts_the_cluster_down_and_resume_finishes_without_recomputing(
         inductance = {{ tolerance = 0.2 }}
         """)
     out = tmp_path / "out"
+    group = interrupt.startswith("Ctrl-C")
     process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
                                 str(out), "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               stdin=subprocess.DEVNULL)
+                               stdin=subprocess.DEVNULL, start_new_session=group,
+                               preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if group else None)
     deadline = time.time() + 120
     while not list((out / "dataset").rglob("part-*.parquet")) and time.time() < deadline:
         time.sleep(0.05)
     workers = _descendants(process.pid)
     assert process.poll() is None and len(workers) >= 2, "the sweep ended before the interrupt"
-    process.send_signal(signal.SIGTERM)
+    if group:
+        os.killpg(process.pid, signal.SIGINT)
+    else:
+        process.send_signal(signal.SIGTERM)
     _, err = process.communicate(timeout=60)
     assert process.returncode == 130, err
     lines = [line for line in err.splitlines() if line.strip()]
