@@ -406,7 +406,8 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     ordered = [outputs[p] for p in selected]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
-    tolerance = study.summarise() if study is not None else None
+    # PNG only: the report links PNGs, and results/ commits no SVG
+    tolerance = study.summarise(vector=False) if study is not None else None
     elapsed = time.perf_counter() - started
     report = write_report(out_dir, ordered, metrics, profile=profile, seed=seed, tolerance=tolerance)
     write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts))

@@ -78,11 +78,14 @@ def write_trace(out_dir: Path, run_id: str, frame: pd.DataFrame, metadata: dict)
     return write_parquet(frame, metadata, Path(out_dir) / TRACES_DIR / f"{run_id}.parquet")
 
 
-def read_rows(out_dir: Path) -> pd.DataFrame:
-    """Every row written so far (controller and scenario as columns), one per run id."""
+def read_rows(out_dir: Path, schema: pa.Schema | None = None) -> pd.DataFrame:
+    """Every row written so far (controller and scenario as columns), one per run id; without any,
+    an empty frame with ``schema``'s columns."""
     root = Path(out_dir) / DATASET_DIR
     if not root.is_dir() or not any(root.rglob("part-*.parquet")):
-        return pd.DataFrame(columns=["run_id", "controller", "scenario", "status"])
+        if schema is None:
+            return pd.DataFrame(columns=["run_id", "status", "controller", "scenario"])
+        return pa.schema([*schema, *PARTITIONS]).empty_table().to_pandas()
     dataset = ds.dataset(root, format="parquet", partitioning=ds.partitioning(PARTITIONS, flavor="hive"))
     frame = dataset.to_table().to_pandas()
     return frame.drop_duplicates("run_id", keep="first").reset_index(drop=True)

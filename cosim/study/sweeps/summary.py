@@ -226,8 +226,16 @@ class _Summary:
         color, _ = CONTROLLER_STYLES.get(controller, (f"C{index % 10}", "-"))
         return color
 
-    def figures(self) -> dict[str, str]:
+    def figures(self, vector: bool = True) -> dict[str, str]:
         from cosim.plots import plt, save_figure
+
+        def save(fig, stem: Path) -> None:
+            if vector:
+                save_figure(fig, stem)  # PNG + SVG
+            else:
+                atomic_write(stem.with_suffix(".png"), lambda tmp: fig.savefig(tmp, format="png", dpi=110,
+                                                                              metadata={"Software": None}))
+                plt.close(fig)
 
         folder = self.out_dir / "figures"
         made = {}
@@ -259,7 +267,7 @@ class _Summary:
                 ax.grid(True, axis="y", alpha=0.3)
             fig.suptitle(f"{self.spec.name}: {scenario} at {period}, {self._units()} units per controller "
                          "(box: quartiles; whiskers: 1.5 IQR)", fontsize=10)
-            save_figure(fig, folder / f"distributions__{scenario}")
+            save(fig, folder / f"distributions__{scenario}")
             made[f"distributions__{scenario}"] = f"figures/distributions__{scenario}.png"
 
             if self.axis_names:
@@ -286,7 +294,7 @@ class _Summary:
                     ax.legend(loc="best", fontsize=7)
                 fig.suptitle(f"{self.spec.name}: {scenario}, each metric against its most influential parameter "
                              "(largest |Spearman rho|)", fontsize=10)
-                save_figure(fig, folder / f"influence__{scenario}")
+                save(fig, folder / f"influence__{scenario}")
                 made[f"influence__{scenario}"] = f"figures/influence__{scenario}.png"
 
         table = self.yield_table()
@@ -313,7 +321,7 @@ class _Summary:
                          f"spec: {'; '.join(threshold_label(t) for t in self.spec.thresholds)}", fontsize=9)
             ax.grid(True, axis="y", alpha=0.3)
             ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
-            save_figure(fig, folder / "yield")
+            save(fig, folder / "yield")
             made["yield"] = "figures/yield.png"
         return made
 
@@ -442,15 +450,17 @@ def _origin(binding) -> str:
     return f"FMU {Path(binding.fmu_path).name}"
 
 
-def summarise(spec: SweepSpec, plan, recipes, rows: pd.DataFrame, out_dir: Path, sweep_id: str) -> SweepSummary:
-    """Write ``SWEEP.md``, ``yield.csv`` and the figures from the planned runs' rows."""
+def summarise(spec: SweepSpec, plan, recipes, rows: pd.DataFrame, out_dir: Path, sweep_id: str,
+              vector: bool = True) -> SweepSummary:
+    """Write ``SWEEP.md``, ``yield.csv`` and the figures (PNG, and SVG if ``vector``) from the
+    planned runs' rows."""
     out_dir = Path(out_dir)
     summary = _Summary(spec, plan, recipes, rows, out_dir, sweep_id)
     yield_table = summary.yield_table()
     distributions = summary.distribution_table()
     influence = summary.influence_table()
     worst = summary.worst_cases()
-    figures = summary.figures() if len(rows) else {}
+    figures = summary.figures(vector) if len(rows) else {}
     if len(yield_table):
         atomic_write(out_dir / "yield.csv", lambda tmp: yield_table.to_csv(tmp, index=False))
     atomic_write_text(out_dir / "SWEEP.md", summary.markdown(figures, yield_table, distributions, influence, worst))

@@ -135,13 +135,15 @@ class PreparedSweep:
         return (f"sweep {s.name} ({self.sweep_id}): {len(self.runs)} runs = {shape}{earlier}; running "
                 f"{len(self.todo)} in {len(self.tasks)} task(s) on {where} -> {self.out_dir}/")
 
-    def summarise(self) -> SweepSummary:
-        rows = dataset.read_rows(self.out_dir)
+    def summarise(self, vector: bool = True) -> SweepSummary:
+        """SWEEP.md and the figures from the rows of the planned runs (``vector``: SVG besides PNG)."""
+        rows = dataset.read_rows(self.out_dir, self.schema)
         planned = {r.run_id for r in self.runs}
         rows = rows[rows["run_id"].isin(planned)]
         order = {r.run_id: i for i, r in enumerate(self.runs)}
         rows = rows.assign(_order=rows["run_id"].map(order)).sort_values("_order").drop(columns="_order")
-        return summarise(self.spec, self.plan, self.recipes, rows.reset_index(drop=True), self.out_dir, self.sweep_id)
+        return summarise(self.spec, self.plan, self.recipes, rows.reset_index(drop=True), self.out_dir, self.sweep_id,
+                         vector)
 
 
 def interrupted(out_dir: Path, planned: int, done_before: int):
