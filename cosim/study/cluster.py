@@ -30,6 +30,13 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from cosim.base.errors import ConfigError
 
+#: dask settings of the local workers, for FMU loops and controllers that hold the GIL and allocate
+#: many small numpy arrays: no statistical profiler (it samples every thread's stack every 10 ms
+#: under the GIL; measured at 15-40 % of a 1 ms sweep's run time), and glibc's own heap trimming
+#: instead of the nanny's MALLOC_TRIM_THRESHOLD_=65536 (measured: a 13.33 us pipeline ran 20-30 %
+#: slower with it). Remote workers: the README's ``dask worker`` line sets the same.
+WORKER_SETTINGS = {"distributed.worker.profile.enabled": False,
+                   "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 #: how long to try to reach a scheduler before refusing the address [s]
 CONNECT_TIMEOUT = 10.0
 #: a task whose worker died running it is run again this many times, then reported as killed
@@ -112,10 +119,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
                               f"some with `dask worker {address}`") from None
     else:
         workers = workers or local_cores()
-        # no statistical profiler in the workers: it samples every thread's stack every 10 ms under
-        # the GIL, which the FMU loop holds -- measured at 15-40 % of a 1 ms sweep's run time
-        settings = {"distributed.scheduler.allowed-failures": allowed_failures,
-                    "distributed.worker.profile.enabled": False}
+        settings = {"distributed.scheduler.allowed-failures": allowed_failures, **WORKER_SETTINGS}
         if worker_saturation is not None:
             settings["distributed.scheduler.worker-saturation"] = worker_saturation
         with dask.config.set(settings):

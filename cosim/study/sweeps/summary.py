@@ -38,6 +38,9 @@ HEADLINE = {"overshoot_pct": "overshoot [%]", "settling_time_ms": "2 % settling 
 WORST_METRICS = ("overshoot_pct", "undershoot_pct", "settling_time_ms", "steady_state_error_pct", "iae_Vs",
                  "peak_inductor_current_A")
 ALL_SCENARIOS = "all scenarios (per unit)"
+MARKERS = ("o", "s", "^", "D", "v", "P")
+#: fixed margins of the 2 x 2 panel figures (a layout engine costs more than the rest of the summary)
+PANEL_MARGINS = {"left": 0.08, "right": 0.985, "bottom": 0.08, "top": 0.93, "wspace": 0.22, "hspace": 0.28}
 Z95 = 1.959963984540054
 
 
@@ -243,7 +246,8 @@ class _Summary:
         influence = self.influence_table()
         for scenario in self.scenarios:
             group = self.rows[(self.rows["scenario"] == scenario) & (self.rows["status"] == OK)]
-            fig, axes = plt.subplots(2, 2, figsize=(10, 7.5), constrained_layout=True)
+            fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+            fig.subplots_adjust(**PANEL_MARGINS)
             for ax, (metric, label) in zip(axes.flat, HEADLINE.items()):
                 data, names = [], []
                 for controller in self.controllers:
@@ -271,7 +275,8 @@ class _Summary:
             made[f"distributions__{scenario}"] = f"figures/distributions__{scenario}.png"
 
             if self.axis_names:
-                fig, axes = plt.subplots(2, 2, figsize=(10, 7.5), constrained_layout=True)
+                fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+                fig.subplots_adjust(**PANEL_MARGINS)
                 for ax, (metric, label) in zip(axes.flat, HEADLINE.items()):
                     mine = influence[(influence["scenario"] == scenario) & (influence["metric"] == metric)]
                     strength = {a: mine.loc[mine["axis"] == a, "spearman_rho"].abs().sum() for a in self.axis_names}
@@ -282,8 +287,9 @@ class _Summary:
                         sub = group[group["controller"] == controller]
                         rho = mine.loc[(mine["controller"] == controller) & (mine["axis"] == axis), "spearman_rho"]
                         tag = f" (rho {rho.iloc[0]:+.2f})" if len(rho) else ""
-                        ax.scatter(sub[axis].astype(float) * factor, sub[metric].astype(float), s=9, alpha=0.6,
-                                   color=self._style(controller, i), label=controller + tag)
+                        ax.scatter(sub[axis].astype(float) * factor, sub[metric].astype(float), s=12, alpha=0.6,
+                                   color=self._style(controller, i), marker=MARKERS[i % len(MARKERS)],
+                                   label=controller + tag)  # shapes too: controllers often coincide
                     for t in self.spec.thresholds:
                         if t.metric == metric:
                             ax.axhline(t.limit, color="crimson", linestyle="--", linewidth=1.1,
@@ -299,8 +305,9 @@ class _Summary:
 
         table = self.yield_table()
         if len(table):
-            fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * (len(self.scenarios) + 1) * len(self.controllers) / 2), 4.2),
-                                   constrained_layout=True)
+            width_in = max(7.0, 1.6 * (len(self.scenarios) + 1) * len(self.controllers) / 2 + 1.6)
+            fig, ax = plt.subplots(figsize=(width_in, 4.4))
+            fig.subplots_adjust(left=0.8 / width_in, right=1 - 1.5 / width_in, bottom=0.14, top=0.86)
             groups = [*self.scenarios, ALL_SCENARIOS]
             width = 0.8 / max(1, len(self.controllers))
             for i, controller in enumerate(self.controllers):

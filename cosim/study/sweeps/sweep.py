@@ -105,10 +105,9 @@ class PreparedSweep:
     def __init__(self, plan: SweepPlan, out_dir: Path, recipes, progress: bool = False):
         self.plan, self.spec, self.out_dir, self.recipes = plan, plan.spec, Path(out_dir), recipes
         self.runs = plan.runs(recipes)
-        ids = {r.run_id for r in self.runs}
-        self.done_before = len(dataset.done_run_ids(self.out_dir) & ids)
         done = dataset.done_run_ids(self.out_dir)
         self.todo = [r for r in self.runs if r.run_id not in done]
+        self.done_before = len(self.runs) - len(self.todo)
         self.tasks = plan.batches(self.todo)
         self.schema = dataset.row_schema([(i.axis.name, i.unit, i.integer) for i in plan.axes])
         self.progress = progress
