@@ -558,7 +558,7 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     assert rows.loc[0, "steady_state_error_pct"] == pytest.approx(0.0, abs=0.5)
     assert "fmi2DoStep failed (discard) at t = 0.0103" in rows.loc[1, "error"]
     assert "plant output became non-finite at t = 0.0104 s (output_voltage = nan)" in rows.loc[3, "error"]
-    assert rows.loc[4, "error"].startswith("the worker process running it died twice")
+    assert rows.loc[4, "error"].startswith("the worker process running it died each time it ran")
     assert rows.loc[rows["status"] == "failed", "iae_Vs"].isna().all()
     text = (out / "SWEEP.md").read_text()
     assert "3 run(s) failed" in text and "fmi2DoStep failed (discard)" in text

@@ -5,9 +5,10 @@
   threads would not run in parallel), closed on the way out whatever happens (the worker processes
   end with it); ``scheduler="tcp://HOST:PORT"``: a client of a cluster started with the standard
   ``dask scheduler`` / ``dask worker`` commands, which is left running.
-* Worker processes ignore Ctrl-C (:class:`IgnoreInterrupts`): the terminal sends SIGINT to the whole
-  process group, and the workbench's own process decides what an interrupt means (cancel, close the
-  cluster, keep what is done) -- without it every worker prints a KeyboardInterrupt traceback.
+* Local worker processes ignore Ctrl-C (:class:`IgnoreInterrupts`): the terminal sends SIGINT to the
+  whole process group, and the workbench's own process decides what an interrupt means (cancel,
+  close the cluster, keep what is done) -- without it every worker prints a KeyboardInterrupt
+  traceback. The workers of a cluster the user started are left as they are.
 * dask's own log lines are silenced below CRITICAL (``DASK_LOGGING__DISTRIBUTED`` set in the
   environment overrides this): the workbench reports a worker death or a failed task itself, in one
   line, and dask would print the task's traceback even for a fault the workbench handles.
@@ -34,13 +35,15 @@ from cosim.base.errors import ConfigError
 #: many small numpy arrays: no statistical profiler (it samples every thread's stack every 10 ms
 #: under the GIL; measured at 15-40 % of a 1 ms sweep's run time), and glibc's own heap trimming
 #: instead of the nanny's MALLOC_TRIM_THRESHOLD_=65536 (measured: a 13.33 us pipeline ran 20-30 %
-#: slower with it). Remote workers: the README's ``dask worker`` line sets the same.
+#: slower with it). For one's own ``dask worker`` processes the README gives the same as dask YAML.
 WORKER_SETTINGS = {"distributed.worker.profile.enabled": False,
                    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 #: how long to try to reach a scheduler before refusing the address [s]
 CONNECT_TIMEOUT = 10.0
 #: a task whose worker died running it is run again this many times, then reported as killed
 ALLOWED_FAILURES = 1
+#: on a fault or an interrupt, a local worker gets this long [s] to stop before it is killed
+KILL_TIMEOUT = 0.5
 LOOPBACK = "127.0.0.1"
 _ADDRESS = re.compile(r"(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})")
 
@@ -69,10 +72,8 @@ def _log_level() -> int:
     return level if isinstance(level, int) else logging.WARNING
 
 
-
-
 class IgnoreInterrupts(WorkerPlugin):
-    """Worker processes leave Ctrl-C to the workbench's process (set up on every worker, restarted ones too)."""
+    """Local worker processes leave Ctrl-C to the workbench's process (set up on every worker, restarted ones too)."""
 
     name = "buck-cosim-ignore-interrupts"
 
@@ -128,7 +129,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
         client = Client(cluster, set_as_default=False)
     stopping = False
     try:
-        client.register_plugin(IgnoreInterrupts())
+        if cluster is not None:  # our own workers only: a user's `dask worker` keeps its Ctrl-C
+            client.register_plugin(IgnoreInterrupts())
         yield client
     except BaseException:
         stopping = True  # a fault or an interrupt: the local workers end now, not after their tasks
@@ -141,10 +143,6 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
                 if stopping:
                     cluster.sync(_kill_workers, cluster, KILL_TIMEOUT)
                 cluster.close(timeout=20)
-
-
-#: on a fault or an interrupt, a local worker gets this long [s] to stop before it is killed
-KILL_TIMEOUT = 0.5
 
 
 async def _kill_workers(cluster, timeout: float) -> None:

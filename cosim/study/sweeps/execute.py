@@ -25,8 +25,10 @@ from cosim.study.sweeps.dataset import write_part, write_timing, write_trace
 from cosim.study.sweeps.plan import BatchTask, batch_key
 from cosim.study.sweeps.worker import FAILED, BatchResult, RunSettings, run_batch, run_row, timing_row
 
-WORKER_DIED = ("the worker process running it died twice (a crash in the FMU's native code, or out of memory?); "
-               "run it alone with buck-cosim run to see the cause")
+#: the cause of a run whose worker died each time the scheduler ran it (twice on the local cluster;
+#: a remote scheduler's distributed.scheduler.allowed-failures + 1 times)
+WORKER_DIED = ("the worker process running it died each time it ran (a crash in the FMU's native code, or out of "
+               "memory?); run it alone with buck-cosim run to see the cause")
 
 
 @dataclass
