@@ -34,11 +34,11 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS
+from cosim.study import tolerance_study
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.experiments import (collection_settings, implemented, model_mpc, nn_configs, nnpc, plant_binding,
                                     scenarios_for)
 from cosim.study.pi_tuning import load_or_tune
-from cosim.study import tolerance_study
 from cosim.study.report import write_report
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
