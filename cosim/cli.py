@@ -506,6 +506,21 @@ def cmd_reproduce(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from cosim.study.sweeps.spec import load_sweep
+    from cosim.study.sweeps.sweep import raise_if_failed, run_sweep
+
+    spec = load_sweep(args.spec)  # the file first: its mistakes before the folder is touched
+    if args.scheduler_timeout is not None and not args.scheduler_timeout > 0:
+        raise ConfigError(f"--scheduler-timeout {args.scheduler_timeout} s is invalid: expected > 0")
+    outcome = run_sweep(spec, output_dir(args.out), scheduler=args.scheduler, workers=args.workers,
+                        resume=args.resume, progress=args.progress, connect_timeout=args.scheduler_timeout)
+    print(f"{outcome.planned} runs ({outcome.done_before} done earlier, {outcome.computed} now, {outcome.failed} "
+          f"failed); summary: {outcome.out_dir / 'SWEEP.md'}")
+    raise_if_failed(outcome)
+    return 0
+
+
 def cmd_bench(args) -> int:
     from cosim.benchmarks import BENCHMARKS, run_benchmarks
 
@@ -798,7 +813,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "MPC baselines, and write data, models, runs, metrics, figures and "
                                    "REPORT.md under OUT.")
     p.add_argument("--out", default=str(DEFAULT_RESULTS), metavar="DIR", help="output folder (default: results)")
-    p.add_argument("--workers", type=bounded(int, 1), default=2, help="parallel worker processes (default: 2)")
+    p.add_argument("--workers", type=bounded(int, 1), default=2,
+                   help="worker processes of the local dask cluster the jobs run on (default: 2)")
     p.add_argument("--resume", action="store_true",
                    help="keep pipelines an interrupted reproduction finished, and their tuned gains")
     p.add_argument("--quick", action="store_true",
@@ -815,6 +831,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "(repeatable); its runs are in metrics/ and the figures under its name")
     _add_implementation_option(p)
     p.set_defaults(func=cmd_reproduce)
+
+    p = sub.add_parser("sweep", help="a parameter sweep or Monte Carlo tolerance study on dask -> dataset + SWEEP.md",
+                       description="Run every unit of a sweep file (grids and distributions of FMU parameters and of "
+                                   "the scenarios' supply and load) with controllers designed once on the nominal "
+                                   "plant, on a local dask cluster or an existing one. Writes a partitioned Parquet "
+                                   "dataset (one row per run: values, status, metrics) under DIR/dataset, the "
+                                   "summary DIR/SWEEP.md (yield against the file's [spec], distributions, most "
+                                   "influential parameter, worst case) with figures, and DIR/timings.json (wall "
+                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz (README, "
+                                   "'Sweeps and Monte Carlo'). Exit 2 on a mistake, before any work; 3 if some "
+                                   "runs failed (each is a row saying why); 130 if interrupted (--resume finishes).")
+    p.add_argument("spec", metavar="SPEC.toml", help="sweep file, or the name of a shipped study (e.g. tolerance)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder for the dataset and the summary")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="use the running dask cluster at tcp://HOST:PORT (started with `dask scheduler` and "
+                        "`dask worker tcp://HOST:PORT`; every worker needs buck-cosim and a platform the FMU has a "
+                        "binary for) instead of a local cluster")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="worker processes of the local cluster, one thread each (default: one per core)")
+    p.add_argument("--resume", action="store_true",
+                   help="finish an interrupted sweep in DIR: runs with a row in the dataset are not run again")
+    p.add_argument("--scheduler-timeout", type=float, metavar="SECONDS", default=None,
+                   help="how long to try to reach --scheduler, in s (default: 10)")
+    p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("bench", help="run the benchmark suite; write results/benchmarks.md and .csv",
                        description="Measure plant, master and controller costs as medians, p99 and same-run "

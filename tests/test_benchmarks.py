@@ -21,7 +21,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per step: tanh calls",
                 "C step, NNPC-explicit, 13.33 us", "NNPC-explicit 13.33 us per step: multiply-accumulates (counted)",
-                "NNPC-explicit 13.33 us per step on a 170 MHz Cortex-M4F"):
+                "NNPC-explicit 13.33 us per step on a 170 MHz Cortex-M4F",
+                "sweep throughput on a LocalCluster of 2 workers", "sweep overhead per run"):
         assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
     assert table["machine"].iloc[0].endswith("cores)")

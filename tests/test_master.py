@@ -328,3 +328,25 @@ def test_an_isolated_plant_applies_parameter_events_like_the_in_process_plant(tm
     with pytest.raises(ConfigError, match=r"zero.toml:8: events\[0\].parameters \(capacitance\): the plant FMU "
                                           r"refuses the value: fmi2SetReal: capacitance = 0 F is invalid"):
         simulate(replace(builtin_binding("averaged"), isolate=True), Probe(), load_scenario(path))
+
+
+@pytest.mark.parametrize("isolate", [False, True])
+def test_replaced_parameters_give_the_run_of_a_plant_bound_with_them(isolate):
+    """A sweep's reuse pattern: one instance, its parameters replaced run by run (set at the next
+    initialisation), equals a fresh plant bound with those values; a name the FMU lacks is refused
+    naming it, and the instance stays usable."""
+    nominal = builtin_binding("switched")
+    varied = {**nominal.parameters, "inductance": 250e-6, "capacitance": 8.5e-6}
+    columns = ["inductor_current", "output_voltage", "measured_output_voltage"]
+    fresh = simulate(builtin_binding("switched", varied), Probe(), scenario(duration=0.004)).frame
+    with open_plant(replace(nominal, isolate=isolate)) as plant:
+        first = run(plant, Probe(), scenario(duration=0.004)).frame
+        plant.replace_parameters(varied)
+        reused = run(plant, Probe(), scenario(duration=0.004)).frame
+        with pytest.raises(ConfigError, match="no_such_parameter"):
+            plant.replace_parameters({**varied, "no_such_parameter": 1.0})
+        plant.replace_parameters(dict(nominal.parameters))
+        again = run(plant, Probe(), scenario(duration=0.004)).frame
+    np.testing.assert_array_equal(reused[columns].to_numpy(), fresh[columns].to_numpy())
+    np.testing.assert_array_equal(again[columns].to_numpy(), first[columns].to_numpy())
+    assert not np.allclose(reused["output_voltage"], first["output_voltage"])

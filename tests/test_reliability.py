@@ -308,19 +308,19 @@ def test_a_failing_pipeline_stops_a_parallel_reproduction(tmp_path, faulty_fmu):
     no_temporary_files(tmp_path / "out")
 
 
-def _die_like_a_crashing_fmu(job):
-    os.kill(os.getpid(), signal.SIGKILL)
-
-
-def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path, monkeypatch):
-    import cosim.study.reproduce as reproduce_module
-    from cosim.base.errors import PlantError
-
-    monkeypatch.setattr(reproduce_module, "_run_job", _die_like_a_crashing_fmu)  # forked workers inherit it
+def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path, faulty_fmu):
+    """A plant FMU that crashes its process (a segfault, with isolation off): dask runs the
+    task again on a fresh worker, and when that one dies too the reproduction ends in one line
+    (exit 3) instead of hanging on a result that never comes."""
+    binding = tmp_path / "faulty.toml"
+    binding.write_text("isolate = false\n" + FAULTY.format(fmu=faulty_fmu, kind=4))  # the crash takes the worker
     started = time.monotonic()
-    with pytest.raises(PlantError, match="a reproduction worker process died"):
-        reproduce_module.reproduce(tmp_path / "out", workers=2, profile=reproduce_module.QUICK)
+    done = cli("reproduce", "--quick", "--plant", str(binding), "--control-period", "1e-3", "--control-period",
+               "2e-3", "--workers", "2", "--out", str(tmp_path / "out"), timeout=300)
+    ends_in_one_line_error(done, 3, "a reproduction worker process died twice running the PI tuning of bound-faulty__")
+    assert "rerun with --resume to continue" in done.stderr
     assert time.monotonic() - started < 120  # not a hang waiting for a result that never comes
+    no_temporary_files(tmp_path / "out")
 
 
 @pytest.mark.parametrize("args,message", [

@@ -105,10 +105,40 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
         assert (reproduction / "figures" / figure.split(")")[0]).is_file()
 
 
+def test_the_tolerance_study_runs_the_pipelines_controllers_on_production_units(reproduction):
+    """The nominal switched 1 ms pipeline's own PI and NNPC (and the nominal MPC) on QUICK's units,
+    through the sweep engine; its yield table and figures in the report."""
+    import hashlib
+
+    from cosim.study.sweeps.dataset import read_rows
+
+    study = reproduction / "tolerance-study"
+    rows = read_rows(study)
+    units = QUICK.tolerance_samples
+    assert len(rows) == 3 * 2 * units and set(rows["status"]) == {"ok"}
+    assert set(rows["controller"]) == {"PI", "NNPC", "MPC-nominal"} and set(rows["scenario"]) == {"startup",
+                                                                                                   "load_change"}
+    assert rows["inductance"].between(176e-6, 264e-6).all() and rows["capacitance"].between(8e-6, 12e-6).all()
+    manifest = json.loads((study / "sweep.json").read_text())
+    designed = {c["name"]: c for c in manifest["controllers"]}
+    tuned = json.loads((reproduction / "tuning" / "pi__nominal-switched__1ms.json").read_text())
+    assert designed["PI"]["settings"]["kp_per_V"] == tuned["kp"] and designed["PI"]["settings"]["ki_per_V_s"] == tuned["ki"]
+    model = (reproduction / "models" / "nominal-switched__1ms__nnpc.pt").read_bytes()
+    assert designed["NNPC"]["model_sha256"] == hashlib.sha256(model).hexdigest()
+    report = (reproduction / "REPORT.md").read_text()
+    section = report.split("## Tolerance study")[1].split("\n## ")[0]
+    assert f"on {units} production units" in section and "| PI | all scenarios (per unit) | " in section
+    for figure in section.split("](tolerance-study/")[1:]:
+        assert (study / figure.split(")")[0]).is_file()
+    assert (study / "SWEEP.md").is_file() and (study / "yield.csv").is_file()
+
+
 def test_resume_keeps_finished_pipelines(reproduction, capsys):
     assert main(["--no-progress", "reproduce", "--quick", "--resume", "--out", str(reproduction)]) == 0
     jobs = len(QUICK.pipelines) + 3 + 1  # the pipelines, seed 1 of the three nominal ones, the drift study
-    assert capsys.readouterr().err.count("finished earlier, kept (--resume)") == jobs
+    err = capsys.readouterr().err
+    assert err.count("finished earlier, kept (--resume)") == jobs
+    assert f"{3 * 2 * QUICK.tolerance_samples} done earlier, kept (--resume); running 0" in err  # the study's rows too
 
 
 def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):

@@ -19,6 +19,7 @@ import multiprocessing
 import shutil
 import signal
 import tempfile
+from dataclasses import replace
 from typing import Mapping, Sequence
 
 from cosim.base.errors import ConfigError, FmuArchiveError, PlantError, WorkbenchError
@@ -87,6 +88,8 @@ def _answer_request(plant, states: dict, request: tuple):
         return plant.initialize(request[1], request[2], request[3])
     if kind == "reset":
         return plant.reset()
+    if kind == "replace_parameters":
+        return plant.replace_parameters(request[1])
     if kind == "trial_parameters":
         return plant.trial_parameters(request[1])
     if kind == "get_state":
@@ -226,6 +229,12 @@ class IsolatedPlant:
     def set_parameters(self, values: Mapping[str, float]) -> None:
         """As :meth:`cosim.fmi.plant.FmuPlant.set_parameters`, in order with the queued steps."""
         self._queue.append(("parameters", dict(values)))
+
+    def replace_parameters(self, parameters: Mapping[str, float | int | bool | str]) -> None:
+        """As :meth:`cosim.fmi.plant.FmuPlant.replace_parameters`, in the plant process."""
+        self._refuse_if_dead()
+        self._call("replacing the parameters", "replace_parameters", dict(parameters))
+        self.binding = replace(self.binding, parameters=dict(parameters))
 
     def trial_parameters(self, changes: Sequence[Mapping[str, float]]):
         """As :meth:`cosim.fmi.plant.FmuPlant.trial_parameters`, in the plant process."""

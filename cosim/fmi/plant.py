@@ -22,6 +22,7 @@ import shutil
 import sys
 from collections import deque
 from ctypes import c_double, c_uint
+from dataclasses import replace
 from typing import Mapping, Sequence
 
 import fmpy
@@ -240,6 +241,18 @@ class FmuPlant:
 
     def _after_initialization(self, start_time: float) -> None:
         """Interface-specific start (model exchange: the solver)."""
+
+    def replace_parameters(self, parameters: Mapping[str, float | int | bool | str]) -> None:
+        """Replace the binding's parameters: they are set at the next :meth:`initialize`, so a
+        sweep varies them run by run on one reused instance (never a reload per run). Checked
+        like the binding's own (each names a variable of the FMU, with a value of its type).
+        (:meth:`set_parameters` changes tunable parameters during a run.)"""
+        binding = replace(self.binding, parameters=parameters)
+        try:
+            resolved = resolve_parameters(binding.parameters, self.model_description, binding.fmu_path.name)
+        except BindingMismatch as error:
+            raise ConfigError(f"{binding.origin}: {error}") from None
+        self.binding, self._parameters = binding, resolved
 
     def _apply_parameters(self, parameters: list[ResolvedParameter]) -> None:
         fmu = self._fmu

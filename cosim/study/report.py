@@ -20,6 +20,7 @@ from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_c
 from cosim.study.identification import training_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import markdown_table, model_key, ratio_table, seed_controllers, value, worst
+from cosim.study.sweeps.summary import report_section
 from cosim.study.targets import TEN_STEP_RMSE_TARGET_MV, Targets
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
@@ -54,6 +55,7 @@ from cosim.study.vocabulary import (
     PI,
     STUDY_PERIODS,
     SWITCHING_PERIOD,
+    TOLERANCE_STUDY_DIR,
     horizon_variant,
     seed_variant,
 )
@@ -75,8 +77,11 @@ def _is_study_variant(name: str) -> bool:
     return " (seed " in name or (name in IDENTIFICATION_ABLATION and name != NNPC)
 
 
-def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed: int, drift=None) -> Path:
-    """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics.
+def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed: int, drift=None,
+                 tolerance=None) -> Path:
+    """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics
+    (``drift``: the drift study's output; ``tolerance``: the tolerance study's
+    :class:`~cosim.study.sweeps.summary.SweepSummary`).
     Nothing in either depends on the wall clock (that is :func:`cosim.study.timings.write_timings`'s)."""
     pipelines = [o.pipeline.tag for o in outputs]
     models = {o.pipeline.tag: o.models for o in outputs}
@@ -137,6 +142,8 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     lines += ["## Model mismatch", ""] + _mismatch(metrics, pipelines) + [""]
     if drift is not None and len(drift_rows):
         lines += ["## Drift and online adaptation", ""] + _drift(drift_rows, drift) + [""]
+    if tolerance is not None:
+        lines += report_section(tolerance, TOLERANCE_STUDY_DIR) + [""]
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",
               "make bench            # the benchmark table (results/benchmarks.md)", "```", "",

@@ -15,34 +15,34 @@ rate (1 ms, one switching period). Each pipeline, all seeded:
 Beside the pipelines (seed 0), *seed jobs* identify the NNPC again from the data of every other
 study seed on the nominal plants at both rates and run it (with the identification ablation on
 the nominal switched plant at one switching period), and the *drift job* runs the drift study
-on the mismatch-study plant. The tuned PI gains come first (all pipelines in parallel); then
-every job runs in parallel worker processes, longest first. Files are written atomically, so an
-interrupted reproduction keeps what finished, and ``--resume`` skips finished jobs.
+on the mismatch-study plant. Everything runs as dask tasks on a LocalCluster
+(:mod:`cosim.study.cluster`, one single-threaded worker process each): the tuned PI gains first
+(all pipelines in parallel), then every job, longest first. Once the nominal switched 1 ms
+pipeline has finished, the tolerance study (:mod:`cosim.study.tolerance_study`) runs its
+controllers on production units through the sweep engine, on the same cluster. Files are
+written atomically, so an interrupted reproduction keeps what finished, and ``--resume`` skips
+finished jobs.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import multiprocessing
-import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from cosim.base.errors import PlantError
+from cosim.base.errors import PlantError, WorkbenchError
 from cosim.base.files import atomic_write_json, atomic_write_text, json_text, remove_temporary_files
 from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import explicit
+from cosim.study import explicit, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
@@ -113,12 +113,14 @@ class Profile:
     drift_duration: float | None = None  # [s] shorten the drift scenario (quick profile)
     quick: bool = False
     pipelines: tuple[str, ...] | None = None  # tags to run (default: all)
+    tolerance_samples: int | None = None  # units of the tolerance study (default: its sweep file's)
 
 
 FULL = Profile()
 QUICK = Profile(samples=400, scenarios=("startup", "load_change"), quick=True, seeds=(0, 1), closed_loop_samples=150,
-                multi_step_iterations=50, drift_duration=0.009, pipelines=("nominal-averaged__1ms", "nominal-switched__1ms",
-                                                 "mismatch-switched__1ms", "nominal-switched__13p33us"))
+                multi_step_iterations=50, drift_duration=0.009, tolerance_samples=3,
+                pipelines=("nominal-averaged__1ms", "nominal-switched__1ms", "mismatch-switched__1ms",
+                           "nominal-switched__13p33us"))
 
 
 @dataclass(frozen=True)
@@ -515,26 +517,35 @@ def run_job(job: Job, out_dir: Path, profile: Profile, implementation: str = "c"
     return run_drift(out_dir, profile, job.seed, implementation, reuse=job.after is not None)
 
 
-def _worker_signals() -> None:
-    """Workers leave Ctrl-C to the main process and die quietly when it terminates them."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+@dataclass
+class _Failed:
+    """A task's fault, returned (not raised) by the task: the workbench reports it in one line,
+    where a raised exception would have dask print the task's traceback first."""
+
+    error: WorkbenchError
 
 
-def _run_job(job) -> PipelineOutput:
-    return run_job(*job)
+def _guarded(function, *args):
+    try:
+        return function(*args)
+    except WorkbenchError as error:
+        return _Failed(error)
 
 
-def _stop_workers(executor: ProcessPoolExecutor, out_dir: Path) -> None:
-    """Terminate the pool's workers at once and delete what their unfinished writes left behind."""
-    processes = list((getattr(executor, "_processes", None) or {}).values())
-    executor.shutdown(wait=False, cancel_futures=True)
-    for process in processes:
-        if process.is_alive():
-            process.terminate()
-    for process in processes:
-        process.join(timeout=10)
-    remove_temporary_files(out_dir)
+def _task_result(future, what: str, out_dir: Path):
+    """A finished task's result; its fault, or its worker's death, raised here (``what``: the task, for the message)."""
+    from distributed.scheduler import KilledWorker
+
+    if future.status != "finished":
+        error = future.exception()
+        if isinstance(error, KilledWorker):
+            raise PlantError(f"a reproduction worker process died twice running {what} (a plant FMU crashed it?); "
+                             f"jobs that finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
+        raise error
+    result = future.result()
+    if isinstance(result, _Failed):
+        raise result.error
+    return result
 
 
 def _load_finished(out_dir: Path, job: Job) -> PipelineOutput | None:
@@ -568,11 +579,98 @@ def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_fil
     return jobs
 
 
-def _pool(workers: int, jobs: int) -> ProcessPoolExecutor:
-    # a process pool that notices dead workers: a plant FMU that crashes its process (a segfault
-    # in foreign code) raises BrokenProcessPool here instead of hanging the reproduction
-    return ProcessPoolExecutor(min(workers, jobs), mp_context=multiprocessing.get_context("fork"),
-                               initializer=_worker_signals)
+#: dask priorities (higher first): the tolerance study's source pipeline, then the pipelines longest
+#: first (so the workers finish together), the study's tasks whenever no pipeline waits for a worker
+SOURCE_PRIORITY, STUDY_PRIORITY = 100, -10
+
+
+def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
+                    implementation: str, workers: int, resume: bool, study_wanted: bool):
+    """The reproduction as dask tasks on a LocalCluster: the PI tunings first (every job of a plant
+    and rate needs its gains), then the jobs (longest first, so the workers finish together; a job
+    that depends on another is submitted when that one finishes), and the tolerance study's tasks as
+    soon as its source pipeline is done. Returns the study and its execution counts (or None, None).
+    On a fault or an interrupt the cluster is closed at once (its worker processes end with it)."""
+    from distributed import as_completed
+
+    from cosim.study.cluster import dask_client
+
+    with dask_client(workers=max(1, workers), worker_saturation=1.0) as client:
+        tuned = {client.submit(_guarded, _tune_job, (p, out_dir, profile), pure=False,
+                               key=f"buck-cosim-tuning-{p.tag}"): p for p in tunings}
+        for future in as_completed(list(tuned), loop=client.loop):
+            _task_result(future, f"the PI tuning of {tuned[future].tag}", out_dir)
+
+        keys = {job.key for job in todo}
+        waiting = [job for job in todo if job.after is not None and job.after in keys]
+        # submitted in the order they should start (idle workers take the first ones at once; the
+        # rest wait in the scheduler's queue by priority): the study's source pipeline, then longest first
+        order = sorted((job for job in todo if job not in waiting),
+                       key=lambda job: (job.key != tolerance_study.SOURCE_PIPELINE, -job.cost()))
+        futures: dict[str, Job] = {}
+        queue = as_completed(loop=client.loop)
+
+        def submit(job: Job, priority: int) -> None:
+            future = client.submit(_guarded, run_job, job, out_dir, profile, implementation, pure=False,
+                                   key=f"buck-cosim-job-{job.key}", priority=priority)
+            futures[future.key] = job
+            queue.add(future)
+
+        for rank, job in enumerate(order):
+            submit(job, SOURCE_PRIORITY if job.key == tolerance_study.SOURCE_PIPELINE else len(order) - rank)
+        study, execution = None, None
+
+        def finished_pipelines():
+            return (job.key for job in outputs if job.kind == "pipeline")
+
+        def start_study():
+            nonlocal study, execution
+            study = tolerance_study.start(out_dir, resume, profile.tolerance_samples)
+            execution = study.execution()
+            log(f"  {study.describe_start('the same cluster')}")
+            for future in execution.submit(client, priority=STUDY_PRIORITY):
+                queue.add(future)
+
+        if study_wanted and tolerance_study.ready(finished_pipelines()):
+            start_study()
+        try:
+            done = 0
+            for future in queue:
+                if execution is not None and execution.owns(future):
+                    for new in execution.handle(future):
+                        queue.add(new)
+                    continue
+                job = futures.pop(future.key)
+                what = f"pipeline {job.key}" if job.kind == "pipeline" else f"the {job.kind} job {job.key}"
+                output = _task_result(future, what, out_dir)
+                outputs[job] = output
+                done += 1
+                log(f"[{done}/{len(todo)}] {job.key} finished in {sum(output.timings.values()):.1f} s")
+                for ready in [j for j in waiting if j.after == job.key]:
+                    waiting.remove(ready)
+                    submit(ready, SOURCE_PRIORITY)
+                if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
+                    start_study()
+        except BaseException:
+            if execution is not None:
+                execution.cancel()
+            raise
+        if execution is None:
+            return None, None
+        execution.close()
+        log(f"  tolerance study: {execution.counts.runs} run(s) written ({execution.counts.failed} failed)")
+        return study, execution.counts
+
+
+def _study_timing(study, counts) -> dict | None:
+    """The tolerance study's wall-clock figures for timings.md: its runs' worker time, and when its
+    last part landed (its tasks share the cluster with the pipelines, so neither is its added cost)."""
+    if study is None:
+        return None
+    from cosim.study.sweeps.dataset import read_timing
+
+    worker_time = float(read_timing(study.out_dir)["wall_time_s"].astype(float).sum())
+    return {"runs": counts.runs if counts else 0, "worker_s": worker_time, "last_part_s": counts.elapsed if counts else 0.0}
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
@@ -619,52 +717,26 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     tunings = sorted({job.pipeline for job in todo}, key=lambda p: p.control_period)
     log(f"reproduction: {len(todo)} job(s) on {workers} worker(s) -> {out_dir}/"
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
-    # longest first, so the workers finish together; a job waits for the one it depends on
-    todo.sort(key=lambda job: -job.cost())
-    waiting = [job for job in todo if job.after is not None and job.after in {j.key for j in todo}]
-    if workers <= 1:
-        for pipeline in tunings:
-            _tune_job((pipeline, out_dir, profile))
-        order = [job for job in todo if job not in waiting] + waiting
-        for done, job in enumerate(order, start=1):
-            outputs[job] = run_job(job, out_dir, profile, implementation)
-            log(f"[{done}/{len(todo)}] {job.key} finished in {sum(outputs[job].timings.values()):.1f} s")
-    elif todo:
-        executor = _pool(workers, len(todo))
+    study_wanted = not binding_file and tolerance_study.SOURCE_PIPELINE in {p.tag for p in selected}
+    study = study_counts = None
+    if todo or study_wanted:
         try:
-            # the tuned PI gains first (every job of a plant and rate needs them), then every job
-            for future in as_completed([executor.submit(_tune_job, (p, out_dir, profile)) for p in tunings]):
-                future.result()
-            futures = {executor.submit(_run_job, (job, out_dir, profile, implementation)): job
-                       for job in todo if job not in waiting}
-            done = 0
-            while futures:
-                future = next(as_completed(futures))
-                job = futures.pop(future)
-                outputs[job] = future.result()
-                done += 1
-                log(f"[{done}/{len(todo)}] {job.key} finished in {sum(outputs[job].timings.values()):.1f} s")
-                for ready in [j for j in waiting if j.after == job.key]:
-                    waiting.remove(ready)
-                    futures[executor.submit(_run_job, (ready, out_dir, profile, implementation))] = ready
-        except BrokenProcessPool:
-            _stop_workers(executor, out_dir)
-            raise PlantError("a reproduction worker process died (a plant FMU crashed it?); jobs that "
-                             f"finished are in {out_dir}/pipelines -- rerun with --resume to continue") from None
-        except BaseException:
-            _stop_workers(executor, out_dir)  # stop unfinished jobs now; finished ones are on disk
-            raise
-        executor.shutdown()
+            study, study_counts = _run_on_cluster(todo, tunings, outputs, out_dir, profile, implementation, workers,
+                                                  resume, study_wanted)
+        finally:
+            remove_temporary_files(out_dir)  # what unfinished writes left, once the workers are gone
     ordered = [outputs[job] for job in jobs]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
-    elapsed = time.perf_counter() - started
+    # PNG only: the report links PNGs, and results/ commits no SVG
+    tolerance = study.summarise(vector=False) if study is not None else None
     pipelines = _per_pipeline(selected, jobs, outputs)
     drift = next((outputs[job] for job in jobs if job.kind == "drift"), None)
-    report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift)
+    report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift, tolerance=tolerance)
     if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
         append_to_report(out_dir, report, quick=profile.quick)
-    write_timings(out_dir, ordered, metrics, elapsed, workers)
+    elapsed = time.perf_counter() - started
+    write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts))
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 

@@ -17,15 +17,21 @@ from cosim.study.summaries import markdown_table
 from cosim.study.targets import TimingTargets
 
 
-def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, workers: int) -> Path:
+def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, workers: int,
+                  tolerance: dict | None = None) -> Path:
     """Write ``timings.md`` (tables) and ``timings.csv`` (one row per figure: kind, pipeline,
-    what, value, unit)."""
+    what, value, unit). ``tolerance``: the tolerance study's runs, worker time and last part [s]."""
     out_dir = Path(out_dir)
     targets = TimingTargets(metrics, elapsed, out_dir).frame()
     stages = pd.DataFrame([{"job": getattr(o, "key", "") or o.pipeline.tag, **o.timings} for o in outputs])
     compute = metrics[["pipeline", "scenario", "controller", "controller_p50_us", "controller_p99_us"]]
     rows = [{"kind": "reproduction", "pipeline": "", "what": f"wall time on {workers} worker process(es)",
              "value": elapsed, "unit": "s"}]
+    if tolerance:
+        rows += [{"kind": "tolerance study", "pipeline": "", "what": f"{tolerance['runs']} runs: worker time",
+                  "value": tolerance["worker_s"], "unit": "s"},
+                 {"kind": "tolerance study", "pipeline": "", "what": "last part written after its first task",
+                  "value": tolerance["last_part_s"], "unit": "s"}]
     for o in outputs:
         rows += [{"kind": "stage", "pipeline": getattr(o, "key", "") or o.pipeline.tag, "what": stage, "value": seconds,
                   "unit": "s"}
@@ -41,7 +47,9 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
              "are kept apart from [REPORT.md](REPORT.md), whose numbers do not. The benchmark suite "
              "([benchmarks.md](benchmarks.md), `make bench`) measures the same costs as medians and p99 over "
              "many repetitions.", "",
-             f"Whole reproduction: {elapsed:.1f} s on {workers} worker process(es).", "",
+             f"Whole reproduction: {elapsed:.1f} s on {workers} worker process(es)."
+             + (f" The tolerance study's {tolerance['runs']} runs took {tolerance['worker_s']:.1f} s of worker time, "
+                "shared with the pipelines still running." if tolerance else ""), "",
              "## Timing targets", ""]
     lines += markdown_table(targets, ["target", "measured", "met", "note"])
     lines += ["", "## Stages per job [s] (a pipeline, a seed job of it, or the drift study)", ""]

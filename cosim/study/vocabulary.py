@@ -177,6 +177,13 @@ CONTROLLER_STYLES = {
 }
 
 # ---------------------------------------------------------------------------------------------
+# Sweeps
+
+#: the reproduction's tolerance study: the shipped sweep file it runs, and its folder under results/
+TOLERANCE_STUDY = "tolerance-reproduction"
+TOLERANCE_STUDY_DIR = "tolerance-study"
+
+# ---------------------------------------------------------------------------------------------
 # Scenarios at the fast rate
 
 

@@ -1,0 +1,307 @@
+"""A sweep file against its plant, expanded into runs: values, run ids and the tasks that run them.
+
+Checked here, before anything runs: every ``[parameters]`` axis names a parameter the FMU has
+(causality parameter, of a type the values fit), a relative tolerance has a nominal value to be
+relative to, every value lies within the FMU's declared min/max, an operating-point axis has its
+role in the binding, and every scenario's events have the roles they need.
+
+Each run's id is a SHA-256 of its full spec -- the plant (FMU bytes, roles, nominal parameters),
+every swept value, the scenario's content, the controller's recipe (gains, model bytes), the
+rates and the implementation -- so the same run always has the same id: ``--resume`` skips the
+ids already in the dataset, and a rerun with the same seed gives the same rows.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from cosim.base.errors import ConfigError
+from cosim.fmi.archive import check_fmu
+from cosim.fmi.binding import BindingMismatch, PlantBinding, resolve_parameters
+from cosim.master import check_plant_supports
+from cosim.scenarios import Scenario
+from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe, canonical, digest
+from cosim.study.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
+
+RUN_ID_FORMAT = "buck-cosim sweep run 1"
+RUN_ID_LENGTH = 20  # hex digits of the SHA-256 (80 bits)
+#: runs per task when the sweep file gives no batch_size: about 8 tasks per controller and
+#: scenario (so the workers finish together), at most this many (so a task stays short)
+MAX_AUTO_BATCH = 20
+TASKS_PER_PARTITION = 8
+
+
+@dataclass(frozen=True)
+class AxisInfo:
+    """What the plant says about an axis: unit, nominal value, type and declared bounds."""
+
+    axis: Axis
+    unit: str
+    nominal: float | None  # None for operating-point axes (per scenario) and parameters without one
+    integer: bool = False
+    minimum: float | None = None
+    maximum: float | None = None
+
+
+@dataclass(frozen=True)
+class PlannedRun:
+    run_id: str
+    point: int  # index of the grid point (0 without grid axes)
+    sample: int  # index of the random draw (0 without random axes)
+    parameters: tuple[tuple[str, float | int], ...]  # FMU parameter -> value set for this run
+    operating_point: tuple[tuple[str, float], ...]  # scenario signal -> initial value for this run
+    scenario: str
+    controller: str
+
+    @property
+    def values(self) -> dict[str, float | int]:
+        return {**dict(self.parameters), **dict(self.operating_point)}
+
+
+@dataclass(frozen=True)
+class BatchTask:
+    """Runs of one controller on one scenario, in one dask task with one reused FMU instance;
+    they become one part file of the dataset, named by ``key``."""
+
+    key: str
+    controller: str
+    scenario: str
+    runs: tuple[PlannedRun, ...]
+
+
+def nominal_binding(spec: SweepSpec) -> PlantBinding:
+    """The sweep's plant without any axis applied."""
+    if spec.plant.binding is not None:
+        from cosim.fmi.binding_file import load_binding
+
+        return load_binding(spec.plant.binding)
+    from cosim.study.experiments import plant_binding
+
+    return plant_binding(spec.plant.variant, spec.plant.mode, spec.plant.sensor)
+
+
+def _attribute(variable, name: str):
+    value = getattr(variable, name, None)
+    if value is None and getattr(variable, "declaredType", None) is not None:
+        value = getattr(variable.declaredType, name, None)
+    return value
+
+
+def _float(text) -> float | None:
+    try:
+        return float(text) if text not in (None, "") else None
+    except (TypeError, ValueError):
+        return None
+
+
+def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
+    """Each axis against the plant (module docstring); a :class:`ConfigError` naming the axis's line."""
+    md = check_fmu(binding.fmu_path).model_description
+    variables = {v.name: v for v in md.modelVariables}
+    fmu = Path(binding.fmu_path).name
+    infos = []
+    for axis in spec.axes:
+        if axis.group == "operating_point":
+            role = axis.name
+            if not binding.has(role):
+                raise ConfigError(f"{axis.place}: operating_point.{axis.name}: {binding.origin} binds no variable to "
+                                  f"the role {role!r}, so the scenarios cannot change it")
+            infos.append(AxisInfo(axis, OPERATING_POINT[axis.name], None, minimum=0.0))
+            continue
+        variable = variables.get(axis.name)
+        if variable is None:
+            names = sorted(v.name for v in md.modelVariables if v.causality == "parameter")
+            raise ConfigError(f"{axis.place}: parameters.{axis.name}: {fmu} has no parameter {axis.name!r}; its "
+                              f"parameters are {', '.join(names) or 'none'}")
+        if variable.causality != "parameter":
+            raise ConfigError(f"{axis.place}: parameters.{axis.name}: {axis.name!r} is a{'n' if variable.causality[0] in 'aeiou' else ''} "
+                              f"{variable.causality} of {fmu}, not a parameter"
+                              + (" (sweep the scenario's supply and load under [operating_point])"
+                                 if axis.name in OPERATING_POINT else ""))
+        if variable.type not in ("Real", "Integer"):
+            raise ConfigError(f"{axis.place}: parameters.{axis.name} is {variable.type} in {fmu}: a sweep varies "
+                              "Real and Integer parameters")
+        integer = variable.type == "Integer"
+        if integer and axis.random:
+            raise ConfigError(f"{axis.place}: parameters.{axis.name} is an Integer parameter of {fmu}: give a grid "
+                              "(values = [...]), not a distribution")
+        if integer and not all(isinstance(v, int) for v in axis.values):
+            raise ConfigError(f"{axis.place}: parameters.{axis.name} is an Integer parameter of {fmu}: its values "
+                              f"{list(axis.values)} must be whole numbers")
+        nominal = binding.parameters.get(axis.name)
+        nominal = _float(nominal) if nominal is not None else _float(variable.start)
+        if axis.relative and not nominal:
+            raise ConfigError(f"{axis.place}: parameters.{axis.name}: a tolerance is relative to the nominal value, "
+                              f"which is {nominal if nominal is not None else 'not given'} for {fmu}: give absolute "
+                              "bounds (low/high, mean/std, median/sigma)")
+        if axis.relative and nominal < 0:
+            raise ConfigError(f"{axis.place}: parameters.{axis.name}: a tolerance on a negative nominal value "
+                              f"({nominal:g}) is ambiguous: give absolute bounds")
+        try:  # the plant's own check (existence, type), with a representative value
+            resolve_parameters({axis.name: (axis.values[0] if axis.values else float(nominal or 0.0))}, md, fmu)
+        except BindingMismatch as error:
+            raise ConfigError(f"{axis.place}: parameters.{axis.name}: {error}") from None
+        unit = _attribute(variable, "unit") or ""
+        infos.append(AxisInfo(axis, unit, nominal, integer, _float(_attribute(variable, "min")),
+                              _float(_attribute(variable, "max"))))
+    for scenario in spec.scenarios:
+        try:
+            check_plant_supports(binding, scenario)
+        except ConfigError as error:
+            raise ConfigError(f"{spec.place('plant')}: {error}") from None
+    return infos
+
+
+def at_operating_point(scenario: Scenario, values: dict[str, float]) -> Scenario:
+    """``scenario`` with its supply and/or load moved: the initial value becomes the run's, and
+    every later value of that signal is scaled by the same factor (a 6 -> 5 Ohm step at 12 Ohm
+    initial load becomes 12 -> 10 Ohm)."""
+    if not values:
+        return scenario
+    factors = {signal: value / scenario.initial[signal] for signal, value in values.items()}
+    initial = {**scenario.initial, **values}
+    events = tuple(replace(e, changes={k: (v * factors[k] if k in factors else v) for k, v in e.changes.items()})
+                   for e in scenario.events)
+    return replace(scenario, initial=initial, events=events)
+
+
+def scenario_identity(scenario: Scenario) -> dict:
+    """What decides a run's result (not where the file is, nor its prose)."""
+    return {k: v for k, v in scenario.describe().items() if k not in ("source", "description")}
+
+
+class SweepPlan:
+    """The spec checked against its plant, and every run's values (drawn once, here)."""
+
+    def __init__(self, spec: SweepSpec, binding: PlantBinding | None = None):
+        self.spec = spec
+        self.binding = binding or nominal_binding(spec)
+        self.axes = check_axes(spec, self.binding)
+        self.plant = PlantRecipe.of(self.binding)
+        self._points = list(itertools.product(*(a.values for a in spec.grid_axes))) or [()]
+        draws = {a.key: a.draw(spec.seed, spec.samples) for a in spec.random_axes}
+        self._draws = draws
+        self._check_bounds()
+
+    @property
+    def scenarios(self) -> dict[str, Scenario]:
+        return {s.name: s for s in self.spec.scenarios}
+
+    def info(self, key: str) -> AxisInfo:
+        return next(i for i in self.axes if i.axis.key == key)
+
+    def _values(self, info: AxisInfo, scenario: Scenario, point: int, sample: int) -> float | int:
+        axis = info.axis
+        if not axis.random:
+            grid = [a.key for a in self.spec.grid_axes]
+            value = self._points[point][grid.index(axis.key)]
+            return int(value) if info.integer else float(value)
+        drawn = float(self._draws[axis.key][sample])
+        if not axis.relative:
+            return drawn
+        nominal = info.nominal if axis.group == "parameters" else scenario.initial[axis.name]
+        return nominal * drawn
+
+    def values(self, scenario: Scenario, point: int, sample: int) -> tuple[dict, dict]:
+        """(FMU parameters, operating point) of one run."""
+        parameters, operating = {}, {}
+        for info in self.axes:
+            value = self._values(info, scenario, point, sample)
+            (parameters if info.axis.group == "parameters" else operating)[info.axis.name] = value
+        return parameters, operating
+
+    def _check_bounds(self) -> None:
+        """Every value within the FMU's declared min/max, a supply and a load > 0, before any run."""
+        for info in self.axes:
+            operating = info.axis.group == "operating_point"
+            unit = f" {info.unit}" if info.unit else ""
+            for scenario in self.spec.scenarios if operating else self.spec.scenarios[:1]:
+                values = np.array([self._values(info, scenario, p, s) for p in range(len(self._points))
+                                   for s in range(self.spec.samples)], dtype=float)
+                if operating:
+                    low, bad, bound = 0.0, values <= 0, "0 (a supply or a load must be > 0)"
+                else:
+                    low = info.minimum
+                    bad = values < low if low is not None else np.zeros(len(values), dtype=bool)
+                    bound = f"the FMU's minimum {low:g}{unit}" if low is not None else ""
+                if bad.any():
+                    where = f" in scenario {scenario.name}" if operating else ""
+                    raise ConfigError(f"{info.axis.place}: {info.axis.key}: {int(bad.sum())} of {len(values)} values"
+                                      f"{where} fall below {bound} (smallest {values.min():.4g}{unit}): narrow the "
+                                      "distribution or bound it with low/high")
+                if info.maximum is not None and (values > info.maximum).any():
+                    raise ConfigError(f"{info.axis.place}: {info.axis.key}: {int((values > info.maximum).sum())} of "
+                                      f"{len(values)} values exceed the FMU's maximum {info.maximum:g}{unit} (largest "
+                                      f"{values.max():.4g}{unit})")
+
+    # ------------------------------------------------------------------ runs
+    def runs(self, controllers: list[ControllerRecipe], implementation: str | None = None) -> list[PlannedRun]:
+        """Every run, ordered controller, scenario, grid point, sample; ids hash each run's full spec."""
+        spec = self.spec
+        implementation = implementation or spec.implementation
+        plant = self.plant.identity()
+        runs = []
+        for controller in controllers:
+            for scenario in spec.scenarios:
+                identity = scenario_identity(scenario)
+                for point in range(len(self._points)):
+                    for sample in range(spec.samples):
+                        parameters, operating = self.values(scenario, point, sample)
+                        payload = {"format": RUN_ID_FORMAT, "plant": plant, "parameters": parameters,
+                                   "operating_point": operating, "scenario": identity,
+                                   "controller": controller.digest, "control_period_s": spec.control_period,
+                                   "record_period_s": spec.record_period, "implementation": implementation}
+                        run_id = digest(canonical(payload))[:RUN_ID_LENGTH]
+                        runs.append(PlannedRun(run_id, point, sample, tuple(parameters.items()),
+                                               tuple(operating.items()), scenario.name, controller.name))
+        return runs
+
+    def batch_size(self, runs_per_partition: int) -> int:
+        if self.spec.batch_size:
+            return self.spec.batch_size
+        return max(1, min(MAX_AUTO_BATCH, math.ceil(runs_per_partition / TASKS_PER_PARTITION)))
+
+    def batches(self, runs: list[PlannedRun]) -> list[BatchTask]:
+        """Consecutive runs of one controller and scenario per task, interleaved across
+        partitions (so every worker starts with different work)."""
+        partitions: dict[tuple[str, str], list[PlannedRun]] = {}
+        for run in runs:
+            partitions.setdefault((run.controller, run.scenario), []).append(run)
+        per_partition = []
+        for (controller, scenario), members in partitions.items():
+            size = self.batch_size(len(members))
+            chunks = [tuple(members[i:i + size]) for i in range(0, len(members), size)]
+            per_partition.append([BatchTask(batch_key(c), controller, scenario, c) for c in chunks])
+        return [task for group in itertools.zip_longest(*per_partition) for task in group if task is not None]
+
+    def identity(self, controllers: list[dict] | None = None) -> dict:
+        """The sweep's identity (its id hashes it): everything that decides its runs; not the name,
+        the description, the thresholds (they only decide the summary) or the batching."""
+        s = self.spec
+        axes = [{"key": a.key, "kind": a.kind, "relative": a.relative, "values": list(a.values),
+                 "settings": dict(a.settings)} for a in s.axes]
+        return {"plant": self.plant.identity(), "axes": axes, "samples": s.samples, "seed": s.seed,
+                "scenarios": [scenario_identity(x) for x in s.scenarios],
+                "controllers": controllers if controllers is not None else [_entry_identity(c) for c in s.controllers],
+                "control_period_s": s.control_period, "record_period_s": s.record_period,
+                "keep_traces": s.keep_traces, "implementation": s.implementation}
+
+    def sweep_id(self) -> str:
+        return digest(canonical(self.identity()))[:16]
+
+
+def _entry_identity(entry) -> dict:
+    """A controller entry as the sweep id sees it: a given model file by its content, not its path."""
+    described = entry.describe()
+    if entry.model is not None:
+        described["model"] = digest(Path(entry.model).read_bytes())
+    return described
+
+
+def batch_key(runs) -> str:
+    return digest(*(r.run_id for r in runs))[:16]

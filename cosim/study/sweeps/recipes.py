@@ -1,0 +1,106 @@
+"""What crosses from the workbench's process to the dask workers: plain, picklable recipes.
+
+A worker may be another machine, so nothing refers to a file that exists only here: the plant FMU
+and the NN model travel as bytes with their SHA-256, and each worker writes them to a file of its
+own and loads them through the same checks as a local file (:func:`cosim.fmi.archive.check_fmu`
+before anything is extracted; :func:`controllers.nn_model.load_model`, ``weights_only``). The
+controllers themselves are rebuilt on the worker from their settings (C twins hold ctypes state
+that does not pickle, and the run must use exactly what was designed).
+
+Digests identify what a run used: the plant recipe's (FMU bytes, roles, nominal parameters,
+interface) and each controller recipe's (kind, name, settings, model bytes) go into every run id.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+from cosim.fmi.binding import PlantBinding, RoleMap
+
+
+def digest(*parts: bytes | str) -> str:
+    """SHA-256 (hex) of the parts; of one part, the plain SHA-256 of its bytes (what ``sha256sum`` prints)."""
+    h = hashlib.sha256()
+    for i, part in enumerate(parts):
+        if i:
+            h.update(b"\0")  # a separator, so ("ab", "c") and ("a", "bc") differ
+        h.update(part.encode() if isinstance(part, str) else part)
+    return h.hexdigest()
+
+
+def canonical(value) -> str:
+    """JSON text with sorted keys: the same data always hashes the same (floats as Python's repr)."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+
+
+@dataclass(frozen=True)
+class PlantRecipe:
+    """A plant binding without its file system: the FMU's bytes, roles, nominal parameters."""
+
+    fmu_name: str
+    fmu_bytes: bytes
+    roles: tuple[tuple[str, str, float, float], ...]  # (role, variable, scale, offset)
+    parameters: tuple[tuple[str, object], ...]  # the nominal plant's parameters
+    interface: str | None
+    max_step: float | None
+    source: str | None  # the binding file, named in error messages
+    label: str
+    tag: str
+
+    @classmethod
+    def of(cls, binding: PlantBinding) -> "PlantRecipe":
+        path = Path(binding.fmu_path)
+        return cls(fmu_name=path.name, fmu_bytes=path.read_bytes(),
+                   roles=tuple((r, m.variable, m.scale, m.offset) for r, m in sorted(binding.roles.items())),
+                   parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
+                   max_step=binding.max_step, source=str(binding.source) if binding.source else None,
+                   label=binding.label, tag=binding.tag)
+
+    @cached_property
+    def fmu_digest(self) -> str:
+        return digest(self.fmu_bytes)
+
+    def binding(self, fmu_path: Path) -> PlantBinding:
+        """The nominal plant's binding with the FMU at ``fmu_path`` (the worker's copy)."""
+        return PlantBinding(fmu_path=Path(fmu_path), roles={r: RoleMap(v, s, o) for r, v, s, o in self.roles},
+                            interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
+                            source=Path(self.source) if self.source else None, label=self.label,
+                            tag_override=self.tag)
+
+    def identity(self) -> dict:
+        """What decides a run's result (not where the files are)."""
+        return {"fmu_sha256": self.fmu_digest, "roles": [list(r) for r in self.roles],
+                "parameters": {k: v for k, v in self.parameters}, "interface": self.interface,
+                "max_step": self.max_step}
+
+
+@dataclass(frozen=True)
+class ControllerRecipe:
+    """A controller designed once on the nominal plant, to be rebuilt on any worker.
+
+    ``settings`` (JSON text) holds everything but the model: PI gains, circuit parameters, the
+    network and its held-out error; ``blob`` is the model file's bytes (NNPC), or None.
+    """
+
+    kind: str
+    name: str
+    control_period: float  # [s]
+    settings_json: str
+    blob: bytes | None = None
+
+    @property
+    def settings(self) -> dict:
+        return json.loads(self.settings_json)
+
+    @cached_property
+    def digest(self) -> str:
+        return digest(self.kind, self.name, repr(self.control_period), self.settings_json, self.blob or b"")
+
+    def describe(self) -> dict:
+        """JSON-ready, for the manifest and the summary (the blob by its SHA-256)."""
+        return {"kind": self.kind, "name": self.name, "control_period_s": self.control_period,
+                "settings": self.settings, "model_sha256": digest(self.blob) if self.blob else None}

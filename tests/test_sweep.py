@@ -1,0 +1,565 @@
+"""Sweeps and Monte Carlo on dask: the sweep file, the runs and their ids, the dataset, the summary,
+and the faults -- with real LocalClusters of two worker processes on the loopback interface."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from cosim.base.errors import ConfigError
+from cosim.cli import main
+from cosim.study.sweeps import dataset
+from cosim.study.sweeps.plan import SweepPlan, at_operating_point
+from cosim.study.sweeps.spec import load_sweep, parse_sweep
+from cosim.study.sweeps.summary import spec_mask, wilson_interval
+
+PI_GAINS = "kp = 0.0015, ki = 15.6"  # near the tuned 1 ms gains: the tests need a PI, not its tuning
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A LocalCluster of two worker processes, as ``dask scheduler`` + two ``dask worker`` would be."""
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    local = LocalCluster(host="127.0.0.1", n_workers=2, threads_per_worker=1, processes=True,
+                         dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL)
+    client = Client(local, set_as_default=False)
+    try:
+        client.wait_for_workers(2, timeout=60)
+        yield local, client
+    finally:
+        client.close()
+        local.close()
+
+
+@pytest.fixture(scope="module")
+def nn_model(tmp_path_factory) -> Path:
+    """An NNPC model identified on the nominal switched plant (small data: the sweep tests need one, not a good one)."""
+    from cosim.study.controller_factory import trained_model
+    from cosim.study.experiments import plant_binding
+    from cosim.study.vocabulary import pipeline_tag, plant_tag
+
+    folder = tmp_path_factory.mktemp("nn")
+    trained_model("nnpc", plant_binding("nominal", "switched"), 1e-3, folder, samples=1500, seed=0, model_path=None)
+    return folder / "models" / f"{pipeline_tag(plant_tag('nominal', 'switched'), 1e-3)}__nnpc.pt"
+
+
+def sweep_file(folder: Path, body: str, name: str = "study.toml") -> Path:
+    path = folder / name
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+def tolerance_study(folder: Path, model: Path, samples: int = 6, extra: str = "", controllers: str | None = None,
+                    name: str = "study.toml") -> Path:
+    controllers = controllers or f"""
+        [[controllers]]
+        kind = "pi"
+        {PI_GAINS.replace(', ', chr(10) + '        ')}
+        [[controllers]]
+        kind = "nnpc"
+        model = "{model}"
+        [[controllers]]
+        kind = "mpc-nominal"
+        """
+    return sweep_file(folder, f"""\
+        name = "tol"
+        description = "L, C +-20 %, ESR and DCR"
+        scenarios = ["startup", "load_change"]
+        samples = {samples}
+        seed = 7
+        {extra}
+        [plant]
+        mode = "switched"
+        [parameters]
+        inductance = {{ tolerance = 0.2 }}
+        capacitance = {{ tolerance = 0.2 }}
+        capacitor_esr = {{ low = 0.0, high = 0.1 }}
+        inductor_resistance = {{ distribution = "log-normal", median = 0.05, sigma = 0.5 }}
+        [spec]
+        overshoot_pct = 5.0
+        settling_time_ms = 4.0
+        steady_state_error_pct = 0.5
+        {controllers}""", name)
+
+
+def one_line_error(capsys, code: int, expected_code: int, message: str) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == expected_code, err
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], err
+    return lines[0]
+
+
+def ends_in_one_line_error(capsys, code: int, expected_code: int, message: str) -> str:
+    """Progress lines may come first; the failure is one ``error:`` line, the last, and no traceback."""
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == expected_code, err
+    assert [line for line in lines if line.startswith("error: ")] == lines[-1:] and message in lines[-1], err
+    assert "Traceback" not in err, err
+    return lines[-1]
+
+
+def rows_of(out: Path) -> pd.DataFrame:
+    return dataset.read_rows(out).sort_values("run_id").reset_index(drop=True)
+
+
+def no_temporary_files(folder: Path) -> None:
+    assert not list(Path(folder).rglob(".*.tmp-*")), list(Path(folder).rglob(".*.tmp-*"))
+
+
+# ------------------------------------------------------------------------------------------ the sweep file
+
+
+def test_the_sweep_file_gives_grids_distributions_controllers_and_a_spec(tmp_path):
+    path = sweep_file(tmp_path, """\
+        scenarios = ["startup"]
+        controllers = ["pi", {kind = "nnpc", samples = 2000, seed = 3}, {kind = "mpc-nominal", name = "MPC"}]
+        samples = 4000
+        seed = 11
+        control_period = "1/75e3"
+        [parameters]
+        inductance = { tolerance = 0.2 }
+        capacitance = { tolerance = [-0.3, 0.1] }
+        capacitor_esr = { distribution = "normal", mean = 0.05, std = 0.01 }
+        inductor_resistance = { distribution = "log-normal", tolerance = 0.5 }
+        switching_frequency = { values = [60e3, 75e3] }
+        [operating_point]
+        input_voltage = { distribution = "normal", tolerance = 0.1 }
+        [spec]
+        overshoot_pct = 5
+        steady_state_error_pct = 0.5
+        """)
+    spec = load_sweep(path)
+    assert spec.name == "study" and spec.control_period == pytest.approx(1 / 75e3)
+    assert [c.kind for c in spec.controllers] == ["pi", "nnpc", "mpc-nominal"]
+    assert [c.name for c in spec.controllers] == ["PI", "NNPC", "MPC"] and spec.controllers[1].samples == 2000
+    assert spec.grid_points == 2 and spec.run_count == 2 * 4000 * 1 * 3
+    assert [t.text() for t in spec.thresholds] == ["overshoot_pct <= 5", "|steady_state_error_pct| <= 0.5"]
+    axes = {a.name: a for a in spec.axes}
+    l_draw = axes["inductance"].draw(spec.seed, spec.samples)
+    assert 0.8 <= l_draw.min() < 0.81 and 1.19 < l_draw.max() <= 1.2  # uniform factors on the nominal
+    c_draw = axes["capacitance"].draw(spec.seed, spec.samples)
+    assert 0.7 <= c_draw.min() and c_draw.max() <= 1.1 and c_draw.mean() == pytest.approx(0.9, abs=0.01)
+    esr = axes["capacitor_esr"].draw(spec.seed, spec.samples)
+    assert esr.mean() == pytest.approx(0.05, abs=1e-3) and esr.std() == pytest.approx(0.01, rel=0.05)
+    dcr = axes["inductor_resistance"].draw(spec.seed, spec.samples)  # 3 sigma(ln) = ln 1.5, median 1
+    assert np.median(dcr) == pytest.approx(1.0, abs=0.02) and np.log(dcr).std() == pytest.approx(math.log(1.5) / 3, rel=0.05)
+    supply = axes["input_voltage"].draw(spec.seed, spec.samples)  # +-10 % at 3 sigma
+    assert supply.std() == pytest.approx(0.1 / 3, rel=0.05)
+    # the same seed gives the same draws; an axis's draws do not depend on the other axes
+    alone = parse_sweep('scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 4000\nseed = 11\n'
+                        '[parameters]\ninductance = { tolerance = 0.2 }\n', tmp_path / "alone.toml")
+    assert np.array_equal(alone.axes[0].draw(11, 4000), l_draw)
+    assert not np.array_equal(alone.axes[0].draw(12, 4000), l_draw)
+
+
+@pytest.mark.parametrize("body,message", [
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 3\n[parameters]\ninductance = { tolerance = 1.5 }\n',
+     "bad.toml:5: parameters.inductance.tolerance = 1.5 is invalid: expected 0 < tolerance < 1"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\n[parameters]\ninductance = { tolerance = 0.2 }\n',
+     "bad.toml: missing required key 'samples': the random axes (parameters.inductance) need a sample count"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 3\n[parameters]\n'
+     'capacitance = { distribution = "gamma", low = 1 }\n',
+     "bad.toml:5: parameters.capacitance.distribution = 'gamma' is unknown: expected one of uniform, normal, log-normal"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 3\n[parameters]\n'
+     'capacitance = { distribution = "normal", low = 1e-6, high = 2e-6 }\n',
+     "bad.toml:5: parameters.capacitance: low does not apply to a normal distribution: expected mean, std, tolerance"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\n[parameters]\ninductance = { values = [1e-4, 1e-4] }\n',
+     "bad.toml:4: parameters.inductance.values lists 0.0001 twice"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi", "fuzzy"]\n',
+     "bad.toml:2: controllers[1].kind = 'fuzzy' is unknown: expected one of pi, nnpc, nnpc-paper, mpc-nominal"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "pi"\nkp = 0.1\n',
+     "bad.toml:3: controllers[0]: kp and ki go together (or neither: tuned on the nominal plant)"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\n[spec]\novershoot = 5\n',
+     "bad.toml:4: unknown key 'spec.overshoot': expected one of rise_time_ms, overshoot_pct"),
+    ('scenarios = ["nowhere"]\ncontrollers = ["pi"]\n', "bad.toml:1: scenarios: scenario 'nowhere' is neither a file"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 0\n', "bad.toml:3: samples = 0 is invalid: expected 1"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\ncontrol_period = "1/0"\n',
+     "bad.toml:3: control_period = '1/0' is not a period in seconds"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\n[plant]\nmode = "switched"\nbinding = "x.toml"\n',
+     "bad.toml:4: plant.mode applies to the built-in FMU, but plant.binding names an external one"),
+    ('scenarios = ["startup"]\ncontrollers = ["pi"]\nworkers = 4\n',
+     "bad.toml:3: unknown key 'workers': expected one of batch_size, control_period"),
+])
+def test_sweep_file_mistakes_name_file_key_and_line(tmp_path, body, message):
+    (tmp_path / "bad.toml").write_text(body)
+    with pytest.raises(ConfigError) as caught:
+        load_sweep(tmp_path / "bad.toml")
+    assert message in str(caught.value).replace(str(tmp_path) + "/", "")
+
+
+def test_values_outside_the_fmu_bounds_and_unknown_parameters_are_refused_before_any_work(tmp_path, capsys):
+    """One line, exit 2, and nothing computed: no cluster, no tuning, no dataset."""
+    def base(samples=True):
+        return ('scenarios = ["startup", "load_change"]\ncontrollers = ["pi"]\n' + ("samples = 50\n" if samples else "")
+                + '[plant]\nmode = "switched"\n')
+
+    cases = [
+        (base() + '[parameters]\nL = { tolerance = 0.2 }\n',
+         "study.toml:7: parameters.L: BuckConverter-", "has no parameter 'L'; its parameters are capacitance, "
+         "capacitor_esr, diode_forward_voltage, inductance, inductor_resistance, plant_mode, pwm_carrier, "
+         "switch_on_resistance, switching_frequency"),
+        (base() + '[parameters]\ninductance = { distribution = "normal", mean = 220e-6, std = 200e-6 }\n',
+         "study.toml:7: parameters.inductance:", "values fall below the FMU's minimum 0 H (smallest"),
+        (base(False) + '[parameters]\nload_resistance = { values = [5.0, 6.0] }\n',
+         "study.toml:6: parameters.load_resistance:", "is an input of BuckConverter-"),
+        (base() + '[parameters]\ncapacitor_esr = { tolerance = 0.2 }\n',
+         "study.toml:7: parameters.capacitor_esr: a tolerance is relative to the nominal value, which is 0.0",
+         "give absolute bounds"),
+        (base(False) + '[parameters]\nplant_mode = { values = [0.5] }\n',
+         "study.toml:6: parameters.plant_mode is an Integer parameter", "must be whole numbers"),
+    ]
+    for body, message, more in cases:
+        path = sweep_file(tmp_path, body)
+        out = tmp_path / "out"
+        code = main(["--no-progress", "sweep", str(path), "--out", str(out)])
+        line = one_line_error(capsys, code, 2, more)
+        assert message in line.replace(str(tmp_path) + "/", ""), line
+        assert not (out / "dataset").exists() and not (out / "tuning").exists() and not (out / "sweep.json").exists()
+
+
+def test_an_unreachable_or_malformed_scheduler_is_refused_before_any_work(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    path = sweep_file(tmp_path, 'scenarios = ["startup"]\ncontrollers = ["pi"]\n[parameters]\n'
+                                'inductance = { values = [200e-6, 240e-6] }\n')
+    out = tmp_path / "out"
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--scheduler", f"tcp://127.0.0.1:{port}",
+                 "--scheduler-timeout", "1"])
+    one_line_error(capsys, code, 2, f"cannot reach the dask scheduler at tcp://127.0.0.1:{port} within 1 s")
+    assert not (out / "tuning").exists() and not (out / "dataset").exists()
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--scheduler", "127.0.0.1:8786"])
+    one_line_error(capsys, code, 2, "--scheduler '127.0.0.1:8786' is not a dask scheduler address: expected "
+                                    "tcp://HOST:PORT")
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--scheduler", "tcp://127.0.0.1:1",
+                 "--workers", "2"])
+    one_line_error(capsys, code, 2, "--workers sizes the local cluster")
+
+
+def test_operating_point_axes_move_the_scenario_and_run_ids_hash_the_whole_run(tmp_path):
+    from cosim.scenarios import load_scenario
+    from cosim.study.sweeps.recipes import ControllerRecipe
+
+    moved = at_operating_point(load_scenario("load_change"), {"load_resistance": 12.0, "input_voltage": 40.0})
+    assert moved.initial["load_resistance"] == 12.0 and moved.initial["input_voltage"] == 40.0
+    assert moved.events[0].changes == {"load_resistance": 10.0}  # 6 -> 5 Ohm becomes 12 -> 10 Ohm
+    spec = parse_sweep('scenarios = ["startup", "load_change"]\ncontrollers = ["pi"]\nsamples = 3\n'
+                       '[parameters]\ninductance = { tolerance = 0.2 }\nplant_mode = { values = [0, 1] }\n'
+                       '[operating_point]\nload_resistance = { values = [6.0, 12.0] }\n'
+                       'input_voltage = { tolerance = 0.1 }\n', tmp_path / "s.toml")
+    plan = SweepPlan(spec)
+    pi = ControllerRecipe("pi", "PI", 1e-3, '{"kp_per_V": 0.0015, "ki_per_V_s": 15.6, "tuning": {}}')
+    runs = plan.runs([pi])
+    assert len(runs) == 2 * 2 * 3 * 2 and len({r.run_id for r in runs}) == len(runs)
+    assert {r.values["plant_mode"] for r in runs} == {0, 1} and all(isinstance(r.values["plant_mode"], int) for r in runs)
+    assert {r.values["load_resistance"] for r in runs} == {6.0, 12.0}
+    supplies = {r.values["input_voltage"] for r in runs}
+    assert len(supplies) == 3 and all(43.2 <= v <= 52.8 for v in supplies)  # 48 V +- 10 %
+    assert [r.run_id for r in SweepPlan(spec).runs([pi])] == [r.run_id for r in runs]  # the same spec, the same ids
+    other = ControllerRecipe("pi", "PI", 1e-3, '{"kp_per_V": 0.0016, "ki_per_V_s": 15.6, "tuning": {}}')
+    assert not {r.run_id for r in plan.runs([other])} & {r.run_id for r in runs}  # other gains, other runs
+    tasks = plan.batches(runs)
+    assert sorted(r.run_id for t in tasks for r in t.runs) == sorted(r.run_id for r in runs)
+    assert all(len({(r.controller, r.scenario) for r in t.runs}) == 1 for t in tasks)
+
+
+@pytest.mark.parametrize("name,runs", [("tolerance", 8000), ("tolerance-reproduction", 600), ("tolerance-fast", 1200)])
+def test_the_shipped_studies_are_valid_against_the_built_in_plant(name, runs):
+    from cosim.study.sweeps.spec import shipped_studies
+
+    assert name in shipped_studies()
+    spec = load_sweep(name)  # by name, like shipped scenarios
+    plan = SweepPlan(spec)  # every axis against the FMU, every draw within its bounds
+    assert spec.run_count == runs and spec.thresholds and plan.binding.tag == "nominal-switched"
+
+
+def test_the_sweep_help_states_units_and_exit_codes(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["sweep", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert done.value.code == 0
+    for phrase in ("--scheduler-timeout SECONDS", "tcp://HOST:PORT", "one per core", "SI: s, V, A, Ohm, H, F, Hz",
+                   "Exit 2 on a mistake, before any work; 3 if some runs failed", "130 if interrupted"):
+        assert phrase in text, phrase
+
+
+def test_wilson_interval_and_the_spec_mask():
+    assert wilson_interval(0, 12) == (0.0, pytest.approx(0.2425, abs=1e-4))
+    low, high = wilson_interval(10, 20)
+    assert low == pytest.approx(0.2993, abs=1e-4) and high == pytest.approx(0.7007, abs=1e-4)
+    assert wilson_interval(20, 20)[1] == 1.0
+    from cosim.study.sweeps.spec import Threshold
+
+    rows = pd.DataFrame({"status": ["ok", "ok", "ok", "failed"], "overshoot_pct": [1.0, 6.0, 2.0, np.nan],
+                         "settling_time_ms": [1.0, 1.0, np.nan, np.nan], "steady_state_error_pct": [-0.4, 0, 0, 0]})
+    mask = spec_mask(rows, [Threshold("overshoot_pct", 5.0), Threshold("settling_time_ms", 2.0),
+                            Threshold("steady_state_error_pct", 0.5)])
+    assert mask.tolist() == [True, False, False, False]  # too much overshoot; never settles; failed
+
+
+# ------------------------------------------------------------------------------------------ runs on clusters
+
+
+def test_one_and_two_workers_give_the_same_rows_and_summary(tmp_path, nn_model, cluster, capsys):
+    """1 worker (the command's own LocalCluster) and 2 (an existing cluster, as --scheduler): same
+    rows, same parts, same summary; and the rows, the yield and the worst case say what they should."""
+    local, client = cluster
+    path = tolerance_study(tmp_path, nn_model, samples=5, extra="keep_traces = true")
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(["--no-progress", "sweep", str(path), "--out", str(one), "--workers", "1"]) == 0
+    assert main(["--no-progress", "sweep", str(path), "--out", str(two), "--scheduler", local.scheduler_address]) == 0
+    err = capsys.readouterr().err
+    assert "on a LocalCluster of 1 worker process(es)" in err and f"the cluster at {local.scheduler_address} (2" in err
+    a, b = rows_of(one), rows_of(two)
+    pd.testing.assert_frame_equal(a, b)
+    parts = sorted(p.relative_to(one) for p in (one / "dataset").rglob("*.parquet"))
+    assert parts == sorted(p.relative_to(two) for p in (two / "dataset").rglob("*.parquet"))
+    for part in parts:
+        assert (one / part).read_bytes() == (two / part).read_bytes(), part
+    for name in ("SWEEP.md", "yield.csv", "sweep.json", "figures/yield.png"):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
+
+    # one row per run: 3 controllers x 2 scenarios x 5 units, partitioned by controller and scenario
+    assert len(a) == 30 and a["run_id"].is_unique and set(a["status"]) == {"ok"} and a["error"].isna().all()
+    assert {p.parts[1] for p in parts} == {"controller=PI", "controller=NNPC", "controller=MPC-nominal"}
+    assert {p.parts[2] for p in parts} == {"scenario=startup", "scenario=load_change"}
+    units = a.groupby(["point", "sample"])[["inductance", "capacitance", "capacitor_esr"]].nunique()
+    assert (units == 1).all().all()  # every controller and scenario saw the same five units
+    assert a["inductance"].between(176e-6, 264e-6).all() and a["capacitor_esr"].between(0, 0.1).all()
+    schema = pq.read_schema(one / parts[0])
+    assert schema.field("inductance").metadata == {b"unit": b"H"} and "controller" not in schema.names
+    assert not any(c.startswith("controller_p") or c.startswith("wall") for c in a.columns)  # wall clock: timing/
+    timing = dataset.read_timing(one)
+    assert set(timing["run_id"]) == set(a["run_id"]) and (timing["wall_time_s"] > 0).all()
+    # traces: the full table of each run, with its values in the metadata
+    from cosim.results import read_run
+
+    run = a[(a["controller"] == "PI") & (a["scenario"] == "startup")].iloc[0]
+    trace = read_run(one / "traces" / f"{run['run_id']}.parquet")
+    assert trace.complete and trace.metadata["sweep_run"]["values"]["inductance"] == run["inductance"]
+    assert trace.metadata["plant"]["parameters"]["inductance"] == run["inductance"]
+
+    # the yield table is the share of rows meeting every threshold, per unit over both scenarios too
+    table = pd.read_csv(one / "yield.csv")
+    spec = load_sweep(path)
+    for controller in ("PI", "NNPC", "MPC-nominal"):
+        mine = a[a["controller"] == controller].assign(meets=lambda f: spec_mask(f, spec.thresholds))
+        for scenario in ("startup", "load_change"):
+            row = table[(table["controller"] == controller) & (table["scenario"] == scenario)].iloc[0]
+            assert row["meet_spec"] == mine.loc[mine["scenario"] == scenario, "meets"].sum()
+        per_unit = mine.groupby(["point", "sample"])["meets"].all()
+        row = table[(table["controller"] == controller) & (table["scenario"] == "all scenarios (per unit)")].iloc[0]
+        assert row["runs"] == 5 and row["meet_spec"] == per_unit.sum()
+    text = (one / "SWEEP.md").read_text()
+    for heading in ("## What was swept", "## Yield", "## Distributions", "## Most influential parameter",
+                    "## Worst case", "## Failed runs"):
+        assert heading in text
+    # the worst NNPC start-up is its run with the largest overshoot / 5 % (the binding threshold)
+    nn = a[(a["controller"] == "NNPC") & (a["scenario"] == "startup")]
+    worst = nn.loc[nn["overshoot_pct"].idxmax()]
+    assert f"| startup | NNPC | {worst['run_id']} | ok |" in text
+    for figure in ("yield", "distributions__startup", "influence__load_change"):
+        assert (one / "figures" / f"{figure}.png").read_bytes()[:4] == b"\x89PNG"
+
+    # the folder holds this sweep: a second start is refused, a changed spec cannot resume it,
+    # and resuming the same sweep runs nothing again
+    code = main(["--no-progress", "sweep", str(path), "--out", str(one), "--workers", "1"])
+    one_line_error(capsys, code, 2, f"{one} already holds a sweep (id ")
+    changed = tolerance_study(tmp_path, nn_model, samples=6, extra="keep_traces = true", name="changed.toml")
+    code = main(["--no-progress", "sweep", str(changed), "--out", str(one), "--resume"])
+    one_line_error(capsys, code, 2, "(changed: samples): resume with the original file, or choose another --out")
+    before = {p: p.stat().st_mtime_ns for p in (one / "dataset").rglob("*.parquet")}
+    assert main(["--no-progress", "sweep", str(path), "--out", str(one), "--resume", "--scheduler",
+                 local.scheduler_address]) == 0
+    assert "30 done earlier, kept (--resume); running 0 in 0 task(s)" in capsys.readouterr().err
+    assert {p: p.stat().st_mtime_ns for p in (one / "dataset").rglob("*.parquet")} == before
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(parent, []).append(int(entry.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.add(child)
+            todo.append(child)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").exists() and "Z" not in (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1][:3])
+
+
+@pytest.mark.parametrize("interrupt", ["SIGTERM to the process", "Ctrl-C: SIGINT to the process group"])
+def test_an_interrupt_shuts_the_cluster_down_and_resume_finishes_without_recomputing(tmp_path, cluster, interrupt):
+    """SIGTERM (a batch system) or Ctrl-C (the terminal signals every process of the group, the
+    workers too): exit 130 in one line, no worker outlives the sweep, only complete parts; --resume
+    runs exactly the rest and writes nothing that was done."""
+    local, _ = cluster
+    scenario = tmp_path / "long_startup.toml"
+    scenario.write_text('name = "long_startup"\nduration = 0.1\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, f"""\
+        scenarios = ["long_startup.toml"]
+        samples = 40
+        batch_size = 2
+        [[controllers]]
+        kind = "pi"
+        {PI_GAINS.replace(', ', chr(10) + '        ')}
+        [plant]
+        mode = "switched"
+        [parameters]
+        inductance = {{ tolerance = 0.2 }}
+        """)
+    out = tmp_path / "out"
+    group = interrupt.startswith("Ctrl-C")
+    process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
+                                str(out), "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               stdin=subprocess.DEVNULL, start_new_session=group,
+                               preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if group else None)
+    deadline = time.time() + 120
+    while not list((out / "dataset").rglob("part-*.parquet")) and time.time() < deadline:
+        time.sleep(0.05)
+    workers = _descendants(process.pid)
+    assert process.poll() is None and len(workers) >= 2, "the sweep ended before the interrupt"
+    if group:
+        os.killpg(process.pid, signal.SIGINT)
+    else:
+        process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines[-1].startswith("error: sweep interrupted: ") and "run the same command with --resume to finish the other" \
+        in lines[-1] and "Traceback" not in err, err
+    assert [line for line in lines if line.startswith("error:")] == lines[-1:]
+    deadline = time.time() + 20
+    while any(_alive(pid) for pid in workers) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in workers if _alive(pid)], "worker processes outlived the interrupted sweep"
+    no_temporary_files(out)
+    done = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in (out / "dataset").rglob("part-*.parquet")}
+    kept = len(dataset.done_run_ids(out))
+    assert 1 <= kept < 40 and f"{kept} of 40 runs are in" in lines[-1]
+
+    from cosim.study.sweeps.sweep import run_sweep
+
+    outcome = run_sweep(path, out, scheduler=local.scheduler_address, resume=True)
+    assert outcome.done_before == kept and outcome.computed == 40 - kept and outcome.failed == 0
+    for part, (content, mtime) in done.items():  # nothing done was written again
+        assert part.read_bytes() == content and part.stat().st_mtime_ns == mtime
+    rows = dataset.read_rows(out)
+    ids = [i for p in (out / "dataset").rglob("part-*.parquet") for i in pq.read_table(p).column("run_id").to_pylist()]
+    assert len(ids) == len(set(ids)) == len(rows) == 40 and set(rows["status"]) == {"ok"}
+
+
+def test_a_worker_killed_mid_sweep_loses_and_duplicates_no_run(tmp_path, cluster):
+    local, client = cluster
+    path = sweep_file(tmp_path, f"""\
+        scenarios = ["startup", "load_change"]
+        samples = 24
+        batch_size = 2
+        [[controllers]]
+        kind = "pi"
+        {PI_GAINS.replace(', ', chr(10) + '        ')}
+        [plant]
+        mode = "switched"
+        [parameters]
+        capacitance = {{ tolerance = 0.2 }}
+        """)
+    out = tmp_path / "out"
+    killed = []
+
+    def kill_a_busy_worker():  # as an OOM killer or a crash would: SIGKILL, while it runs a task
+        deadline = time.time() + 120
+        while not list((out / "dataset").rglob("part-*.parquet")) and time.time() < deadline:
+            time.sleep(0.01)
+        pids = client.run(os.getpid)
+        busy = [address for address, keys in client.processing().items() if keys]
+        if busy:
+            os.kill(pids[busy[0]], signal.SIGKILL)
+            killed.append(busy[0])
+
+    from cosim.study.sweeps.sweep import run_sweep
+
+    killer = threading.Thread(target=kill_a_busy_worker)
+    killer.start()
+    outcome = run_sweep(path, out, scheduler=local.scheduler_address)
+    killer.join()
+    assert killed, "no worker was busy when the first part landed"
+    assert outcome.computed == outcome.planned == 48 and outcome.failed == 0
+    ids = [i for p in (out / "dataset").rglob("part-*.parquet") for i in pq.read_table(p).column("run_id").to_pylist()]
+    assert len(ids) == len(set(ids)) == 48
+    client.wait_for_workers(2, timeout=60)  # the nanny started a new worker
+
+
+FAULTY = """\
+fmu = "{fmu}"
+[roles.duty_cycle]
+variable = "duty"
+[roles.output_voltage]
+variable = "Vout"
+[roles.inductor_current]
+variable = "IL"
+[parameters]
+fault_time = 0.0103
+"""
+
+
+def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_path, faulty_fmu, capsys):
+    """The FMU discards a step, its output turns NaN, it kills its worker process: each is one failed
+    row with the cause; the other runs complete and the command exits 3."""
+    (tmp_path / "faulty.toml").write_text(FAULTY.format(fmu=faulty_fmu))
+    (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, """\
+        scenarios = ["short.toml"]
+        record_period = 1e-4
+        batch_size = 4
+        controllers = [{ kind = "pi", kp = 0.0, ki = 14.0 }]
+        [plant]
+        binding = "faulty.toml"
+        [parameters]
+        fault_kind = { values = [0, 1, 3, 4] }
+        fault_time = { values = [0.0103] }
+        """)
+    out = tmp_path / "out"
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--workers", "2"])
+    ends_in_one_line_error(capsys, code, 3, f"3 of 4 runs failed (status 'failed' in {out}/dataset, causes in {out}/SWEEP.md); "
+                                    "the other 1 runs and the summary are complete")
+    rows = dataset.read_rows(out).set_index("fault_kind").sort_index()
+    assert rows.loc[0, "status"] == "ok" and pd.isna(rows.loc[0, "error"])
+    assert rows.loc[0, "steady_state_error_pct"] == pytest.approx(0.0, abs=0.5)
+    assert "fmi2DoStep failed (discard) at t = 0.0103" in rows.loc[1, "error"]
+    assert "plant output became non-finite at t = 0.0104 s (output_voltage = nan)" in rows.loc[3, "error"]
+    assert rows.loc[4, "error"].startswith("the worker process running it died each time it ran")
+    assert rows.loc[rows["status"] == "failed", "iae_Vs"].isna().all()
+    text = (out / "SWEEP.md").read_text()
+    assert "3 run(s) failed" in text and "fmi2DoStep failed (discard)" in text
+    no_temporary_files(out)
