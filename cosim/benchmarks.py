@@ -240,7 +240,8 @@ def _nn_model(name: str, period: float, quick: bool):
 
     pi = _benchmark_pi(period)
     data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000))
-    return train(data, config, TrainingSettings(max_iterations=100 if quick else 3000)), "trained for the benchmark"
+    return (train(data, config, TrainingSettings(max_iterations=100 if quick else 3000),
+                  metadata={"control_period_s": period}), "trained for the benchmark")
 
 
 def _benchmark_pi(period: float):

@@ -266,7 +266,7 @@ class IsolatedPlant:
 
     def _stop(self) -> None:
         process, self._process = self._process, None
-        if process is not None:
+        if process is not None and process.pid is not None:  # started (a failed start leaves nothing to join)
             process.join(timeout=10)
             if process.is_alive():
                 process.kill()

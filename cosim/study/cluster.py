@@ -36,7 +36,10 @@ from cosim.base.errors import ConfigError
 #: under the GIL; measured at 15-40 % of a 1 ms sweep's run time), and glibc's own heap trimming
 #: instead of the nanny's MALLOC_TRIM_THRESHOLD_=65536 (measured: a 13.33 us pipeline ran 20-30 %
 #: slower with it). For one's own ``dask worker`` processes the README gives the same as dask YAML.
-WORKER_SETTINGS = {"distributed.worker.profile.enabled": False,
+#: ``daemon`` off: a worker steps a binding file's plant FMU in a child process of its own
+#: (:mod:`cosim.fmi.isolation`), which a daemonic process may not start; the nanny still ends its
+#: worker, and the plant process ends when its pipe closes
+WORKER_SETTINGS = {"distributed.worker.profile.enabled": False, "distributed.worker.daemon": False,
                    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 #: how long to try to reach a scheduler before refusing the address [s]
 CONNECT_TIMEOUT = 10.0
