@@ -557,7 +557,8 @@ def _controllers(r: _Reader, data: dict, base: Path) -> list[ControllerEntry]:
         if not name.strip() or "/" in name or "=" in name:
             r.fail(at("name"), f"controllers[{index}].name = {name!r} is invalid: expected a label without / or =")
         if name in {c.name for c in controllers}:
-            r.fail(at("name"), f"controller name {name!r} is used twice: give the second one a name = \"...\"")
+            r.fail(at("name") if "name" in entry else place,
+                   f"controller name {name!r} is used twice: give the second one a name = \"...\"")
         kp = ki = model = None
         if kind == "pi" and ("kp" in entry or "ki" in entry):
             if "kp" not in entry or "ki" not in entry:
