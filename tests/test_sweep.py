@@ -563,3 +563,181 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     text = (out / "SWEEP.md").read_text()
     assert "3 run(s) failed" in text and "fmi2DoStep failed (discard)" in text
     no_temporary_files(out)
+
+
+# ------------------------------------------------------------------------------------------ controller FMUs
+
+
+PI_KP, PI_KI = 0.0015, 15.6
+BOUND_PI = """\
+fmu = "{fmu}"
+label = "PI (bound)"
+[roles.reference]
+variable = "reference"
+[roles.measured_output_voltage]
+variable = "measured_output_voltage"
+[roles.duty_cycle]
+variable = "duty_cycle"
+[roles.sample_period]
+variable = "sample_period"
+"""
+
+
+@pytest.fixture(scope="module")
+def pi_fmu(tmp_path_factory) -> Path:
+    """The PI of PI_GAINS exported as a controller FMU at 1 ms, as a user would export it."""
+    folder = tmp_path_factory.mktemp("pi-fmu")
+    assert main(["--no-progress", "export-controller", "pi", "--kp", str(PI_KP), "--ki", str(PI_KI),
+                 "--control-period", "1e-3", "--out", str(folder / "my_pi.fmu"), "--work-dir", str(folder / "work")]) == 0
+    return folder / "my_pi.fmu"
+
+
+def fmu_study(folder: Path, fmu: Path, extra: str = "", controllers: str | None = None) -> Path:
+    """A small tolerance study of the built-in PI (PI_GAINS) next to controller FMUs in ``folder``."""
+    import shutil
+
+    if fmu.parent != folder:
+        shutil.copy(fmu, folder / fmu.name)
+    (folder / "bound.toml").write_text(BOUND_PI.format(fmu=fmu.name))
+    controllers = controllers if controllers is not None else f"""
+        [[controllers]]
+        kind = "pi"
+        {PI_GAINS.replace(', ', chr(10) + '        ')}
+        [[controllers]]
+        kind = "fmu"
+        path = "{fmu.name}"
+        [[controllers]]
+        kind = "fmu"
+        path = "bound.toml"
+        """
+    return sweep_file(folder, f"""\
+        scenarios = ["startup", "load_change"]
+        samples = 3
+        seed = 5
+        {extra}
+        [plant]
+        mode = "switched"
+        [parameters]
+        inductance = {{ tolerance = 0.2 }}
+        capacitance = {{ tolerance = 0.2 }}
+        [operating_point]
+        input_voltage = {{ tolerance = 0.1 }}
+        {controllers}""")
+
+
+def test_a_controller_fmu_travels_as_bytes_and_is_rebuilt_from_them(tmp_path, pi_fmu):
+    """The recipe holds the FMU's bytes (and a binding file's content), no path of this machine; the
+    digest covers the bytes; the build needs only the recipe, and the C-twin step leaves the FMU as it is."""
+    import pickle
+
+    from cosim.fmi.controller import FmuController
+    from cosim.study.sweeps.designs import build, design
+    from cosim.study.sweeps.recipes import ControllerRecipe
+
+    path = fmu_study(tmp_path, pi_fmu)
+    spec = load_sweep(path)
+    assert [(c.kind, c.name) for c in spec.controllers] == [("pi", "PI"), ("fmu", "my_pi (FMU)"), ("fmu", "PI (bound)")]
+    plan = SweepPlan(spec)
+    _, given, bound = design(spec.controllers, plan.binding, spec.control_period, tmp_path / "out")
+    blob = (tmp_path / "my_pi.fmu").read_bytes()
+    assert given.blob == bound.blob == blob and given.settings["binding"] is None
+    assert bound.settings["binding"]["label"] == "PI (bound)" and bound.settings["binding"]["file"] == "bound.toml"
+    for recipe in (given, bound):
+        assert str(tmp_path).encode() not in pickle.dumps(recipe)
+    other = ControllerRecipe(given.kind, given.name, given.control_period, given.settings_json, blob + b"\0")
+    assert other.digest != given.digest  # the digest covers the bytes
+    assert given.describe()["fmu_sha256"] == given.blob_digest
+    (tmp_path / "my_pi.fmu").unlink()  # as on a worker that never saw the file
+    for recipe in (given, bound):
+        for implementation in ("c", "python"):
+            controller = build(recipe, plan.binding, implementation)
+            try:
+                assert isinstance(controller, FmuController) and controller.name == recipe.name
+                assert controller.sample_period == 1e-3 and not str(controller.binding.fmu_path).startswith(str(tmp_path))
+            finally:
+                controller.close()
+    from cosim.study.sweeps.worker import process_file
+
+    assert process_file("my_pi.fmu", blob, given.blob_digest) == process_file("my_pi.fmu", blob, given.blob_digest)
+
+
+def test_a_swept_pi_fmu_gives_the_built_in_pis_metrics_unit_by_unit(tmp_path, pi_fmu, cluster):
+    """The PI given by gains and the same PI exported as an FMU (directly and through a binding
+    file): per unit and scenario the same metrics, on a cluster of two worker processes."""
+    from cosim.study.sweeps.sweep import run_sweep
+    from cosim.study.sweeps.worker import DETERMINISTIC_METRICS
+
+    local, _ = cluster
+    path = fmu_study(tmp_path, pi_fmu)
+    out = tmp_path / "out"
+    outcome = run_sweep(path, out, scheduler=local.scheduler_address)
+    assert outcome.planned == outcome.computed == 18 and outcome.failed == 0
+    rows = dataset.read_rows(out)
+    assert set(rows["status"]) == {"ok"} and set(rows["controller"]) == {"PI", "my_pi (FMU)", "PI (bound)"}
+    key = ["scenario", "point", "sample"]
+    pi = rows[rows["controller"] == "PI"].set_index(key).sort_index()
+    for name in ("my_pi (FMU)", "PI (bound)"):
+        fmu = rows[rows["controller"] == name].set_index(key).sort_index()
+        assert fmu.index.equals(pi.index) and len(fmu) == 6
+        for column in ("inductance", "capacitance", "input_voltage"):  # the same units
+            np.testing.assert_array_equal(fmu[column], pi[column])
+        for metric in DETERMINISTIC_METRICS:  # duty equal to 1e-9: metrics equal to far below their resolution
+            np.testing.assert_allclose(fmu[metric], pi[metric], rtol=1e-6, atol=1e-9, err_msg=f"{name}: {metric}")
+    text = (out / "SWEEP.md").read_text()
+    assert "*my_pi (FMU)* (fmu): controller FMU my_pi.fmu (SHA-256 " in text
+    assert "through controller-binding file bound.toml" in text
+    no_temporary_files(out)
+
+
+@pytest.mark.parametrize("controllers,message", [
+    ('[[controllers]]\nkind = "fmu"\npath = "nowhere.fmu"\n',
+     "study.toml:4: controllers[0].path = 'nowhere.fmu': controller FMU {tmp}/nowhere.fmu does not exist"),
+    ('[[controllers]]\nkind = "fmu"\npath = "nowhere.toml"\n',
+     "study.toml:4: controllers[0].path = 'nowhere.toml': controller-binding file {tmp}/nowhere.toml does not exist"),
+    ('[[controllers]]\nkind = "fmu"\npath = "plain.fmu"\n',
+     "study.toml:4: controllers[0].path = 'plain.fmu': FMU {tmp}/plain.fmu is not a zip archive"),
+    ('[[controllers]]\nkind = "fmu"\npath = "plant.fmu"\n',
+     "study.toml:4: controllers[0].path = 'plant.fmu': controller FMU {tmp}/plant.fmu has no variable 'reference': "
+     "a controller FMU without the workbench's role names needs a controller-binding file"),
+    ('[[controllers]]\nkind = "fmu"\npath = "wrong.toml"\n',
+     "study.toml:4: controllers[0].path = 'wrong.toml': {tmp}/wrong.toml:4: role 'reference' names variable 'Vref', "
+     "which my_pi.fmu does not have"),
+    ('[[controllers]]\nkind = "fmu"\npath = "my_pi.zip"\n',
+     "study.toml:4: controllers[0].path = 'my_pi.zip' is invalid: expected a controller FMU (.fmu) or a "
+     "controller-binding file (.toml)"),
+    ('control_period = 2e-3\n[[controllers]]\nkind = "fmu"\npath = "my_pi.fmu"\n',
+     "study.toml:5: controllers[0].path = 'my_pi.fmu': the controller FMU's sample period is 0.001 s, but the "
+     "sweep's control_period = 0.002 s (study.toml:2): a sweep runs every controller at its control_period"),
+    ('[[controllers]]\nkind = "fmu"\n', 'study.toml:3: controllers[0]: kind "fmu" needs path = "NAME.fmu"'),
+    ('controllers = ["fmu"]\n', 'study.toml:2: controllers[0]: kind "fmu" needs path = "NAME.fmu"'),
+    ('[[controllers]]\nkind = "fmu"\npath = "my_pi.fmu"\nkp = 0.1\n',
+     "study.toml:5: controllers[0].kp does not apply to fmu: expected name, path"),
+    ('[[controllers]]\nkind = "fmu"\npath = "my_pi.fmu"\nmodel = "nn.pt"\n',
+     "study.toml:5: controllers[0].model does not apply to fmu: expected name, path"),
+    ('[[controllers]]\nkind = "pi"\npath = "my_pi.fmu"\n',
+     "study.toml:4: controllers[0].path does not apply to pi: expected ki, kp, name"),
+    ('[[controllers]]\nkind = "fmu"\npath = "my_pi.fmu"\n[[controllers]]\nkind = "fmu"\npath = "my_pi.fmu"\n',
+     "study.toml:6: controller name 'my_pi (FMU)' is used twice: give the second one a name"),
+])
+def test_controller_fmu_mistakes_name_file_key_and_line(tmp_path, pi_fmu, buck_fmu, controllers, message):
+    import shutil
+
+    shutil.copy(pi_fmu, tmp_path / "my_pi.fmu")
+    shutil.copy(buck_fmu, tmp_path / "plant.fmu")
+    (tmp_path / "plain.fmu").write_text("not a zip archive\n")
+    (tmp_path / "wrong.toml").write_text(BOUND_PI.format(fmu="my_pi.fmu").replace('variable = "reference"',
+                                                                                   'variable = "Vref"'))
+    path = sweep_file(tmp_path, 'scenarios = ["startup"]\n' + controllers)
+    with pytest.raises(ConfigError) as caught:
+        load_sweep(path)
+    text = str(caught.value)
+    assert "\n" not in text and message.format(tmp=tmp_path) in text.replace(f"{tmp_path}/study.toml", "study.toml"), text
+
+
+def test_a_controller_fmu_mistake_stops_the_sweep_before_any_work(tmp_path, pi_fmu, capsys):
+    path = fmu_study(tmp_path, pi_fmu, extra='control_period = "1/75e3"')
+    out = tmp_path / "out"
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--workers", "1"])
+    one_line_error(capsys, code, 2, "controllers[1].path = 'my_pi.fmu': the controller FMU's sample period is 0.001 "
+                                    "s, but the sweep's control_period = 1.33333e-05 s")
+    assert not out.exists()

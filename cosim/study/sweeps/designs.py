@@ -3,8 +3,11 @@
 That is the robustness question a tolerance study asks: the PI is tuned, the NNPC identified and
 the MPC parameterised for the plant on paper, and the sweep runs them unchanged on the units that
 get built. Each kind is one entry of :data:`KINDS` -- a ``design`` (in the workbench's process:
-tuning, identification, reading a given model file) and a ``build`` (on a worker, from the recipe);
-a controller FMU would be one more entry.
+tuning, identification, reading a given model file or controller FMU) and a ``build`` (on a
+worker, from the recipe). A controller FMU is designed elsewhere: its "design" reads the FMU (and
+its controller-binding file) into the recipe, and its build writes the FMU's bytes to the worker's
+own folder and opens it through the checks :func:`cosim.fmi.controller.controller_binding` and
+:class:`~cosim.fmi.controller.FmuController` make.
 """
 
 from __future__ import annotations
@@ -87,6 +90,32 @@ def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, wo
     return ControllerRecipe("mpc-nominal", entry.name, period, _json({"circuit": asdict(circuit)}))
 
 
+def _design_fmu(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
+                progress: bool) -> ControllerRecipe:
+    """The controller FMU's bytes and, for a controller-binding file, the binding's content (the
+    sweep file's reader checked both, and the sample period, before any work)."""
+    from cosim.base.errors import WorkbenchError
+    from cosim.fmi.controller import controller_binding
+
+    given = Path(entry.path)
+    try:
+        bound = controller_binding(str(given))
+        blob = Path(bound.fmu_path).read_bytes()
+    except (WorkbenchError, OSError) as error:
+        raise ConfigError(f"{entry.place}: controller {given.name}: {error}") from None
+    fmu_name = Path(bound.fmu_path).name
+    if given.suffix.lower() == ".toml":
+        carried = {"file": given.name, "label": bound.label, "sample_period_s": bound.sample_period,
+                   "duty_limits": list(bound.duty_limits) if bound.duty_limits is not None else None,
+                   "roles": {r: [m.variable, m.scale, m.offset] for r, m in sorted(bound.roles.items())},
+                   "parameters": dict(bound.parameters)}
+        origin = f"controller FMU {fmu_name} through controller-binding file {given.name}"
+    else:
+        carried, origin = None, f"controller FMU {fmu_name}"
+    settings = {"fmu": fmu_name, "binding": carried, "origin": entry.origin or origin}
+    return ControllerRecipe("fmu", entry.name, period, _json(settings), blob)
+
+
 # ---------------------------------------------------------------------------------------------
 # build: on a worker, from the recipe
 
@@ -131,6 +160,33 @@ def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
     return model_mpc(circuit, recipe.control_period, recipe.name, binding=binding)
 
 
+def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
+    """The controller FMU from its bytes: written once per process and digest to the worker's own
+    folder (removed at exit), checked (archive, roles, parameters, an instance that initialises),
+    and its sample period against the sweep's control period."""
+    from cosim.fmi.binding import RoleMap
+    from cosim.fmi.controller import ControllerBinding, FmuController, builtin_controller_binding
+    from cosim.study.sweeps.spec import PERIOD_MATCH
+    from cosim.study.sweeps.worker import process_file
+
+    s = recipe.settings
+    path = process_file(s["fmu"], recipe.blob, recipe.blob_digest)
+    carried = s["binding"]
+    if carried is None:
+        bound = builtin_controller_binding(path)
+    else:
+        roles = {role: RoleMap(variable, scale, offset) for role, (variable, scale, offset) in carried["roles"].items()}
+        limits = tuple(carried["duty_limits"]) if carried["duty_limits"] is not None else None
+        bound = ControllerBinding(path, roles, carried["sample_period_s"], limits, carried["parameters"],
+                                  Path(carried["file"]), carried["label"])
+    controller = FmuController(bound, name=recipe.name)
+    if abs(controller.sample_period - recipe.control_period) > PERIOD_MATCH * recipe.control_period:
+        controller.close()
+        raise ConfigError(f"{recipe.name}: the controller FMU's sample period is {controller.sample_period:.6g} s, "
+                          f"not the sweep's control period {recipe.control_period:.6g} s")
+    return controller
+
+
 class Kind(NamedTuple):
     design: Callable[..., ControllerRecipe]
     build: Callable[[ControllerRecipe, PlantBinding], object]
@@ -141,6 +197,7 @@ KINDS: dict[str, Kind] = {
     "nnpc": Kind(_design_nn, _build_nn),
     "nnpc-paper": Kind(_design_nn, _build_nn),
     "mpc-nominal": Kind(_design_mpc, _build_mpc),
+    "fmu": Kind(_design_fmu, _build_fmu),
 }
 
 

@@ -296,10 +296,14 @@ class SweepPlan:
 
 
 def _entry_identity(entry) -> dict:
-    """A controller entry as the sweep id sees it: a given model file by its content, not its path."""
+    """A controller entry as the sweep id sees it: a given model file, controller FMU or
+    controller-binding file (with the FMU it names) by its content, not its path."""
     described = entry.describe()
     if entry.model is not None:
         described["model"] = digest(Path(entry.model).read_bytes())
+    if entry.path is not None:
+        files = [entry.path, entry.fmu] if Path(entry.path).suffix.lower() == ".toml" else [entry.path]
+        described["path"] = digest(*(Path(f).read_bytes() for f in files))
     return described
 
 

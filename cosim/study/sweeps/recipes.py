@@ -1,14 +1,18 @@
 """What crosses from the workbench's process to the dask workers: plain, picklable recipes.
 
-A worker may be another machine, so nothing refers to a file that exists only here: the plant FMU
-and the NN model travel as bytes with their SHA-256, and each worker writes them to a file of its
-own and loads them through the same checks as a local file (:func:`cosim.fmi.archive.check_fmu`
-before anything is extracted; :func:`controllers.nn_model.load_model`, ``weights_only``). The
-controllers themselves are rebuilt on the worker from their settings (C twins hold ctypes state
-that does not pickle, and the run must use exactly what was designed).
+A worker may be another machine, so nothing refers to a file that exists only here: the plant FMU,
+the NN model and a controller FMU travel as bytes with their SHA-256, and each worker writes them
+to a file of its own and loads them through the same checks as a local file
+(:func:`cosim.fmi.archive.check_fmu` before anything is extracted, and a controller FMU's roles and
+parameters; :func:`controllers.nn_model.load_model`, ``weights_only``). The controllers themselves
+are rebuilt on the worker from their settings (C twins hold ctypes state that does not pickle, an
+FMU instance is native state too, and the run must use exactly what was designed). A controller
+given through a controller-binding file travels as its FMU's bytes and the binding's content
+(roles, sample period, duty limits, parameters, label) in the settings, not as the file.
 
 Digests identify what a run used: the plant recipe's (FMU bytes, roles, nominal parameters,
-interface) and each controller recipe's (kind, name, settings, model bytes) go into every run id.
+interface) and each controller recipe's (kind, name, settings, model or FMU bytes) go into every
+run id.
 """
 
 from __future__ import annotations
@@ -83,7 +87,8 @@ class ControllerRecipe:
     """A controller designed once on the nominal plant, to be rebuilt on any worker.
 
     ``settings`` (JSON text) holds everything but the model: PI gains, circuit parameters, the
-    network and its held-out error; ``blob`` is the model file's bytes (NNPC), or None.
+    network and its held-out error, a controller FMU's binding; ``blob`` is the model file's bytes
+    (NNPC) or the controller FMU's (fmu), or None.
     """
 
     kind: str
@@ -100,7 +105,13 @@ class ControllerRecipe:
     def digest(self) -> str:
         return digest(self.kind, self.name, repr(self.control_period), self.settings_json, self.blob or b"")
 
+    @cached_property
+    def blob_digest(self) -> str | None:
+        return digest(self.blob) if self.blob else None
+
     def describe(self) -> dict:
         """JSON-ready, for the manifest and the summary (the blob by its SHA-256)."""
-        return {"kind": self.kind, "name": self.name, "control_period_s": self.control_period,
-                "settings": self.settings, "model_sha256": digest(self.blob) if self.blob else None}
+        described = {"kind": self.kind, "name": self.name, "control_period_s": self.control_period,
+                     "settings": self.settings}
+        described["fmu_sha256" if self.kind == "fmu" else "model_sha256"] = self.blob_digest
+        return described

@@ -47,9 +47,11 @@ seeded by ``seed`` and the axis's name, so adding an axis leaves the others' dra
 ``controllers`` entries (a name, or a table with ``kind`` and settings): ``pi`` (``kp`` [1/V] and
 ``ki`` [1/(V s)], else tuned on the nominal plant), ``nnpc`` / ``nnpc-paper`` (``model`` = a model
 file, else identified on the nominal plant with ``samples`` (default 10 000) and ``seed``),
-``mpc-nominal`` (the nominal plant's circuit model); ``name`` renames any of them. "Nominal" is
-the plant without any axis applied: the controllers are designed once, for the plant on paper,
-and the sweep asks how they fare on the units that get built.
+``mpc-nominal`` (the nominal plant's circuit model), ``fmu`` (``path`` = a controller FMU, e.g.
+from ``buck-cosim export-controller``, or a controller-binding file naming one; its sample period
+must be ``control_period``; default name ``<stem> (FMU)``, or a binding file's ``label``); ``name``
+renames any of them. "Nominal" is the plant without any axis applied: the controllers are designed
+once, for the plant on paper, and the sweep asks how they fare on the units that get built.
 """
 
 from __future__ import annotations
@@ -79,11 +81,15 @@ DISTRIBUTION_KEYS = {"uniform": {"tolerance", "low", "high"}, "normal": {"tolera
                      "log-normal": {"tolerance", "median", "sigma"}}
 #: operating-point axes: the scenario signals a sweep may scale, with their units
 OPERATING_POINT = {"input_voltage": "V", "load_resistance": "Ohm"}
-#: controller kinds a sweep designs once on the nominal plant (a controller FMU would be one more)
-CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal")
-CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed"}
+#: controller kinds a sweep designs once on the nominal plant (``fmu``: a given controller FMU, run as it is)
+CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu")
+CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path"}
 KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed"}, "nnpc-paper": {"model", "samples", "seed"},
-             "mpc-nominal": set()}
+             "mpc-nominal": set(), "fmu": {"path"}}
+#: what ``path`` of an ``fmu`` controller may name
+CONTROLLER_FILE_SUFFIXES = (".fmu", ".toml")
+#: how closely a controller FMU's sample period must match the sweep's control period (relative)
+PERIOD_MATCH = 1e-9
 #: metrics a [spec] threshold may bound (not the wall-clock ones: a yield must not depend on the machine)
 SPEC_METRICS = tuple(m for m in METRIC_COLUMNS if m not in WALLCLOCK_METRICS)
 #: signed metrics: a threshold bounds their magnitude
@@ -171,12 +177,17 @@ class ControllerEntry:
     model: Path | None = None
     samples: int = 10_000  # identification samples (nnpc)
     seed: int = 0  # identification seed (nnpc)
+    path: Path | None = None  # fmu: the controller FMU or controller-binding file given
+    fmu: Path | None = None  # fmu: the controller FMU itself (``path``, or the FMU a binding file names)
     place: str = ""
     origin: str = ""  # how given gains or a given model were made, for the summary (set by code, not the file)
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "name": self.name, "kp": self.kp, "ki": self.ki,
-                "model": str(self.model) if self.model else None, "samples": self.samples, "seed": self.seed}
+        described = {"kind": self.kind, "name": self.name, "kp": self.kp, "ki": self.ki,
+                     "model": str(self.model) if self.model else None, "samples": self.samples, "seed": self.seed}
+        if self.kind == "fmu":
+            described["path"] = str(self.path)
+        return described
 
 
 @dataclass(frozen=True)
@@ -371,8 +382,8 @@ def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
             r.fail(r.at("scenarios"), f"scenario {scenario.name!r} is listed twice")
         scenarios.append(scenario)
 
-    controllers = _controllers(r, data, base)
     control_period = r.period(data.get("control_period", PAPER_PERIOD), "control_period", r.at("control_period"))
+    controllers = _controllers(r, data, base, control_period)
     record_period = r.period(data.get("record_period", 1e-5), "record_period", r.at("record_period"))
     keep_traces = data.get("keep_traces", False)
     if not isinstance(keep_traces, bool):
@@ -515,7 +526,7 @@ def _relative(r: _Reader, label: str, place: str, kind: str, tolerance) -> tuple
     return (("median", 1.0), ("sigma", math.log(1 + t) / 3))
 
 
-def _controllers(r: _Reader, data: dict, base: Path) -> list[ControllerEntry]:
+def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> list[ControllerEntry]:
     if "controllers" not in data:
         r.fail(r.name, f"missing required key 'controllers' (e.g. [\"pi\", \"nnpc\", \"mpc-nominal\"]; kinds: "
                        f"{', '.join(CONTROLLER_KINDS)})")
@@ -553,11 +564,20 @@ def _controllers(r: _Reader, data: dict, base: Path) -> list[ControllerEntry]:
         def at(key):
             return r.at(key, "controllers", index) if tables else place
 
-        name = r.text(entry.get("name", CONTROLLERS[kind]), f"controllers[{index}].name", at("name"))
+        path = fmu = None
+        default_name = CONTROLLERS.get(kind)
+        if kind == "fmu":
+            if "path" not in entry:
+                r.fail(place, f"controllers[{index}]: kind \"fmu\" needs path = \"NAME.fmu\" (a controller FMU, e.g. "
+                              "from buck-cosim export-controller, or a controller-binding .toml naming one)")
+            path, fmu, default_name = _controller_fmu(r, index, entry["path"], at("path"), base, control_period,
+                                                      r.at("control_period") if "control_period" in data else None)
+        name = r.text(entry.get("name", default_name), f"controllers[{index}].name", at("name"))
         if not name.strip() or "/" in name or "=" in name:
             r.fail(at("name"), f"controllers[{index}].name = {name!r} is invalid: expected a label without / or =")
         if name in {c.name for c in controllers}:
-            r.fail(at("name"), f"controller name {name!r} is used twice: give the second one a name = \"...\"")
+            r.fail(at("name") if "name" in entry else place,
+                   f"controller name {name!r} is used twice: give the second one a name = \"...\"")
         kp = ki = model = None
         if kind == "pi" and ("kp" in entry or "ki" in entry):
             if "kp" not in entry or "ki" not in entry:
@@ -573,8 +593,47 @@ def _controllers(r: _Reader, data: dict, base: Path) -> list[ControllerEntry]:
         samples = r.integer(entry.get("samples", 10_000), f"controllers[{index}].samples", at("samples"), 200)
         seed = r.integer(entry.get("seed", 0), f"controllers[{index}].seed", at("seed"), 0)
         controllers.append(ControllerEntry(kind=kind, name=name, kp=kp, ki=ki, model=model, samples=samples,
-                                           seed=seed, place=place))
+                                           seed=seed, path=path, fmu=fmu, place=place))
     return controllers
+
+
+def _controller_fmu(r: _Reader, index: int, value, place: str, base: Path, control_period: float,
+                    period_place: str | None) -> tuple[Path, Path, str]:
+    """An ``fmu`` controller's ``path``, checked as ``reproduce --controller`` checks one (the archive,
+    the roles, the parameters, an instance that initialises) and against the sweep's control period.
+    Returns the file given, the FMU itself and the default name."""
+    from cosim.base.errors import WorkbenchError
+    from cosim.fmi.controller import FmuController, controller_binding
+    from cosim.study.controller_factory import external_name
+
+    label = f"controllers[{index}].path"
+    text = r.text(value, label, place)
+    path = base / text
+    if path.suffix.lower() not in CONTROLLER_FILE_SUFFIXES:
+        r.fail(place, f"{label} = {text!r} is invalid: expected a controller FMU (.fmu) or a controller-binding file "
+                      "(.toml)")
+    what = "controller FMU" if path.suffix.lower() == ".fmu" else "controller-binding file"
+    if path.is_dir():
+        r.fail(place, f"{label} = {text!r}: {path} is a folder: expected a {what}")
+    if not path.is_file():
+        r.fail(place, f"{label} = {text!r}: {what} {path} does not exist")
+    try:
+        binding = controller_binding(str(path))
+        controller = FmuController(binding, name=external_name(str(path)))
+    except WorkbenchError as error:
+        r.fail(place, f"{label} = {text!r}: {error}")
+    try:
+        period = controller.sample_period
+        name = controller.name
+    finally:
+        controller.close()
+    if abs(period - control_period) > PERIOD_MATCH * control_period:
+        given = f"control_period = {control_period:.6g} s ({period_place})" if period_place else \
+            f"control_period is {control_period:.6g} s (the default)"
+        r.fail(place, f"{label} = {text!r}: the controller FMU's sample period is {period:.6g} s, but the sweep's "
+                      f"{given}: a sweep runs every controller at its control_period (export the FMU with "
+                      "--control-period, or set control_period)")
+    return path, Path(binding.fmu_path), name
 
 
 def shipped_studies() -> list[str]:

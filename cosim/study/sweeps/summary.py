@@ -357,6 +357,9 @@ class _Summary:
             s = recipe.settings
             if recipe.kind == "pi":
                 how = f"Kp = {s['kp_per_V']:.4g} 1/V, Ki = {s['ki_per_V_s']:.4g} 1/(V s) ({s['tuning']['method']})"
+            elif recipe.kind == "fmu":
+                how = (f"{s['origin']} (SHA-256 {recipe.blob_digest[:12]}), sampled every "
+                       f"{period_text(recipe.control_period)}, run as it is")
             elif recipe.kind.startswith("nnpc"):
                 rmse = s.get("held_out_one_step_rmse_V")
                 how = f"network {s['network']}, {s['origin']}" + (f"; held-out one-step RMSE {rmse * 1e3:.2f} mV"

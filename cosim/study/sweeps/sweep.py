@@ -83,7 +83,8 @@ def check_output(plan: SweepPlan, out_dir: Path, resume: bool) -> None:
 
 
 def check_workers(client, plan: SweepPlan) -> None:
-    """Every worker can import the workbench and load this FMU's binary, before any work is sent."""
+    """Every worker can import the workbench and load the plant's and the controller FMUs' binaries,
+    before any work is sent."""
     try:
         facts = client.run(worker_facts)
     except Exception as error:
@@ -91,12 +92,14 @@ def check_workers(client, plan: SweepPlan) -> None:
                           "buck-cosim (same version) in every worker's environment") from None
     if not facts:
         raise ConfigError("the dask cluster has no workers")
-    checked = check_fmu(plan.binding.fmu_path)
-    for address, fact in sorted(facts.items()):
-        if fact["platform"] not in checked.platforms:
-            raise ConfigError(f"worker {address} ({fact['host']}) runs platform {fact['platform']}, but "
-                              f"{Path(plan.binding.fmu_path).name} has binaries for {', '.join(checked.platforms)} "
-                              "only: the FMU binary must suit the workers' platform")
+    fmus = [Path(plan.binding.fmu_path)] + [Path(c.fmu) for c in plan.spec.controllers if c.fmu is not None]
+    for fmu in fmus:  # the plant's and the controller FMUs'
+        checked = check_fmu(fmu)
+        for address, fact in sorted(facts.items()):
+            if fact["platform"] not in checked.platforms:
+                raise ConfigError(f"worker {address} ({fact['host']}) runs platform {fact['platform']}, but "
+                                  f"{fmu.name} has binaries for {', '.join(checked.platforms)} only: the FMU binary "
+                                  "must suit the workers' platform")
 
 
 class PreparedSweep:

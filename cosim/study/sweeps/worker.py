@@ -69,20 +69,25 @@ def _process_folder() -> Path:
     return _folder
 
 
-def fmu_file(recipe: PlantRecipe) -> Path:
-    """This process's copy of the recipe's FMU (written once per digest)."""
-    key = recipe.fmu_digest
+def process_file(name: str, blob: bytes, key: str) -> Path:
+    """This process's copy of a file that travelled as bytes (``key``: their SHA-256), written once
+    per digest into the process's private folder (removed at exit) under its own ``name``."""
     with _files_lock:
         path = _files.get(key)
         if path is None or not path.is_file():
             folder = _process_folder() / key[:16]
             folder.mkdir(exist_ok=True)
-            path = folder / recipe.fmu_name
-            tmp = folder / f".{recipe.fmu_name}.tmp"
-            tmp.write_bytes(recipe.fmu_bytes)
+            path = folder / name
+            tmp = folder / f".{name}.tmp"
+            tmp.write_bytes(blob)
             os.replace(tmp, path)
             _files[key] = path
         return path
+
+
+def fmu_file(recipe: PlantRecipe) -> Path:
+    """This process's copy of the recipe's FMU (written once per digest)."""
+    return process_file(recipe.fmu_name, recipe.fmu_bytes, recipe.fmu_digest)
 
 
 def _cache() -> dict:
