@@ -21,6 +21,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from xml.etree import ElementTree
 
 import fmpy
 import fmpy.build
@@ -76,6 +77,37 @@ def read_files(folder: Path, names: tuple[str, ...]) -> tuple[tuple[str, bytes],
 def glue_files() -> tuple[tuple[str, bytes], ...]:
     """The shared FMI 2.0 glue every FMU of the workbench is compiled with."""
     return read_files(GLUE_DIR, GLUE_FILES)
+
+
+#: what the shared glue implements for co-simulation: every FMU built on it declares these capabilities
+GLUE_CO_SIMULATION_CAPABILITIES = {"canHandleVariableCommunicationStepSize": "true",
+                                   "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
+                                   "canSerializeFMUstate": "true"}
+
+
+def co_simulation_description_root(identifier: str, guid: str, description: str, generation_tool: str,
+                                   compiled: tuple[str, ...]) -> ElementTree.Element:
+    """The start of a generated ``modelDescription.xml`` of a co-simulation-only FMU built on the shared glue:
+    ``fmiModelDescription`` (FMI 2.0, model name ``identifier``, structured names, no event indicators) holding
+    its ``CoSimulation`` element (the glue's capabilities; ``compiled``, the files compiled, as its SourceFiles).
+    The caller adds units, variables and the model structure, then writes it with :func:`model_description_text`."""
+    root = ElementTree.Element("fmiModelDescription", {
+        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
+        "generationTool": generation_tool, "variableNamingConvention": "structured",
+        "numberOfEventIndicators": "0"})
+    cs = ElementTree.SubElement(root, "CoSimulation", {"modelIdentifier": identifier,
+                                                       **GLUE_CO_SIMULATION_CAPABILITIES})
+    files = ElementTree.SubElement(cs, "SourceFiles")
+    for file in compiled:
+        ElementTree.SubElement(files, "File", {"name": file})
+    return root
+
+
+def model_description_text(root: ElementTree.Element) -> str:
+    """A model description's element tree as the text of ``modelDescription.xml`` (UTF-8 declaration,
+    indented by two spaces, a final newline)."""
+    ElementTree.indent(root, space="  ")
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
 def plant_sources() -> FmuSources:

@@ -21,7 +21,14 @@ from xml.etree import ElementTree
 
 from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
-from plant_fmu.build import FmuSources, export, glue_files, read_files
+from plant_fmu.build import (
+    FmuSources,
+    co_simulation_description_root,
+    export,
+    glue_files,
+    model_description_text,
+    read_files,
+)
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
@@ -68,17 +75,8 @@ UNITS = {"V": {"kg": "1", "m": "2", "s": "-3", "A": "-1"}, "A": {"A": "1"}, "1":
 def model_description(identifier: str, name: str, guid: str, description: str, start_values: dict[str, float],
                       pi: bool) -> str:
     """``modelDescription.xml`` of a controller FMU (co-simulation only)."""
-    root = ElementTree.Element("fmiModelDescription", {
-        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
-        "generationTool": "buck-cosim export-controller (hand-written C, generated data)",
-        "variableNamingConvention": "structured", "numberOfEventIndicators": "0"})
-    cs = ElementTree.SubElement(root, "CoSimulation", {
-        "modelIdentifier": identifier, "canHandleVariableCommunicationStepSize": "true",
-        "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
-        "canSerializeFMUstate": "true"})
-    files = ElementTree.SubElement(cs, "SourceFiles")
-    for file in COMPILED:
-        ElementTree.SubElement(files, "File", {"name": file})
+    root = co_simulation_description_root(identifier, guid, description,
+                                          "buck-cosim export-controller (hand-written C, generated data)", COMPILED)
     units = ElementTree.SubElement(root, "UnitDefinitions")
     for unit, base in UNITS.items():
         element = ElementTree.SubElement(units, "Unit", {"name": unit})
@@ -105,8 +103,7 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
                                                 "dependenciesKind": " ".join("dependent" for _ in inputs.split())})
     initial = ElementTree.SubElement(structure, "InitialUnknowns")
     ElementTree.SubElement(initial, "Unknown", {"index": index["duty_cycle"]})
-    ElementTree.indent(root, space="  ")
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
+    return model_description_text(root)
 
 
 def controller_sources(controller, identifier: str) -> FmuSources:
