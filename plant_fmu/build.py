@@ -32,6 +32,9 @@ GLUE_DIR = PACKAGE_DIR / "glue"
 SOURCE_DIR = PACKAGE_DIR / "sources"
 MODEL_IDENTIFIER = "BuckConverter"
 GLUE_FILES = ("fmi2_glue.c", "fmu_model.h")
+#: the model interface's Integer and model-exchange functions for a co-simulation-only model with Real
+#: variables only (the controller and scenario FMUs): compiled beside the glue and the model
+REAL_CO_SIMULATION_ONLY = "real_co_simulation_only.c"
 PLANT_FILES = ("buck_model.c", "buck_model.h", "buck_variables.h", "buck_fmu.c")
 MODEL_DESCRIPTION = "modelDescription.xml"
 #: warnings as errors; no fused multiply-add (the C twins must round like the Python references)
@@ -77,6 +80,12 @@ def read_files(folder: Path, names: tuple[str, ...]) -> tuple[tuple[str, bytes],
 def glue_files() -> tuple[tuple[str, bytes], ...]:
     """The shared FMI 2.0 glue every FMU of the workbench is compiled with."""
     return read_files(GLUE_DIR, GLUE_FILES)
+
+
+def real_co_simulation_only_files() -> tuple[tuple[str, bytes], ...]:
+    """:data:`REAL_CO_SIMULATION_ONLY`, for the sources of a co-simulation-only model with Real variables only
+    (list it in the model description's SourceFiles too)."""
+    return read_files(GLUE_DIR, (REAL_CO_SIMULATION_ONLY,))
 
 
 #: what the shared glue implements for co-simulation: every FMU built on it declares these capabilities

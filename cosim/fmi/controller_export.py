@@ -22,12 +22,14 @@ from xml.etree import ElementTree
 from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
 from plant_fmu.build import (
+    REAL_CO_SIMULATION_ONLY,
     FmuSources,
     co_simulation_description_root,
     export,
     glue_files,
     model_description_text,
     read_files,
+    real_co_simulation_only_files,
 )
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
@@ -35,9 +37,10 @@ MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
                    "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
                    "explicit_policy.h")
-#: compiled files (the glue, the model, the algorithms), in modelDescription.xml's SourceFiles
-COMPILED = ("fmi2_glue.c", "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c", "predictors.c", "predictive.c",
-            "load_estimate.c", "explicit_policy.c")
+#: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
+#: modelDescription.xml's SourceFiles
+COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
+            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c")
 
 
 @dataclass(frozen=True)
@@ -121,7 +124,8 @@ def controller_sources(controller, identifier: str) -> FmuSources:
     description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
                    f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration)")
     md = model_description(identifier, controller.name, header_guid(header), description, starts, pi)
-    files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + read_files(ALGORITHM_DIR, ALGORITHM_FILES)
+    files = (glue_files() + real_co_simulation_only_files() + read_files(MODEL_DIR, MODEL_FILES)
+             + read_files(ALGORITHM_DIR, ALGORITHM_FILES))
     return FmuSources(identifier, md, files + (("controller_config.h", header.encode()),))
 
 

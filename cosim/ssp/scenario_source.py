@@ -26,17 +26,19 @@ from xml.etree import ElementTree
 from cosim.scenarios import EVENT_SIGNALS, SIGNAL_UNITS, Scenario, parse_scenario
 from cosim.timeline import MERGE_TOLERANCE, plan_timeline
 from plant_fmu.build import (
+    REAL_CO_SIMULATION_ONLY,
     FmuSources,
     build,
     co_simulation_description_root,
     glue_files,
     model_description_text,
     read_files,
+    real_co_simulation_only_files,
 )
 
 MODEL_DIR = Path(__file__).parent / "scenario_fmu"
 MODEL_FILES = ("scenario_fmu.c", "scenario_schedule.h")
-COMPILED = ("fmi2_glue.c", "scenario_fmu.c")
+COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "scenario_fmu.c")
 #: the FMU's outputs (value reference = position), the scenario's signals in the workbench's order
 OUTPUTS = EVENT_SIGNALS
 DESCRIPTIONS = {"reference": "output-voltage reference", "load_resistance": "load resistance R",
@@ -131,7 +133,8 @@ def scenario_sources(scenario: Scenario, control_period: float) -> FmuSources:
     identifier = identifier_of(scenario)
     header = scenario_header(scenario, control_period)
     md = model_description(identifier, header_guid(header), scenario, control_period)
-    files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + (("scenario_config.h", header.encode()),)
+    files = (glue_files() + real_co_simulation_only_files() + read_files(MODEL_DIR, MODEL_FILES)
+             + (("scenario_config.h", header.encode()),))
     return FmuSources(identifier, md, files)
 
 
