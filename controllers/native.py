@@ -542,7 +542,34 @@ class NativePIController:
                 "implementation": "C twin (controllers/c/pi.c)"}
 
 
-class NativePredictiveController:
+class _MeasurementStepper:
+    """The step the C predictive controller and the C explicit policy share: the whole measurement copied into
+    one ``buckc_measurement``, the C step called on it, the duty it wrote returned; a failed step is an error
+    naming the controller. A subclass binds its C step function and state once, with :meth:`_bind_step`."""
+
+    name: str
+
+    def _bind_step(self, step_function, handle) -> None:
+        """Call ``step_function(handle, &measurement, &duty)`` at every :meth:`step` (arguments built once)."""
+        self._measurement = MeasurementC()
+        self._duty = c_double()
+        self._step = step_function
+        self._args = (handle, ctypes.byref(self._measurement), ctypes.byref(self._duty))
+
+    def step(self, m: Measurement) -> float:
+        c = self._measurement
+        c.time, c.reference, c.output_voltage = m.time, m.reference, m.output_voltage
+        c.inductor_current, c.load_current, c.input_voltage = m.inductor_current, m.load_current, m.input_voltage
+        status = self._step(*self._args)
+        if status != OK:
+            if status == ERR_NO_INDUCTOR_CURRENT:
+                raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
+                                 "inductor_current role")
+            raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
+        return self._duty.value
+
+
+class NativePredictiveController(_MeasurementStepper):
     """:class:`controllers.predictive.PredictiveController` in C (``controllers/c/predictive.c``).
 
     Build it with :meth:`from_python`; it holds its own copy of the configuration (the C struct
@@ -563,10 +590,7 @@ class NativePredictiveController:
         what = ctypes.c_char_p()
         _check(self._lib.buckc_predictive_init(self._handle, ctypes.byref(config), ctypes.byref(what)), what, name)
         self._state = self._lib.buckc_predictive_state(self._handle).contents
-        self._measurement = MeasurementC()
-        self._duty = c_double()
-        self._step = self._lib.buckc_predictive_step
-        self._args = (self._handle, ctypes.byref(self._measurement), ctypes.byref(self._duty))
+        self._bind_step(self._lib.buckc_predictive_step, self._handle)
 
     @classmethod
     def from_python(cls, controller: PredictiveController) -> "NativePredictiveController":
@@ -593,18 +617,6 @@ class NativePredictiveController:
 
     def clear_caches(self) -> None:
         self._lib.buckc_predictive_clear_caches(self._handle)
-
-    def step(self, m: Measurement) -> float:
-        c = self._measurement
-        c.time, c.reference, c.output_voltage = m.time, m.reference, m.output_voltage
-        c.inductor_current, c.load_current, c.input_voltage = m.inductor_current, m.load_current, m.input_voltage
-        status = self._step(*self._args)
-        if status != OK:
-            if status == ERR_NO_INDUCTOR_CURRENT:
-                raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
-                                 "inductor_current role")
-            raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
-        return self._duty.value
 
     def cost(self, duties) -> tuple[float, np.ndarray]:
         """Eq. 23 cost of one per-step duty sequence at the last step's context, and its first prediction."""
@@ -646,7 +658,7 @@ def policy_config(controller: ExplicitPolicyController) -> PolicyConfigC:
     return c
 
 
-class NativeExplicitPolicyController:
+class NativeExplicitPolicyController(_MeasurementStepper):
     """:class:`controllers.explicit_policy.ExplicitPolicyController` in C (``controllers/c/explicit_policy.c``)."""
 
     def __init__(self, config: PolicyConfigC, name: str, description: dict | None = None):
@@ -660,10 +672,7 @@ class NativeExplicitPolicyController:
         what = ctypes.c_char_p()
         _check(self._lib.buckc_policy_init(ctypes.byref(self._policy), ctypes.byref(config), ctypes.byref(what)),
                what, name)
-        self._measurement = MeasurementC()
-        self._duty = c_double()
-        self._step = self._lib.buckc_policy_step
-        self._args = (ctypes.byref(self._policy), ctypes.byref(self._measurement), ctypes.byref(self._duty))
+        self._bind_step(self._lib.buckc_policy_step, ctypes.byref(self._policy))
 
     @classmethod
     def from_python(cls, controller: ExplicitPolicyController) -> "NativeExplicitPolicyController":
@@ -684,18 +693,6 @@ class NativeExplicitPolicyController:
     def forward(self, x) -> float:
         x = np.ascontiguousarray(x, dtype=float)
         return self._lib.buckc_policy_forward(ctypes.byref(self._config), _pointer(x))
-
-    def step(self, m: Measurement) -> float:
-        c = self._measurement
-        c.time, c.reference, c.output_voltage = m.time, m.reference, m.output_voltage
-        c.inductor_current, c.load_current, c.input_voltage = m.inductor_current, m.load_current, m.input_voltage
-        status = self._step(*self._args)
-        if status != OK:
-            if status == ERR_NO_INDUCTOR_CURRENT:
-                raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
-                                 "inductor_current role")
-            raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
-        return self._duty.value
 
     def describe(self) -> dict:
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/explicit_policy.c)"}

@@ -471,11 +471,31 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
 # 7. the C controllers, Python out of the loop
 
 
+def _c_and_python_step_us(controller, measurements, replayed) -> tuple[float, float, float, float]:
+    """The C step times of ``replayed`` (the harness's replay of ``measurements``) and the Python controller's
+    on the same inputs, timed here one step at a time: (C p50, C p99, Python p50, Python p99) in us. First
+    checks that the in-process C twin gives the harness's duties, so both time the same computation."""
+    from controllers.base import Measurement
+    from cosim.study.experiments import implemented
+
+    twin = implemented(controller)
+    twin.reset()
+    assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, replayed.duty)), \
+        "the harness and the in-process twin disagree"
+    python = []
+    controller.reset()
+    for row in measurements:
+        start = time.perf_counter_ns()
+        controller.step(Measurement(*row))
+        python.append(time.perf_counter_ns() - start)
+    return (float(np.median(replayed.ns)) * 1e-3, _p99(replayed.ns) * 1e-3, float(np.median(python)) * 1e-3,
+            _p99(python) * 1e-3)
+
+
 def bench_c_controllers(quick: bool) -> list[BenchRow]:
     """ns per step of the C PI and NNPC (the FMU's sources, controllers/c + the generated header)
     replaying recorded closed-loop measurements, next to the Python controller on the same inputs;
     the NNPC's operations counted and a Cortex-M4F cycle estimate (cosim.benchmark_harness)."""
-    from controllers.base import Measurement
     from cosim.benchmark_harness import CORTEX_M4F, cortex_m4f_cycles, operation_counts, record_measurements, replay
     from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
 
@@ -491,18 +511,7 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         for controller in controllers:
             measurements = record_measurements(binding, implemented(controller), scenario)
             result = replay(controller, measurements, repeats=1 if quick else 3)
-            twin = implemented(controller)
-            twin.reset()
-            assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, result.duty)), \
-                "the harness and the in-process twin disagree"
-            python = []
-            controller.reset()
-            for row in measurements:
-                start = time.perf_counter_ns()
-                controller.step(Measurement(*row))
-                python.append(time.perf_counter_ns() - start)
-            c_p50, c_p99 = float(np.median(result.ns)) * 1e-3, _p99(result.ns) * 1e-3
-            py_p50, py_p99 = float(np.median(python)) * 1e-3, _p99(python) * 1e-3
+            c_p50, c_p99, py_p50, py_p99 = _c_and_python_step_us(controller, measurements, result)
             budget = period * 1e6
             target, met = "", None
             if controller.name == NNPC:
@@ -564,7 +573,6 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
     """The explicit NNPC's C step (the FMU's sources) replaying closed-loop measurements, next to its
     Python step and the online NNPC's C step on the same inputs; operations counted and the
     Cortex-M4F cycle estimate (cosim.benchmark_harness, the c-controllers group's cost model)."""
-    from controllers.base import Measurement
     from cosim.benchmark_harness import (
         CORTEX_M4F,
         cortex_m4f_cycles,
@@ -582,18 +590,7 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
     samples = 40 if quick else 3000
     measurements = record_measurements(binding, implemented(controller), _mixed_scenario(period, samples))
     result = replay(controller, measurements, repeats=1 if quick else 20)
-    twin = implemented(controller)
-    twin.reset()
-    assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, result.duty)), \
-        "the harness and the in-process twin disagree"
-    python = []
-    controller.reset()
-    for row in measurements:
-        start = time.perf_counter_ns()
-        controller.step(Measurement(*row))
-        python.append(time.perf_counter_ns() - start)
-    c_p50, c_p99 = float(np.median(result.ns)) * 1e-3, _p99(result.ns) * 1e-3
-    py_p50, py_p99 = float(np.median(python)) * 1e-3, _p99(python) * 1e-3
+    c_p50, c_p99, py_p50, py_p99 = _c_and_python_step_us(controller, measurements, result)
     model, _ = _nn_model("nnpc", period, quick)
     online = replay(nnpc(model, period, NNPC), measurements[:40 if quick else 600], repeats=1)
     online_p50 = float(np.median(online.ns)) * 1e-3

@@ -159,6 +159,35 @@ def _plant_binding(args):
     return binding if isolate is None else replace(binding, isolate=isolate)
 
 
+def _check_duty_limits(args) -> None:
+    """Refuse --duty-min/--duty-max unless 0 <= min < max <= 1, before any other work."""
+    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
+        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+
+
+def _design_controller(args, binding, period: float, work_dir: Path, policy_path: str | None = None):
+    """The built-in controller ``args.controller`` designed for ``binding`` at ``period`` from the options of
+    :func:`_add_controller_design_options` (tuned, trained or distilled on demand, cached in ``work_dir``)."""
+    from cosim.study.controller_factory import make_controllers
+
+    [controller] = make_controllers([args.controller], binding, period, work_dir,
+                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
+                                    model_path=args.model, samples=args.samples, seed=args.seed,
+                                    progress=args.progress, policy_path=policy_path)
+    return controller
+
+
+def _export_controller_fmu(controller, out: Path) -> tuple[Path, Path]:
+    """Write ``controller`` as a controller FMU at ``out``: (binary FMU, source FMU); a configuration its C twin
+    cannot hold is a ConfigError naming the controller."""
+    from cosim.fmi.controller_export import export_controller
+
+    try:
+        return export_controller(controller, out)
+    except ValueError as error:  # a configuration the C twins cannot hold
+        raise ConfigError(f"{controller.name}: {error}") from None
+
+
 def cmd_run(args) -> int:
     from cosim.batch import Batch, run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
@@ -166,8 +195,7 @@ def cmd_run(args) -> int:
     from cosim.study.experiments import implemented
     from cosim.study.vocabulary import CONTROLLER_STYLES
 
-    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
-        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    _check_duty_limits(args)
     out_dir = output_dir(args.out)
     args.controller = args.controller or ["pi"]
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
@@ -194,24 +222,13 @@ def cmd_run(args) -> int:
 
 
 def cmd_export_controller(args) -> int:
-    from cosim.fmi.controller_export import export_controller
-    from cosim.study.controller_factory import make_controllers
-
     out = output_file(args.out)
     if out.suffix.lower() != ".fmu":
         raise ConfigError(f"--out {out} is invalid: expected a file name ending in .fmu")
-    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
-        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    _check_duty_limits(args)
     work_dir = output_dir(args.work_dir)
-    binding = _plant_binding(args)
-    [controller] = make_controllers([args.controller], binding, args.control_period, work_dir,
-                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
-                                    model_path=args.model, samples=args.samples, seed=args.seed,
-                                    progress=args.progress, policy_path=args.policy)
-    try:
-        binary, source = export_controller(controller, out)
-    except ValueError as error:  # a configuration the C twins cannot hold
-        raise ConfigError(f"{controller.name}: {error}") from None
+    controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
+    binary, source = _export_controller_fmu(controller, out)
     print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU: "
           f"{binary}")
     print(f"source FMU (compile with any FMI 2.0 tool): {source}")
@@ -222,18 +239,15 @@ def cmd_export_ssp(args) -> int:
     import re
     import tempfile
 
-    from cosim.fmi.controller_export import export_controller
     from cosim.master import check_plant_supports
     from cosim.scenarios import load_scenario
     from cosim.ssp.package import export_ssp
-    from cosim.study.controller_factory import make_controllers
     from cosim.timeline import plan_timeline
 
     out = output_file(args.out)
     if out.suffix.lower() != ".ssp":
         raise ConfigError(f"--out {out} is invalid: expected a file name ending in .ssp")
-    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
-        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+    _check_duty_limits(args)
     scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
     check_plant_supports(binding, scenario)  # before any tuning or training
@@ -241,15 +255,9 @@ def cmd_export_ssp(args) -> int:
         if args.controller in CONTROLLERS:
             period = args.control_period or PAPER_PERIOD
             plan_timeline(scenario, period, period)
-            work_dir = output_dir(args.work_dir)
-            [controller] = make_controllers([args.controller], binding, period, work_dir,
-                                            duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
-                                            model_path=args.model, samples=args.samples, seed=args.seed,
-                                            progress=args.progress)
-            try:
-                fmu, _ = export_controller(controller, Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu")
-            except ValueError as error:  # a configuration the C twins cannot hold
-                raise ConfigError(f"{controller.name}: {error}") from None
+            controller = _design_controller(args, binding, period, output_dir(args.work_dir))
+            fmu, _ = _export_controller_fmu(controller,
+                                            Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu")
         else:
             from cosim.fmi.controller import controller_binding
 
@@ -570,6 +578,31 @@ def _add_implementation_option(parser) -> None:
                              "at every sample, several times faster) or as the Python references (default: c)")
 
 
+def _add_pi_and_duty_options(parser, gains_default: str) -> None:
+    """--kp/--ki (the PI's gains; ``gains_default`` says what happens without them) and --duty-min/--duty-max (every
+    built-in controller's duty limits), checked together by :func:`_check_duty_limits`."""
+    parser.add_argument("--kp", type=bounded(float, 0.0),
+                        help=f"PI proportional gain [1/V] (default: {gains_default})")
+    parser.add_argument("--ki", type=bounded(float, 0.0),
+                        help=f"PI integral gain [1/(V s)] (default: {gains_default})")
+    parser.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0,
+                        help="lower duty limit [1] (default: 0)")
+    parser.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0,
+                        help="upper duty limit [1] (default: 1)")
+
+
+def _add_controller_design_options(parser) -> None:
+    """What export-controller and export-ssp need to design a built-in controller on the plant (read by
+    :func:`_design_controller`): the PI's gains and the duty limits, the samples and seed of an NN plant model
+    trained on demand, and the folder the tuned gains and trained networks are cached in."""
+    _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
+    parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                        help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
+    parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                        help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="buck-cosim",
@@ -600,10 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: 1e-3)")
     p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
                    help="recording step in s; need not divide the control period (default: 1e-5)")
-    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned automatically)")
-    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned automatically)")
-    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
-    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
+    _add_pi_and_duty_options(p, gains_default="tuned automatically")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand from "
@@ -719,15 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                      "on the plant below)")
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand)")
-    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned on the plant)")
-    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned on the plant)")
-    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
-    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
-    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
-                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
-    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
-    p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+    _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)
 
@@ -749,15 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "event (default: 1e-5, the workbench's recording period)")
     p.add_argument("--out", required=True, metavar="LOOP.ssp", help="the archive to write")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand)")
-    p.add_argument("--kp", type=bounded(float, 0.0), help="PI proportional gain [1/V] (default: tuned on the plant)")
-    p.add_argument("--ki", type=bounded(float, 0.0), help="PI integral gain [1/(V s)] (default: tuned on the plant)")
-    p.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0, help="lower duty limit [1] (default: 0)")
-    p.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0, help="upper duty limit [1] (default: 1)")
-    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
-                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
-    p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
-    p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+    _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_ssp)
 

@@ -1,9 +1,12 @@
-"""Shared fixtures: the built plant FMU and a minimal raw-fmpy co-simulation driver for plant tests."""
+"""Shared fixtures: the built plant FMU and a minimal raw-fmpy co-simulation driver for plant tests;
+the faulty plant's binding file and the command-line helpers of the tests of failures."""
 
 from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +168,51 @@ def faulty_fmu(tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("faulty")
     return Path(FmuBuilder.build_FMU(CORPUS / "faulty_buck.py", dest=out))
+
+
+FAULTY_BINDING = """\
+fmu = "{fmu}"
+[roles.duty_cycle]
+variable = "duty"
+[roles.output_voltage]
+variable = "Vout"
+[roles.inductor_current]
+variable = "IL"
+[parameters]
+{fault_kind}fault_time = 0.0103
+"""
+
+
+def faulty_binding(fmu: Path, kind: int | None = None) -> str:
+    """The text of a plant-binding file for :func:`faulty_fmu` (its names bound to the workbench's roles)
+    that fails at t = 0.0103 s, just after a 1 ms control sample, in the way ``kind`` selects
+    (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV); without ``kind`` it leaves
+    fault_kind to the FMU's default or to a sweep. fault_kind is on line 9, fault_time on the last line."""
+    return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n")
+
+
+# ------------------------------------------------------------------ the command line, as a user runs it
+
+
+def cli(*args, cwd=None, timeout=600) -> subprocess.CompletedProcess:
+    """Run ``buck-cosim --no-progress ARGS`` in a subprocess (no stdin), its output captured as text."""
+    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
+                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout)
+
+
+def one_line_error(done: subprocess.CompletedProcess, code: int, message: str) -> str:
+    """The command exited with ``code`` and wrote one line to stderr, ``error: ...`` holding ``message``
+    and no traceback; that line."""
+    assert done.returncode == code, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in done.stderr, done.stderr
+    assert message in lines[0], lines[0]
+    return lines[0]
+
+
+def no_temporary_files(folder: Path) -> None:
+    """No half-written file (the workbench's ``.NAME.tmp-*``) is left anywhere below ``folder``."""
+    assert not list(Path(folder).rglob(".*.tmp-*")), list(Path(folder).rglob(".*.tmp-*"))
 
 
 @pytest.fixture(scope="session")

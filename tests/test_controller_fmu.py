@@ -5,8 +5,6 @@ controller adapter, and externally authored controller FMUs through controller-b
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,6 +12,7 @@ import fmpy
 import fmpy.validation
 import numpy as np
 import pytest
+from conftest import cli
 from fmpy.fmi2 import FMU2Slave
 
 from controllers.pi import PIController
@@ -28,11 +27,6 @@ from cosim.study.vocabulary import SWITCHING_PERIOD
 FIXTURES = Path(__file__).parent / "fixtures"
 CORPUS = Path(__file__).parent / "corpus"
 DUTY_TOLERANCE = 1e-9
-
-
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
-                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
 
 
 @pytest.fixture(scope="module")

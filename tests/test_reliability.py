@@ -10,10 +10,10 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from conftest import cli, faulty_binding, no_temporary_files, one_line_error
 
 from cosim.results import read_run
 
@@ -31,43 +31,12 @@ variable = "load_resistance"
 {parameters}
 """
 
-FAULTY = """\
-fmu = "{fmu}"
-[roles.duty_cycle]
-variable = "duty"
-[roles.output_voltage]
-variable = "Vout"
-[roles.inductor_current]
-variable = "IL"
-[parameters]
-fault_kind = {kind}
-fault_time = 0.0103
-"""
-
-
-def cli(*args, cwd=None, timeout=600):
-    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
-                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout)
-
-
-def one_line_error(done, code: int, message: str) -> None:
-    assert done.returncode == code, done.stderr
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, done.stderr
-    assert lines[0].startswith("error: ") and message in lines[0], lines[0]
-    assert "Traceback" not in done.stderr
-
-
 def ends_in_one_line_error(done, code: int, message: str) -> None:
     """Progress lines may come first; the failure itself is one ``error:`` line, and the last."""
     assert done.returncode == code, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert [line for line in lines if line.startswith("error: ")] == lines[-1:], done.stderr
     assert message in lines[-1] and "Traceback" not in done.stderr, done.stderr
-
-
-def no_temporary_files(folder: Path) -> None:
-    assert not list(Path(folder).rglob(".*.tmp-*")), list(Path(folder).rglob(".*.tmp-*"))
 
 
 # ------------------------------------------------------------------------------------------ bad inputs
@@ -138,7 +107,7 @@ def test_a_model_file_for_other_inputs_is_refused(tmp_path):
 ])
 def test_a_failing_plant_stops_the_run_and_keeps_the_rows(tmp_path, faulty_fmu, kind, message):
     binding = tmp_path / "faulty.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=kind))
+    binding.write_text(faulty_binding(faulty_fmu, kind))
     done = cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
                "--out", str(tmp_path / "out"))
     one_line_error(done, 3, message)
@@ -179,7 +148,7 @@ print("closed")
 def test_an_fmu_that_reported_fatal_is_never_called_again(tmp_path, faulty_fmu):
     """FMI 2.0 forbids any call after fmi2Fatal; calling fmi2FreeInstance anyway corrupts pythonfmu's heap."""
     binding = tmp_path / "faulty.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2))
+    binding.write_text(faulty_binding(faulty_fmu, 2))
     done = subprocess.run([sys.executable, "-c", FATAL_REUSE, str(binding)], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
@@ -301,7 +270,7 @@ def test_sigterm_during_reproduction_keeps_finished_pipelines_and_resume_complet
 
 def test_a_failing_pipeline_stops_a_parallel_reproduction(tmp_path, faulty_fmu):
     binding = tmp_path / "faulty.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2))
+    binding.write_text(faulty_binding(faulty_fmu, 2))
     done = cli("reproduce", "--quick", "--plant", str(binding), "--control-period", "1e-3", "--control-period",
                "2e-3", "--workers", "2", "--out", str(tmp_path / "out"), timeout=300)
     ends_in_one_line_error(done, 3, "fmi2DoStep failed (fatal)")
@@ -313,7 +282,7 @@ def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path,
     task again on a fresh worker, and when that one dies too the reproduction ends in one line
     (exit 3) instead of hanging on a result that never comes."""
     binding = tmp_path / "faulty.toml"
-    binding.write_text("isolate = false\n" + FAULTY.format(fmu=faulty_fmu, kind=4))  # the crash takes the worker
+    binding.write_text("isolate = false\n" + faulty_binding(faulty_fmu, 4))  # the crash takes the worker
     started = time.monotonic()
     done = cli("reproduce", "--quick", "--plant", str(binding), "--control-period", "1e-3", "--control-period",
                "2e-3", "--workers", "2", "--out", str(tmp_path / "out"), timeout=300)

@@ -12,6 +12,7 @@ import fmpy
 import fmpy.validation
 import numpy as np
 import pytest
+from conftest import cli
 from fmpy.fmi2 import FMU2Slave
 from lxml import etree
 
@@ -24,12 +25,6 @@ from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp
 from cosim.ssp.scenario_source import OUTPUTS, scenario_fmu, scenario_toml, settle_time
 from cosim.study.experiments import implemented, plant_binding, scenarios_for
-
-
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
-                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
-
 
 # ------------------------------------------------------------------ the scenario FMU
 

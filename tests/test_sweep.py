@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+from conftest import faulty_binding, no_temporary_files
 
 from cosim.base.errors import ConfigError
 from cosim.cli import main
@@ -117,10 +118,6 @@ def ends_in_one_line_error(capsys, code: int, expected_code: int, message: str) 
 
 def rows_of(out: Path) -> pd.DataFrame:
     return dataset.read_rows(out).sort_values("run_id").reset_index(drop=True)
-
-
-def no_temporary_files(folder: Path) -> None:
-    assert not list(Path(folder).rglob(".*.tmp-*")), list(Path(folder).rglob(".*.tmp-*"))
 
 
 # ------------------------------------------------------------------------------------------ the sweep file
@@ -520,23 +517,10 @@ def test_a_worker_killed_mid_sweep_loses_and_duplicates_no_run(tmp_path, cluster
     client.wait_for_workers(2, timeout=60)  # the nanny started a new worker
 
 
-FAULTY = """\
-fmu = "{fmu}"
-[roles.duty_cycle]
-variable = "duty"
-[roles.output_voltage]
-variable = "Vout"
-[roles.inductor_current]
-variable = "IL"
-[parameters]
-fault_time = 0.0103
-"""
-
-
 def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_path, faulty_fmu, capsys):
     """The FMU discards a step, its output turns NaN, it kills its worker process: each is one failed
     row with the cause; the other runs complete and the command exits 3."""
-    (tmp_path / "faulty.toml").write_text(FAULTY.format(fmu=faulty_fmu))
+    (tmp_path / "faulty.toml").write_text(faulty_binding(faulty_fmu))
     (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
     path = sweep_file(tmp_path, """\
         scenarios = ["short.toml"]

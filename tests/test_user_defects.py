@@ -18,37 +18,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from conftest import cli, faulty_binding, one_line_error
 
 from controllers.nn_model import NNConfig, TrainingSettings, _checksum, load_model, save_model, train
 from cosim.base.errors import ModelFileError
 from cosim.results import read_run, write_parquet
-
-FAULTY = """\
-fmu = "{fmu}"
-{extra}
-[roles.duty_cycle]
-variable = "duty"
-[roles.output_voltage]
-variable = "Vout"
-[roles.inductor_current]
-variable = "IL"
-[parameters]
-fault_kind = {kind}
-fault_time = 0.0103
-"""
-
-
-def cli(*args, cwd=None, timeout=600):
-    return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
-                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout)
-
-
-def one_line_error(done, code: int, message: str) -> str:
-    assert done.returncode == code, done.stderr
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in done.stderr, done.stderr
-    assert message in lines[0], lines[0]
-    return lines[0]
 
 
 def strict_json(path: Path):
@@ -68,7 +42,7 @@ def small_frame(n=300, **extra) -> pd.DataFrame:
 
 def test_an_interrupted_streamed_run_exported_to_csv_is_still_marked_incomplete(tmp_path, faulty_fmu):
     binding = tmp_path / "faulty.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=1, extra=""))
+    binding.write_text(faulty_binding(faulty_fmu, 1))
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--stream",
                        "--record-period", "1e-4", "--out", str(tmp_path / "out")), 3, "fmi2DoStep failed (discard)")
     streamed = tmp_path / "out" / "runs" / "startup__pi__bound-faulty__1ms.parquet"
@@ -205,9 +179,9 @@ def test_a_bad_model_file_is_refused_before_the_pi_is_tuned(tmp_path):
 
 
 @pytest.mark.parametrize("parameter,message", [
-    ("fault_kind = 1.5", "faulty.toml:10: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got 1.5 (float)"),
-    ('fault_time = "big"', "faulty.toml:11: parameter 'fault_time' is Real in FaultyBuck.fmu, got 'big' (str)"),
-    ("fault_kind = true", "faulty.toml:10: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got True (bool)"),
+    ("fault_kind = 1.5", "faulty.toml:9: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got 1.5 (float)"),
+    ('fault_time = "big"', "faulty.toml:10: parameter 'fault_time' is Real in FaultyBuck.fmu, got 'big' (str)"),
+    ("fault_kind = true", "faulty.toml:9: parameter 'fault_kind' is Integer in FaultyBuck.fmu, got True (bool)"),
 ])
 def test_a_wrongly_typed_binding_parameter_is_refused_with_its_line_when_the_file_loads(tmp_path, faulty_fmu,
                                                                                        parameter, message):
@@ -215,7 +189,7 @@ def test_a_wrongly_typed_binding_parameter_is_refused_with_its_line_when_the_fil
     from cosim.fmi.binding_file import load_binding
 
     name = parameter.split(" = ")[0]
-    lines = FAULTY.format(fmu=faulty_fmu, kind=0, extra="").splitlines()
+    lines = faulty_binding(faulty_fmu, 0).splitlines()
     text = "\n".join(parameter if line.startswith(f"{name} = ") else line for line in lines) + "\n"
     (tmp_path / "faulty.toml").write_text(text)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
@@ -231,7 +205,7 @@ def test_a_huge_settle_is_refused_naming_the_file_and_the_key(tmp_path):
 
 def test_the_fmus_own_exception_text_is_in_the_message(tmp_path, faulty_fmu):
     binding = tmp_path / "faulty.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=2, extra=""))
+    binding.write_text(faulty_binding(faulty_fmu, 2))
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--no-figures",
                        "--record-period", "1e-4", "--out", str(tmp_path / "out")), 3,
                    "fmi2DoStep failed (fatal) at t = 0.0103 s: Fatal py exception encountered: [doStep] "
@@ -275,7 +249,7 @@ def test_a_crashing_fmu_ends_the_run_not_the_workbench(tmp_path, faulty_fmu):
     marked incomplete, and the extracted FMU is deleted. In-process (--no-isolate) it takes the
     whole process with it -- the reason isolation is the default for external FMUs."""
     binding = tmp_path / "crash.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=4, extra=""))
+    binding.write_text(faulty_binding(faulty_fmu, 4))
     before = _extracted_fmu_folders()
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
                        "--out", str(tmp_path / "out")), 3,
@@ -297,7 +271,7 @@ def test_isolation_gives_the_same_run_as_in_process(tmp_path, faulty_fmu):
     from cosim.scenarios import load_scenario
 
     binding = tmp_path / "plant.toml"
-    binding.write_text(FAULTY.format(fmu=faulty_fmu, kind=0, extra=""))
+    binding.write_text(faulty_binding(faulty_fmu, 0))
     plant = load_binding(binding)
     assert plant.isolate is True  # binding files default to isolation
     runs = [simulate(replace_isolate(plant, isolate), PIController(0.0, 14.0, 1e-3), load_scenario("startup"),

@@ -170,6 +170,21 @@ _PARAMETER_TYPES = {"Real": (int, float), "Integer": (int,), "Enumeration": (int
                     "String": (str,)}
 
 
+def apply_parameters(fmu, parameters) -> None:
+    """Set each :class:`ResolvedParameter` on an FMI 2.0 instance (fmpy's ``FMU2Slave`` or ``FMU2Model``) with
+    the setter of its declared type, in order; before initialisation, as the binding's parameters and start
+    values are set (plant and controller FMUs alike)."""
+    for p in parameters:
+        if p.type == "Real":
+            fmu.setReal([p.value_reference], [float(p.value)])
+        elif p.type in ("Integer", "Enumeration"):
+            fmu.setInteger([p.value_reference], [int(p.value)])
+        elif p.type == "Boolean":
+            fmu.setBoolean([p.value_reference], [bool(p.value)])
+        else:
+            fmu.setString([p.value_reference], [str(p.value)])
+
+
 def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[str, ResolvedRole]:
     """Each bound role's variable: it exists, is Real, has a causality that fits the role (an
     ``input_roles`` role: input or parameter; any other: output or local), and the role's scale

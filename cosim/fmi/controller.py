@@ -53,7 +53,7 @@ from controllers.base import Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, FmuArchiveError
 from cosim.base.toml_files import parse_toml, where
 from cosim.fmi.archive import CheckedFmu, check_fmu
-from cosim.fmi.binding import BindingMismatch, RoleMap, resolve_parameters, resolve_roles
+from cosim.fmi.binding import BindingMismatch, RoleMap, apply_parameters, resolve_parameters, resolve_roles
 from cosim.fmi.binding_file import (
     _number,
     check_against,
@@ -266,15 +266,7 @@ class FmuController:
     def _initialize(self, start_time: float) -> None:
         fmu = self._fmu
         fmu.setupExperiment(startTime=start_time)
-        for p in self._parameters:
-            if p.type == "Real":
-                fmu.setReal([p.value_reference], [float(p.value)])
-            elif p.type in ("Integer", "Enumeration"):
-                fmu.setInteger([p.value_reference], [int(p.value)])
-            elif p.type == "Boolean":
-                fmu.setBoolean([p.value_reference], [bool(p.value)])
-            else:
-                fmu.setString([p.value_reference], [str(p.value)])
+        apply_parameters(fmu, self._parameters)
         fmu.enterInitializationMode()
         fmu.exitInitializationMode()
         self._initialized = True

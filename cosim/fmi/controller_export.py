@@ -21,16 +21,26 @@ from xml.etree import ElementTree
 
 from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
-from plant_fmu.build import FmuSources, export, glue_files, read_files
+from plant_fmu.build import (
+    REAL_CO_SIMULATION_ONLY,
+    FmuSources,
+    co_simulation_description_root,
+    export,
+    glue_files,
+    model_description_text,
+    read_files,
+    real_co_simulation_only_files,
+)
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
                    "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
                    "explicit_policy.h")
-#: compiled files (the glue, the model, the algorithms), in modelDescription.xml's SourceFiles
-COMPILED = ("fmi2_glue.c", "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c", "predictors.c", "predictive.c",
-            "load_estimate.c", "explicit_policy.c")
+#: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
+#: modelDescription.xml's SourceFiles
+COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
+            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c")
 
 
 @dataclass(frozen=True)
@@ -68,17 +78,8 @@ UNITS = {"V": {"kg": "1", "m": "2", "s": "-3", "A": "-1"}, "A": {"A": "1"}, "1":
 def model_description(identifier: str, name: str, guid: str, description: str, start_values: dict[str, float],
                       pi: bool) -> str:
     """``modelDescription.xml`` of a controller FMU (co-simulation only)."""
-    root = ElementTree.Element("fmiModelDescription", {
-        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
-        "generationTool": "buck-cosim export-controller (hand-written C, generated data)",
-        "variableNamingConvention": "structured", "numberOfEventIndicators": "0"})
-    cs = ElementTree.SubElement(root, "CoSimulation", {
-        "modelIdentifier": identifier, "canHandleVariableCommunicationStepSize": "true",
-        "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
-        "canSerializeFMUstate": "true"})
-    files = ElementTree.SubElement(cs, "SourceFiles")
-    for file in COMPILED:
-        ElementTree.SubElement(files, "File", {"name": file})
+    root = co_simulation_description_root(identifier, guid, description,
+                                          "buck-cosim export-controller (hand-written C, generated data)", COMPILED)
     units = ElementTree.SubElement(root, "UnitDefinitions")
     for unit, base in UNITS.items():
         element = ElementTree.SubElement(units, "Unit", {"name": unit})
@@ -105,8 +106,7 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
                                                 "dependenciesKind": " ".join("dependent" for _ in inputs.split())})
     initial = ElementTree.SubElement(structure, "InitialUnknowns")
     ElementTree.SubElement(initial, "Unknown", {"index": index["duty_cycle"]})
-    ElementTree.indent(root, space="  ")
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
+    return model_description_text(root)
 
 
 def controller_sources(controller, identifier: str) -> FmuSources:
@@ -124,7 +124,8 @@ def controller_sources(controller, identifier: str) -> FmuSources:
     description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
                    f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration)")
     md = model_description(identifier, controller.name, header_guid(header), description, starts, pi)
-    files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + read_files(ALGORITHM_DIR, ALGORITHM_FILES)
+    files = (glue_files() + real_co_simulation_only_files() + read_files(MODEL_DIR, MODEL_FILES)
+             + read_files(ALGORITHM_DIR, ALGORITHM_FILES))
     return FmuSources(identifier, md, files + (("controller_config.h", header.encode()),))
 
 

@@ -36,7 +36,7 @@ from cosim.fmi.binding import (
     OUTPUT_ROLES,
     BindingMismatch,
     PlantBinding,
-    ResolvedParameter,
+    apply_parameters,
     resolve_parameters,
     resolve_roles,
 )
@@ -226,7 +226,7 @@ class FmuPlant:
             raise ConfigError(f"{self.binding.origin}: {error}") from None
         try:
             fmu.setupExperiment(startTime=start_time)
-            self._apply_parameters(self._parameters + extra)
+            apply_parameters(fmu, self._parameters + extra)
             fmu.enterInitializationMode()
             self._write_inputs(inputs)
             fmu.exitInitializationMode()
@@ -253,18 +253,6 @@ class FmuPlant:
         except BindingMismatch as error:
             raise ConfigError(f"{binding.origin}: {error}") from None
         self.binding, self._parameters = binding, resolved
-
-    def _apply_parameters(self, parameters: list[ResolvedParameter]) -> None:
-        fmu = self._fmu
-        for p in parameters:
-            if p.type == "Real":
-                fmu.setReal([p.value_reference], [float(p.value)])
-            elif p.type in ("Integer", "Enumeration"):
-                fmu.setInteger([p.value_reference], [int(p.value)])
-            elif p.type == "Boolean":
-                fmu.setBoolean([p.value_reference], [bool(p.value)])
-            else:
-                fmu.setString([p.value_reference], [str(p.value)])
 
     @property
     def fatal(self) -> bool:

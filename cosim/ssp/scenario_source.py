@@ -25,11 +25,20 @@ from xml.etree import ElementTree
 
 from cosim.scenarios import EVENT_SIGNALS, SIGNAL_UNITS, Scenario, parse_scenario
 from cosim.timeline import MERGE_TOLERANCE, plan_timeline
-from plant_fmu.build import FmuSources, build, glue_files, read_files
+from plant_fmu.build import (
+    REAL_CO_SIMULATION_ONLY,
+    FmuSources,
+    build,
+    co_simulation_description_root,
+    glue_files,
+    model_description_text,
+    read_files,
+    real_co_simulation_only_files,
+)
 
 MODEL_DIR = Path(__file__).parent / "scenario_fmu"
 MODEL_FILES = ("scenario_fmu.c", "scenario_schedule.h")
-COMPILED = ("fmi2_glue.c", "scenario_fmu.c")
+COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "scenario_fmu.c")
 #: the FMU's outputs (value reference = position), the scenario's signals in the workbench's order
 OUTPUTS = EVENT_SIGNALS
 DESCRIPTIONS = {"reference": "output-voltage reference", "load_resistance": "load resistance R",
@@ -92,17 +101,8 @@ def model_description(identifier: str, guid: str, scenario: Scenario, control_pe
     settle = settle_time(scenario, control_period)
     description = (f"scenario {scenario.name} of the buck-cosim workbench as a signal source: {scenario.description} "
                    f"(the scenario's t = 0 at FMU time {settle:.9g} s)")
-    root = ElementTree.Element("fmiModelDescription", {
-        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
-        "generationTool": "buck-cosim export-ssp (hand-written C, generated data)",
-        "variableNamingConvention": "structured", "numberOfEventIndicators": "0"})
-    cs = ElementTree.SubElement(root, "CoSimulation", {
-        "modelIdentifier": identifier, "canHandleVariableCommunicationStepSize": "true",
-        "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
-        "canSerializeFMUstate": "true"})
-    files = ElementTree.SubElement(cs, "SourceFiles")
-    for file in COMPILED:
-        ElementTree.SubElement(files, "File", {"name": file})
+    root = co_simulation_description_root(identifier, guid, description,
+                                          "buck-cosim export-ssp (hand-written C, generated data)", COMPILED)
     units = ElementTree.SubElement(root, "UnitDefinitions")
     for unit, base in UNITS.items():
         ElementTree.SubElement(ElementTree.SubElement(units, "Unit", {"name": unit}), "BaseUnit", base)
@@ -120,8 +120,7 @@ def model_description(identifier: str, guid: str, scenario: Scenario, control_pe
     for index in range(1, len(OUTPUTS) + 1):
         ElementTree.SubElement(outputs, "Unknown", {"index": str(index), "dependencies": ""})
         ElementTree.SubElement(initial, "Unknown", {"index": str(index), "dependencies": ""})
-    ElementTree.indent(root, space="  ")
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
+    return model_description_text(root)
 
 
 def identifier_of(scenario: Scenario) -> str:
@@ -134,7 +133,8 @@ def scenario_sources(scenario: Scenario, control_period: float) -> FmuSources:
     identifier = identifier_of(scenario)
     header = scenario_header(scenario, control_period)
     md = model_description(identifier, header_guid(header), scenario, control_period)
-    files = glue_files() + read_files(MODEL_DIR, MODEL_FILES) + (("scenario_config.h", header.encode()),)
+    files = (glue_files() + real_co_simulation_only_files() + read_files(MODEL_DIR, MODEL_FILES)
+             + (("scenario_config.h", header.encode()),))
     return FmuSources(identifier, md, files)
 
 

@@ -78,38 +78,11 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
     return fmi2Error;
 }
 
-fmi2Status model_get_integer(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Integer *value) {
-    (void)data;
-    (void)value;
-    fmu_log(fmu, fmi2Error, "logStatusError", "fmi2GetInteger: unknown value reference %u", vr);
-    return fmi2Error;
-}
-
-fmi2Status model_set_integer(FmuInstance *fmu, void *data, fmi2ValueReference vr, fmi2Integer value,
-                             int initializing) {
-    (void)data;
-    (void)value;
-    (void)initializing;
-    fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetInteger: unknown value reference %u", vr);
-    return fmi2Error;
-}
-
 fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step) {
     (void)fmu;
     ((ScenarioData *)data)->time = time + step;
     return fmi2OK;
 }
 
-/* No model exchange: a piecewise-constant source has no continuous states. */
-void model_get_states(const void *data, double x[]) { (void)data; (void)x; }
-void model_set_states(void *data, const double x[]) { (void)data; (void)x; }
-void model_nominal_states(double x[]) { (void)x; }
-void model_derivatives(const void *data, double dx[]) { (void)data; (void)dx; }
-void model_event_indicators(const void *data, double z[]) { (void)data; (void)z; }
-int model_update_discrete(FmuInstance *fmu, void *data, double *next_event_time, int *next_event_defined) {
-    (void)fmu;
-    (void)data;
-    *next_event_time = 0.0;
-    *next_event_defined = 0;
-    return 0;
-}
+/* No Integer variables and no model exchange (a piecewise-constant source has no continuous states):
+ * those functions of fmu_model.h are the shared ones of real_co_simulation_only.c. */
