@@ -4,8 +4,8 @@ production units (L, C +-20 %, capacitor ESR, inductor DCR), through the sweep e
 The controllers are the pipeline's own -- the PI it tuned and the NNPC it identified on the
 nominal switched plant, and the MPC with the nominal circuit -- so the study asks exactly the
 robustness question of the report: how do the controllers designed on paper fare on the units that
-get built. The sweep file is the shipped study ``tolerance-reproduction`` (its sample count keeps
-``make reproduce`` within its time target); the tasks run on the reproduction's own dask cluster,
+get built. The sweep file is the shipped study ``tolerance-reproduction`` (600 runs: a small part of
+``make reproduce``); the tasks run on the reproduction's own dask cluster,
 mixed in with the pipelines still running.
 """
 
