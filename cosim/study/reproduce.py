@@ -331,10 +331,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                                                    profile)
         metrics.append(ablation)
         model_meta.update(meta)
-    metrics = pd.concat(metrics, ignore_index=True)
-    metrics["plant_tag"] = pipeline.plant_tag
+    metrics = _job_table(metrics, pipeline, tag)
     timings["runs_s"] = time.perf_counter() - start
-    metrics.insert(0, "pipeline", tag)
     log(f"  {tag}: {len(metrics)} runs ({timings['runs_s']:.1f} s)")
     return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi=json.loads(pi.to_json()), models=model_meta,
                                   timings=timings), out_dir)
@@ -399,10 +397,8 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, imp
                                                    profile)
         metrics.append(ablation)
         meta.update(extra)
-    metrics = pd.concat(metrics, ignore_index=True)
-    metrics["plant_tag"] = pipeline.plant_tag
+    metrics = _job_table(metrics, pipeline, pipeline.tag)
     timings["runs_s"] = time.perf_counter() - start
-    metrics.insert(0, "pipeline", pipeline.tag)
     rmse = identified.model.metadata["held_out_rmse"]
     log(f"  {pipeline.tag}: {name}: 10-step RMSE {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV, "
         f"{len(metrics)} runs")
@@ -489,9 +485,7 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
         error = model.predict(x) - y
         prediction[name] = {"one_step_rmse_current_A": float(np.sqrt(np.mean(error[:, 0] ** 2))),
                             "one_step_rmse_voltage_V": float(np.sqrt(np.mean(error[:, 1] ** 2)))}
-    metrics = output.metrics
-    metrics["plant_tag"] = pipeline.plant_tag
-    metrics.insert(0, "pipeline", DRIFT_KEY)
+    metrics = _job_table([output.metrics], pipeline, DRIFT_KEY)
     study = {"scenario": scenario.name, "analysis_start_s": scenario.metrics_start,
              "drifted_parameters": {k: after_binding.parameters[k] for k in final},
              "prediction_after_drift": prediction, "adaptation": dict(adaptive.counters),
@@ -500,6 +494,14 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     log(f"  drift: {len(metrics)} runs ({timings['runs_s']:.1f} s); adaptation {adaptive.counters}")
     return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi={}, models=models, timings=timings,
                                   key=DRIFT_KEY, study=study), out_dir)
+
+
+def _job_table(parts: list[pd.DataFrame], pipeline: Pipeline, key: str) -> pd.DataFrame:
+    """A job's metrics rows in one table, labelled with its key (column ``pipeline``) and plant tag."""
+    metrics = pd.concat(parts, ignore_index=True)
+    metrics["plant_tag"] = pipeline.plant_tag
+    metrics.insert(0, "pipeline", key)
+    return metrics
 
 
 def _finish(output: PipelineOutput, out_dir: Path) -> PipelineOutput:
