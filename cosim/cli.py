@@ -714,15 +714,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sample period in s, e.g. 1/75e3 (default: the model's); the model must have been trained "
                         "at it")
     p.add_argument("--out", required=True, metavar="POLICY.pt", help="the policy file to write")
-    p.add_argument("--rounds", type=bounded(int, 0, 50), default=4,
-                   help="DAgger rounds after the first, expert-driven one (default: 4)")
-    p.add_argument("--episodes", type=bounded(int, 1, 1000), default=6,
-                   help="closed-loop episodes per round (default: 6)")
+    p.add_argument("--rounds", type=bounded(int, 0, 50), default=6,
+                   help="DAgger rounds after the first, expert-driven one (default: %(default)s, as make reproduce)")
+    p.add_argument("--episodes", type=bounded(int, 1, 1000), default=8,
+                   help="closed-loop episodes per round (default: %(default)s)")
     p.add_argument("--samples", type=bounded(int, MIN_SAMPLES, 10**6), default=600,
-                   help="control samples per episode (default: 600, 8 ms at 13.33 us); each costs one NNPC label, "
-                        "about 1 ms at 13.33 us")
-    p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=[12],
-                   help="tanh units per hidden layer of the policy (default: 12; 7 inputs, so 12 -> 98 MACs)")
+                   help="control samples per episode (default: %(default)s, 8 ms at 13.33 us); each costs one NNPC "
+                        "label, about 1 ms at 13.33 us")
+    p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=list(PolicyConfig.hidden),
+                   help=f"tanh units per hidden layer of the policy (default: {' '.join(map(str, PolicyConfig.hidden))}"
+                        f"; 7 inputs, so {PolicyConfig().macs()} MACs per step)")
     p.add_argument("--integral-gain", type=bounded(float, 0.0), default=None,
                    help=f"Ki of the offset-free integral term [1/(V s)] (default: {INTEGRAL_GAIN_PER_SAMPLE:.4g} / the "
                         "control period: 200 at 13.33 us, 2.67 at 1 ms)")

@@ -25,10 +25,10 @@ from controllers.explicit_policy import (
 )
 from controllers.nn_model import load_model
 from cosim.base.errors import ConfigError, ModelFileError
-from cosim.cli import main
+from cosim.cli import build_parser, main
 from cosim.master import simulate
 from cosim.metrics import run_metrics
-from cosim.study.distillation import SMALL_DISTILLATION, distill
+from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
 from cosim.study.experiments import explicit_nnpc, implemented, nnpc, plant_binding, scenarios_for
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
@@ -286,12 +286,20 @@ def test_command_line_mistakes_end_in_one_line(tmp_path, monkeypatch, capsys, ar
     assert __import__("re").search(message, err), err
 
 
+def test_distill_defaults_on_the_command_line_are_the_reproductions_budget():
+    args = build_parser().parse_args(["distill", "--model", "m.pt", "--out", "p.pt"])
+    assert (args.rounds, args.episodes, args.samples, tuple(args.hidden), args.seed) == (
+        FULL_DISTILLATION.rounds, FULL_DISTILLATION.episodes, FULL_DISTILLATION.samples,
+        FULL_DISTILLATION.policy.hidden, FULL_DISTILLATION.seed)
+    assert FULL_DISTILLATION.labels == 33_600 and FULL_DISTILLATION.policy.macs() == 114
+
+
 def test_distill_then_run_and_export_from_the_command_line(tmp_path, capsys):
     policy = tmp_path / "policy.pt"
     assert main(["--no-progress", "distill", "--model", str(EXPERT), "--control-period", "1/75e3", "--out", str(policy),
                  "--rounds", "1", "--episodes", "1", "--samples", "100"]) == 0
     out = capsys.readouterr().out
-    assert "7-12-1 tanh policy (98 MACs per step): 2 DAgger rounds, 200 labels" in out
+    assert "7-14-1 tanh policy (114 MACs per step): 2 DAgger rounds, 200 labels" in out
     assert load_policy(policy, expect_period=SWITCHING_PERIOD).metadata["distillation"]["labels"] == 200
     assert main(["--no-progress", "run", "startup", "--controller", "nnpc-explicit", "--policy", str(policy),
                  "--control-period", "1/75e3", "--out", str(tmp_path / "runs"), "--no-figures"]) == 0
