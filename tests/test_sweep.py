@@ -518,8 +518,9 @@ def test_a_worker_killed_mid_sweep_loses_and_duplicates_no_run(tmp_path, cluster
 
 
 def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_path, faulty_fmu, capsys):
-    """The FMU discards a step, its output turns NaN, it kills its worker process: each is one failed
-    row with the cause; the other runs complete and the command exits 3."""
+    """The FMU discards a step, its output turns NaN, it dereferences NULL: each is one failed row with
+    the cause (the crash in the binding file's isolated plant process, so the worker lives on and the
+    row names the signal and the time); the other runs complete and the command exits 3."""
     (tmp_path / "faulty.toml").write_text(faulty_binding(faulty_fmu))
     (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
     path = sweep_file(tmp_path, """\
@@ -542,7 +543,7 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     assert rows.loc[0, "steady_state_error_pct"] == pytest.approx(0.0, abs=0.5)
     assert "fmi2DoStep failed (discard) at t = 0.0103" in rows.loc[1, "error"]
     assert "plant output became non-finite at t = 0.0104 s (output_voltage = nan)" in rows.loc[3, "error"]
-    assert rows.loc[4, "error"].startswith("the worker process running it died each time it ran")
+    assert "the FMU crashed the plant process (signal SIGSEGV) while stepping at t = 0.0104 s" in rows.loc[4, "error"]
     assert rows.loc[rows["status"] == "failed", "iae_Vs"].isna().all()
     text = (out / "SWEEP.md").read_text()
     assert "3 run(s) failed" in text and "fmi2DoStep failed (discard)" in text

@@ -54,6 +54,7 @@ class PlantRecipe:
     source: str | None  # the binding file, named in error messages
     label: str
     tag: str
+    isolate: bool = False  # step the FMU in a child process (a binding file's default): a crash is that run's row
 
     @classmethod
     def of(cls, binding: PlantBinding) -> "PlantRecipe":
@@ -62,7 +63,7 @@ class PlantRecipe:
                    roles=tuple((r, m.variable, m.scale, m.offset) for r, m in sorted(binding.roles.items())),
                    parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
-                   label=binding.label, tag=binding.tag)
+                   label=binding.label, tag=binding.tag, isolate=binding.isolate)
 
     @cached_property
     def fmu_digest(self) -> str:
@@ -73,7 +74,7 @@ class PlantRecipe:
         return PlantBinding(fmu_path=Path(fmu_path), roles={r: RoleMap(v, s, o) for r, v, s, o in self.roles},
                             interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
                             source=Path(self.source) if self.source else None, label=self.label,
-                            tag_override=self.tag)
+                            tag_override=self.tag, isolate=self.isolate)
 
     def identity(self) -> dict:
         """What decides a run's result (not where the files are)."""
