@@ -197,11 +197,12 @@ class HorizonOptimizer:
         first = np.full((len(grid), nb), anchor)
         first[:, 0] = grid
         rows.append(first)
-        coarse = np.linspace(self.low, self.high, 5)
-        pairs = np.full((25, nb), anchor)
-        pairs[:, 0] = np.repeat(coarse, 5)
-        pairs[:, 1] = np.tile(coarse, 5)
-        rows.append(pairs)
+        if nb >= 2:  # one block (a grid too fine for the full mesh) has no second move
+            coarse = np.linspace(self.low, self.high, 5)
+            pairs = np.full((25, nb), anchor)
+            pairs[:, 0] = np.repeat(coarse, 5)
+            pairs[:, 1] = np.tile(coarse, 5)
+            rows.append(pairs)
         for a, b in ((self.high, self.low), (self.low, self.high)):
             for j in range(1, nb):
                 for m in range(0, nb - j):

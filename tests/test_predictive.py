@@ -67,6 +67,20 @@ def test_optimizer_matches_brute_force_on_small_problems(horizon, blocks, levels
     assert optimizer.evaluations < len(mesh) / 20  # a small fraction of the brute-force work
 
 
+def test_one_block_with_a_grid_finer_than_the_full_mesh_limit_still_solves():
+    """levels ** blocks above 4 x FULL_GRID_LIMIT switches stage 1 to constant sequences plus openings;
+    with one block there is no second move to open with (it raised IndexError)."""
+    settings = HorizonSettings(horizon=1, levels=600)
+    predictor = AveragedModelPredictor(NOMINAL, TS)
+    cost = eq23_cost(predictor, context(), 12.0, settings)
+    optimizer = HorizonOptimizer(settings, (0.0, 1.0))
+    for warm in (None, np.array([0.3])):
+        sequence, best = optimizer.solve(cost, warm=warm, anchor=0.25)
+        fine = np.linspace(0.0, 1.0, 20001)[:, None]
+        assert best <= cost(fine).min() * (1 + 1e-3) + 1e-9
+        assert cost(sequence[None])[0] == pytest.approx(best)
+
+
 def test_optimizer_respects_duty_limits_and_uses_the_warm_start():
     settings = HorizonSettings(horizon=3, levels=9)
     predictor = AveragedModelPredictor(NOMINAL, 1e-3)
