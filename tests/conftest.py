@@ -28,47 +28,66 @@ def buck_fmu() -> Path:
     return fmu_path()
 
 
+#: every callbacks struct (and its Python logger) handed to fmpy's logger proxy, kept for the whole test session
+#: (see raw_callbacks; an FMU also keeps the struct's address until it is freed)
+_PROXIED_LOGGERS: list = []
+
+
+def raw_callbacks(log: list):
+    """FMI 2.0 callbacks for an FMU driven through fmpy alone, its messages appended to ``log``.
+
+    fmpy's logger proxy (``fmpy.logging.addLoggerProxy``, which formats the FMU's variadic messages)
+    keeps *one* Python logger for the whole process, the last one registered -- also for every FMU
+    instantiated later with fmpy's default callbacks. A logger freed with its test would then be
+    called by the next FMU that logs (a segfault in an unrelated test), so every logger registered
+    here lives as long as the session. (The workbench itself registers one logger that never dies:
+    cosim/fmi/fmu_log.py.)"""
+    from ctypes import byref
+
+    import fmpy
+    from fmpy.fmi2 import (
+        fmi2CallbackAllocateMemoryTYPE,
+        fmi2CallbackFreeMemoryTYPE,
+        fmi2CallbackFunctions,
+        fmi2CallbackLoggerTYPE,
+    )
+    from fmpy.logging import addLoggerProxy
+
+    def on_log(environment, name, status, category, message):
+        log.append((status, message.decode()))
+
+    callbacks = fmi2CallbackFunctions()
+    callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
+    callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
+    callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
+    _PROXIED_LOGGERS.append((on_log, callbacks))
+    addLoggerProxy(byref(callbacks))
+    return callbacks
+
+
 class RawSlave:
     """The FMU driven directly through fmpy's FMU2Slave (no workbench code), for plant tests."""
 
     def __init__(self, fmu: Path, start_values: dict | None = None, instance_name: str = "raw",
-                 log: list | None = None):
-        from ctypes import byref
-
+                 log: list | None = None, start_time: float = 0.0):
         import fmpy
-        from fmpy.fmi2 import (
-            FMU2Slave,
-            fmi2CallbackAllocateMemoryTYPE,
-            fmi2CallbackFreeMemoryTYPE,
-            fmi2CallbackFunctions,
-            fmi2CallbackLoggerTYPE,
-        )
+        from fmpy.fmi2 import FMU2Slave
 
         self.md = fmpy.read_model_description(str(fmu))
         self.vr = {v.name: v.valueReference for v in self.md.modelVariables}
         self.types = {v.name: v.type for v in self.md.modelVariables}
         self.unzipdir = fmpy.extract(str(fmu))
         self.log = log if log is not None else []
-
-        def on_log(env, name, status, category, message):
-            self.log.append((status, message.decode()))
-
-        callbacks = fmi2CallbackFunctions()
-        callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
-        callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
-        callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
-        from fmpy.logging import addLoggerProxy
-
-        addLoggerProxy(byref(callbacks))
-        self._keep = (callbacks, on_log)
+        callbacks = raw_callbacks(self.log)
+        self._keep = callbacks
         self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self.unzipdir,
                              modelIdentifier=self.md.coSimulation.modelIdentifier, instanceName=instance_name)
         self.fmu.instantiate(callbacks=callbacks)
-        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.setupExperiment(startTime=start_time)
         self.set(start_values or {})
         self.fmu.enterInitializationMode()
         self.fmu.exitInitializationMode()
-        self.time = 0.0
+        self.time = start_time
 
     def set(self, values: dict) -> None:
         for name, value in values.items():

@@ -12,7 +12,7 @@ import fmpy
 import fmpy.validation
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import cli, raw_callbacks
 from fmpy.fmi2 import FMU2Slave
 
 from controllers.pi import PIController
@@ -130,30 +130,6 @@ def test_the_nnpc_fmu_gives_the_python_duty_at_every_sample_at_one_switching_per
 # ------------------------------------------------------------------ the sample clock, through fmpy alone
 
 
-def _callbacks(log: list):
-    """fmpy's callbacks with its logger proxy, which formats the FMU's variadic messages safely."""
-    from ctypes import byref
-
-    from fmpy.fmi2 import (
-        fmi2CallbackAllocateMemoryTYPE,
-        fmi2CallbackFreeMemoryTYPE,
-        fmi2CallbackFunctions,
-        fmi2CallbackLoggerTYPE,
-    )
-    from fmpy.logging import addLoggerProxy
-
-    def on_log(environment, name, status, category, message):
-        log.append(message.decode())
-
-    callbacks = fmi2CallbackFunctions()
-    callbacks.logger = fmi2CallbackLoggerTYPE(on_log)
-    callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(fmpy.calloc)
-    callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(fmpy.free)
-    addLoggerProxy(byref(callbacks))
-    callbacks._keep = on_log
-    return callbacks
-
-
 class RawController:
     """A controller FMU stepped through fmpy directly (no workbench adapter)."""
 
@@ -163,8 +139,8 @@ class RawController:
         self.unzipdir = fmpy.extract(str(path))
         self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self.unzipdir,
                              modelIdentifier=self.md.coSimulation.modelIdentifier)
-        self.log: list[str] = []
-        self.fmu.instantiate(callbacks=_callbacks(self.log), loggingOn=True)
+        self.log: list[tuple[int, str]] = []  # (status, message)
+        self.fmu.instantiate(callbacks=raw_callbacks(self.log), loggingOn=True)
         self.fmu.setupExperiment(startTime=start)
         self.fmu.enterInitializationMode()
         self.fmu.exitInitializationMode()
@@ -220,7 +196,7 @@ def test_a_step_past_a_sample_instant_is_an_error_naming_it(fmus):
     c.step(1e-3)
     with pytest.raises(Exception, match="fmi2DoStep"):
         c.step(1.5e-3)
-    assert "the step from t = 0.001 s to 0.0025 s passes the sample instant t = 0.002 s" in c.log[-1]
+    assert "the step from t = 0.001 s to 0.0025 s passes the sample instant t = 0.002 s" in c.log[-1][1]
 
 
 def test_fmu_state_round_trips_the_predictive_controller(fmus):
