@@ -499,3 +499,23 @@ def test_averaged_plant_recovers_from_an_output_above_the_supply(buck_fmu, start
                            input=signals, output=["inductor_current", "output_voltage"], record_events=False)
     me_vo = np.interp(times, me["time"], me["output_voltage"])
     np.testing.assert_allclose(cs[::10, 1], me_vo[::10], rtol=2e-3, atol=2e-2)
+
+
+@pytest.mark.parametrize("start", [0.0, 401.434])
+def test_a_sub_picosecond_on_time_is_no_pulse_in_the_averaged_model(raw_slave_factory, start):
+    """A duty of 1e-9 (a 13 fs on-time; it came from a dithered PI at a 0 V reference) made the averaged
+    DCM current so stiff (time constant ~1e-13 s) that a step at t = 401.434 s failed with "no progress"
+    (and at t = 0 it would integrate for hours). On-times below 1 ps are no pulse: the diode blocks and
+    the capacitor discharges through the load, vC(t) = vC0 exp(-t / ((R + ESR) C)), exactly."""
+    vc0, resistance = 0.46, 9.51286580449112584
+    slave = raw_slave_factory({"plant_mode": AVERAGED, "duty_cycle": 1.02784923e-9, "load_resistance": resistance,
+                               "capacitor_voltage": vc0, "inductor_current": 0.0}, start_time=start)
+    esr = slave.get("capacitor_esr")[0]
+    for k in range(1, 4):
+        slave.step_to(start + k * 1e-3)
+        current, capacitor, applied = slave.get("inductor_current", "capacitor_voltage", "applied_duty_cycle")
+        assert current == 0.0 and applied == 0.0
+        assert capacitor == pytest.approx(vc0 * np.exp(-k * 1e-3 / ((resistance + esr) * C)), rel=1e-9)
+    slave.set({"duty_cycle": 1e-4})  # an on-time of 1.3 ns is a pulse: current flows again (DCM)
+    slave.step_to(start + 4e-3)
+    assert slave.get("inductor_current")[0] > 0.0 and slave.get("applied_duty_cycle")[0] == pytest.approx(1e-4)

@@ -26,6 +26,12 @@
 /* A call makes at most this many consecutive regime changes without time advancing (by more than
  * a few clock resolutions) before it gives up and reports the step as failed. */
 #define MAX_STALLED_TRANSITIONS 64
+/* Averaged mode: a duty whose on-time d / f_sw is shorter than this is no pulse [s]. No switch
+ * makes a 1 ps pulse (PWM timers resolve ~0.1-1 ns), and the averaged DCM current's time constant,
+ * d (Vs - vo) / (2 f_sw (Vf + vo)), would be below 1e-11 s: too stiff for the DCM integrator once
+ * the clock's resolution (64 eps t) is coarser than that -- at t = 401 s a duty of 1e-9 made the
+ * step fail with "no progress" (the integrated current kept dipping below zero and re-conducting). */
+#define AVERAGED_MIN_ON_TIME 1e-12
 
 typedef enum { TOPOLOGY_SWITCH_ON, TOPOLOGY_SWITCH_OFF, TOPOLOGY_AVERAGED } Topology;
 
@@ -102,6 +108,12 @@ static double esr_divider(const BuckModel *m) {
     return m->u.load_resistance / (m->u.load_resistance + m->p.capacitor_esr);
 }
 
+/* The duty the averaged model applies: the input, or 0 for an on-time below AVERAGED_MIN_ON_TIME. */
+static double averaged_duty(const BuckModel *m) {
+    double d = m->u.duty_cycle;
+    return d < AVERAGED_MIN_ON_TIME * m->p.switching_frequency ? 0.0 : d;
+}
+
 static double output_voltage_of(const BuckModel *m, double current, double capacitor_voltage) {
     return esr_divider(m) * (capacitor_voltage + m->p.capacitor_esr * current);
 }
@@ -134,8 +146,8 @@ void buck_set_load_resistance(BuckModel *m, double resistance) {
 }
 
 double buck_applied_duty(const BuckModel *m) {
-    if (m->p.plant_mode == MODE_SWITCHED && m->pwm_period >= 0) return m->pwm_duty;
-    return m->u.duty_cycle;
+    if (m->p.plant_mode == MODE_SWITCHED) return m->pwm_period >= 0 ? m->pwm_duty : m->u.duty_cycle;
+    return averaged_duty(m);
 }
 
 /* The switch node seen by the inductor: an ideal source behind a series resistance. */
@@ -146,7 +158,7 @@ typedef struct {
 
 static SwitchNode switch_node(const BuckModel *m, Topology topology) {
     SwitchNode node;
-    double d = m->u.duty_cycle;
+    double d = averaged_duty(m); /* used by the averaged topology only */
     switch (topology) {
     case TOPOLOGY_SWITCH_ON:
         node.voltage = m->u.input_voltage;
@@ -166,7 +178,7 @@ static SwitchNode switch_node(const BuckModel *m, Topology topology) {
 
 /* While blocked (i_L = 0), current starts to flow once v_o falls below this voltage. */
 static double unblock_threshold(const BuckModel *m, Topology topology) {
-    if (topology == TOPOLOGY_SWITCH_ON || (topology == TOPOLOGY_AVERAGED && m->u.duty_cycle > 0.0))
+    if (topology == TOPOLOGY_SWITCH_ON || (topology == TOPOLOGY_AVERAGED && averaged_duty(m) > 0.0))
         return m->u.input_voltage;
     return -m->p.diode_forward_voltage;
 }
@@ -181,7 +193,7 @@ static double capacitor_rate(const BuckModel *m, double current, double capacito
  * and nothing for 1 - d1 - d2. d2 follows from the ripple geometry; it saturates at 1 - d1 in
  * CCM, where the model reduces to eq. 3. Resistive drops use the period-average current. */
 static double averaged_current_rate(const BuckModel *m, double current, double capacitor_voltage) {
-    double d1 = m->u.duty_cycle;
+    double d1 = averaged_duty(m);
     double L = m->p.inductance;
     double vo = output_voltage_of(m, current, capacitor_voltage);
     double on_voltage = m->u.input_voltage - (m->p.switch_on_resistance + m->p.inductor_resistance) * current - vo;
@@ -363,7 +375,7 @@ static double first_crossing(const Flow *f, const double x0[2], double h, const 
 
 /* Averaged mode: CCM holds while i_L >= half the ripple a d1 / (2 L f_sw). */
 static Guard continuous_conduction_guard(const BuckModel *m) {
-    double q = m->u.duty_cycle / (2.0 * m->p.inductance * m->p.switching_frequency);
+    double q = averaged_duty(m) / (2.0 * m->p.inductance * m->p.switching_frequency);
     double k = esr_divider(m);
     Guard g;
     g.c0 = 1.0 + q * (m->p.switch_on_resistance + m->p.inductor_resistance + k * m->p.capacitor_esr);
@@ -379,7 +391,7 @@ static Conduction classify_conducting(const BuckModel *m, Topology topology) {
          * current (d > 0, Vs > vo) this is DCM, whose rate d (Vs - vo) / L is never negative. The
          * guard below is only ~0 here and rounding must not pick CCM, which would block at once. */
         double vo = esr_divider(m) * m->capacitor_voltage;
-        return m->u.duty_cycle > 0.0 && m->u.input_voltage - vo >= 0.0 ? CONDUCTION_DISCONTINUOUS
+        return averaged_duty(m) > 0.0 && m->u.input_voltage - vo >= 0.0 ? CONDUCTION_DISCONTINUOUS
                                                                        : CONDUCTION_CONTINUOUS;
     }
     Guard g = continuous_conduction_guard(m);
