@@ -517,11 +517,14 @@ def test_a_worker_killed_mid_sweep_loses_and_duplicates_no_run(tmp_path, cluster
     client.wait_for_workers(2, timeout=60)  # the nanny started a new worker
 
 
-def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_path, faulty_fmu, capsys):
-    """The FMU discards a step, its output turns NaN, it dereferences NULL: each is one failed row with
-    the cause (the crash in the binding file's isolated plant process, so the worker lives on and the
-    row names the signal and the time); the other runs complete and the command exits 3."""
-    (tmp_path / "faulty.toml").write_text(faulty_binding(faulty_fmu))
+@pytest.mark.parametrize("isolate", [True, False])
+def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_path, faulty_fmu, capsys, isolate):
+    """The FMU dereferences NULL, discards a step, its output turns NaN: each is one failed row with the
+    cause, and the other runs -- one of them after the crash in the same batch -- complete; the command
+    exits 3. Isolated (a binding file's default) the crash is the plant process's: the row names the
+    signal and the time and the worker goes on. In-process it kills the worker: dask reruns the task,
+    the task is split into single runs, and the crashing one is a row saying the worker died."""
+    (tmp_path / "faulty.toml").write_text(("" if isolate else "isolate = false\n") + faulty_binding(faulty_fmu))
     (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
     path = sweep_file(tmp_path, """\
         scenarios = ["short.toml"]
@@ -531,7 +534,7 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
         [plant]
         binding = "faulty.toml"
         [parameters]
-        fault_kind = { values = [0, 1, 3, 4] }
+        fault_kind = { values = [4, 0, 1, 3] }
         fault_time = { values = [0.0103] }
         """)
     out = tmp_path / "out"
@@ -543,11 +546,43 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     assert rows.loc[0, "steady_state_error_pct"] == pytest.approx(0.0, abs=0.5)
     assert "fmi2DoStep failed (discard) at t = 0.0103" in rows.loc[1, "error"]
     assert "plant output became non-finite at t = 0.0104 s (output_voltage = nan)" in rows.loc[3, "error"]
-    assert "the FMU crashed the plant process (signal SIGSEGV) while stepping at t = 0.0104 s" in rows.loc[4, "error"]
+    if isolate:
+        assert "the FMU crashed the plant process (signal SIGSEGV) while stepping at t = 0.0104 s" in rows.loc[4, "error"]
+    else:
+        assert rows.loc[4, "error"].startswith("the worker process running it died each time it ran")
     assert rows.loc[rows["status"] == "failed", "iae_Vs"].isna().all()
     text = (out / "SWEEP.md").read_text()
     assert "3 run(s) failed" in text and "fmi2DoStep failed (discard)" in text
     no_temporary_files(out)
+
+
+def _plant_kind(recipe, queue) -> None:
+    from cosim.study.sweeps.worker import _plant
+
+    plant, _ = _plant(recipe)
+    queue.put(type(plant).__name__)
+    plant.close()
+
+
+def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty_fmu):
+    """dask's default workers are daemonic and cannot start the isolated plant's process: there the
+    plant runs in the worker (the workbench's own LocalCluster is non-daemonic and keeps isolation)."""
+    import multiprocessing
+
+    from cosim.fmi.binding_file import load_binding
+    from cosim.study.sweeps.recipes import PlantRecipe
+
+    (tmp_path / "plant.toml").write_text(faulty_binding(faulty_fmu, 0))
+    recipe = PlantRecipe.of(load_binding(tmp_path / "plant.toml"))
+    assert recipe.isolate is True and recipe.binding(faulty_fmu).isolate is True
+    kinds = {}
+    for daemon in (True, False):
+        queue = multiprocessing.get_context("fork").Queue()
+        process = multiprocessing.get_context("fork").Process(target=_plant_kind, args=(recipe, queue), daemon=daemon)
+        process.start()
+        kinds[daemon] = queue.get(timeout=60)
+        process.join(timeout=60)
+    assert kinds == {True: "CoSimulationPlant", False: "IsolatedPlant"}  # in the worker process, or its own
 
 
 # ------------------------------------------------------------------------------------------ controller FMUs

@@ -18,7 +18,6 @@ const char *buckc_status_text(int status)
     case BUCKC_ERR_LIMIT: return "a size is above a compile-time maximum";
     case BUCKC_ERR_INVALID: return "an invalid value";
     case BUCKC_ERR_NO_INDUCTOR_CURRENT: return "the predictive controller needs the inductor current";
-    case BUCKC_ERR_UNSUPPORTED: return "a configuration the Python reference cannot run either";
     default: return "unknown status";
     }
 }

@@ -164,9 +164,7 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
         o->stage_candidates_cold = o->n_global;
         o->stage_candidates_warm = o->n_lattice + o->n_global;
     } else {
-        if (nb < 2) /* _openings' pairs need two blocks: Python raises an IndexError at its first solve */
-            FAIL(BUCKC_ERR_UNSUPPORTED, "levels: one block with levels above 512 (the Python optimizer fails there)");
-        openings = s.levels + 25 + nb * (nb - 1);
+        openings = s.levels + (nb >= 2 ? 25 : 0) + nb * (nb - 1); /* one block: no pairs (as _openings) */
         o->stage_candidates_cold = o->n_global + openings;
         o->stage_candidates_warm = o->n_lattice + BUCKC_NEAR_OFFSETS + o->n_global + openings;
     }
@@ -235,7 +233,7 @@ static void openings(const Problem *p, Scan *scan, double anchor)
         row[0] = o->grid[i];
         consider(p, scan, row);
     }
-    for (i = 0; i < 25; ++i) { /* a coarse grid over the first two */
+    for (i = 0; nb >= 2 && i < 25; ++i) { /* a coarse grid over the first two */
         for (b = 0; b < nb; ++b)
             row[b] = anchor;
         row[0] = o->coarse[i / 5];

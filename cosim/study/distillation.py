@@ -51,9 +51,9 @@ class DistillationSettings:
     """The DAgger budget and the episodes' ranges (labels = (rounds + 1) x episodes x samples)."""
 
     rounds: int = 6  # DAgger rounds after the behaviour-cloning round 0
-    episodes: int = 8  # closed-loop episodes per round (6 rounds x 8: 33 600 labels; 5 x 6 (18 000) left the
-    # reference step down on the nominal switched plant and the mismatch plant's load change at 1.04-1.08 x the
-    # online NNPC's IAE, depending on the network)
+    episodes: int = 8  # closed-loop episodes per round ((6 + 1) rounds x 8 x 600 samples = 33 600 labels; with
+    # (4 + 1) x 6 = 18 000 the nominal plant's reference step down or the mismatch plant's load change ended at
+    # 1.065-1.080 x the online NNPC's IAE, depending on the network)
     samples: int = 600  # control samples per episode (600 at 13.33 us: 8 ms)
     reference_range: tuple[float, float] = (3.0, 20.0)  # [V], uniform
     load_range: tuple[float, float] = (4.0, 100.0)  # [Ohm], log-uniform
