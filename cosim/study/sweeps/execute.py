@@ -5,8 +5,10 @@
   the output folder), with a progress bar over runs.
 * A worker process that dies (killed, out of memory, a crash in an FMU's native code) loses its
   task; dask runs it again elsewhere. A task that kills its worker again (``KilledWorker``) is split
-  into one task per run, so the runs that are fine complete; a run that still kills its worker is a
-  ``failed`` row naming that cause. The sweep goes on either way.
+  into one task per run, so the runs that are fine complete. A single run can still see
+  ``KilledWorker`` without being the cause -- dask counts every task queued on a dying worker -- so
+  it is submitted again, up to :data:`SINGLE_RUN_ATTEMPTS` times in all; a run that kills its worker
+  every time is a ``failed`` row naming that cause. The sweep goes on either way.
 * Ctrl-C / SIGTERM: the pending tasks are cancelled and the caller closes the cluster; every part
   on disk is complete (atomic writes), and ``--resume`` runs exactly the runs without a row.
 
@@ -31,6 +33,11 @@ WORKER_DIED = ("the worker process running it died each time it ran (a crash in 
                "memory?); run it alone with buck-cosim run to see the cause")
 
 
+#: how often a single run that met ``KilledWorker`` is submitted in all before it is a ``failed`` row (the
+#: culprit kills its worker each time; a bystander queued on that worker completes on its next attempt)
+SINGLE_RUN_ATTEMPTS = 3
+
+
 @dataclass
 class ExecutionCounts:
     runs: int = 0  # runs this execution wrote
@@ -48,6 +55,7 @@ class SweepExecution:
         self.settings, self.schema, self.out_dir = settings, schema, out_dir
         self.counts = ExecutionCounts()
         self._pending: dict[str, BatchTask] = {}  # future key -> task
+        self._attempts: dict[str, int] = {}  # future key -> how many times this task has been submitted
         self._futures: dict[str, object] = {}
         self._client, self._priority = None, 0
         self._started = None
@@ -68,12 +76,13 @@ class SweepExecution:
         self._started = time.perf_counter()
         return [self._submit(task) for task in self.tasks]
 
-    def _submit(self, task: BatchTask):
-        key = f"buck-cosim-sweep-{task.key}"
+    def _submit(self, task: BatchTask, attempt: int = 1):
+        key = f"buck-cosim-sweep-{task.key}" + (f"-attempt-{attempt}" if attempt > 1 else "")
         future = self._client.submit(run_batch, self.plant, self.controllers[task.controller],
                                      self.scenarios[task.scenario], task.runs, self.settings, key=key, pure=False,
                                      retries=0, priority=self._priority)
         self._pending[future.key] = task
+        self._attempts[future.key] = attempt
         self._futures[future.key] = future
         return future
 
@@ -85,6 +94,7 @@ class SweepExecution:
         from distributed.scheduler import KilledWorker
 
         task = self._pending.pop(future.key)
+        attempt = self._attempts.pop(future.key, 1)
         self._futures.pop(future.key, None)
         if future.status == "finished":
             self._write(task, future.result())
@@ -96,6 +106,8 @@ class SweepExecution:
         if isinstance(error, KilledWorker) and len(task.runs) > 1:  # find the run that kills: one task per run
             return [self._submit(BatchTask(batch_key((run,)), task.controller, task.scenario, (run,)))
                     for run in task.runs]
+        if isinstance(error, KilledWorker) and attempt < SINGLE_RUN_ATTEMPTS:  # the culprit, or a bystander
+            return [self._submit(task, attempt + 1)]
         cause = WORKER_DIED if isinstance(error, KilledWorker) else \
             f"the task failed on its worker: {type(error).__name__}: {' '.join(str(error).split())}"
         self._write(task, BatchResult([run_row(r, FAILED, cause, {}) for r in task.runs],
@@ -124,6 +136,7 @@ class SweepExecution:
             except Exception:
                 pass
         self._pending.clear()
+        self._attempts.clear()
         self._futures.clear()
         self.close()
 
