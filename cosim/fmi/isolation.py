@@ -32,6 +32,12 @@ START_TIMEOUT = 60.0
 _ERRORS = {cls.__name__: cls for cls in (ConfigError, FmuArchiveError, PlantError, WorkbenchError)}
 
 
+def isolation_possible() -> bool:
+    """Whether this process may start the plant's child process: not a daemonic one (dask's default
+    worker; the workbench's LocalCluster turns that off, cosim/study/cluster.py)."""
+    return not multiprocessing.current_process().daemon
+
+
 def _serve(connection, binding: PlantBinding, interface: str, relative_tolerance: float, instance_name: str,
            unzip_dir: str) -> None:
     """The child: open the plant and answer the parent's requests until it says close -- or goes

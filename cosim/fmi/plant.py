@@ -77,12 +77,16 @@ def open_plant(binding: PlantBinding, interface: str | None = None, relative_tol
 
     ``isolate``: step the FMU in a child process (:class:`cosim.fmi.isolation.IsolatedPlant`), so a
     crash inside it ends the run with an error instead of taking the workbench with it (default:
-    the binding's ``isolate``, which binding files turn on).
+    the binding's ``isolate``, which binding files turn on). A daemonic process (dask's default
+    worker) cannot start that child: there the FMU is stepped in this process
+    (:func:`cosim.fmi.isolation.isolation_possible`).
     ``unzip_dir``: an empty folder to extract the FMU into (default: a new temporary one).
     """
     checked = check_fmu(binding.fmu_path)
     chosen = choose_interface(checked, normalise_interface(interface or binding.interface), binding.origin)
-    if binding.isolate if isolate is None else isolate:
+    from cosim.fmi.isolation import isolation_possible
+
+    if (binding.isolate if isolate is None else isolate) and isolation_possible():
         from cosim.fmi.isolation import IsolatedPlant
 
         return IsolatedPlant(binding, checked, chosen, relative_tolerance=relative_tolerance,

@@ -54,8 +54,7 @@ class SweepExecution:
         self.tasks, self.plant, self.controllers, self.scenarios = tasks, plant, controllers, scenarios
         self.settings, self.schema, self.out_dir = settings, schema, out_dir
         self.counts = ExecutionCounts()
-        self._pending: dict[str, BatchTask] = {}  # future key -> task
-        self._attempts: dict[str, int] = {}  # future key -> how many times this task has been submitted
+        self._pending: dict[str, tuple[BatchTask, int]] = {}  # future key -> task, how often it was submitted
         self._futures: dict[str, object] = {}
         self._client, self._priority = None, 0
         self._started = None
@@ -81,8 +80,7 @@ class SweepExecution:
         future = self._client.submit(run_batch, self.plant, self.controllers[task.controller],
                                      self.scenarios[task.scenario], task.runs, self.settings, key=key, pure=False,
                                      retries=0, priority=self._priority)
-        self._pending[future.key] = task
-        self._attempts[future.key] = attempt
+        self._pending[future.key] = (task, attempt)
         self._futures[future.key] = future
         return future
 
@@ -93,8 +91,7 @@ class SweepExecution:
         """Write a finished future's part (or split a task that killed its worker); new futures to wait on."""
         from distributed.scheduler import KilledWorker
 
-        task = self._pending.pop(future.key)
-        attempt = self._attempts.pop(future.key, 1)
+        task, attempt = self._pending.pop(future.key)
         self._futures.pop(future.key, None)
         if future.status == "finished":
             self._write(task, future.result())
@@ -136,7 +133,6 @@ class SweepExecution:
             except Exception:
                 pass
         self._pending.clear()
-        self._attempts.clear()
         self._futures.clear()
         self.close()
 

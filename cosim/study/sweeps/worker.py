@@ -122,18 +122,8 @@ def _plant(recipe: PlantRecipe):
         if entry is not None:
             entry[0].close()  # abandoned, not freed, as FMI 2.0 demands after fmi2Fatal
         binding = recipe.binding(fmu_file(recipe))
-        plant = open_plant(binding, isolate=binding.isolate and isolation_possible())
-        entry = cache[_plant_key(recipe)] = _OpenPlant(plant, binding)
+        entry = cache[_plant_key(recipe)] = _OpenPlant(open_plant(binding), binding)
     return entry
-
-
-def isolation_possible() -> bool:
-    """Whether this process may start an isolated plant's child process: not in a daemonic one
-    (dask's default worker; the workbench's LocalCluster turns that off, cosim/study/cluster.py),
-    where the plant then runs in the worker process."""
-    import multiprocessing
-
-    return not multiprocessing.current_process().daemon
 
 
 def _recover(recipe: PlantRecipe, plant) -> None:
