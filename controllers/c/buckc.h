@@ -23,6 +23,30 @@
 #define BUCKC_H
 
 #include <stddef.h>
+#include <math.h>
+
+/*
+ * The twins' arithmetic type. double by default (the twins' equivalence with the Python
+ * references, 1e-9 per step, is stated for it); a build with -DBUCKC_FLOAT32 computes in float
+ * (a Cortex-M4F's single-precision FPU), calling the float functions of the target's libm.
+ * New algorithm code is written in buckc_real and the BUCKC_* math macros, never in a bare
+ * double or a bare tanh/exp/sqrt, so one source serves both builds.
+ */
+#ifdef BUCKC_FLOAT32
+typedef float buckc_real;
+#define BUCKC_TANH tanhf
+#define BUCKC_EXP expf
+#define BUCKC_SQRT sqrtf
+#define BUCKC_FABS fabsf
+#define BUCKC_REAL_LITERAL(x) x##f
+#else
+typedef double buckc_real;
+#define BUCKC_TANH tanh
+#define BUCKC_EXP exp
+#define BUCKC_SQRT sqrt
+#define BUCKC_FABS fabs
+#define BUCKC_REAL_LITERAL(x) x
+#endif
 
 enum {
     BUCKC_OK = 0,
