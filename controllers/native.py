@@ -750,7 +750,10 @@ class NativeExplicitPolicyController(_MeasurementStepper):
     """:class:`controllers.explicit_policy.ExplicitPolicyController` in C (``controllers/c/explicit_policy.c``);
     ``precision="float32"``: the float32 build (``config`` then a float32 mirror, :func:`policy_config`)."""
 
-    def __init__(self, config, name: str, description: dict | None = None, precision: str = "float64"):
+    def __init__(self, config, name: str, description: dict | None = None, precision: str = "float64",
+                 sample_period: float | None = None, duty_limits: tuple[float, float] | None = None):
+        """``sample_period`` [s] and ``duty_limits``: the controller's own (default: the configuration's); a
+        float32 configuration holds them rounded to float, and a master must sample at the exact period."""
         self.precision = check_precision(precision)
         mirrors = real_mirrors(precision)
         if not isinstance(config, mirrors.PolicyConfigC):
@@ -758,8 +761,10 @@ class NativeExplicitPolicyController(_MeasurementStepper):
         self._lib = library(precision)
         self._config = config  # the C policy keeps a pointer to it
         self.name = name
-        self.sample_period = check_sample_period(config.sample_period, name)
-        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
+        self.sample_period = check_sample_period(config.sample_period if sample_period is None else sample_period,
+                                                 name)
+        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max) if duty_limits is None
+                                             else duty_limits, name)
         self._description = description or {}
         self._policy = mirrors.PolicyC()
         what = ctypes.c_char_p()
@@ -770,7 +775,8 @@ class NativeExplicitPolicyController(_MeasurementStepper):
     @classmethod
     def from_python(cls, controller: ExplicitPolicyController,
                     precision: str = "float64") -> "NativeExplicitPolicyController":
-        return cls(policy_config(controller, precision), controller.name, controller.describe(), precision)
+        return cls(policy_config(controller, precision), controller.name, controller.describe(), precision,
+                   controller.sample_period, controller.duty_limits)
 
     @property
     def config(self):
