@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from controllers.explicit_policy import INTEGRAL_GAIN_PER_SAMPLE, PolicyConfig
-from cosim.base.errors import ConfigError, WorkbenchError
+from cosim.base.errors import BuildError, ConfigError, WorkbenchError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
 from cosim.study.vocabulary import (
@@ -227,6 +227,14 @@ def cmd_export_controller(args) -> int:
     if out.suffix.lower() != ".fmu":
         raise ConfigError(f"--out {out} is invalid: expected a file name ending in .fmu")
     _check_duty_limits(args)
+    if args.cortex_m4:
+        from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+        if args.precision != "float32":
+            raise ConfigError(f"--cortex-m4 {args.cortex_m4} needs --precision float32 (the object is the float32 "
+                              "build)")
+        if toolchain_problem():
+            raise ConfigError(f"--cortex-m4 {args.cortex_m4}: {toolchain_problem()}")
     if args.precision == "float32" and args.controller not in FLOAT32_CONTROLLERS:
         raise ConfigError(f"--precision float32: {args.controller} has no float32 build (the predictive "
                           "controller's optimizer, controllers/c/predictive.c, computes in double); expected one of "
@@ -238,6 +246,15 @@ def cmd_export_controller(args) -> int:
     print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU{build}: "
           f"{binary}")
     print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    if args.cortex_m4:
+        from cosim.benchmark_harness.cortex_m4 import EmbeddedError, export_object
+
+        try:
+            target = export_object(controller, output_dir(args.cortex_m4))
+        except EmbeddedError as error:
+            raise BuildError(f"--cortex-m4 {args.cortex_m4}: {str(error).splitlines()[0]}") from None
+        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (link it with newlib's "
+              "libm: see the README's 'On a microcontroller')")
     return 0
 
 
@@ -760,6 +777,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the arithmetic of the C twin the FMU is built from: float64 (double, default) or float32 "
                         f"(single precision, as on a Cortex-M4F; {', '.join(FLOAT32_CONTROLLERS)} only). The FMU's "
                         "variables stay fmi2Real; a float32 FMU rounds its inputs to float at each sample")
+    p.add_argument("--cortex-m4", metavar="DIR",
+                   help="with --precision float32: also cross-compile the controller for a Cortex-M4F into "
+                        "DIR/controller.o (+ buckc_controller.h, buckc.h), the object a firmware links "
+                        "(needs gcc-arm-none-eabi and libnewlib-arm-none-eabi)")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)

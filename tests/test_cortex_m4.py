@@ -185,3 +185,39 @@ def test_the_replay_data_are_the_floats_the_host_build_gets():
         if text != "NAN":
             assert np.float32(text.rstrip("f")) == np.float32(value), (text, value)
     assert float32.U > 2.0 ** -24  # the bound covers the double build's rounding too
+
+
+@pytest.mark.embedded
+def test_export_controller_writes_the_object_a_firmware_links(tmp_path):
+    """export-controller --precision float32 --cortex-m4 DIR: controller.o defines the three calls of
+    buckc_controller.h and needs only newlib's libm; a firmware for an STM32G4 memory map links it."""
+    import subprocess
+
+    from conftest import cli
+
+    done = cli("export-controller", "pi", "--kp", "0.007", "--ki", "170", "--control-period", "1/75e3", "--precision",
+               "float32", "--out", str(tmp_path / "pi.fmu"), "--cortex-m4", str(tmp_path / "m4"))
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "m4").iterdir()) == ["buckc.h", "buckc_controller.h", "controller.o",
+                                                                   "controller_config.h"]
+    symbols = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "m4" / "controller.o")], capture_output=True,
+                             text=True).stdout
+    for name in ("buckc_controller_init", "buckc_controller_reset", "buckc_controller_step"):
+        assert f" T {name}" in symbols
+    main = tmp_path / "main.c"
+    main.write_text('#include "buckc_controller.h"\nvolatile float vo, out;\nint main(void) {\n'
+                    '    const char *what; buckc_real duty = 0; BuckcMeasurement m = {0, 12, 0, 1, 1, 48};\n'
+                    '    if (buckc_controller_init(&what) != BUCKC_OK) return 1;\n    m.output_voltage = vo;\n'
+                    '    buckc_controller_step(&m, &duty); out = duty; return 0;\n}\n')
+    script = tmp_path / "g4.ld"  # the image's linker script with an STM32G474's flash and SRAM
+    script.write_text(cortex_m4.LINKER_SCRIPT.read_text()
+                      .replace("ORIGIN = 0x00000000, LENGTH = 1M", "ORIGIN = 0x08000000, LENGTH = 512K")
+                      .replace("ORIGIN = 0x20000000, LENGTH = 1M", "ORIGIN = 0x20000000, LENGTH = 128K"))
+    arm = ["arm-none-eabi-gcc", *cortex_m4.ARM_FLAGS]
+    link = subprocess.run([*arm, "-O2", "-DBUCKC_FLOAT32", f"-I{tmp_path / 'm4'}", f"-I{cortex_m4.HERE}",
+                           *cortex_m4.LINK_FLAGS, "-T", str(script), str(cortex_m4.HERE / "startup.c"),
+                           str(cortex_m4.HERE / "semihosting.c"), str(main), str(tmp_path / "m4" / "controller.o"),
+                           "-lm", "-o", str(tmp_path / "fw.elf")], capture_output=True, text=True)
+    assert link.returncode == 0, link.stderr
+    table = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "fw.elf")], capture_output=True, text=True).stdout
+    assert any(line.startswith("08") and line.endswith(" T buckc_controller_step") for line in table.splitlines())

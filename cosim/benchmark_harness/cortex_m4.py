@@ -185,31 +185,64 @@ class Build:
     stack_usage: dict[str, int]  # -fstack-usage: bytes of each function's frame (the controller's files)
 
 
-def build(controller, measurements: np.ndarray, folder: Path) -> Build:
-    """Cross-compile ``controller``'s float32 build and the images around it into ``folder``."""
+class _Compiler:
+    """arm-none-eabi-gcc with the target's flags, the controller's maxima and the include folders."""
+
+    def __init__(self, controller, row: EmbeddedController, folder: Path):
+        self.folder = folder
+        self.defines = [f"-D{k}={v}" for k, v in sorted(row.limits(controller).items())]
+        self.includes = [f"-I{folder}", f"-I{SOURCE_DIR}", f"-I{CONTROLLER_FMU_DIR}", f"-I{HERE}"]
+
+    def __call__(self, source: Path, output: str, extra: tuple[str, ...] = ()) -> Path:
+        target = self.folder / output
+        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *C_FLAGS, *self.defines, *self.includes, *extra, "-c", str(source),
+              "-o", str(target)], f"cross-compiling {source.name}", self.folder)
+        return target
+
+
+def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _Compiler, Path]:
+    """controller.o in ``folder``: the row's C files and controller_instance.c with the generated headers,
+    linked into one relocatable object (``-r``); sections stay apart, so a firmware's --gc-sections keeps
+    only what it calls."""
     row = embedded_controller(controller)
-    folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for name in row.sources:
         if name not in FLOAT32_SOURCES:
             raise EmbeddedError(f"controllers/c/{name} has no float32 build (controllers.native.FLOAT32_SOURCES)")
     (folder / "controller_config.h").write_text(config_header(controller, precision="float32"), encoding="utf-8")
     (folder / "controller_entry.h").write_text(entry_header(row), encoding="utf-8")
+    compile_ = _Compiler(controller, row, folder)
+    objects = [compile_(SOURCE_DIR / name, f"{Path(name).stem}.o") for name in row.sources]
+    objects.append(compile_(HERE / "controller_instance.c", "controller_instance.o"))
+    target = folder / "controller.o"
+    _run(["arm-none-eabi-gcc", *ARM_FLAGS, "-r", "-nostdlib", *map(str, objects), "-o", str(target)],
+         "linking controller.o", folder)
+    return row, compile_, target
+
+
+def export_object(controller, folder: Path) -> Path:
+    """The controller as a firmware links it: ``folder``/controller.o (the float32 build for a Cortex-M4F:
+    code, configuration, state; see the README's *On a microcontroller*) beside the headers a firmware's
+    source includes (buckc_controller.h, buckc.h; compile it with -DBUCKC_FLOAT32). Returns controller.o."""
+    problem = toolchain_problem()
+    if problem:
+        raise EmbeddedError(problem)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
+        _, _, built = _controller_object(controller, Path(tmp))
+        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h"):
+            staged = folder / f".{path.name}.tmp"
+            shutil.copyfile(path, staged)
+            staged.replace(folder / path.name)
+    return folder / "controller.o"
+
+
+def build(controller, measurements: np.ndarray, folder: Path) -> Build:
+    """Cross-compile ``controller``'s float32 build and the images around it into ``folder``."""
+    folder = Path(folder)
+    row, compile_, controller_object = _controller_object(controller, folder)
     (folder / "replay_data.h").write_text(replay_header(measurements), encoding="utf-8")
-    defines = [f"-D{k}={v}" for k, v in sorted(row.limits(controller).items())]
-    includes = [f"-I{folder}", f"-I{SOURCE_DIR}", f"-I{CONTROLLER_FMU_DIR}", f"-I{HERE}"]
-
-    def compile_(source: Path, output: str, extra: tuple[str, ...] = ()) -> Path:
-        target = folder / output
-        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *C_FLAGS, *defines, *includes, *extra, "-c", str(source), "-o",
-              str(target)], f"cross-compiling {source.name}", folder)
-        return target
-
-    algorithm = [compile_(SOURCE_DIR / name, f"{Path(name).stem}.o") for name in row.sources]
-    instance = compile_(HERE / "controller_instance.c", "controller_instance.o")
-    controller_object = folder / "controller.o"
-    _run(["arm-none-eabi-gcc", *ARM_FLAGS, "-r", "-nostdlib", *map(str, [*algorithm, instance]), "-o",
-          str(controller_object)], "linking controller.o", folder)
     runtime = [compile_(HERE / "startup.c", "startup.o"), compile_(HERE / "semihosting.c", "semihosting.o")]
     images = {}
     for name, objects in (("replay", [compile_(HERE / "replay.c", "replay.o"), controller_object]),
