@@ -956,39 +956,46 @@ def estimate_conductance(output_voltage: float, load_current: float, inductor_cu
     return library(precision).buckc_estimate_conductance(output_voltage, load_current, inductor_current, previous)
 
 
-def nn_rollout(config: NnConfig, histories: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+def nn_rollout(config, histories: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
                disturbance: np.ndarray | None = None) -> np.ndarray:
-    """``NNPlantModel.rollout`` in C: histories (M, delays, 3), duties (M, N), extras (M, E) -> (M, N, 2)."""
-    histories = np.ascontiguousarray(histories, dtype=float)
-    duties = np.ascontiguousarray(duties, dtype=float)
+    """``NNPlantModel.rollout`` in C: histories (M, delays, 3), duties (M, N), extras (M, E) -> (M, N, 2), in the
+    precision of ``config``'s mirror (float32: inputs rounded to float, outputs returned as float64)."""
+    precision = _precision_of(config)
+    dtype = REAL_MIRRORS[precision].dtype
+    histories = np.ascontiguousarray(histories, dtype=dtype)
+    duties = np.ascontiguousarray(duties, dtype=dtype)
     m, n = duties.shape
-    out = np.empty((m, n, 2))
-    ex = None if extras is None else np.ascontiguousarray(extras, dtype=float)
-    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
-    lib = library()
+    out = np.empty((m, n, 2), dtype=dtype)
+    ex = None if extras is None else np.ascontiguousarray(extras, dtype=dtype)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=dtype)
+    lib = library(precision)
     for i in range(m):
-        lib.buckc_nn_rollout(ctypes.byref(config), _pointer(histories[i]), None if ex is None else _pointer(ex[i]),
-                             _pointer(duties[i]), n, None if dist is None else _pointer(dist), _pointer(out[i]))
-    return out
+        lib.buckc_nn_rollout(ctypes.byref(config), _pointer(histories[i], precision),
+                             None if ex is None else _pointer(ex[i], precision), _pointer(duties[i], precision), n,
+                             None if dist is None else _pointer(dist, precision), _pointer(out[i], precision))
+    return out.astype(float)
 
 
-def nn_rollout_shared(config: NnConfig, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+def nn_rollout_shared(config, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
                       disturbance: np.ndarray | None = None) -> np.ndarray:
-    """``NNPlantModel.rollout_shared`` in C: one history (delays, 3) for all candidates."""
-    history = np.ascontiguousarray(history, dtype=float)
-    duties = np.ascontiguousarray(duties, dtype=float)
+    """``NNPlantModel.rollout_shared`` in C: one history (delays, 3) for all candidates (``config``'s precision)."""
+    precision = _precision_of(config)
+    mirrors = REAL_MIRRORS[precision]
+    history = np.ascontiguousarray(history, dtype=mirrors.dtype)
+    duties = np.ascontiguousarray(duties, dtype=mirrors.dtype)
     m, n = duties.shape
-    out = np.empty((m, n, 2))
-    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=float)
-    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
-    shared = NnShared()
-    lib = library()
-    lib.buckc_nn_shared_prepare(ctypes.byref(config), _pointer(history), None if ex is None else _pointer(ex),
-                                None if dist is None else _pointer(dist), ctypes.byref(shared))
+    out = np.empty((m, n, 2), dtype=mirrors.dtype)
+    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=mirrors.dtype)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=mirrors.dtype)
+    shared = mirrors.NnShared()
+    lib = library(precision)
+    lib.buckc_nn_shared_prepare(ctypes.byref(config), _pointer(history, precision),
+                                None if ex is None else _pointer(ex, precision),
+                                None if dist is None else _pointer(dist, precision), ctypes.byref(shared))
     for i in range(m):
-        lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i]), n,
-                                    _pointer(out[i]))
-    return out
+        lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i], precision), n,
+                                    _pointer(out[i], precision))
+    return out.astype(float)
 
 
 def switched_table(predictor: SwitchedModelPredictor, load: float, input_voltage: float) -> np.ndarray:

@@ -648,6 +648,7 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
     the executed instruction mix with the Cortex-M4 TRM's table (cosim/benchmark_harness/cortex_m4.py), flash
     and RAM, the stack, and the cost model's prediction against the measurement."""
     from controllers.base import Measurement
+    from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles
     from controllers.native import native_twin
     from cosim.benchmark_harness import record_measurements
     from cosim.benchmark_harness.cortex_m4 import (
@@ -658,7 +659,6 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
         measure,
         toolchain_problem,
     )
-    from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles
     from cosim.study.experiments import plant_binding
 
     problem = toolchain_problem()
@@ -693,10 +693,11 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
                      float(np.median(run.cycles)), worst, "cycles", note=table),
             BenchRow(f"{name}: max cycles per step + {ISR_ALLOWANCE:.0f}-cycle ISR allowance, 170 MHz", worst
                      + ISR_ALLOWANCE, None, "cycles", f"<= {budget:.0f} (13.33 us)", worst + ISR_ALLOWANCE <= budget,
-                     f"{(worst + ISR_ALLOWANCE) / budget:.3g} x the switching period; "
-                     f"{(worst + ISR_ALLOWANCE) / slow_budget * 100:.3g} % of a 1 ms sample ({slow_budget:.0f} "
-                     f"cycles); the library functions (libm: tanhf, expm1f, ...) take {library:.0f} cycles per "
-                     "step on average"),
+                     f"{(worst + ISR_ALLOWANCE) / budget:.3g} x the switching period; the library functions "
+                     f"(libm: tanhf, expm1f, ...) take {library:.0f} cycles per step on average"),
+            BenchRow(f"{name}: the same against a 1 ms sample", worst + ISR_ALLOWANCE, None, "cycles",
+                     f"<= {slow_budget:.0f} (1 ms)", worst + ISR_ALLOWANCE <= slow_budget,
+                     f"{(worst + ISR_ALLOWANCE) / slow_budget:.3g} x the 1 ms sample"),
             BenchRow(f"{name}: flash the controller adds (code, configuration, library functions)", size.flash,
                      None, "bytes", "<= 16384" if controller.name != PI else "", size.flash <= 16384
                      if controller.name != PI else None,

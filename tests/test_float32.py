@@ -250,3 +250,24 @@ def test_export_controller_float32_refuses_a_controller_without_a_float32_build(
     done = cli("export-controller", "nnpc", "--precision", "float32", "--out", str(tmp_path / "n.fmu"))
     one_line_error(done, 2, "nnpc has no float32 build")
     assert not list(tmp_path.iterdir())
+
+
+def test_the_float32_rollouts_follow_the_float32_forward_pass():
+    """The rollout and the shared-history rollout of nn_model.c in float32: the same numbers as feeding the
+    float32 forward pass its own predictions, and within 1e-4 of the double rollout over 23 steps."""
+    model = load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD)
+    c32, c64 = native.nn_config(model, "float32"), native.nn_config(model)
+    history = np.array([[2.0, 11.9, 0.26], [2.1, 11.8, 0.25]])
+    duties = np.random.default_rng(2).uniform(0.2, 0.3, (3, 23))
+    extras = np.array([1 / 6.0])
+    rolled = native.nn_rollout(c32, np.repeat(history[None], 3, axis=0), duties, np.repeat(extras[None], 3, axis=0))
+    shared = native.nn_rollout_shared(c32, history, duties, extras)
+    assert np.array_equal(rolled, shared)
+    window = np.float32(history).copy()
+    for j in range(3):
+        window[0, 2] = duties[0, j]
+        y = native.nn_forward(c32, np.concatenate([window.ravel(), extras]))[0]
+        assert np.array_equal(y, rolled[0, j])
+        window = np.vstack([[y[0], y[1], 0.0], window[:-1]]).astype(np.float32)
+    double = native.nn_rollout(c64, np.repeat(history[None], 3, axis=0), duties, np.repeat(extras[None], 3, axis=0))
+    assert 0 < np.max(np.abs(rolled - double)) < 1e-4

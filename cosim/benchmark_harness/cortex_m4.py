@@ -27,7 +27,6 @@ and the footprint follow from the row.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import re
 import shutil
@@ -619,6 +618,3 @@ def _scratch() -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     return folder
 
-
-def measurement_digest(measurements: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(measurements, dtype="<f8").tobytes()).hexdigest()[:16]
