@@ -7,6 +7,12 @@ PI's gains and limits, the predictive controller's horizon settings, circuit par
 the network's folded weights, or the explicit policy's folded weights and integral term) --
 written from the same ctypes mirrors :mod:`controllers.native` hands to the in-process twins, so an FMU computes exactly what the twins compute. Numbers are
 written with 17 significant digits (``repr``), which a C compiler reads back to the same double.
+
+``precision="float32"`` writes the data of the float32 build (``buckc_real`` = float, see
+``controllers/c/buckc.h``): the PI's or the explicit policy's configuration from the float32
+mirrors, every number the shortest literal that reads back to the same float, with an ``f``
+suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
+controller has no float32 build (its optimizer computes in double): a ValueError says so.
 """
 
 from __future__ import annotations
@@ -16,18 +22,23 @@ import hashlib
 import math
 import uuid
 
+import numpy as np
+
 from controllers.explicit_policy import ExplicitPolicyController
-from controllers.native import PiConfig, PolicyConfigC, PredictiveConfig, native_twin
+from controllers.native import PredictiveConfig, check_precision, native_twin, real_mirrors
 from controllers.pi import PIController
 from controllers.predictive import PredictiveController
 
 KIND_PI, KIND_PREDICTIVE, KIND_EXPLICIT = "CONTROLLER_PI", "CONTROLLER_PREDICTIVE", "CONTROLLER_EXPLICIT"
 
 
-def _number(value) -> str:
+def _number(value, precision: str = "float64") -> str:
     if isinstance(value, float):
         if not math.isfinite(value):
             raise ValueError(f"a configuration value is {value}: the C twins need finite numbers")
+        if precision == "float32":  # the shortest text that reads back to this float
+            text = str(np.float32(value))
+            return (text if any(c in text for c in ".eE") else text + ".0") + "f"
         text = repr(value)
         return text if any(c in text for c in ".eE") else text + ".0"
     return str(int(value))
@@ -41,17 +52,18 @@ def _is_zero(value) -> bool:
     return value == 0
 
 
-def initializer(value) -> str:
+def initializer(value, precision: str = "float64") -> str:
     """A C initializer for a ctypes value: designated fields for structs, designated indices for
-    arrays, zeros left out (C zero-fills what an initializer does not name)."""
+    arrays, zeros left out (C zero-fills what an initializer does not name); floating-point numbers
+    as literals of ``precision`` (a float32 mirror's values with an ``f`` suffix)."""
     if isinstance(value, ctypes.Structure):
-        parts = [f".{name} = {initializer(getattr(value, name))}" for name, _ in value._fields_
+        parts = [f".{name} = {initializer(getattr(value, name), precision)}" for name, _ in value._fields_
                  if not _is_zero(getattr(value, name))]
         return "{" + ", ".join(parts) + "}" if parts else "{0}"
     if isinstance(value, ctypes.Array):
-        parts = [f"[{i}] = {initializer(v)}" for i, v in enumerate(value) if not _is_zero(v)]
+        parts = [f"[{i}] = {initializer(v, precision)}" for i, v in enumerate(value) if not _is_zero(v)]
         return "{" + ", ".join(parts) + "}" if parts else "{0}"
-    return _number(value)
+    return _number(value, precision)
 
 
 def controller_kind(controller) -> str:
@@ -65,31 +77,44 @@ def controller_kind(controller) -> str:
                      "twin to generate: expected the PI, a predictive controller (NNPC, MPC) or the explicit NNPC")
 
 
-def config_header(controller, name: str | None = None) -> str:
-    """``controller_config.h`` for a Python PI, predictive or explicit-policy controller (data only)."""
+def config_header(controller, name: str | None = None, precision: str = "float64") -> str:
+    """``controller_config.h`` for a Python PI, predictive or explicit-policy controller (data only), in
+    ``precision`` (float32: the PI or the explicit NNPC, for a build with ``-DBUCKC_FLOAT32``)."""
     kind = controller_kind(controller)
-    twin = native_twin(controller)  # the configuration the twins run, checked against the C maxima
-    pi, predictive, policy = PiConfig(), PredictiveConfig(), PolicyConfigC()
+    twin = native_twin(controller, check_precision(precision))  # the configuration the twins run, checked
+    mirrors = real_mirrors(precision)
+    pi, policy = mirrors.PiConfig(), mirrors.PolicyConfigC()
+    predictive = PredictiveConfig()
     if kind == KIND_PI:
-        pi = PiConfig(twin.kp, twin.ki, twin.sample_period, *twin.duty_limits)
+        pi = mirrors.PiConfig(twin.kp, twin.ki, twin.sample_period, *twin.duty_limits)
     elif kind == KIND_PREDICTIVE:
         predictive = twin.config
     else:
         policy = twin.config
     name = name or controller.name
     body = [f"static const int CONTROLLER_KIND = {kind};",
-            f"static const BuckcPiConfig PI_CONFIG = {initializer(pi)};",
-            f"static const BuckcPredictiveConfig PREDICTIVE_CONFIG = {initializer(predictive)};"]
-    body.append(f"static const BuckcPolicyConfig POLICY_CONFIG = {initializer(policy)};")
+            f"static const BuckcPiConfig PI_CONFIG = {initializer(pi, precision)};"]
+    if precision == "float64":
+        body.append(f"static const BuckcPredictiveConfig PREDICTIVE_CONFIG = {initializer(predictive)};")
+    body.append(f"static const BuckcPolicyConfig POLICY_CONFIG = {initializer(policy, precision)};")
     data = "\n".join(body)
     guid = "{" + str(uuid.UUID(hashlib.sha256((name + data).encode()).hexdigest()[:32])) + "}"
+    includes = ['#include "controller_variables.h"', '#include "pi.h"']
+    includes += ['#include "predictive.h"'] if precision == "float64" else []
+    includes += ['#include "explicit_policy.h"']
+    # the sample clock of an FMU stays in double: a float Ts would drift off the master's sample instants
+    period = _number(float(controller.sample_period))
+    clock = [] if precision == "float64" else [f"#define CONTROLLER_SAMPLE_PERIOD {period} /* [s], double */"]
+    guard = [] if precision == "float64" else [
+        "#ifndef BUCKC_FLOAT32",
+        '#error "controller_config.h holds float32 data: compile with -DBUCKC_FLOAT32 (the float32 build)"',
+        "#endif", ""]
     lines = ["/* Generated by buck-cosim (controllers/codegen.py) -- data only, do not edit.",
-             f" * {name}: the configuration the hand-written C twins in controllers/c read. */",
-             "#ifndef CONTROLLER_CONFIG_H", "#define CONTROLLER_CONFIG_H", "",
-             '#include "controller_variables.h"', '#include "pi.h"', '#include "predictive.h"',
-             '#include "explicit_policy.h"', "",
+             f" * {name}: the configuration the hand-written C twins in controllers/c read"
+             + ("" if precision == "float64" else f" ({precision} build)") + ". */",
+             "#ifndef CONTROLLER_CONFIG_H", "#define CONTROLLER_CONFIG_H", "", *guard, *includes, "",
              f"#define CONTROLLER_NAME {_c_string(name)}",
-             f'#define CONTROLLER_GUID "{guid}"', "", data, "", "#endif", ""]
+             f'#define CONTROLLER_GUID "{guid}"', *clock, "", data, "", "#endif", ""]
     return "\n".join(lines)
 
 

@@ -148,15 +148,44 @@ def build_c(name: str, sources: list[Path], headers: list[Path], flags: tuple[st
     return target
 
 
-def build_library(source_dir: Path = SOURCE_DIR, force: bool = False) -> Path:
-    """Path of the compiled twins, compiling once per source hash; raises :class:`NativeBuildError`."""
+#: the arithmetic of a build of the twins (``buckc_real`` in ``controllers/c/buckc.h``)
+PRECISIONS = ("float64", "float32")
+#: the files with a float32 build (buckc.h): predictive.c and predictors.c compute in double only
+FLOAT32_SOURCES = ("buckc.c", "pi.c", "load_estimate.c", "nn_model.c", "explicit_policy.c")
+#: what a float32 build adds to FLAGS: buckc_real = float, and no expression silently computed in double
+FLOAT32_FLAGS = ("-DBUCKC_FLOAT32", "-Wdouble-promotion")
+
+
+def check_precision(precision: str) -> str:
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r} is unknown: expected one of {', '.join(PRECISIONS)}")
+    return precision
+
+
+def precision_sources(precision: str, source_dir: Path = SOURCE_DIR) -> list[Path]:
+    """The C files of a build of the twins in ``precision`` (float32: those with a float32 build)."""
+    files = sorted(Path(source_dir).glob("*.c"))
+    if check_precision(precision) == "float32":
+        files = [f for f in files if f.name in FLOAT32_SOURCES]
+    return files
+
+
+def precision_flags(precision: str) -> tuple[str, ...]:
+    return FLAGS + (FLOAT32_FLAGS if check_precision(precision) == "float32" else ())
+
+
+def build_library(source_dir: Path = SOURCE_DIR, force: bool = False, precision: str = "float64") -> Path:
+    """Path of the compiled twins in ``precision`` (``float64``: all of them; ``float32``: the files with a
+    float32 build, compiled with ``-DBUCKC_FLOAT32``), compiling once per source hash; raises
+    :class:`NativeBuildError`."""
     source_dir = Path(source_dir)
+    name = LIBRARY_NAME if precision == "float64" else f"{LIBRARY_NAME}-{precision}"
     try:
-        return build_c(LIBRARY_NAME, sorted(source_dir.glob("*.c")), sorted(source_dir.glob("*.h")), FLAGS,
-                       _suffix(), force=force)
+        return build_c(name, precision_sources(precision, source_dir), sorted(source_dir.glob("*.h")),
+                       precision_flags(precision), _suffix(), force=force)
     except NativeBuildError as error:
-        raise NativeBuildError(str(error).replace(f"compiling {LIBRARY_NAME}", "compiling the C controller twins")) \
-            from None
+        raise NativeBuildError(str(error).replace(f"compiling {name}", f"compiling the C controller twins "
+                                                                        f"({precision})")) from None
 
 
 # ------------------------------------------------------------------------------------------ struct mirrors
@@ -202,26 +231,92 @@ def _array(kind, *shape):
     return kind
 
 
-class PiConfig(ctypes.Structure):
-    _fields_ = [("kp", c_double), ("ki", c_double), ("sample_period", c_double), ("duty_min", c_double),
-                ("duty_max", c_double)]
+class RealMirrors:
+    """The ctypes mirrors of the structs written in ``buckc_real`` (``controllers/c/buckc.h``), for one
+    precision: built from the one definition below, with ``c_double`` for the float64 build and
+    ``c_float`` for the float32 build (:data:`REAL_MIRRORS`)."""
+
+    def __init__(self, precision: str, real):
+        self.precision, self.real = precision, real
+
+        class PiConfig(ctypes.Structure):
+            _fields_ = [("kp", real), ("ki", real), ("sample_period", real), ("duty_min", real), ("duty_max", real)]
+
+        class Pi(ctypes.Structure):
+            _fields_ = [("config", PiConfig), ("integral", real)]
+
+        class NnConfig(ctypes.Structure):
+            _fields_ = [("delays", c_int), ("n_extras", c_int), ("extras", _array(c_int, MAX_EXTRAS)),
+                        ("n_hidden", c_int), ("hidden", _array(c_int, MAX_HIDDEN_LAYERS)), ("activation", c_int),
+                        ("residual", c_int), ("weights", _array(real, MAX_LAYERS, MAX_WIDTH, MAX_WIDTH)),
+                        ("biases", _array(real, MAX_LAYERS, MAX_WIDTH))]
+
+        class NnShared(ctypes.Structure):
+            _fields_ = [("fast", c_int), ("history", _array(real, MAX_DELAYS, 3)), ("extras", _array(real, MAX_EXTRAS)),
+                        ("disturbance", _array(real, 2)), ("constant", _array(real, MAX_WIDTH)),
+                        ("z0", _array(real, MAX_WIDTH)), ("b2", _array(real, 2))]
+
+        class MeasurementC(ctypes.Structure):
+            _fields_ = [("time", real), ("reference", real), ("output_voltage", real), ("inductor_current", real),
+                        ("load_current", real), ("input_voltage", real)]
+
+        class PolicyConfigC(ctypes.Structure):
+            _fields_ = [("sample_period", real), ("duty_min", real), ("duty_max", real), ("nominal_load", real),
+                        ("integral_gain", real), ("integral_band", real), ("n_hidden", c_int),
+                        ("hidden", _array(c_int, POLICY_MAX_HIDDEN_LAYERS)),
+                        ("weights", _array(real, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH, POLICY_MAX_WIDTH)),
+                        ("biases", _array(real, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH))]
+
+        class PolicyC(ctypes.Structure):
+            _fields_ = [("config", ctypes.c_void_p), ("have_history", c_int), ("previous_current", real),
+                        ("previous_voltage", real), ("previous_duty", real), ("conductance", real),
+                        ("integral", real), ("last_output", real)]
+
+        self.PiConfig, self.Pi, self.NnConfig, self.NnShared = PiConfig, Pi, NnConfig, NnShared
+        self.MeasurementC, self.PolicyConfigC, self.PolicyC = MeasurementC, PolicyConfigC, PolicyC
+        #: mirror -> C type name, checked against sizeof() in the library when it is loaded
+        self.names = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
+                      MeasurementC: "BuckcMeasurement", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy"}
+
+    def signatures(self) -> dict:
+        """restype, argtypes of the functions written in buckc_real (both builds have them)."""
+        real, rp, P = self.real, ctypes.POINTER(self.real), ctypes.POINTER
+        return {
+            "buckc_real_name": (ctypes.c_char_p, []),
+            "buckc_status_text": (ctypes.c_char_p, [c_int]),
+            "buckc_struct_size": (ctypes.c_size_t, [ctypes.c_char_p]),
+            "buckc_pi_init": (c_int, [P(self.Pi), P(self.PiConfig), P(ctypes.c_char_p)]),
+            "buckc_pi_reset": (None, [P(self.Pi)]),
+            "buckc_pi_step": (real, [P(self.Pi), real, real]),
+            "buckc_estimate_conductance": (real, [real, real, real, real]),
+            "buckc_nn_check": (c_int, [P(self.NnConfig), P(ctypes.c_char_p)]),
+            "buckc_nn_forward": (None, [P(self.NnConfig), rp, rp]),
+            "buckc_nn_rollout": (None, [P(self.NnConfig), rp, rp, rp, c_int, rp, rp]),
+            "buckc_nn_shared_prepare": (None, [P(self.NnConfig), rp, rp, rp, P(self.NnShared)]),
+            "buckc_nn_shared_rollout": (None, [P(self.NnConfig), P(self.NnShared), rp, c_int, rp]),
+            "buckc_policy_init": (c_int, [P(self.PolicyC), P(self.PolicyConfigC), P(ctypes.c_char_p)]),
+            "buckc_policy_reset": (None, [P(self.PolicyC)]),
+            "buckc_policy_forward": (real, [P(self.PolicyConfigC), rp]),
+            "buckc_policy_step": (c_int, [P(self.PolicyC), P(self.MeasurementC), rp]),
+        }
+
+    @property
+    def dtype(self) -> type:
+        """The numpy type of ``buckc_real`` in this build."""
+        return np.float64 if self.real is c_double else np.float32
 
 
-class Pi(ctypes.Structure):
-    _fields_ = [("config", PiConfig), ("integral", c_double)]
+#: the mirrors of each build, from the one definition of :class:`RealMirrors`
+REAL_MIRRORS = {"float64": RealMirrors("float64", c_double), "float32": RealMirrors("float32", ctypes.c_float)}
 
 
-class NnConfig(ctypes.Structure):
-    _fields_ = [("delays", c_int), ("n_extras", c_int), ("extras", _array(c_int, MAX_EXTRAS)),
-                ("n_hidden", c_int), ("hidden", _array(c_int, MAX_HIDDEN_LAYERS)), ("activation", c_int),
-                ("residual", c_int), ("weights", _array(c_double, MAX_LAYERS, MAX_WIDTH, MAX_WIDTH)),
-                ("biases", _array(c_double, MAX_LAYERS, MAX_WIDTH))]
+def real_mirrors(precision: str = "float64") -> RealMirrors:
+    return REAL_MIRRORS[check_precision(precision)]
 
 
-class NnShared(ctypes.Structure):
-    _fields_ = [("fast", c_int), ("history", _array(c_double, MAX_DELAYS, 3)), ("extras", _array(c_double, MAX_EXTRAS)),
-                ("disturbance", _array(c_double, 2)), ("constant", _array(c_double, MAX_WIDTH)),
-                ("z0", _array(c_double, MAX_WIDTH)), ("b2", _array(c_double, 2))]
+_DOUBLE = REAL_MIRRORS["float64"]
+PiConfig, Pi, NnConfig, NnShared = _DOUBLE.PiConfig, _DOUBLE.Pi, _DOUBLE.NnConfig, _DOUBLE.NnShared
+MeasurementC, PolicyConfigC, PolicyC = _DOUBLE.MeasurementC, _DOUBLE.PolicyConfigC, _DOUBLE.PolicyC
 
 
 class CircuitParametersC(ctypes.Structure):
@@ -294,11 +389,6 @@ class PredictiveConfig(ctypes.Structure):
                 ("predictor", PredictorConfig)]
 
 
-class MeasurementC(ctypes.Structure):
-    _fields_ = [("time", c_double), ("reference", c_double), ("output_voltage", c_double),
-                ("inductor_current", c_double), ("load_current", c_double), ("input_voltage", c_double)]
-
-
 class PredictiveState(ctypes.Structure):
     _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
@@ -307,43 +397,19 @@ class PredictiveState(ctypes.Structure):
                 ("best_call", c_int), ("best_row", c_int)]
 
 
-class PolicyConfigC(ctypes.Structure):
-    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_load", c_double), ("integral_gain", c_double), ("integral_band", c_double),
-                ("n_hidden", c_int), ("hidden", _array(c_int, POLICY_MAX_HIDDEN_LAYERS)),
-                ("weights", _array(c_double, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH, POLICY_MAX_WIDTH)),
-                ("biases", _array(c_double, POLICY_MAX_LAYERS, POLICY_MAX_WIDTH))]
-
-
-class PolicyC(ctypes.Structure):
-    _fields_ = [("config", ctypes.c_void_p), ("have_history", c_int), ("previous_current", c_double),
-                ("previous_voltage", c_double), ("previous_duty", c_double), ("conductance", c_double),
-                ("integral", c_double), ("last_output", c_double)]
-
-
-#: ctypes mirror -> C type name, checked against sizeof() in the library when it is loaded
-MIRRORS = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
-           CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
-           AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig", SwitchedTable: "BuckcSwitchedTable",
-           HorizonSettingsC: "BuckcHorizonSettings", Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
-           PredictiveConfig: "BuckcPredictiveConfig", MeasurementC: "BuckcMeasurement",
-           PredictiveState: "BuckcPredictiveState", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy"}
+#: ctypes mirror -> C type name of the double-only structs (predictors.h, predictive.h), checked like RealMirrors'
+PREDICTIVE_MIRRORS = {CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
+                      AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig",
+                      SwitchedTable: "BuckcSwitchedTable", HorizonSettingsC: "BuckcHorizonSettings",
+                      Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
+                      PredictiveConfig: "BuckcPredictiveConfig", PredictiveState: "BuckcPredictiveState"}
+MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS}
 
 COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
 
 _P = ctypes.POINTER
 _D = _P(c_double)
-_SIGNATURES = {
-    "buckc_status_text": (ctypes.c_char_p, [c_int]),
-    "buckc_struct_size": (ctypes.c_size_t, [ctypes.c_char_p]),
-    "buckc_pi_init": (c_int, [_P(Pi), _P(PiConfig), _P(ctypes.c_char_p)]),
-    "buckc_pi_reset": (None, [_P(Pi)]),
-    "buckc_pi_step": (c_double, [_P(Pi), c_double, c_double]),
-    "buckc_nn_check": (c_int, [_P(NnConfig), _P(ctypes.c_char_p)]),
-    "buckc_nn_forward": (None, [_P(NnConfig), _D, _D]),
-    "buckc_nn_rollout": (None, [_P(NnConfig), _D, _D, _D, c_int, _D, _D]),
-    "buckc_nn_shared_prepare": (None, [_P(NnConfig), _D, _D, _D, _P(NnShared)]),
-    "buckc_nn_shared_rollout": (None, [_P(NnConfig), _P(NnShared), _D, c_int, _D]),
+_PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictive.c)
     "buckc_expm2": (None, [_D, c_double, _D]),
     "buckc_circuit_matrix": (None, [_P(CircuitParametersC), c_double, c_double, _D]),
     "buckc_measured_from_state": (None, [_P(CircuitParametersC), c_double, _D]),
@@ -369,25 +435,27 @@ _SIGNATURES = {
     "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
     "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
-    "buckc_policy_init": (c_int, [_P(PolicyC), _P(PolicyConfigC), _P(ctypes.c_char_p)]),
-    "buckc_policy_reset": (None, [_P(PolicyC)]),
-    "buckc_policy_forward": (c_double, [_P(PolicyConfigC), _D]),
-    "buckc_policy_step": (c_int, [_P(PolicyC), _P(MeasurementC), _D]),
 }
 
 
-@functools.lru_cache(maxsize=1)
-def library() -> ctypes.CDLL:
-    """The loaded twins (built on first use), with argument types set and the struct layouts checked."""
-    lib = ctypes.CDLL(str(build_library()))
-    for name, (restype, argtypes) in _SIGNATURES.items():
+@functools.lru_cache(maxsize=None)
+def library(precision: str = "float64") -> ctypes.CDLL:
+    """The loaded twins of ``precision`` (built on first use), with argument types set and the struct layouts
+    checked; the float32 library has the files of :data:`FLOAT32_SOURCES` only."""
+    mirrors = real_mirrors(precision)
+    lib = ctypes.CDLL(str(build_library(precision=precision)))
+    double = precision == "float64"
+    for name, (restype, argtypes) in {**mirrors.signatures(), **(_PREDICTIVE_SIGNATURES if double else {})}.items():
         function = getattr(lib, name)
         function.restype, function.argtypes = restype, argtypes
-    for mirror, c_name in MIRRORS.items():
+    if lib.buckc_real_name().decode() != precision:
+        raise RuntimeError(f"controllers/native.py: the {precision} library was built as {lib.buckc_real_name()!r}")
+    for mirror, c_name in {**mirrors.names, **(PREDICTIVE_MIRRORS if double else {})}.items():
         size = lib.buckc_struct_size(c_name.encode())
         if size != ctypes.sizeof(mirror):
-            raise RuntimeError(f"controllers/native.py: the ctypes mirror of {c_name} has {ctypes.sizeof(mirror)} bytes, "
-                               f"the C struct {size}: update the mirror after editing the header")
+            raise RuntimeError(f"controllers/native.py: the ctypes mirror of {c_name} ({precision}) has "
+                               f"{ctypes.sizeof(mirror)} bytes, the C struct {size}: update the mirror after editing "
+                               "the header")
     return lib
 
 
@@ -401,8 +469,11 @@ def _check(status: int, what: ctypes.c_char_p, owner: str) -> None:
         raise ValueError(f"{owner}: the C twin refuses the configuration: {detail} ({status_text(status)})")
 
 
-def _pointer(array: np.ndarray):
-    return array.ctypes.data_as(_D)
+def _pointer(array: np.ndarray, precision: str = "float64"):
+    mirrors = REAL_MIRRORS[precision]
+    if array.dtype != mirrors.dtype:
+        raise TypeError(f"a {array.dtype} array handed to the {precision} twins")
+    return array.ctypes.data_as(ctypes.POINTER(mirrors.real))
 
 
 # ------------------------------------------------------------------------------------------ configs from Python
@@ -412,8 +483,9 @@ def circuit_parameters(p: CircuitParameters) -> CircuitParametersC:
                               p.diode_forward_voltage, p.capacitor_esr)
 
 
-def nn_config(model: NNPlantModel) -> NnConfig:
-    """The folded weights of ``model``'s numpy path (``_weights`` / ``_biases``, read only) as a C config."""
+def nn_config(model: NNPlantModel, precision: str = "float64"):
+    """The folded weights of ``model``'s numpy path (``_weights`` / ``_biases``, read only) as a C config
+    (``precision``'s mirror: in float32 every weight rounded to the nearest float)."""
     config = model.config
     problems = []
     if config.delays > MAX_DELAYS:
@@ -428,7 +500,7 @@ def nn_config(model: NNPlantModel) -> NnConfig:
         problems.append(f"{config.n_inputs} inputs > BUCKC_NN_MAX_WIDTH ({MAX_WIDTH})")
     if problems:
         raise ValueError(f"network {config.label} has no C twin: " + "; ".join(problems))
-    c = NnConfig()
+    c = real_mirrors(precision).NnConfig()
     c.delays = config.delays
     c.n_extras = len(config.extra_signals)
     for i, name in enumerate(config.extra_signals):
@@ -504,30 +576,39 @@ def predictor_config(predictor) -> PredictorConfig:
 # ------------------------------------------------------------------------------------------ controllers
 
 class NativePIController:
-    """:class:`controllers.pi.PIController` in C (``controllers/c/pi.c``); same protocol, same numbers."""
+    """:class:`controllers.pi.PIController` in C (``controllers/c/pi.c``); same protocol, same numbers
+    (``precision="float32"``: the float32 build, its duties within the bound of :mod:`controllers.float32`)."""
 
     def __init__(self, kp: float, ki: float, sample_period: float = 1e-3,
-                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI", tuning: dict | None = None):
+                 duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI", tuning: dict | None = None,
+                 precision: str = "float64"):
         self.kp, self.ki = check_gains(kp, ki)
         self.sample_period = check_sample_period(sample_period, "PI")
         self.duty_limits = check_duty_limits(duty_limits, "PI")
         self.name = name
         self.tuning = tuning or {}
-        self._lib = library()
-        self._pi = Pi()
+        self.precision = check_precision(precision)
+        self._lib = library(precision)
+        mirrors = real_mirrors(precision)
+        self._pi = mirrors.Pi()
         what = ctypes.c_char_p()
-        config = PiConfig(self.kp, self.ki, self.sample_period, *self.duty_limits)
+        config = mirrors.PiConfig(self.kp, self.ki, self.sample_period, *self.duty_limits)
         _check(self._lib.buckc_pi_init(ctypes.byref(self._pi), ctypes.byref(config), ctypes.byref(what)), what, name)
         self._step = self._lib.buckc_pi_step
         self._ref = ctypes.byref(self._pi)
 
     @classmethod
-    def from_python(cls, pi: PIController) -> "NativePIController":
-        return cls(pi.kp, pi.ki, pi.sample_period, pi.duty_limits, pi.name, pi.tuning)
+    def from_python(cls, pi: PIController, precision: str = "float64") -> "NativePIController":
+        return cls(pi.kp, pi.ki, pi.sample_period, pi.duty_limits, pi.name, pi.tuning, precision)
 
     @property
     def integral(self) -> float:
         return self._pi.integral
+
+    @property
+    def state(self):
+        """The C PI (its copy of the configuration and the integral; a live view)."""
+        return self._pi
 
     def reset(self) -> None:
         self._lib.buckc_pi_reset(self._ref)
@@ -539,7 +620,11 @@ class NativePIController:
         return {"type": "PI", "name": self.name, "kp_per_V": self.kp, "ki_per_V_s": self.ki,
                 "sample_period_s": self.sample_period, "duty_limits": list(self.duty_limits),
                 "anti_windup": "conditional integration (clamping)", "tuning": self.tuning,
-                "implementation": "C twin (controllers/c/pi.c)"}
+                "implementation": "C twin (controllers/c/pi.c)" + _build_note(self.precision)}
+
+
+def _build_note(precision: str) -> str:
+    return "" if precision == "float64" else f", {precision} build"
 
 
 class _MeasurementStepper:
@@ -548,11 +633,13 @@ class _MeasurementStepper:
     naming the controller. A subclass binds its C step function and state once, with :meth:`_bind_step`."""
 
     name: str
+    precision: str = "float64"
 
     def _bind_step(self, step_function, handle) -> None:
         """Call ``step_function(handle, &measurement, &duty)`` at every :meth:`step` (arguments built once)."""
-        self._measurement = MeasurementC()
-        self._duty = c_double()
+        mirrors = real_mirrors(self.precision)
+        self._measurement = mirrors.MeasurementC()
+        self._duty = mirrors.real()
         self._step = step_function
         self._args = (handle, ctypes.byref(self._measurement), ctypes.byref(self._duty))
 
@@ -629,8 +716,9 @@ class NativePredictiveController(_MeasurementStepper):
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
 
 
-def policy_config(controller: ExplicitPolicyController) -> PolicyConfigC:
-    """The explicit policy's folded weights and settings as a C configuration (ValueError above the C maxima)."""
+def policy_config(controller: ExplicitPolicyController, precision: str = "float64"):
+    """The explicit policy's folded weights and settings as a C configuration (``precision``'s mirror;
+    ValueError above the C maxima)."""
     policy = controller.policy
     hidden = policy.config.hidden
     problems = []
@@ -640,7 +728,7 @@ def policy_config(controller: ExplicitPolicyController) -> PolicyConfigC:
         problems.append(f"hidden layer of {max(hidden)} units > BUCKC_POLICY_MAX_WIDTH ({POLICY_MAX_WIDTH})")
     if problems:
         raise ValueError(f"policy {policy.config.label} has no C twin: " + "; ".join(problems))
-    c = PolicyConfigC()
+    c = real_mirrors(precision).PolicyConfigC()
     c.sample_period = policy.sample_period
     c.duty_min, c.duty_max = policy.duty_limits
     c.nominal_load = controller.nominal_load
@@ -659,31 +747,43 @@ def policy_config(controller: ExplicitPolicyController) -> PolicyConfigC:
 
 
 class NativeExplicitPolicyController(_MeasurementStepper):
-    """:class:`controllers.explicit_policy.ExplicitPolicyController` in C (``controllers/c/explicit_policy.c``)."""
+    """:class:`controllers.explicit_policy.ExplicitPolicyController` in C (``controllers/c/explicit_policy.c``);
+    ``precision="float32"``: the float32 build (``config`` then a float32 mirror, :func:`policy_config`)."""
 
-    def __init__(self, config: PolicyConfigC, name: str, description: dict | None = None):
-        self._lib = library()
+    def __init__(self, config, name: str, description: dict | None = None, precision: str = "float64",
+                 sample_period: float | None = None, duty_limits: tuple[float, float] | None = None):
+        """``sample_period`` [s] and ``duty_limits``: the controller's own (default: the configuration's); a
+        float32 configuration holds them rounded to float, and a master must sample at the exact period."""
+        self.precision = check_precision(precision)
+        mirrors = real_mirrors(precision)
+        if not isinstance(config, mirrors.PolicyConfigC):
+            raise TypeError(f"{name}: the configuration is not a {precision} BuckcPolicyConfig mirror")
+        self._lib = library(precision)
         self._config = config  # the C policy keeps a pointer to it
         self.name = name
-        self.sample_period = check_sample_period(config.sample_period, name)
-        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
+        self.sample_period = check_sample_period(config.sample_period if sample_period is None else sample_period,
+                                                 name)
+        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max) if duty_limits is None
+                                             else duty_limits, name)
         self._description = description or {}
-        self._policy = PolicyC()
+        self._policy = mirrors.PolicyC()
         what = ctypes.c_char_p()
         _check(self._lib.buckc_policy_init(ctypes.byref(self._policy), ctypes.byref(config), ctypes.byref(what)),
                what, name)
         self._bind_step(self._lib.buckc_policy_step, ctypes.byref(self._policy))
 
     @classmethod
-    def from_python(cls, controller: ExplicitPolicyController) -> "NativeExplicitPolicyController":
-        return cls(policy_config(controller), controller.name, controller.describe())
+    def from_python(cls, controller: ExplicitPolicyController,
+                    precision: str = "float64") -> "NativeExplicitPolicyController":
+        return cls(policy_config(controller, precision), controller.name, controller.describe(), precision,
+                   controller.sample_period, controller.duty_limits)
 
     @property
-    def config(self) -> PolicyConfigC:
+    def config(self):
         return self._config
 
     @property
-    def state(self) -> PolicyC:
+    def state(self):
         """The C policy's state between samples (a live view: read, do not write)."""
         return self._policy
 
@@ -691,27 +791,34 @@ class NativeExplicitPolicyController(_MeasurementStepper):
         self._lib.buckc_policy_reset(ctypes.byref(self._policy))
 
     def forward(self, x) -> float:
-        x = np.ascontiguousarray(x, dtype=float)
-        return self._lib.buckc_policy_forward(ctypes.byref(self._config), _pointer(x))
+        x = np.ascontiguousarray(x, dtype=real_mirrors(self.precision).dtype)
+        return self._lib.buckc_policy_forward(ctypes.byref(self._config), _pointer(x, self.precision))
 
     def describe(self) -> dict:
-        return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/explicit_policy.c)"}
+        return {**self._description, "name": self.name,
+                "implementation": "C twin (controllers/c/explicit_policy.c)" + _build_note(self.precision)}
 
 
-def native_twin(controller):
+def native_twin(controller, precision: str = "float64"):
     """The C twin of a Python PI, predictive or explicit-policy controller (an adaptive NNPC: the
-    same adaptation around the twin of its NNPC); any other controller is returned as it is."""
+    same adaptation around the twin of its NNPC); any other controller is returned as it is.
+    ``precision="float32"``: the float32 build, which the PI and the explicit NNPC have (a predictive
+    controller is a ValueError saying so)."""
     from controllers.adaptation import AdaptiveNNPC
 
+    check_precision(precision)
     if isinstance(controller, AdaptiveNNPC):
-        twin = native_twin(controller.inner)
+        twin = native_twin(controller.inner, precision)
         return controller if twin is controller.inner else controller.with_inner(twin)
     if isinstance(controller, PIController):
-        return NativePIController.from_python(controller)
+        return NativePIController.from_python(controller, precision)
     if isinstance(controller, PredictiveController):
+        if precision != "float64":
+            raise ValueError(f"{controller.name} has no {precision} build: the predictive controller's C files "
+                             "(predictive.c, predictors.c) compute in double; float32: the PI and the explicit NNPC")
         return NativePredictiveController.from_python(controller)
     if isinstance(controller, ExplicitPolicyController):
-        return NativeExplicitPolicyController.from_python(controller)
+        return NativeExplicitPolicyController.from_python(controller, precision)
     return controller
 
 
@@ -826,49 +933,69 @@ def expm2(a: np.ndarray, t: float) -> np.ndarray:
     return out.reshape(2, 2)
 
 
-def nn_forward(config: NnConfig, x: np.ndarray) -> np.ndarray:
-    """``NNPlantModel.predict`` in C, one row at a time."""
-    x = np.ascontiguousarray(np.atleast_2d(x), dtype=float)
-    out = np.empty((len(x), 2))
-    lib = library()
+def _precision_of(config) -> str:
+    return next(p for p, m in REAL_MIRRORS.items() if isinstance(config, (m.NnConfig, m.PolicyConfigC, m.PiConfig)))
+
+
+def nn_forward(config, x: np.ndarray) -> np.ndarray:
+    """``NNPlantModel.predict`` in C, one row at a time, in the precision of ``config``'s mirror
+    (:func:`nn_config`); float32 rows are rounded to float on the way in, the outputs returned as float64."""
+    precision = _precision_of(config)
+    dtype = REAL_MIRRORS[precision].dtype
+    x = np.ascontiguousarray(np.atleast_2d(x), dtype=dtype)
+    out = np.empty((len(x), 2), dtype=dtype)
+    lib = library(precision)
     for i in range(len(x)):
-        lib.buckc_nn_forward(ctypes.byref(config), _pointer(x[i]), _pointer(out[i]))
-    return out
+        lib.buckc_nn_forward(ctypes.byref(config), _pointer(x[i], precision), _pointer(out[i], precision))
+    return out.astype(float)
 
 
-def nn_rollout(config: NnConfig, histories: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+def estimate_conductance(output_voltage: float, load_current: float, inductor_current: float, previous: float,
+                         precision: str = "float64") -> float:
+    """``load_estimate.estimate_conductance`` in C (``controllers/c/load_estimate.c``), in ``precision``."""
+    return library(precision).buckc_estimate_conductance(output_voltage, load_current, inductor_current, previous)
+
+
+def nn_rollout(config, histories: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
                disturbance: np.ndarray | None = None) -> np.ndarray:
-    """``NNPlantModel.rollout`` in C: histories (M, delays, 3), duties (M, N), extras (M, E) -> (M, N, 2)."""
-    histories = np.ascontiguousarray(histories, dtype=float)
-    duties = np.ascontiguousarray(duties, dtype=float)
+    """``NNPlantModel.rollout`` in C: histories (M, delays, 3), duties (M, N), extras (M, E) -> (M, N, 2), in the
+    precision of ``config``'s mirror (float32: inputs rounded to float, outputs returned as float64)."""
+    precision = _precision_of(config)
+    dtype = REAL_MIRRORS[precision].dtype
+    histories = np.ascontiguousarray(histories, dtype=dtype)
+    duties = np.ascontiguousarray(duties, dtype=dtype)
     m, n = duties.shape
-    out = np.empty((m, n, 2))
-    ex = None if extras is None else np.ascontiguousarray(extras, dtype=float)
-    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
-    lib = library()
+    out = np.empty((m, n, 2), dtype=dtype)
+    ex = None if extras is None else np.ascontiguousarray(extras, dtype=dtype)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=dtype)
+    lib = library(precision)
     for i in range(m):
-        lib.buckc_nn_rollout(ctypes.byref(config), _pointer(histories[i]), None if ex is None else _pointer(ex[i]),
-                             _pointer(duties[i]), n, None if dist is None else _pointer(dist), _pointer(out[i]))
-    return out
+        lib.buckc_nn_rollout(ctypes.byref(config), _pointer(histories[i], precision),
+                             None if ex is None else _pointer(ex[i], precision), _pointer(duties[i], precision), n,
+                             None if dist is None else _pointer(dist, precision), _pointer(out[i], precision))
+    return out.astype(float)
 
 
-def nn_rollout_shared(config: NnConfig, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
+def nn_rollout_shared(config, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None = None,
                       disturbance: np.ndarray | None = None) -> np.ndarray:
-    """``NNPlantModel.rollout_shared`` in C: one history (delays, 3) for all candidates."""
-    history = np.ascontiguousarray(history, dtype=float)
-    duties = np.ascontiguousarray(duties, dtype=float)
+    """``NNPlantModel.rollout_shared`` in C: one history (delays, 3) for all candidates (``config``'s precision)."""
+    precision = _precision_of(config)
+    mirrors = REAL_MIRRORS[precision]
+    history = np.ascontiguousarray(history, dtype=mirrors.dtype)
+    duties = np.ascontiguousarray(duties, dtype=mirrors.dtype)
     m, n = duties.shape
-    out = np.empty((m, n, 2))
-    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=float)
-    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=float)
-    shared = NnShared()
-    lib = library()
-    lib.buckc_nn_shared_prepare(ctypes.byref(config), _pointer(history), None if ex is None else _pointer(ex),
-                                None if dist is None else _pointer(dist), ctypes.byref(shared))
+    out = np.empty((m, n, 2), dtype=mirrors.dtype)
+    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=mirrors.dtype)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=mirrors.dtype)
+    shared = mirrors.NnShared()
+    lib = library(precision)
+    lib.buckc_nn_shared_prepare(ctypes.byref(config), _pointer(history, precision),
+                                None if ex is None else _pointer(ex, precision),
+                                None if dist is None else _pointer(dist, precision), ctypes.byref(shared))
     for i in range(m):
-        lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i]), n,
-                                    _pointer(out[i]))
-    return out
+        lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i], precision), n,
+                                    _pointer(out[i], precision))
+    return out.astype(float)
 
 
 def switched_table(predictor: SwitchedModelPredictor, load: float, input_voltage: float) -> np.ndarray:

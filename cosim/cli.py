@@ -15,13 +15,14 @@ import sys
 from pathlib import Path
 
 from controllers.explicit_policy import INTEGRAL_GAIN_PER_SAMPLE, PolicyConfig
-from cosim.base.errors import ConfigError, WorkbenchError
+from cosim.base.errors import BuildError, ConfigError, WorkbenchError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
 from cosim.study.vocabulary import (
     CONTROLLERS,
     DITHER_FAST,
     DITHER_SLOW,
+    FLOAT32_CONTROLLERS,
     PAPER_PERIOD,
     PLANT_VARIANTS,
     SENSORS,
@@ -177,13 +178,13 @@ def _design_controller(args, binding, period: float, work_dir: Path, policy_path
     return controller
 
 
-def _export_controller_fmu(controller, out: Path) -> tuple[Path, Path]:
-    """Write ``controller`` as a controller FMU at ``out``: (binary FMU, source FMU); a configuration its C twin
-    cannot hold is a ConfigError naming the controller."""
+def _export_controller_fmu(controller, out: Path, precision: str = "float64") -> tuple[Path, Path]:
+    """Write ``controller`` as a controller FMU at ``out`` from the ``precision`` build of its C twin: (binary FMU,
+    source FMU); a configuration its C twin cannot hold is a ConfigError naming the controller."""
     from cosim.fmi.controller_export import export_controller
 
     try:
-        return export_controller(controller, out)
+        return export_controller(controller, out, precision=precision)
     except ValueError as error:  # a configuration the C twins cannot hold
         raise ConfigError(f"{controller.name}: {error}") from None
 
@@ -226,12 +227,34 @@ def cmd_export_controller(args) -> int:
     if out.suffix.lower() != ".fmu":
         raise ConfigError(f"--out {out} is invalid: expected a file name ending in .fmu")
     _check_duty_limits(args)
+    if args.cortex_m4:
+        from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+        if args.precision != "float32":
+            raise ConfigError(f"--cortex-m4 {args.cortex_m4} needs --precision float32 (the object is the float32 "
+                              "build)")
+        if toolchain_problem():
+            raise ConfigError(f"--cortex-m4 {args.cortex_m4}: {toolchain_problem()}")
+    if args.precision == "float32" and args.controller not in FLOAT32_CONTROLLERS:
+        raise ConfigError(f"--precision float32: {args.controller} has no float32 build (the predictive "
+                          "controller's optimizer, controllers/c/predictive.c, computes in double); expected one of "
+                          f"{', '.join(FLOAT32_CONTROLLERS)}")
     work_dir = output_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
-    binary, source = _export_controller_fmu(controller, out)
-    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU: "
+    binary, source = _export_controller_fmu(controller, out, args.precision)
+    build = "" if args.precision == "float64" else f" ({args.precision} build of the C twin)"
+    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU{build}: "
           f"{binary}")
     print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    if args.cortex_m4:
+        from cosim.benchmark_harness.cortex_m4 import EmbeddedError, export_object
+
+        try:
+            target = export_object(controller, output_dir(args.cortex_m4))
+        except EmbeddedError as error:
+            raise BuildError(f"--cortex-m4 {args.cortex_m4}: {str(error).splitlines()[0]}") from None
+        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (link it with newlib's "
+              "libm: see the README's 'On a microcontroller')")
     return 0
 
 
@@ -750,6 +773,14 @@ def build_parser() -> argparse.ArgumentParser:
                                                      "on the plant below)")
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand)")
+    p.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                   help="the arithmetic of the C twin the FMU is built from: float64 (double, default) or float32 "
+                        f"(single precision, as on a Cortex-M4F; {', '.join(FLOAT32_CONTROLLERS)} only). The FMU's "
+                        "variables stay fmi2Real; a float32 FMU rounds its inputs to float at each sample")
+    p.add_argument("--cortex-m4", metavar="DIR",
+                   help="with --precision float32: also cross-compile the controller for a Cortex-M4F into "
+                        "DIR/controller.o (+ buckc_controller.h, buckc.h), the object a firmware links "
+                        "(needs gcc-arm-none-eabi and libnewlib-arm-none-eabi)")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)

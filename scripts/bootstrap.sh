@@ -4,6 +4,28 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${PYTHON:-python3}"
+
+# The Cortex-M4F cross toolchain and emulator of the embedded tests and benchmarks
+# (cosim/benchmark_harness/cortex_m4.py): Debian packages, installed here when this runs as root with
+# apt-get; elsewhere (or if the install fails) the embedded tests are deselected with one line saying why.
+embedded_packages="gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && command -v dpkg-query >/dev/null 2>&1; then
+  missing=""
+  for package in $embedded_packages; do
+    dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "ok installed" || missing="$missing $package"
+  done
+  if [ -n "$missing" ]; then
+    echo "bootstrap: installing the Cortex-M4F toolchain and emulator (Debian packages:$missing)"
+    log=$(mktemp)
+    # shellcheck disable=SC2086  # the package list is meant to split
+    if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+           $missing; } >"$log" 2>&1; then
+      tail -n 5 "$log"
+      echo "bootstrap: warning: apt-get could not install$missing; the embedded tests and benchmarks are skipped"
+    fi
+    rm -f "$log"
+  fi
+fi
 stamp=.venv/.installed
 want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then

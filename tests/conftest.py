@@ -150,6 +150,27 @@ def raw_slave_factory(buck_fmu):
             pass
 
 
+# ------------------------------------------------------------------ the Cortex-M4F tests (marker: embedded)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
+    marked ``embedded`` and say why in one line."""
+    embedded = [item for item in items if item.get_closest_marker("embedded")]
+    if not embedded:
+        return
+    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+    problem = toolchain_problem()
+    if problem is None:
+        return
+    items[:] = [item for item in items if not item.get_closest_marker("embedded")]
+    config.hook.pytest_deselected(items=embedded)
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.write_line(f"{len(embedded)} embedded tests deselected: {problem}")
+
+
 CORPUS = Path(__file__).parent / "corpus"
 
 

@@ -7,8 +7,15 @@
 #include "explicit_policy.h"
 #include "nn_model.h"
 #include "pi.h"
+#if BUCKC_HAVE_PREDICTIVE
 #include "predictive.h"
 #include "predictors.h"
+#endif
+
+const char *buckc_real_name(void)
+{
+    return BUCKC_REAL_NAME;
+}
 
 const char *buckc_status_text(int status)
 {
@@ -31,6 +38,10 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcPi);
     SIZE(BuckcNnConfig);
     SIZE(BuckcNnShared);
+    SIZE(BuckcMeasurement);
+    SIZE(BuckcPolicyConfig);
+    SIZE(BuckcPolicy);
+#if BUCKC_HAVE_PREDICTIVE
     SIZE(BuckcCircuitParameters);
     SIZE(BuckcAveragedConfig);
     SIZE(BuckcAveragedStep);
@@ -40,11 +51,9 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcOptimizer);
     SIZE(BuckcPredictorConfig);
     SIZE(BuckcPredictiveConfig);
-    SIZE(BuckcMeasurement);
     SIZE(BuckcPredictiveState);
     SIZE(BuckcPredictive);
-    SIZE(BuckcPolicyConfig);
-    SIZE(BuckcPolicy);
+#endif
 #undef SIZE
     return 0;
 }

@@ -30,7 +30,15 @@
  * references, 1e-9 per step, is stated for it); a build with -DBUCKC_FLOAT32 computes in float
  * (a Cortex-M4F's single-precision FPU), calling the float functions of the target's libm.
  * New algorithm code is written in buckc_real and the BUCKC_* math macros, never in a bare
- * double or a bare tanh/exp/sqrt, so one source serves both builds.
+ * double or a bare tanh/exp/sqrt, and every constant as BUCKC_REAL_LITERAL(x), so one source
+ * serves both builds: the float32 builds compile with -Wdouble-promotion -Werror, which refuses
+ * an expression that silently computes in double (software floating point on a Cortex-M4F).
+ * BUCKC_REAL_NAME names the build ("float64" / "float32") for bindings and generated headers.
+ *
+ * Which files have a float32 build: pi.c, load_estimate.c, nn_model.c, explicit_policy.c (and
+ * buckc.c). predictive.c and predictors.c (the online NNPC's optimizer and the circuit
+ * predictors) compute in double only: BUCKC_HAVE_PREDICTIVE is 0 in a float32 build, and code
+ * shared by both (controller_fmu.c) leaves the predictive controller out there.
  */
 #ifdef BUCKC_FLOAT32
 typedef float buckc_real;
@@ -39,6 +47,8 @@ typedef float buckc_real;
 #define BUCKC_SQRT sqrtf
 #define BUCKC_FABS fabsf
 #define BUCKC_REAL_LITERAL(x) x##f
+#define BUCKC_REAL_NAME "float32"
+#define BUCKC_HAVE_PREDICTIVE 0
 #else
 typedef double buckc_real;
 #define BUCKC_TANH tanh
@@ -46,7 +56,20 @@ typedef double buckc_real;
 #define BUCKC_SQRT sqrt
 #define BUCKC_FABS fabs
 #define BUCKC_REAL_LITERAL(x) x
+#define BUCKC_REAL_NAME "float64"
+#define BUCKC_HAVE_PREDICTIVE 1
 #endif
+
+/* controllers.base.Measurement (SI units, NaN where the plant has no such output): what every
+ * controller's step reads (here, not in predictive.h, so the float32 controllers have it too). */
+typedef struct {
+    buckc_real time;             /* [s] */
+    buckc_real reference;        /* [V] */
+    buckc_real output_voltage;   /* [V] */
+    buckc_real inductor_current; /* [A] */
+    buckc_real load_current;     /* [A] */
+    buckc_real input_voltage;    /* [V] */
+} BuckcMeasurement;
 
 enum {
     BUCKC_OK = 0,
@@ -58,6 +81,9 @@ enum {
 
 /* A one-line description of a status code (a string literal). */
 const char *buckc_status_text(int status);
+
+/* BUCKC_REAL_NAME of the build ("float64" or "float32"), for bindings to check what they loaded. */
+const char *buckc_real_name(void);
 
 /* sizeof() of a public struct by its type name ("BuckcNnConfig", ...), 0 if unknown: lets a
  * binding (controllers/native.py) check that its mirrors have the C layout. */

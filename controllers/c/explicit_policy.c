@@ -1,7 +1,7 @@
 /*
  * explicit_policy.c -- twin of controllers/explicit_policy.py: ExplicitPolicy.forward and
  * ExplicitPolicyController.reset() / step(). Layout and conventions: explicit_policy.h.
- * No allocation, libm only.
+ * No allocation, libm only; buckc_real (buckc.h): one source for the double and float32 builds.
  */
 #include <math.h>
 
@@ -12,24 +12,25 @@
 
 int buckc_policy_init(BuckcPolicy *policy, const BuckcPolicyConfig *config, const char **what)
 {
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), one = BUCKC_REAL_LITERAL(1.0);
     int i;
     if (policy == NULL || config == NULL) {
         if (what) *what = "policy or config is NULL";
         return BUCKC_ERR_NULL;
     }
-    if (!(config->sample_period > 0.0 && isfinite(config->sample_period))) {
+    if (!(config->sample_period > zero && isfinite(config->sample_period))) {
         if (what) *what = "sample_period: expected a finite value > 0";
         return BUCKC_ERR_INVALID;
     }
-    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0)) {
+    if (!(zero <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= one)) {
         if (what) *what = "duty_min, duty_max: expected 0 <= min < max <= 1";
         return BUCKC_ERR_INVALID;
     }
-    if (!(config->nominal_load > 0.0 && isfinite(config->nominal_load))) {
+    if (!(config->nominal_load > zero && isfinite(config->nominal_load))) {
         if (what) *what = "nominal_load: expected a finite value > 0";
         return BUCKC_ERR_INVALID;
     }
-    if (!(config->integral_gain >= 0.0 && isfinite(config->integral_gain) && config->integral_band >= 0.0 &&
+    if (!(config->integral_gain >= zero && isfinite(config->integral_gain) && config->integral_band >= zero &&
           isfinite(config->integral_band))) {
         if (what) *what = "integral_gain, integral_band: expected finite values >= 0";
         return BUCKC_ERR_INVALID;
@@ -59,29 +60,30 @@ int buckc_policy_init(BuckcPolicy *policy, const BuckcPolicyConfig *config, cons
 
 void buckc_policy_reset(BuckcPolicy *policy)
 {
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0);
     policy->have_history = 0;
-    policy->previous_current = 0.0;
-    policy->previous_voltage = 0.0;
-    policy->previous_duty = 0.0;
-    policy->conductance = 1.0 / policy->config->nominal_load;
-    policy->integral = 0.0;
-    policy->last_output = NAN;
+    policy->previous_current = zero;
+    policy->previous_voltage = zero;
+    policy->previous_duty = zero;
+    policy->conductance = BUCKC_REAL_LITERAL(1.0) / policy->config->nominal_load;
+    policy->integral = zero;
+    policy->last_output = (buckc_real)NAN;
 }
 
-double buckc_policy_forward(const BuckcPolicyConfig *config, const double *x)
+buckc_real buckc_policy_forward(const BuckcPolicyConfig *config, const buckc_real *x)
 {
-    double a[W], b[W];
-    const double *in = x;
-    double *out = a;
+    buckc_real a[W], b[W];
+    const buckc_real *in = x;
+    buckc_real *out = a;
     int width = BUCKC_POLICY_INPUTS, layer, i, j;
     for (layer = 0; layer <= config->n_hidden; ++layer) {
         int last = layer == config->n_hidden;
         int units = last ? 1 : config->hidden[layer];
         for (j = 0; j < units; ++j) {
-            double s = config->biases[layer][j];
+            buckc_real s = config->biases[layer][j];
             for (i = 0; i < width; ++i)
                 s += in[i] * config->weights[layer][i][j];
-            out[j] = last ? s : tanh(s);
+            out[j] = last ? s : BUCKC_TANH(s);
         }
         in = out;
         out = out == a ? b : a;
@@ -90,11 +92,12 @@ double buckc_policy_forward(const BuckcPolicyConfig *config, const double *x)
     return in[0];
 }
 
-int buckc_policy_step(BuckcPolicy *p, const BuckcMeasurement *m, double *duty)
+int buckc_policy_step(BuckcPolicy *p, const BuckcMeasurement *m, buckc_real *duty)
 {
     const BuckcPolicyConfig *c;
-    double x[BUCKC_POLICY_INPUTS], current, voltage, previous_current, previous_voltage, conductance, iref;
-    double u, error, integral, unclamped, d;
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0);
+    buckc_real x[BUCKC_POLICY_INPUTS], current, voltage, previous_current, previous_voltage, conductance, iref;
+    buckc_real u, error, integral, unclamped, d;
     int pushing_high, pushing_low;
     if (p == NULL || m == NULL || duty == NULL)
         return BUCKC_ERR_NULL;
@@ -118,14 +121,14 @@ int buckc_policy_step(BuckcPolicy *p, const BuckcMeasurement *m, double *duty)
     u = buckc_policy_forward(c, x);
     error = m->reference - voltage;
     integral = p->integral;
-    if (fabs(error) <= c->integral_band * fabs(m->reference))
+    if (BUCKC_FABS(error) <= c->integral_band * BUCKC_FABS(m->reference))
         integral = integral + c->integral_gain * c->sample_period * error; /* (Ki Ts) e, as Python */
     unclamped = u + integral;
     d = unclamped;
     if (c->duty_min > d) d = c->duty_min; /* Python's clip order, NaN kept */
     if (c->duty_max < d) d = c->duty_max;
-    pushing_high = unclamped > c->duty_max && error > 0.0;
-    pushing_low = unclamped < c->duty_min && error < 0.0;
+    pushing_high = unclamped > c->duty_max && error > zero;
+    pushing_low = unclamped < c->duty_min && error < zero;
     if (!(pushing_high || pushing_low))
         p->integral = integral;
     p->previous_current = current;

@@ -20,43 +20,52 @@
 #define BUCKC_EXPLICIT_POLICY_H
 
 #include "buckc.h"
-#include "predictive.h" /* BuckcMeasurement */
 
+/* The maxima size the configuration struct. A build for one known policy may set them to its own
+ * sizes (-DBUCKC_POLICY_MAX_WIDTH=14 -DBUCKC_POLICY_MAX_HIDDEN_LAYERS=1: the Cortex-M4F image does,
+ * so the weights take 1.5 KiB of flash, not 16); the host library keeps these. */
+#ifndef BUCKC_POLICY_MAX_HIDDEN_LAYERS
 #define BUCKC_POLICY_MAX_HIDDEN_LAYERS 3
+#endif
+#ifndef BUCKC_POLICY_MAX_WIDTH
 #define BUCKC_POLICY_MAX_WIDTH 32
+#endif
 #define BUCKC_POLICY_INPUTS 7
 #define BUCKC_POLICY_MAX_LAYERS (BUCKC_POLICY_MAX_HIDDEN_LAYERS + 1)
+#if BUCKC_POLICY_MAX_WIDTH < BUCKC_POLICY_INPUTS
+#error "BUCKC_POLICY_MAX_WIDTH must be at least BUCKC_POLICY_INPUTS: layer 0's weights are indexed by input"
+#endif
 
 typedef struct {
-    double sample_period;   /* [s] */
-    double duty_min;        /* duty limits, 0 <= min < max <= 1 */
-    double duty_max;
-    double nominal_load;    /* [Ohm] the load assumed until the sensors give an estimate */
-    double integral_gain;   /* Ki [1/(V s)] */
-    double integral_band;   /* integrate while |r - vo| <= band |r| [1] */
+    buckc_real sample_period;   /* [s] */
+    buckc_real duty_min;        /* duty limits, 0 <= min < max <= 1 */
+    buckc_real duty_max;
+    buckc_real nominal_load;    /* [Ohm] the load assumed until the sensors give an estimate */
+    buckc_real integral_gain;   /* Ki [1/(V s)] */
+    buckc_real integral_band;   /* integrate while |r - vo| <= band |r| [1] */
     int n_hidden;           /* 1 .. BUCKC_POLICY_MAX_HIDDEN_LAYERS */
     int hidden[BUCKC_POLICY_MAX_HIDDEN_LAYERS];
-    double weights[BUCKC_POLICY_MAX_LAYERS][BUCKC_POLICY_MAX_WIDTH][BUCKC_POLICY_MAX_WIDTH];
-    double biases[BUCKC_POLICY_MAX_LAYERS][BUCKC_POLICY_MAX_WIDTH];
+    buckc_real weights[BUCKC_POLICY_MAX_LAYERS][BUCKC_POLICY_MAX_WIDTH][BUCKC_POLICY_MAX_WIDTH];
+    buckc_real biases[BUCKC_POLICY_MAX_LAYERS][BUCKC_POLICY_MAX_WIDTH];
 } BuckcPolicyConfig;
 
 typedef struct {
     const BuckcPolicyConfig *config; /* not copied: keep it alive (it may be static const data) */
     int have_history;
-    double previous_current;  /* [A] iL at the last sample */
-    double previous_voltage;  /* [V] vo at the last sample */
-    double previous_duty;     /* the duty applied since the last sample */
-    double conductance;       /* [S] the load estimate (load_estimate.h) */
-    double integral;          /* the integral term [1] */
-    double last_output;       /* u of the last step (diagnostics) */
+    buckc_real previous_current;  /* [A] iL at the last sample */
+    buckc_real previous_voltage;  /* [V] vo at the last sample */
+    buckc_real previous_duty;     /* the duty applied since the last sample */
+    buckc_real conductance;       /* [S] the load estimate (load_estimate.h) */
+    buckc_real integral;          /* the integral term [1] */
+    buckc_real last_output;       /* u of the last step (diagnostics) */
 } BuckcPolicy;
 
 /* Validate like ExplicitPolicy / ExplicitPolicyController and reset; *what names a refused field. */
 int buckc_policy_init(BuckcPolicy *policy, const BuckcPolicyConfig *config, const char **what);
 void buckc_policy_reset(BuckcPolicy *policy);
 /* The network output u for features x[BUCKC_POLICY_INPUTS] (ExplicitPolicy.forward). */
-double buckc_policy_forward(const BuckcPolicyConfig *config, const double *x);
+buckc_real buckc_policy_forward(const BuckcPolicyConfig *config, const buckc_real *x);
 /* ExplicitPolicyController.step: *duty receives the duty to hold until the next sample. */
-int buckc_policy_step(BuckcPolicy *policy, const BuckcMeasurement *measurement, double *duty);
+int buckc_policy_step(BuckcPolicy *policy, const BuckcMeasurement *measurement, buckc_real *duty);
 
 #endif

@@ -3,11 +3,11 @@
 
 #include <math.h>
 
-double buckc_estimate_conductance(double output_voltage, double load_current, double inductor_current,
-                                  double previous)
+buckc_real buckc_estimate_conductance(buckc_real output_voltage, buckc_real load_current,
+                                      buckc_real inductor_current, buckc_real previous)
 {
     if (output_voltage > BUCKC_MIN_VOLTAGE) {
-        double current = isfinite(load_current) ? load_current : inductor_current;
+        buckc_real current = isfinite(load_current) ? load_current : inductor_current;
         if (current > BUCKC_MIN_CURRENT) /* false for NaN too */
             return current / output_voltage;
     }

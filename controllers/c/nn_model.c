@@ -5,7 +5,8 @@
  *   buckc_nn_shared_*       NNPlantModel.rollout_shared: the fast path for one delay and one
  *                           hidden layer (the history's part of layer 0 computed once), else
  *                           rollout() on the broadcast history -- chosen by the same rule.
- * Weight layout and conventions: nn_model.h. Training and files stay in Python.
+ * Weight layout and conventions: nn_model.h. Training and files stay in Python. One source for the
+ * double and float32 builds (buckc_real, buckc.h).
  */
 #include <math.h>
 #include <string.h>
@@ -74,38 +75,39 @@ int buckc_nn_check(const BuckcNnConfig *config, const char **what)
 }
 
 /* nn_model.ACTIVATIONS' numpy functions */
-static double activate(int activation, double z)
+static buckc_real activate(int activation, buckc_real z)
 {
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), half = BUCKC_REAL_LITERAL(0.5);
     switch (activation) {
     case BUCKC_ACTIVATION_RELU:
-        return z < 0.0 ? 0.0 : z; /* np.maximum(z, 0.0): NaN stays NaN */
+        return z < zero ? zero : z; /* np.maximum(z, 0.0): NaN stays NaN */
     case BUCKC_ACTIVATION_SIGMOID:
-        return 0.5 * (1.0 + tanh(0.5 * z));
+        return half * (BUCKC_REAL_LITERAL(1.0) + BUCKC_TANH(half * z));
     default:
-        return tanh(z);
+        return BUCKC_TANH(z);
     }
 }
 
 /* y = x @ W_l + b_l: the product summed over the inputs in order, then the bias */
-static void dense(const double (*weights)[W], const double *bias, const double *x, int n_in, int n_out, double *y)
+static void dense(const buckc_real (*weights)[W], const buckc_real *bias, const buckc_real *x, int n_in, int n_out, buckc_real *y)
 {
     int i, j;
     for (j = 0; j < n_out; ++j) {
-        double acc = x[0] * weights[0][j];
+        buckc_real acc = x[0] * weights[0][j];
         for (i = 1; i < n_in; ++i)
             acc += x[i] * weights[i][j];
         y[j] = acc + bias[j];
     }
 }
 
-void buckc_nn_forward(const BuckcNnConfig *config, const double *x, double *y)
+void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y)
 {
-    double a[W], b[W];
-    const double *h = x;
+    buckc_real a[W], b[W];
+    const buckc_real *h = x;
     int width = buckc_nn_inputs(config);
     int l, j;
     for (l = 0; l < config->n_hidden; ++l) {
-        double *next = (l % 2 == 0) ? a : b;
+        buckc_real *next = (l % 2 == 0) ? a : b;
         dense(config->weights[l], config->biases[l], h, width, config->hidden[l], next);
         for (j = 0; j < config->hidden[l]; ++j)
             next[j] = activate(config->activation, next[j]);
@@ -119,16 +121,16 @@ void buckc_nn_forward(const BuckcNnConfig *config, const double *x, double *y)
     }
 }
 
-void buckc_nn_rollout(const BuckcNnConfig *config, const double *history, const double *extras,
-                      const double *duties, int n, const double *disturbance, double *out)
+void buckc_nn_rollout(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                      const buckc_real *duties, int n, const buckc_real *disturbance, buckc_real *out)
 {
-    double x[W]; /* the window [iL, vc, d] x delays, row-major, then the extras */
+    buckc_real x[W]; /* the window [iL, vc, d] x delays, row-major, then the extras */
     int delays = config->delays, e = config->n_extras, j, r;
-    memcpy(x, history, sizeof(double) * 3 * (size_t)delays);
+    memcpy(x, history, sizeof(buckc_real) * 3 * (size_t)delays);
     for (r = 0; r < e; ++r)
-        x[3 * delays + r] = extras != NULL ? extras[r] : NAN;
+        x[3 * delays + r] = extras != NULL ? extras[r] : (buckc_real)NAN;
     for (j = 0; j < n; ++j) {
-        double state[2];
+        buckc_real state[2];
         x[2] = duties[j];
         buckc_nn_forward(config, x, state);
         if (disturbance != NULL) {
@@ -138,31 +140,31 @@ void buckc_nn_rollout(const BuckcNnConfig *config, const double *history, const 
         out[2 * j] = state[0];
         out[2 * j + 1] = state[1];
         if (delays > 1) /* window[:, 1:] = window[:, :-1] */
-            memmove(x + 3, x, sizeof(double) * 3 * (size_t)(delays - 1));
+            memmove(x + 3, x, sizeof(buckc_real) * 3 * (size_t)(delays - 1));
         x[0] = state[0];
         x[1] = state[1];
     }
 }
 
-void buckc_nn_shared_prepare(const BuckcNnConfig *config, const double *history, const double *extras,
-                             const double *disturbance, BuckcNnShared *shared)
+void buckc_nn_shared_prepare(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                             const buckc_real *disturbance, BuckcNnShared *shared)
 {
     int delays = config->delays, r, h;
     memset(shared, 0, sizeof(*shared));
-    memcpy(shared->history, history, sizeof(double) * 3 * (size_t)delays);
+    memcpy(shared->history, history, sizeof(buckc_real) * 3 * (size_t)delays);
     for (r = 0; r < config->n_extras; ++r)
-        shared->extras[r] = extras != NULL ? extras[r] : NAN;
-    shared->disturbance[0] = disturbance != NULL ? disturbance[0] : 0.0;
-    shared->disturbance[1] = disturbance != NULL ? disturbance[1] : 0.0;
+        shared->extras[r] = extras != NULL ? extras[r] : (buckc_real)NAN;
+    shared->disturbance[0] = disturbance != NULL ? disturbance[0] : BUCKC_REAL_LITERAL(0.0);
+    shared->disturbance[1] = disturbance != NULL ? disturbance[1] : BUCKC_REAL_LITERAL(0.0);
     shared->fast = delays == 1 && config->n_hidden == 1;
     if (shared->fast) {
-        const double (*w1)[W] = config->weights[0];
-        const double *b1 = config->biases[0];
+        const buckc_real (*w1)[W] = config->weights[0];
+        const buckc_real *b1 = config->biases[0];
         int hidden = config->hidden[0];
         for (h = 0; h < hidden; ++h) {
-            double c = b1[h];
+            buckc_real c = b1[h];
             if (extras != NULL && config->n_extras > 0) { /* b1 + extras @ w_extra */
-                double acc = extras[0] * w1[3][h];
+                buckc_real acc = extras[0] * w1[3][h];
                 for (r = 1; r < config->n_extras; ++r)
                     acc += extras[r] * w1[3 + r][h];
                 c = b1[h] + acc;
@@ -177,9 +179,9 @@ void buckc_nn_shared_prepare(const BuckcNnConfig *config, const double *history,
 }
 
 void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *shared,
-                             const double *duties, int n, double *out)
+                             const buckc_real *duties, int n, buckc_real *out)
 {
-    const double (*w1)[W], (*w2)[W];
+    const buckc_real (*w1)[W], (*w2)[W];
     int hidden, j, h, i;
     if (!shared->fast) {
         buckc_nn_rollout(config, &shared->history[0][0], shared->extras, duties, n, shared->disturbance, out);
@@ -189,10 +191,10 @@ void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *s
     w2 = config->weights[1];
     hidden = config->hidden[0];
     for (j = 0; j < n; ++j) {
-        double z[W];
-        const double *previous = j ? out + 2 * (j - 1) : &shared->history[0][0];
+        buckc_real z[W];
+        const buckc_real *previous = j ? out + 2 * (j - 1) : &shared->history[0][0];
         for (h = 0; h < hidden; ++h) {
-            double v;
+            buckc_real v;
             if (j == 0) {
                 v = shared->z0[h] + duties[0] * w1[2][h];
             } else { /* z = out[j-1] @ w_state; z += d * w_duty; z += constant */
@@ -203,7 +205,7 @@ void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *s
             z[h] = activate(config->activation, v);
         }
         for (i = 0; i < BUCKC_NN_OUTPUTS; ++i) {
-            double acc = z[0] * w2[0][i];
+            buckc_real acc = z[0] * w2[0][i];
             for (h = 1; h < hidden; ++h)
                 acc += z[h] * w2[h][i];
             acc += shared->b2[i];

@@ -15,7 +15,8 @@
  *
  *     [iL, vc, d](k-1), [iL, vc, d](k-2), ..., [iL, vc, d](k-delays), extras...(k-1)
  *
- * History arrays are double[delays][3], rows [iL, vc, d], most recent first; the duty of row 0
+ * Numbers are buckc_real (buckc.h: buckc_real, or float in the float32 build). History arrays are
+ * buckc_real[delays][3], rows [iL, vc, d], most recent first; the duty of row 0
  * is replaced by the candidate's first duty, as in Python.
  */
 #ifndef BUCKC_NN_MODEL_H
@@ -23,8 +24,14 @@
 
 #include "buckc.h"
 
+/* The maxima size the configuration struct; a build for one known network may set the first two
+ * to its own sizes (-DBUCKC_NN_MAX_WIDTH=..., as the Cortex-M4F image does); the host keeps these. */
+#ifndef BUCKC_NN_MAX_HIDDEN_LAYERS
 #define BUCKC_NN_MAX_HIDDEN_LAYERS 4
+#endif
+#ifndef BUCKC_NN_MAX_WIDTH
 #define BUCKC_NN_MAX_WIDTH 32       /* units per hidden layer; also bounds the inputs (<= 15) */
+#endif
 #define BUCKC_NN_MAX_DELAYS 4
 #define BUCKC_NN_MAX_EXTRAS 3
 #define BUCKC_NN_OUTPUTS 2
@@ -48,19 +55,19 @@ typedef struct {
     int hidden[BUCKC_NN_MAX_HIDDEN_LAYERS]; /* units per hidden layer */
     int activation;                       /* BUCKC_ACTIVATION_... */
     int residual;                         /* NNConfig.residual: the network learns x(k) - x(k-1) */
-    double weights[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH][BUCKC_NN_MAX_WIDTH];
-    double biases[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH];
+    buckc_real weights[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH][BUCKC_NN_MAX_WIDTH];
+    buckc_real biases[BUCKC_NN_MAX_LAYERS][BUCKC_NN_MAX_WIDTH];
 } BuckcNnConfig;
 
 /* What rollout_shared computes once per measured history (one sample of the controller). */
 typedef struct {
     int fast; /* 1: rollout_shared's fast path (1 delay, 1 hidden layer); 0: rollout() on the history */
-    double history[BUCKC_NN_MAX_DELAYS][3];
-    double extras[BUCKC_NN_MAX_EXTRAS];
-    double disturbance[2];
-    double constant[BUCKC_NN_MAX_WIDTH]; /* fast: b1 (+ extras @ w_extra) */
-    double z0[BUCKC_NN_MAX_WIDTH];       /* fast: state @ w_state + constant */
-    double b2[BUCKC_NN_OUTPUTS];         /* fast: b2 + disturbance */
+    buckc_real history[BUCKC_NN_MAX_DELAYS][3];
+    buckc_real extras[BUCKC_NN_MAX_EXTRAS];
+    buckc_real disturbance[2];
+    buckc_real constant[BUCKC_NN_MAX_WIDTH]; /* fast: b1 (+ extras @ w_extra) */
+    buckc_real z0[BUCKC_NN_MAX_WIDTH];       /* fast: state @ w_state + constant */
+    buckc_real b2[BUCKC_NN_OUTPUTS];         /* fast: b2 + disturbance */
 } BuckcNnShared;
 
 /* Validate sizes and codes; *what names the refused field. */
@@ -69,17 +76,17 @@ int buckc_nn_check(const BuckcNnConfig *config, const char **what);
 int buckc_nn_inputs(const BuckcNnConfig *config);
 
 /* NNPlantModel.predict for one row: x[buckc_nn_inputs()] -> y[2]. */
-void buckc_nn_forward(const BuckcNnConfig *config, const double *x, double *y);
+void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y);
 
 /* NNPlantModel.rollout for one candidate: history[delays][3] (row-major), extras[n_extras]
  * (may be NULL when n_extras == 0), duties[n], disturbance[2] (NULL = none) -> out[n][2]. */
-void buckc_nn_rollout(const BuckcNnConfig *config, const double *history, const double *extras,
-                      const double *duties, int n, const double *disturbance, double *out);
+void buckc_nn_rollout(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                      const buckc_real *duties, int n, const buckc_real *disturbance, buckc_real *out);
 
 /* NNPlantModel.rollout_shared, split into its per-history part and its per-candidate part. */
-void buckc_nn_shared_prepare(const BuckcNnConfig *config, const double *history, const double *extras,
-                             const double *disturbance, BuckcNnShared *shared);
+void buckc_nn_shared_prepare(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                             const buckc_real *disturbance, BuckcNnShared *shared);
 void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *shared,
-                             const double *duties, int n, double *out);
+                             const buckc_real *duties, int n, buckc_real *out);
 
 #endif

@@ -11,45 +11,47 @@
 
 int buckc_pi_init(BuckcPi *pi, const BuckcPiConfig *config, const char **what)
 {
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), one = BUCKC_REAL_LITERAL(1.0);
     if (pi == NULL || config == NULL) {
         if (what) *what = "pi or config is NULL";
         return BUCKC_ERR_NULL;
     }
-    if (!(isfinite(config->kp) && isfinite(config->ki) && config->kp >= 0.0 && config->ki >= 0.0)) {
+    if (!(isfinite(config->kp) && isfinite(config->ki) && config->kp >= zero && config->ki >= zero)) {
         if (what) *what = "kp, ki: expected finite values >= 0";
         return BUCKC_ERR_INVALID;
     }
-    if (!(config->sample_period > 0.0 && isfinite(config->sample_period))) {
+    if (!(config->sample_period > zero && isfinite(config->sample_period))) {
         if (what) *what = "sample_period: expected a finite value > 0";
         return BUCKC_ERR_INVALID;
     }
-    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0)) {
+    if (!(zero <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= one)) {
         if (what) *what = "duty_min, duty_max: expected 0 <= min < max <= 1";
         return BUCKC_ERR_INVALID;
     }
     pi->config = *config;
-    pi->integral = 0.0;
+    pi->integral = zero;
     return BUCKC_OK;
 }
 
 void buckc_pi_reset(BuckcPi *pi)
 {
-    pi->integral = 0.0;
+    pi->integral = BUCKC_REAL_LITERAL(0.0);
 }
 
-double buckc_pi_step(BuckcPi *pi, double reference, double output_voltage)
+buckc_real buckc_pi_step(BuckcPi *pi, buckc_real reference, buckc_real output_voltage)
 {
     const BuckcPiConfig *c = &pi->config;
-    double error = reference - output_voltage;
-    double low = c->duty_min, high = c->duty_max;
-    double integral = pi->integral + c->ki * c->sample_period * error; /* (ki Ts) e, as Python */
-    double unclamped = c->kp * error + integral;
-    double duty = unclamped;
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0);
+    buckc_real error = reference - output_voltage;
+    buckc_real low = c->duty_min, high = c->duty_max;
+    buckc_real integral = pi->integral + c->ki * c->sample_period * error; /* (ki Ts) e, as Python */
+    buckc_real unclamped = c->kp * error + integral;
+    buckc_real duty = unclamped;
     int pushing_high, pushing_low;
     if (low > duty) duty = low;   /* Python's min(max(unclamped, low), high), NaN kept */
     if (high < duty) duty = high;
-    pushing_high = unclamped > high && error > 0.0;
-    pushing_low = unclamped < low && error < 0.0;
+    pushing_high = unclamped > high && error > zero;
+    pushing_low = unclamped < low && error < zero;
     if (!(pushing_high || pushing_low))
         pi->integral = integral;
     return duty;

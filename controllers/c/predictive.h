@@ -93,15 +93,7 @@ typedef struct {
     BuckcPredictorConfig predictor;
 } BuckcPredictiveConfig;
 
-/* controllers.base.Measurement (SI units, NaN where the plant has no such output) */
-typedef struct {
-    double time;
-    double reference;
-    double output_voltage;
-    double inductor_current;
-    double load_current;
-    double input_voltage;
-} BuckcMeasurement;
+/* BuckcMeasurement (controllers.base.Measurement) is defined in buckc.h. */
 
 /* PredictiveController's state between samples, plus diagnostics of the last step. */
 typedef struct {

@@ -32,6 +32,12 @@ class ControllerError(WorkbenchError):
     exit_code = 3
 
 
+class BuildError(WorkbenchError):
+    """Compiling generated or shipped C failed (a cross build; the FMU builds raise PlantBuildError)."""
+
+    exit_code = 4
+
+
 class ModelFileError(WorkbenchError):
     """A trained-model file is missing, truncated, tampered with or made for other inputs."""
 

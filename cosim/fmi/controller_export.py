@@ -11,6 +11,12 @@ The variables carry the workbench's role names: inputs ``reference``, ``measured
 ``duty_cycle`` (which depends directly on the inputs at a sample instant); parameters
 ``sample_period``, ``duty_min``, ``duty_max`` (and ``kp``, ``ki`` for the PI, which may be set
 before initialisation; a predictive controller's are fixed by its generation).
+
+``precision="float32"`` builds the FMU from the float32 build of the twins (``buckc_real`` =
+float, ``controllers/c/buckc.h``; the PI and the explicit NNPC have one): the generated header
+holds float data, and every compiled file is a two-line wrapper ``f32_NAME.c`` that defines
+``BUCKC_FLOAT32`` and includes ``NAME.c`` (FMI 2.0 source FMUs have no place for compiler
+flags, so the definition travels in a source file that any FMI tool compiles as it is).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from pathlib import Path
 from xml.etree import ElementTree
 
 from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
+from controllers.native import FLOAT32_SOURCES, check_precision
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
 from plant_fmu.build import (
     REAL_CO_SIMULATION_ONLY,
@@ -41,6 +48,13 @@ ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model
 #: modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
             "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c")
+#: the float32 FMU: the files with a float32 build that the PI and the explicit NNPC need, each through a
+#: wrapper that defines BUCKC_FLOAT32 (the glue does not include buckc.h: compiled as it is)
+FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c")
+                           if f in FLOAT32_SOURCES)
+FLOAT32_HEADERS = ("buckc.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h")
+FLOAT32_COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "f32_controller_fmu.c",
+                    *(f"f32_{f}" for f in FLOAT32_ALGORITHMS))
 
 
 @dataclass(frozen=True)
@@ -76,10 +90,10 @@ UNITS = {"V": {"kg": "1", "m": "2", "s": "-3", "A": "-1"}, "A": {"A": "1"}, "1":
 
 
 def model_description(identifier: str, name: str, guid: str, description: str, start_values: dict[str, float],
-                      pi: bool) -> str:
+                      pi: bool, compiled: tuple[str, ...] = COMPILED) -> str:
     """``modelDescription.xml`` of a controller FMU (co-simulation only)."""
     root = co_simulation_description_root(identifier, guid, description,
-                                          "buck-cosim export-controller (hand-written C, generated data)", COMPILED)
+                                          "buck-cosim export-controller (hand-written C, generated data)", compiled)
     units = ElementTree.SubElement(root, "UnitDefinitions")
     for unit, base in UNITS.items():
         element = ElementTree.SubElement(units, "Unit", {"name": unit})
@@ -109,9 +123,10 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
     return model_description_text(root)
 
 
-def controller_sources(controller, identifier: str) -> FmuSources:
-    """What the FMU of a Python PI, predictive or explicit-policy controller is built from."""
-    header = config_header(controller, name=identifier)
+def controller_sources(controller, identifier: str, precision: str = "float64") -> FmuSources:
+    """What the FMU of a Python PI, predictive or explicit-policy controller is built from (``precision``:
+    the build of the twins it computes with; ValueError for a controller without a float32 build)."""
+    header = config_header(controller, name=identifier, precision=check_precision(precision))
     kind = controller_kind(controller)
     pi = kind == KIND_PI
     low, high = controller.duty_limits
@@ -121,19 +136,34 @@ def controller_sources(controller, identifier: str) -> FmuSources:
     if pi:
         starts.update(kp=repr(float(controller.kp)), ki=repr(float(controller.ki)))
     algorithm = "PI" if pi else "explicit policy" if kind == KIND_EXPLICIT else "predictive"
+    build = "" if precision == "float64" else f", {precision} build"
     description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
-                   f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration)")
-    md = model_description(identifier, controller.name, header_guid(header), description, starts, pi)
+                   f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration{build})")
+    if precision == "float64":
+        algorithms, compiled, wrappers = ALGORITHM_FILES, COMPILED, ()
+    else:
+        algorithms, compiled = FLOAT32_ALGORITHMS + FLOAT32_HEADERS, FLOAT32_COMPILED
+        wrappers = tuple((f"f32_{name}", float32_wrapper(name).encode())
+                         for name in ("controller_fmu.c", *FLOAT32_ALGORITHMS))
+    md = model_description(identifier, controller.name, header_guid(header), description, starts, pi, compiled)
     files = (glue_files() + real_co_simulation_only_files() + read_files(MODEL_DIR, MODEL_FILES)
-             + read_files(ALGORITHM_DIR, ALGORITHM_FILES))
+             + read_files(ALGORITHM_DIR, tuple(sorted(algorithms))) + wrappers)
     return FmuSources(identifier, md, files + (("controller_config.h", header.encode()),))
 
 
-def export_controller(controller, out: Path, force: bool = False) -> tuple[Path, Path]:
-    """Build the controller's FMU and write ``out`` (``NAME.fmu``) and ``NAME-source.fmu`` beside it."""
+def float32_wrapper(name: str) -> str:
+    """The compiled file of a float32 FMU for ``name``: the one source, with buckc_real = float."""
+    return (f"/* Generated by buck-cosim (export-controller --precision float32): {name} in the float32 build. */\n"
+            f'#define BUCKC_FLOAT32 1\n#include "{name}"\n')
+
+
+def export_controller(controller, out: Path, force: bool = False, precision: str = "float64") -> tuple[Path, Path]:
+    """Build the controller's FMU and write ``out`` (``NAME.fmu``) and ``NAME-source.fmu`` beside it
+    (``precision="float32"``: from the float32 build of the twins)."""
     out = Path(out)
     identifier = _identifier(out.stem)
-    return export(controller_sources(controller, identifier), out, out.with_name(f"{out.stem}-source.fmu"), force)
+    return export(controller_sources(controller, identifier, precision), out,
+                  out.with_name(f"{out.stem}-source.fmu"), force)
 
 
 def _identifier(stem: str) -> str:

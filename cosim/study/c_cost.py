@@ -88,7 +88,10 @@ def section(out_dir: Path, periods, scenario_names) -> list[str]:
         f"{m.tanh:g} per tanh (one expf and one VDIV.F32), {m.sqrt:g} per square root (VSQRT.F32), {m.candidate:g} per "
         f"candidate (lattice, clipping, compare) and {m.interrupt:g} per sample for ADC, PWM and the interrupt. "
         "Nanoseconds per step on this machine (C harness vs Python) are wall-clock figures: "
-        "[benchmarks.md](benchmarks.md), group `c-controllers`.",
+        "[benchmarks.md](benchmarks.md), group `c-controllers`. These cycles are the cost model's estimate: the "
+        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC) it is measured on an "
+        "emulated Cortex-M4F, with the model's prediction against the measurement: [benchmarks.md](benchmarks.md), "
+        "group `embedded` (the model under-predicts there: read these figures as a lower bound).",
         "",
         "| rate | samples | candidates p50 / max | MACs p50 / max | tanh p50 / max | M4F cycles p99 / max "
         "| cycles in a period | fraction of the period p99 / max | fits |",

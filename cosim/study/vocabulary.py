@@ -107,6 +107,8 @@ NNPC_EXPLICIT = "NNPC-explicit"
 #: command-line key -> the name a run, a metrics row and a figure legend carry
 CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-adaptive": f"{NNPC}-adaptive", "nnpc-paper": NNPC_PAPER,
                "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT}
+#: the command-line keys whose C twin has a float32 build (export-controller --precision float32; the Cortex-M4F)
+FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit")
 #: the NN plant models per rate, by command-line key
 NETWORKS = ("nnpc", "nnpc-paper")
 #: ablation variants (reproduction only)

@@ -14,7 +14,13 @@
  * instant commits that computation (the controller's state advances) and moves to the next one.
  * A communication step may end anywhere up to the next sample instant, never beyond it: a master
  * steps the FMU with communication points that land on every sample instant. Between sample
- * instants the duty is held (zero-order hold). */
+ * instants the duty is held (zero-order hold).
+ *
+ * Precision. The FMU's variables are doubles (fmi2Real); the controller computes in buckc_real
+ * (controllers/c/buckc.h). A float32 FMU (export-controller --precision float32) compiles every
+ * file with BUCKC_FLOAT32 defined (by the generated f32_*.c wrappers): the inputs are rounded to
+ * float at each sample, the duty is a float widened to fmi2Real; the predictive controller, which
+ * has no float32 build, is left out (BUCKC_HAVE_PREDICTIVE). */
 #include <math.h>
 #include <stdio.h>
 #include <string.h>
@@ -23,7 +29,9 @@
 #include "explicit_policy.h"
 #include "fmu_model.h"
 #include "pi.h"
+#if BUCKC_HAVE_PREDICTIVE
 #include "predictive.h"
+#endif
 
 #include "controller_config.h" /* generated: CONTROLLER_KIND, CONTROLLER_NAME, CONTROLLER_GUID, PI_CONFIG,
                                   PREDICTIVE_CONFIG, POLICY_CONFIG */
@@ -37,11 +45,14 @@ typedef struct {
     double pending_duty;  /* that duty */
     double duty;          /* the duty in effect between samples */
     int started;          /* initialisation has ended: the controller is configured and may compute */
+    double period;        /* the sample clock's Ts [s] (double in every build; the PI's may be set) */
     BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
     BuckcPi pi, pi_pending;
     BuckcPolicy policy, policy_pending;
+#if BUCKC_HAVE_PREDICTIVE
     BuckcPredictiveState predictive_pending;
     BuckcPredictive predictive; /* last: the big one (the predictors' caches) */
+#endif
 } ControllerData;
 
 const FmuModelInfo FMU_MODEL = {
@@ -55,18 +66,32 @@ const FmuModelInfo FMU_MODEL = {
 };
 
 /* a configuration value of the controller this FMU was generated for (the PI's may be set) */
+#if BUCKC_HAVE_PREDICTIVE
+#define PREDICTIVE_OR(explicit_value, predictive_value) \
+    (CONTROLLER_KIND == CONTROLLER_EXPLICIT ? (double)(explicit_value) : (double)(predictive_value))
+#else
+#define PREDICTIVE_OR(explicit_value, predictive_value) ((double)(explicit_value))
+#endif
+#ifdef CONTROLLER_SAMPLE_PERIOD /* float32 data: the exact sample period as a double, for the clock */
+static double fixed_sample_period(void) { return CONTROLLER_SAMPLE_PERIOD; }
+#define DEFAULT_PERIOD CONTROLLER_SAMPLE_PERIOD
+#else
 static double fixed_sample_period(void) {
-    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.sample_period : PREDICTIVE_CONFIG.sample_period;
+    return PREDICTIVE_OR(POLICY_CONFIG.sample_period, PREDICTIVE_CONFIG.sample_period);
 }
-static double fixed_duty_min(void) {
-    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_min : PREDICTIVE_CONFIG.duty_min;
-}
-static double fixed_duty_max(void) {
-    return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_max : PREDICTIVE_CONFIG.duty_max;
-}
+#define DEFAULT_PERIOD ((double)PI_CONFIG.sample_period)
+#endif
+#ifdef BUCKC_FLOAT32
+#define FIXED_TOLERANCE 1e-7 /* a float's rounding of the generated value */
+#else
+#define FIXED_TOLERANCE 1e-12
+#endif
+static double fixed_duty_min(void) { return PREDICTIVE_OR(POLICY_CONFIG.duty_min, PREDICTIVE_CONFIG.duty_min); }
+static double fixed_duty_max(void) { return PREDICTIVE_OR(POLICY_CONFIG.duty_max, PREDICTIVE_CONFIG.duty_max); }
+static double nominal_input_voltage(void) { return PREDICTIVE_OR(48.0, PREDICTIVE_CONFIG.nominal_input_voltage); }
 
 static double sample_period(const ControllerData *d) {
-    return CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.sample_period : fixed_sample_period();
+    return CONTROLLER_KIND == CONTROLLER_PI ? d->period : fixed_sample_period();
 }
 
 static double sample_time(const ControllerData *d, long long k) {
@@ -83,7 +108,8 @@ void model_set_defaults(void *data) {
     ControllerData *d = (ControllerData *)data;
     memset(d, 0, sizeof *d);
     d->pi_config = PI_CONFIG;
-    d->inputs[VR_INPUT_VOLTAGE] = PREDICTIVE_CONFIG.nominal_input_voltage;
+    d->period = DEFAULT_PERIOD;
+    d->inputs[VR_INPUT_VOLTAGE] = nominal_input_voltage();
     d->inputs[VR_MEASURED_LOAD_CURRENT] = NAN;
 }
 
@@ -94,7 +120,11 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
     (void)fmu;
     if (CONTROLLER_KIND == CONTROLLER_PI) status = buckc_pi_init(&d->pi, &d->pi_config, &what);
     else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) status = buckc_policy_init(&d->policy, &POLICY_CONFIG, &what);
+#if BUCKC_HAVE_PREDICTIVE
     else status = buckc_predictive_init(&d->predictive, &PREDICTIVE_CONFIG, &what);
+#else
+    else status = BUCKC_ERR_INVALID, what = "the predictive controller has no " BUCKC_REAL_NAME " build";
+#endif
     if (status != BUCKC_OK) {
         snprintf(buffer, size, "%s refuses its configuration: %s (%s)", CONTROLLER_NAME, what ? what : "",
                  buckc_status_text(status));
@@ -113,28 +143,31 @@ void model_set_time(void *data, double time) { ((ControllerData *)data)->time = 
 
 /* The duty of the sample instant from the inputs now set, without committing the state. */
 static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
-    double duty = 0.0;
+    buckc_real duty = 0;
     if (CONTROLLER_KIND == CONTROLLER_PI) {
         d->pi_pending = d->pi;
-        duty = buckc_pi_step(&d->pi_pending, d->inputs[VR_REFERENCE], d->inputs[VR_MEASURED_OUTPUT_VOLTAGE]);
+        duty = buckc_pi_step(&d->pi_pending, (buckc_real)d->inputs[VR_REFERENCE],
+                             (buckc_real)d->inputs[VR_MEASURED_OUTPUT_VOLTAGE]);
     } else {
         BuckcMeasurement m;
-        int status;
-        m.time = d->time;
-        m.reference = d->inputs[VR_REFERENCE];
-        m.output_voltage = d->inputs[VR_MEASURED_OUTPUT_VOLTAGE];
-        m.inductor_current = d->inputs[VR_MEASURED_INDUCTOR_CURRENT];
-        m.load_current = d->inputs[VR_MEASURED_LOAD_CURRENT];
-        m.input_voltage = d->inputs[VR_INPUT_VOLTAGE];
+        int status = BUCKC_ERR_INVALID;
+        m.time = (buckc_real)d->time;
+        m.reference = (buckc_real)d->inputs[VR_REFERENCE];
+        m.output_voltage = (buckc_real)d->inputs[VR_MEASURED_OUTPUT_VOLTAGE];
+        m.inductor_current = (buckc_real)d->inputs[VR_MEASURED_INDUCTOR_CURRENT];
+        m.load_current = (buckc_real)d->inputs[VR_MEASURED_LOAD_CURRENT];
+        m.input_voltage = (buckc_real)d->inputs[VR_INPUT_VOLTAGE];
         if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) {
             d->policy.config = &POLICY_CONFIG; /* again: a deserialized FMU state may come from another process */
             d->policy_pending = d->policy; /* committed by fmi2DoStep, not by reading the duty */
             status = buckc_policy_step(&d->policy_pending, &m, &duty);
         } else {
+#if BUCKC_HAVE_PREDICTIVE
             BuckcPredictiveState committed = d->predictive.state;
             status = buckc_predictive_step(&d->predictive, &m, &duty);
             d->predictive_pending = d->predictive.state;
             d->predictive.state = committed; /* committed by fmi2DoStep, not by reading the duty */
+#endif
         }
         if (status != BUCKC_OK) {
             fmu_log(fmu, fmi2Error, "logStatusError", "%s at t = %.9g s: %s%s", CONTROLLER_NAME, d->time,
@@ -143,12 +176,12 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
             return fmi2Error;
         }
     }
-    if (!isfinite(duty)) {
+    if (!isfinite((double)duty)) {
         fmu_log(fmu, fmi2Error, "logStatusError", "%s computed a non-finite duty at t = %.9g s", CONTROLLER_NAME,
                 d->time);
         return fmi2Error;
     }
-    d->pending_duty = duty;
+    d->pending_duty = (double)duty;
     d->computed = 1;
     return fmi2OK;
 }
@@ -179,18 +212,18 @@ fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         return fmi2OK;
     case VR_SAMPLE_PERIOD: *value = sample_period(d); return fmi2OK;
     case VR_DUTY_MIN:
-        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_min : fixed_duty_min();
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? (double)d->pi_config.duty_min : fixed_duty_min();
         return fmi2OK;
     case VR_DUTY_MAX:
-        *value = CONTROLLER_KIND == CONTROLLER_PI ? d->pi_config.duty_max : fixed_duty_max();
+        *value = CONTROLLER_KIND == CONTROLLER_PI ? (double)d->pi_config.duty_max : fixed_duty_max();
         return fmi2OK;
     case VR_KP:
         if (CONTROLLER_KIND != CONTROLLER_PI) break;
-        *value = d->pi_config.kp;
+        *value = (double)d->pi_config.kp;
         return fmi2OK;
     case VR_KI:
         if (CONTROLLER_KIND != CONTROLLER_PI) break;
-        *value = d->pi_config.ki;
+        *value = (double)d->pi_config.ki;
         return fmi2OK;
     default: break;
     }
@@ -205,10 +238,10 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         d->inputs[vr] = value;
         return fmi2OK;
     }
-    double *target = NULL;
+    buckc_real *target = NULL;
     if (CONTROLLER_KIND == CONTROLLER_PI) {
         switch (vr) {
-        case VR_SAMPLE_PERIOD: target = &d->pi_config.sample_period; break;
+        case VR_SAMPLE_PERIOD: target = &d->pi_config.sample_period; break; /* and d->period, below */
         case VR_DUTY_MIN: target = &d->pi_config.duty_min; break;
         case VR_DUTY_MAX: target = &d->pi_config.duty_max; break;
         case VR_KP: target = &d->pi_config.kp; break;
@@ -219,7 +252,7 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         double fixed = vr == VR_SAMPLE_PERIOD ? fixed_sample_period()
                        : vr == VR_DUTY_MIN   ? fixed_duty_min()
                                              : fixed_duty_max();
-        if (value == fixed || fabs(value - fixed) <= 1e-12 * fabs(fixed)) return fmi2OK;
+        if (value == fixed || fabs(value - fixed) <= FIXED_TOLERANCE * fabs(fixed)) return fmi2OK;
         fmu_log(fmu, fmi2Error, "logStatusError",
                 "fmi2SetReal: %s was generated for %s = %.17g; its network and optimizer hold only for that value "
                 "(export it again for another)", CONTROLLER_NAME,
@@ -239,7 +272,8 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetReal: %g is invalid: expected a finite value", value);
         return fmi2Error;
     }
-    *target = value; /* the whole configuration is checked when initialisation ends */
+    *target = (buckc_real)value; /* the whole configuration is checked when initialisation ends */
+    if (vr == VR_SAMPLE_PERIOD) d->period = value;
     return fmi2OK;
 }
 
@@ -256,7 +290,9 @@ fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step)
         }
         if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
         else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
+#if BUCKC_HAVE_PREDICTIVE
         else d->predictive.state = d->predictive_pending;
+#endif
         d->duty = d->pending_duty;
         d->next += 1;
         d->computed = 0;

@@ -1,0 +1,620 @@
+"""The float32 controllers on a Cortex-M4F, measured without a chip.
+
+The float32 build of a C twin (``controllers/c``, ``buckc_real`` = float) is cross-compiled with the
+GNU Arm Embedded toolchain of the distribution (``gcc-arm-none-eabi``, newlib's libm) for a Cortex-M4
+with its single-precision FPU, into a bare-metal image of our own (``cortex_m4/``: vector table and
+start-up code, linker script, semihosting, the replay loop; no vendor SDK), which QEMU's Cortex-M4
+machine (``qemu-system-arm -M mps2-an386``) executes:
+
+* :func:`replay_on_cortex_m4` replays recorded measurements through the controller's step and reads
+  the duties back (semihosting), to compare with the host's float32 build;
+* the same run with QEMU's execution trace (``-d exec,nochain,in_asm``: every translated block's
+  instructions and every block executed) gives the **instructions executed per step** and, from the
+  executed instruction mix, the **cycles** per step by the Cortex-M4 TRM's cycle tables
+  (:data:`CYCLE_TABLE`, assumptions in its docstring); the Debian QEMU ships no TCG plugins, and
+  ``-icount`` with the board's 25 MHz timers resolves only 40 instructions, so the trace it is;
+* :func:`footprint` links the controller object once with a minimal main and once without it: the
+  difference in text, data and bss is the controller's flash and RAM, its library functions
+  included; the replay measures the stack the steps use (a painted stack) and ``-fstack-usage``
+  gives each function's frame.
+
+**Adding a controller** is a row of :data:`EMBEDDED_CONTROLLERS`: the ``controllers/codegen.py`` kind
+whose float32 configuration it reads, its C files (which must have a float32 build), the C type of its
+state and C expressions for init, reset and step over the names ``state``, ``what``, ``m``, ``duty``
+(and, optionally, the struct maxima to build it with). The build, the replay, the counts, the cycles
+and the footprint follow from the row.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import shutil
+import subprocess
+import tempfile
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind
+from controllers.native import FLOAT32_SOURCES, SOURCE_DIR, cache_dir
+
+HERE = Path(__file__).parent / "cortex_m4"
+CONTROLLER_FMU_DIR = Path(__file__).resolve().parents[1] / "fmi" / "controller_fmu"
+
+#: the target: a Cortex-M4 with the FPv4 single-precision FPU, hard-float ABI (the issue's flags)
+ARM_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard")
+#: -O2 as the issue asks; -ffp-contract=off as on the host (no fused multiply-add: the same roundings as the
+#: host float32 build; VMLA/VFMA cost 3 cycles on the M4, a VMUL and a VADD 1 each, so fusing saves nothing);
+#: -Wdouble-promotion: no expression silently in double (software floating point on this core)
+C_FLAGS = ("-O2", "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-Wdouble-promotion", "-ffp-contract=off",
+           "-ffunction-sections", "-fdata-sections", "-fstack-usage", "-DBUCKC_FLOAT32")
+LINK_FLAGS = ("-nostartfiles", "--specs=nano.specs", "--specs=nosys.specs", "-Wl,--gc-sections")
+LIBRARIES = ("-lm",)
+LINKER_SCRIPT = HERE / "mps2_an386.ld"
+QEMU = ("qemu-system-arm", "-M", "mps2-an386", "-cpu", "cortex-m4", "-nographic", "-monitor", "none", "-serial",
+        "none", "-semihosting-config", "enable=on,target=native")
+TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "arm-none-eabi-nm", "qemu-system-arm")
+#: the Debian packages that provide them (scripts/bootstrap.sh installs them when run as root)
+PACKAGES = ("gcc-arm-none-eabi", "libnewlib-arm-none-eabi", "qemu-system-arm")
+#: ISR entry (12 cycles) and exit (12), lazy stacking of the FP context when the step uses the FPU
+#: (+18: 17 words pushed, ARMv7-M), the ADC result read and the PWM compare write over the bus: an allowance,
+#: the same as the cost model's (controllers.cost_model.CostModel.interrupt)
+ISR_ALLOWANCE = 200.0
+#: the exception frame of an interrupt with FP context (ARMv7-M: 8 + 18 words), counted in the controller's RAM
+EXCEPTION_FRAME_BYTES = 26 * 4
+CLOCK_HZ = 170e6  # an STM32G4 at full speed
+TIMEOUT_S = 300
+
+
+class EmbeddedError(RuntimeError):
+    """The cross build or the emulator failed; the message says which command and why."""
+
+
+# ------------------------------------------------------------------------------------------ the controllers
+
+
+@dataclass(frozen=True)
+class EmbeddedController:
+    """How the controller object (``cortex_m4/controller_instance.c``) drives one C twin."""
+
+    label: str
+    kind: str  # controllers.codegen's kind: the configuration the generated header holds
+    sources: tuple[str, ...]  # its files in controllers/c (each with a float32 build)
+    state: str  # the C type of its state
+    init: str  # C expressions over `state`, `what`, `m`, `duty`
+    reset: str
+    step: str
+    limits: Callable[[object], dict[str, int]] = field(default=lambda controller: {})  # -D maxima for its struct
+
+
+def _policy_limits(controller) -> dict[str, int]:
+    hidden = controller.policy.config.hidden
+    return {"BUCKC_POLICY_MAX_WIDTH": max(7, *hidden), "BUCKC_POLICY_MAX_HIDDEN_LAYERS": len(hidden)}
+
+
+#: one row per controller that runs on the Cortex-M4F
+EMBEDDED_CONTROLLERS = (
+    EmbeddedController("PI", KIND_PI, ("pi.c",), "BuckcPi", "buckc_pi_init(state, &PI_CONFIG, what)",
+                       "buckc_pi_reset(state)",
+                       "(*duty = buckc_pi_step(state, m->reference, m->output_voltage), BUCKC_OK)"),
+    EmbeddedController("explicit NNPC", KIND_EXPLICIT, ("explicit_policy.c", "load_estimate.c"), "BuckcPolicy",
+                       "buckc_policy_init(state, &POLICY_CONFIG, what)", "buckc_policy_reset(state)",
+                       "buckc_policy_step(state, m, duty)", _policy_limits),
+)
+
+
+def embedded_controller(controller) -> EmbeddedController:
+    kind = controller_kind(controller)
+    for row in EMBEDDED_CONTROLLERS:
+        if row.kind == kind:
+            return row
+    names = ", ".join(row.label for row in EMBEDDED_CONTROLLERS)
+    raise ValueError(f"{controller.name} has no Cortex-M4F build: the embedded controllers are {names}")
+
+
+def entry_header(row: EmbeddedController) -> str:
+    """``controller_entry.h``: the row as the controller object's macros (generated, data only)."""
+    headers = sorted({f'#include "{Path(s).stem}.h"' for s in row.sources})
+    return "\n".join(["/* Generated by buck-cosim (cosim/benchmark_harness/cortex_m4.py) -- do not edit. */",
+                      "#ifndef CONTROLLER_ENTRY_H", "#define CONTROLLER_ENTRY_H", *headers,
+                      f"#define CONTROLLER_STATE {row.state}", f"#define CONTROLLER_INIT {row.init}",
+                      f"#define CONTROLLER_RESET {row.reset}", f"#define CONTROLLER_STEP {row.step}", "#endif", ""])
+
+
+def _float_literal(value: float) -> str:
+    if math.isnan(value):
+        return "NAN"
+    if math.isinf(value):
+        return "INFINITY" if value > 0 else "-INFINITY"
+    text = str(np.float32(value))
+    return (text if any(c in text for c in ".eEn") else text + ".0") + "f"
+
+
+def replay_header(measurements: np.ndarray) -> str:
+    """``replay_data.h``: the measurements as float32 (the floats the host's float32 build gets too)."""
+    rows = np.asarray(measurements, dtype=float)
+    body = ",\n".join("    {" + ", ".join(_float_literal(v) for v in row) + "}" for row in rows)
+    return "\n".join(["/* Generated by buck-cosim (cosim/benchmark_harness/cortex_m4.py): recorded measurements. */",
+                      "#include <math.h>", f"#define REPLAY_SAMPLES {len(rows)}u",
+                      f"static const float REPLAY_MEASUREMENTS[{len(rows)}][6] = {{", body, "};", ""])
+
+
+# ------------------------------------------------------------------------------------------ tools and build
+
+
+def toolchain_problem() -> str | None:
+    """None when the cross compiler, newlib's libm and QEMU are here, else one line saying what is missing."""
+    missing = [tool for tool in TOOLS if shutil.which(tool) is None]
+    if not missing:
+        done = subprocess.run(["arm-none-eabi-gcc", *ARM_FLAGS, "-print-file-name=libm.a"], capture_output=True,
+                              text=True, timeout=60)
+        if not Path(done.stdout.strip()).is_absolute():
+            missing.append("newlib's libm.a (libnewlib-arm-none-eabi)")
+    if not missing:
+        return None
+    return (f"{', '.join(missing)} not found: the Cortex-M4F build needs the Debian packages {' '.join(PACKAGES)} "
+            "(make installs them when run as root)")
+
+
+def _run(argv: list[str], what: str, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, cwd=cwd, timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise EmbeddedError(f"{what} failed: {error}") from None
+    if done.returncode != 0:
+        tail = "\n".join((done.stdout + done.stderr).strip().splitlines()[-12:])
+        raise EmbeddedError(f"{what} failed (exit {done.returncode}): {' '.join(argv[:3])} ...\n{tail}")
+    return done
+
+
+@dataclass
+class Build:
+    """The Cortex-M4F build of one controller: the object a firmware links, and the test images."""
+
+    folder: Path
+    row: EmbeddedController
+    controller_object: Path  # controller.o: the controller's code, configuration and state (relocatable)
+    replay: Path  # replay.elf: the QEMU test image
+    footprint: Path  # footprint.elf: a minimal main calling the controller
+    baseline: Path  # baseline.elf: the same main without it
+    stack_usage: dict[str, int]  # -fstack-usage: bytes of each function's frame (the controller's files)
+
+
+class _Compiler:
+    """arm-none-eabi-gcc with the target's flags, the controller's maxima and the include folders."""
+
+    def __init__(self, controller, row: EmbeddedController, folder: Path):
+        self.folder = folder
+        self.defines = [f"-D{k}={v}" for k, v in sorted(row.limits(controller).items())]
+        self.includes = [f"-I{folder}", f"-I{SOURCE_DIR}", f"-I{CONTROLLER_FMU_DIR}", f"-I{HERE}"]
+
+    def __call__(self, source: Path, output: str, extra: tuple[str, ...] = ()) -> Path:
+        target = self.folder / output
+        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *C_FLAGS, *self.defines, *self.includes, *extra, "-c", str(source),
+              "-o", str(target)], f"cross-compiling {source.name}", self.folder)
+        return target
+
+
+def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _Compiler, Path]:
+    """controller.o in ``folder``: the row's C files and controller_instance.c with the generated headers,
+    linked into one relocatable object (``-r``); sections stay apart, so a firmware's --gc-sections keeps
+    only what it calls."""
+    row = embedded_controller(controller)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in row.sources:
+        if name not in FLOAT32_SOURCES:
+            raise EmbeddedError(f"controllers/c/{name} has no float32 build (controllers.native.FLOAT32_SOURCES)")
+    (folder / "controller_config.h").write_text(config_header(controller, precision="float32"), encoding="utf-8")
+    (folder / "controller_entry.h").write_text(entry_header(row), encoding="utf-8")
+    compile_ = _Compiler(controller, row, folder)
+    objects = [compile_(SOURCE_DIR / name, f"{Path(name).stem}.o") for name in row.sources]
+    objects.append(compile_(HERE / "controller_instance.c", "controller_instance.o"))
+    target = folder / "controller.o"
+    _run(["arm-none-eabi-gcc", *ARM_FLAGS, "-r", "-nostdlib", *map(str, objects), "-o", str(target)],
+         "linking controller.o", folder)
+    return row, compile_, target
+
+
+def export_object(controller, folder: Path) -> Path:
+    """The controller as a firmware links it: ``folder``/controller.o (the float32 build for a Cortex-M4F:
+    code, configuration, state; see the README's *On a microcontroller*) beside the headers a firmware's
+    source includes (buckc_controller.h, buckc.h; compile it with -DBUCKC_FLOAT32). Returns controller.o."""
+    problem = toolchain_problem()
+    if problem:
+        raise EmbeddedError(problem)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
+        _, _, built = _controller_object(controller, Path(tmp))
+        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h"):
+            staged = folder / f".{path.name}.tmp"
+            shutil.copyfile(path, staged)
+            staged.replace(folder / path.name)
+    return folder / "controller.o"
+
+
+def build(controller, measurements: np.ndarray, folder: Path) -> Build:
+    """Cross-compile ``controller``'s float32 build and the images around it into ``folder``."""
+    folder = Path(folder)
+    row, compile_, controller_object = _controller_object(controller, folder)
+    (folder / "replay_data.h").write_text(replay_header(measurements), encoding="utf-8")
+    runtime = [compile_(HERE / "startup.c", "startup.o"), compile_(HERE / "semihosting.c", "semihosting.o")]
+    images = {}
+    for name, objects in (("replay", [compile_(HERE / "replay.c", "replay.o"), controller_object]),
+                          ("footprint", [compile_(HERE / "footprint.c", "footprint.o"), controller_object]),
+                          ("baseline", [compile_(HERE / "footprint.c", "baseline.o", ("-DBUCKC_BASELINE",))])):
+        images[name] = folder / f"{name}.elf"
+        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *LINK_FLAGS, "-T", str(LINKER_SCRIPT), f"-Wl,-Map={name}.map",
+              *map(str, runtime + objects), *LIBRARIES, "-o", str(images[name])], f"linking {name}.elf", folder)
+    usage = {}
+    for su in [folder / f"{Path(n).stem}.su" for n in row.sources] + [folder / "controller_instance.su"]:
+        for line in su.read_text().splitlines():  # file:line:col:function<TAB>bytes<TAB>static|dynamic
+            parts = line.split("\t")
+            usage[parts[0].rsplit(":", 1)[-1]] = int(parts[1])
+    return Build(folder, row, controller_object, images["replay"], images["footprint"], images["baseline"], usage)
+
+
+# ------------------------------------------------------------------------------------------ sizes
+
+
+def section_sizes(elf: Path) -> dict[str, int]:
+    done = _run(["arm-none-eabi-size", "-A", "-d", str(elf)], "arm-none-eabi-size", elf.parent, timeout=60)
+    sizes = {}
+    for line in done.stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 2 and parts[0].startswith(".") and parts[1].isdigit():
+            sizes[parts[0]] = int(parts[1])
+    return sizes
+
+
+def berkeley_sizes(path: Path) -> dict[str, int]:
+    """text, data, bss as ``arm-none-eabi-size`` reports them (Berkeley format)."""
+    done = _run(["arm-none-eabi-size", str(path)], "arm-none-eabi-size", path.parent, timeout=60)
+    values = done.stdout.splitlines()[1].split()
+    return {"text": int(values[0]), "data": int(values[1]), "bss": int(values[2])}
+
+
+@dataclass(frozen=True)
+class Footprint:
+    flash: int  # [bytes] code + constant data + initial values of .data the controller adds to a firmware
+    ram: int  # [bytes] .data + .bss it adds (its state), without the stack
+    text: int
+    data: int
+    bss: int
+    object_sizes: dict[str, int]  # controller.o itself (text, data, bss)
+
+
+def footprint(result: Build) -> Footprint:
+    """What the controller adds to a firmware: footprint.elf minus baseline.elf, section by section."""
+    with_it, without = section_sizes(result.footprint), section_sizes(result.baseline)
+
+    def delta(*names):
+        return sum(with_it.get(n, 0) - without.get(n, 0) for n in names)
+
+    text, data, bss = delta(".text", ".ARM.exidx"), delta(".data"), delta(".bss")
+    return Footprint(text + data, data + bss, text, data, bss, berkeley_sizes(result.controller_object))
+
+
+# ------------------------------------------------------------------------------------------ the emulator
+
+
+def _symbols(elf: Path) -> dict[str, tuple[int, int]]:
+    done = _run(["arm-none-eabi-nm", "-S", "--defined-only", str(elf)], "arm-none-eabi-nm", elf.parent, timeout=60)
+    symbols = {}
+    for line in done.stdout.splitlines():
+        parts = line.split()
+        if len(parts) == 4:
+            symbols[parts[3]] = (int(parts[0], 16) & ~1, int(parts[1], 16))
+    return symbols
+
+
+@dataclass
+class CortexM4Replay:
+    """A replay executed by QEMU's Cortex-M4: the float duties, and per step what the trace counted."""
+
+    duty: np.ndarray  # float32 duties, per sample
+    stack_bytes: int  # the deepest stack the steps used (below the call site's stack pointer)
+    instructions: np.ndarray | None = None  # executed per step (None: the run was not traced)
+    cycles: np.ndarray | None = None  # per step, the TRM's table with its upper assumptions (CYCLE_TABLE)
+    cycles_low: np.ndarray | None = None  # per step, with its lower assumptions
+    mix: Counter | None = None  # instruction classes executed over all steps
+    functions: Counter | None = None  # cycles (upper table) per function over all steps
+
+
+def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
+    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
+    argv = [*QEMU, "-kernel", str(result.replay)]
+    log = result.folder / "trace.log"
+    if trace:
+        argv += ["-d", "exec,nochain,in_asm", "-D", str(log)]
+    try:  # QEMU writes the semihosting console to stderr
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=result.folder)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise EmbeddedError(f"the Cortex-M4F replay image did not finish in QEMU: {error}") from None
+    lines = (done.stdout + done.stderr).splitlines()
+    if done.returncode != 0 or not lines or lines[-1] != f"done {samples}":
+        problem = next((line for line in lines if line.startswith(("error:", "fault:"))), "\n".join(lines[-5:]))
+        raise EmbeddedError(f"the Cortex-M4F replay image failed in QEMU (exit {done.returncode}): {problem}")
+    bits = np.zeros(samples, dtype=np.uint32)
+    stack = -1
+    for line in lines:
+        if line.startswith("duty "):
+            _, k, value = line.split()
+            bits[int(k)] = int(value, 16)
+        elif line.startswith("stack "):
+            stack = int(line.split()[1])
+    out = CortexM4Replay(bits.view(np.float32).astype(float), stack)
+    if trace:
+        counts = count_steps(log, _symbols(result.replay), samples)
+        out.instructions, out.cycles, out.cycles_low, out.mix, out.functions = counts
+        log.unlink()
+    return out
+
+
+# ------------------------------------------------------------------------------------------ cycles
+
+
+@dataclass(frozen=True)
+class CycleTable:
+    """Cycles of the Cortex-M4's instructions (ARM Cortex-M4 Technical Reference Manual r0p1, Table 3-1
+    "Cortex-M4 instruction set summary" and Table 7-1 "FPU instruction set" cycle counts).
+
+    Assumptions: zero-wait-state memory for code and data (the mps2-an386's SSRAM; on an STM32G4, code in
+    CCM SRAM, or flash behind the ART accelerator hitting), no cache, no interrupt during the step, each
+    instruction takes its table count (no further interlocks). ``P``, the pipeline refill after a taken
+    branch, is 1 to 3 cycles (TRM 3.3.1); a load or store is 2 cycles, 1 when it pipelines behind another
+    load or store (TRM 3.3.2): the *upper* table takes P = 3 and never pipelines, the *lower* P = 1 and
+    pipelines every load/store that follows another. A conditional instruction in an IT block costs its
+    count whether or not it executes (the trace cannot tell). SDIV/UDIV: 12 (upper) / 2 (lower), VDIV and
+    VSQRT 14, VMLA/VMLS/VFMA 3, other FPU arithmetic, VMOV, VCMP, VCVT, VMRS 1, VLDR/VSTR 2, VLDM/VSTM/
+    VPUSH/VPOP 1 + N, LDM/STM/PUSH/POP 1 + N (+P when POP or LDM loads PC), 32-bit multiplies and
+    multiply-accumulates (MUL, MLA, MLS, SMULL, UMULL, SMLAL, UMLAL) 1."""
+
+    refill: float
+    divide: float
+    pipelined_memory: bool
+
+    def cycles(self, mnemonic: str, operands: str, taken: bool, after_memory: bool) -> float:
+        base, _ = _base(mnemonic)
+        registers = _register_count(operands)
+        memory = 1.0 if (self.pipelined_memory and after_memory) else 2.0
+        writes_pc = bool(re.match(r"pc\b", operands))
+        if base in ("b", "bl", "bx", "blx"):
+            return 1.0 + self.refill if (taken or base != "b") else 1.0
+        if base in ("cbz", "cbnz"):
+            return 1.0 + self.refill if taken else 1.0
+        if base in ("tbb", "tbh"):
+            return 2.0 + self.refill
+        if base in ("ldm", "ldmia", "ldmdb", "pop"):
+            return 1.0 + registers + (self.refill if "pc" in operands else 0.0)
+        if base in ("stm", "stmia", "stmdb", "push"):
+            return 1.0 + registers
+        if base in ("ldrd", "strd"):
+            return 1.0 + 2.0
+        if base.startswith("ldr"):
+            return memory + (self.refill if writes_pc else 0.0)
+        if base.startswith("str"):
+            return memory
+        if base in ("sdiv", "udiv"):
+            return self.divide
+        if base in ("vdiv", "vsqrt"):
+            return 14.0
+        if base in ("vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms"):
+            return 3.0
+        if base in ("vldr", "vstr"):
+            return memory
+        if base in ("vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop"):
+            return 1.0 + _single_count(operands)
+        if base == "vmov" and operands.count(",") >= 2:  # two core registers <-> two singles or a double
+            return 2.0
+        if writes_pc:  # mov pc, ..., add pc, ...
+            return 1.0 + self.refill
+        return 1.0
+
+
+CYCLE_TABLE = CycleTable(refill=3.0, divide=12.0, pipelined_memory=False)
+CYCLE_TABLE_LOW = CycleTable(refill=1.0, divide=2.0, pipelined_memory=True)
+
+_CONDITIONS = ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt", "le", "al")
+#: the mnemonics the table prices differently from 1 cycle (and the FPU moves of the mix)
+_PRICED = {"b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh", "ldr", "ldrb", "ldrh", "ldrsb", "ldrsh", "ldrd",
+           "ldrex", "str", "strb", "strh", "strd", "strex", "ldm", "ldmia", "ldmdb", "stm", "stmia", "stmdb", "push",
+           "pop", "sdiv", "udiv", "mul", "mla", "mls", "smull", "umull", "smlal", "umlal", "vdiv", "vsqrt", "vmla",
+           "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms", "vldr", "vstr", "vldm", "vldmia", "vldmdb",
+           "vstm", "vstmia", "vstmdb", "vpush", "vpop", "vmov", "vmrs", "vmsr", "vcvt", "vcvtr", "mov", "add"}
+
+
+def _base(mnemonic: str) -> tuple[str, bool]:
+    """The instruction without its data-type suffix (.f32), width qualifier (.w), condition code (inside an
+    IT block) and flag-setting S; and whether it had a condition code."""
+    name = mnemonic.lower().split(".")[0]
+    if name in _PRICED:
+        return name, False
+    if name[-2:] in _CONDITIONS and name[:-2] in _PRICED:
+        return name[:-2], True
+    if name.endswith("s") and name[:-1] in _PRICED:
+        return name[:-1], False
+    return name, False
+
+
+def _register_count(operands: str) -> int:
+    inside = re.search(r"\{([^}]*)\}", operands)
+    if not inside:
+        return 1
+    count = 0
+    for part in inside.group(1).split(","):
+        part = part.strip()
+        span = re.match(r"([a-z]+)(\d+)\s*-\s*[a-z]+(\d+)", part)
+        count += int(span.group(3)) - int(span.group(2)) + 1 if span else 1
+    return count
+
+
+def _single_count(operands: str) -> int:
+    """Registers of a VLDM/VSTM/VPUSH/VPOP list in single-precision units (a dN is two)."""
+    inside = re.search(r"\{([^}]*)\}", operands)
+    if not inside:
+        return 1
+    total = 0
+    for part in inside.group(1).split(","):
+        part = part.strip()
+        span = re.match(r"([sd])(\d+)\s*-\s*[sd](\d+)", part)
+        n = int(span.group(3)) - int(span.group(2)) + 1 if span else 1
+        total += n * (2 if part.startswith("d") else 1)
+    return total
+
+
+def instruction_class(mnemonic: str) -> str:
+    """A coarse class for the reported mix: fp-arith, fp-div/sqrt, fp-memory, fp-move, load, store, branch,
+    multiply, other (integer data processing)."""
+    base, _ = _base(mnemonic)
+    if base in ("vdiv", "vsqrt"):
+        return "fp-div/sqrt"
+    if base.startswith(("vldr", "vstr", "vldm", "vstm", "vpush", "vpop")):
+        return "fp-memory"
+    if base in ("vmov", "vmrs", "vmsr", "vcvt", "vcvtr"):
+        return "fp-move"
+    if base.startswith("v"):
+        return "fp-arith"
+    if base.startswith(("ldr", "ldm")) or base == "pop":
+        return "load"
+    if base.startswith(("str", "stm")) or base == "push":
+        return "store"
+    if base in ("b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh"):
+        return "branch"
+    if base in ("mul", "mla", "mls", "smull", "umull", "smlal", "umlal", "sdiv", "udiv"):
+        return "multiply"
+    return "other"
+
+
+_BRANCHES = ("b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh")
+_TRACE = re.compile(r"^Trace \d+: 0x[0-9a-f]+ \[[0-9a-f]+/([0-9a-f]+)/")
+_INSN = re.compile(r"^0x([0-9a-f]+):\s+((?:[0-9a-f]{4}\s?)+)\s+(\S+)\s*(.*)$")
+
+
+def _is_control(mnemonic: str, operands: str) -> bool:
+    base, _ = _base(mnemonic)
+    return base in _BRANCHES or (base in ("pop", "ldm", "ldmia") and "pc" in operands) or bool(
+        re.match(r"pc\b", operands))
+
+
+def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
+    """Instructions and cycles per step from QEMU's ``-d exec,nochain,in_asm`` log: the blocks executed
+    between each call of ``buckc_step_begin`` and ``buckc_step_end``, without the replay loop's own
+    instructions (``main``) and the two marker functions: what the controller object and the library
+    functions it calls executed. Taken branches: a block ending in a branch whose successor is not the
+    next address."""
+    begin, end = symbols["buckc_step_begin"][0], symbols["buckc_step_end"][0]
+    main_start, main_size = symbols["main"]
+    excluded = [(main_start, main_start + main_size), (begin, begin + 2), (end, end + 2)]
+    blocks: dict[int, list[tuple[int, int, str, str]]] = {}
+    current: list | None = None
+    steps_insn, steps_high, steps_low = [], [], []
+    mix: Counter = Counter()
+    functions: Counter = Counter()
+    starts = sorted((a, a + max(s, 2), name) for name, (a, s) in symbols.items() if s)
+    owner_of: dict[int, str] = {}
+
+    def owner(address: int) -> str:
+        if address not in owner_of:
+            name = next((n for a, b, n in starts if a <= address < b), "?")
+            owner_of[address] = name
+        return owner_of[address]
+
+    inside = False
+    pending: list | None = None  # the last executed block of the step (its final branch awaits the successor)
+    insn = high = low = 0.0
+    after_memory = False
+
+    def account(block, successor: int | None):
+        nonlocal insn, high, low, after_memory
+        for i, (address, size, mnemonic, operands) in enumerate(block):
+            if any(a <= address < b for a, b in excluded):
+                after_memory = False
+                continue
+            last = i == len(block) - 1
+            taken = last and successor is not None and successor != address + size and _is_control(mnemonic,
+                                                                                                  operands)
+            base, _ = _base(mnemonic)
+            memory_op = base.startswith(("ldr", "str", "vldr", "vstr"))
+            insn += 1
+            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, after_memory)
+            high += cycles
+            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, after_memory)
+            mix[instruction_class(mnemonic)] += 1
+            functions[owner(address)] += cycles
+            after_memory = memory_op
+
+    with open(log, encoding="utf-8", errors="replace") as lines:
+        for line in lines:
+            if line.startswith("IN:"):
+                current = []
+                continue
+            if current is not None:
+                match = _INSN.match(line)
+                if match:
+                    size = len(match.group(2).replace(" ", "")) // 2
+                    current.append((int(match.group(1), 16), size, match.group(3), match.group(4).strip()))
+                    continue
+                if current:
+                    blocks[current[0][0]] = current
+                current = None
+            match = _TRACE.match(line)
+            if not match:
+                continue
+            pc = int(match.group(1), 16)
+            if pending is not None:
+                account(pending, pc)
+                pending = None
+            if pc == begin:
+                inside, insn, high, low, after_memory = True, 0.0, 0.0, 0.0, False
+            elif pc == end and inside:
+                steps_insn.append(insn)
+                steps_high.append(high)
+                steps_low.append(low)
+                inside = False
+            elif inside:
+                pending = blocks.get(pc)
+                if pending is None:
+                    raise EmbeddedError(f"the QEMU trace executes a block at 0x{pc:x} it never translated")
+    if len(steps_insn) != samples:
+        raise EmbeddedError(f"the QEMU trace holds {len(steps_insn)} steps, the replay {samples}")
+    return np.array(steps_insn), np.array(steps_high), np.array(steps_low), mix, functions
+
+
+# ------------------------------------------------------------------------------------------ one call
+
+
+@dataclass
+class Measured:
+    """A controller measured on the Cortex-M4F (the replay traced, the footprint, the stack)."""
+
+    label: str
+    replay: CortexM4Replay
+    footprint: Footprint
+    stack_usage: dict[str, int]
+    object_file: Path | None = None
+
+
+def measure(controller, measurements: np.ndarray, keep: Path | None = None, trace: bool = True) -> Measured:
+    """Cross-compile ``controller`` (float32), replay ``measurements`` in QEMU (traced), size it. The build
+    folder is temporary unless ``keep`` names a folder to write it to (controller.o and the images)."""
+    problem = toolchain_problem()
+    if problem:
+        raise EmbeddedError(problem)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
+        folder = Path(keep) if keep else Path(tmp)
+        result = build(controller, measurements, folder)
+        run = replay_on_cortex_m4(result, len(measurements), trace=trace)
+        size = footprint(result)
+        return Measured(result.row.label, run, size, result.stack_usage, result.controller_object if keep else None)
+
+
+def _scratch() -> Path:
+    folder = cache_dir() / "cortex-m4"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+

@@ -1,0 +1,223 @@
+"""The float32 controllers on a Cortex-M4F (cosim/benchmark_harness/cortex_m4.py): the trace counter and
+the TRM cycle table on a known trace, and (marker ``embedded``: the cross toolchain and QEMU) the
+bare-metal image replaying recorded closed-loop measurements in qemu-system-arm -M mps2-an386, its
+duties against the host's float32 build, its counts and its footprint."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers import float32, native
+from controllers.base import Measurement
+from controllers.explicit_policy import load_policy
+from controllers.pi import PIController
+from cosim.benchmark_harness import cortex_m4, record_measurements
+from cosim.benchmark_harness.cortex_m4 import CYCLE_TABLE, CYCLE_TABLE_LOW, count_steps
+from cosim.study.experiments import explicit_nnpc, plant_binding, scenarios_for
+from cosim.study.vocabulary import SWITCHING_PERIOD
+
+FIXTURES = Path(__file__).parent / "fixtures"
+TOLERANCE = 2e-5  # the per-step tolerance of tests/test_float32.py
+
+#: a hand-made QEMU log: main calls the markers around a step that runs one block, then one that returns
+TRACE = """\
+----------------
+IN: main
+0x00000100:  f000 f810  bl       #0x124
+
+Trace 0: 0x7f0000000100 [00000000/00000100/00000110/ff000200] main
+----------------
+IN: buckc_step_begin
+0x00000124:  4770       bx       lr
+
+Trace 0: 0x7f0000000200 [00000000/00000124/00000110/ff000200] buckc_step_begin
+----------------
+IN: main
+0x00000104:  f000 f800  bl       #0x200
+
+Trace 0: 0x7f0000000300 [00000000/00000104/00000110/ff000200] main
+----------------
+IN: step
+0x00000200:  ed9f 7a02  vldr     s14, [pc, #8]
+0x00000204:  ee87 0a87  vdiv.f32 s0, s15, s14
+0x00000208:  2800       cmp      r0, #0
+0x0000020a:  d001       beq      #0x210
+
+Trace 0: 0x7f0000000400 [00000000/00000200/00000110/ff000200] step
+----------------
+IN: step
+0x0000020c:  b510       push     {r4, lr}
+0x0000020e:  bd10       pop      {r4, pc}
+
+Trace 0: 0x7f0000000500 [00000000/0000020c/00000110/ff000200] step
+----------------
+IN: main
+0x00000108:  f000 f80e  bl       #0x128
+
+Trace 0: 0x7f0000000600 [00000000/00000108/00000110/ff000200] main
+----------------
+IN: buckc_step_end
+0x00000128:  4770       bx       lr
+
+Trace 0: 0x7f0000000700 [00000000/00000128/00000110/ff000200] buckc_step_end
+Trace 0: 0x7f0000000100 [00000000/00000100/00000110/ff000200] main
+Trace 0: 0x7f0000000200 [00000000/00000124/00000110/ff000200] buckc_step_begin
+Trace 0: 0x7f0000000300 [00000000/00000104/00000110/ff000200] main
+Trace 0: 0x7f0000000400 [00000000/00000200/00000110/ff000200] step
+----------------
+IN: step
+0x00000210:  4770       bx       lr
+
+Trace 0: 0x7f0000000800 [00000000/00000210/00000110/ff000200] step
+Trace 0: 0x7f0000000600 [00000000/00000108/00000110/ff000200] main
+Trace 0: 0x7f0000000700 [00000000/00000128/00000110/ff000200] buckc_step_end
+"""
+SYMBOLS = {"main": (0x100, 0x20), "buckc_step_begin": (0x124, 2), "buckc_step_end": (0x128, 2), "step": (0x200, 0x12)}
+
+
+def test_the_trace_counter_counts_the_steps_instructions_and_prices_them_by_the_trm(tmp_path):
+    """Step 1 falls through its beq (not taken) into push/pop {pc}; step 2 takes the beq to a bx lr. The
+    replay loop's own instructions (main) and the markers are not the controller's."""
+    log = tmp_path / "trace.log"
+    log.write_text(TRACE)
+    instructions, high, low, mix, functions = count_steps(log, SYMBOLS, samples=2)
+    assert instructions.tolist() == [6, 5]
+    # vldr 2 + vdiv 14 + cmp 1 + beq not taken 1 + push {r4, lr} 1+2 + pop {r4, pc} 1+2+P
+    assert high[0] == 2 + 14 + 1 + 1 + 3 + 3 + CYCLE_TABLE.refill
+    # vldr + vdiv + cmp + beq taken (1+P) + bx lr (1+P)
+    assert high[1] == 2 + 14 + 1 + (1 + CYCLE_TABLE.refill) + (1 + CYCLE_TABLE.refill)
+    assert low[1] == 2 + 14 + 1 + (1 + CYCLE_TABLE_LOW.refill) + (1 + CYCLE_TABLE_LOW.refill)
+    assert mix["fp-div/sqrt"] == 2 and mix["branch"] == 2 + 1 and set(functions) == {"step"}
+
+
+def test_a_trace_with_a_missing_step_is_an_error(tmp_path):
+    log = tmp_path / "trace.log"
+    log.write_text(TRACE)
+    with pytest.raises(cortex_m4.EmbeddedError, match="holds 2 steps, the replay 3"):
+        count_steps(log, SYMBOLS, samples=3)
+
+
+@pytest.mark.parametrize("mnemonic,operands,taken,cycles", [
+    ("vmul.f32", "s15, s14, s15", False, 1), ("vmla.f32", "s0, s1, s2", False, 3), ("vsqrt.f32", "s0, s0", False, 14),
+    ("vpush", "{d8, d9}", False, 5), ("vldmia", "r3!, {s16, s17, s18}", False, 4), ("ldr.w", "r3, [r2, #4]", False, 2),
+    ("bls", "#0x40", True, 4), ("bls", "#0x40", False, 1), ("bl", "#0x800", True, 4), ("cbz", "r0, #0x20", False, 1),
+    ("pop", "{r4, r5, r6, pc}", True, 8), ("vmovgt.f32", "s0, s1", False, 1), ("vmov", "r0, r1, d0", False, 2),
+    ("sdiv", "r0, r1, r2", False, 12), ("muls", "r0, r1, r0", False, 1), ("movs", "r0, #1", False, 1)])
+def test_the_cycle_table_upper_reading(mnemonic, operands, taken, cycles):
+    assert CYCLE_TABLE.cycles(mnemonic, operands, taken, after_memory=False) == cycles
+
+
+# ------------------------------------------------------------------ on the emulated Cortex-M4F
+
+
+def _recorded(controller, count: int = 150):
+    """A short closed loop on the nominal switched plant: start-up from rest (saturation, the load estimate's
+    threshold) and a load step."""
+    scenarios = scenarios_for(SWITCHING_PERIOD, ("startup", "load_change"))
+    rows = [record_measurements(plant_binding("nominal", "switched"), native.native_twin(controller),
+                                replace(s, duration=0.001)) for s in scenarios]
+    return np.concatenate(rows)[: 2 * count]
+
+
+def _host_float32(controller, measurements) -> np.ndarray:
+    twin = native.native_twin(controller, "float32")
+    twin.reset()
+    return np.array([twin.step(Measurement(*row)) for row in measurements])
+
+
+@pytest.mark.embedded
+def test_the_pi_on_the_cortex_m4f_gives_the_host_float32_duties_bit_for_bit(tmp_path):
+    """No libm in the PI: the same float operations in the same order on both targets."""
+    pi = PIController(0.007026878992716469, 172.92168103154324, SWITCHING_PERIOD)
+    measurements = _recorded(pi)
+    measured = cortex_m4.measure(pi, measurements, keep=tmp_path)
+    run = measured.replay
+    assert np.array_equal(run.duty, _host_float32(pi, measurements))
+    assert len(run.instructions) == len(measurements) and 20 <= run.instructions.min() <= run.instructions.max() < 80
+    assert np.all(run.instructions <= run.cycles_low) and np.all(run.cycles_low <= run.cycles)
+    assert measured.footprint.flash > 0 and measured.footprint.bss >= 24  # BuckcPi: five floats and the integral
+    assert (tmp_path / "controller.o").is_file() and measured.footprint.object_sizes["text"] > 0
+
+
+@pytest.mark.embedded
+def test_the_explicit_nnpc_on_the_cortex_m4f_within_the_tolerance_of_the_host_float32_build(tmp_path):
+    """newlib's tanhf on the target, glibc's on the host: the duties within the per-step tolerance; the
+    trace sees the network's work: >= 4 instructions per multiply-accumulate, a division per step (the load
+    estimate) and the tanh calls' in most."""
+    policy = load_policy(FIXTURES / "explicit_nominal_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
+    controller = explicit_nnpc(policy)
+    measurements = _recorded(controller, 60)
+    measured = cortex_m4.measure(controller, measurements)
+    run = measured.replay
+    host = _host_float32(controller, measurements)
+    assert np.max(np.abs(run.duty - host)) <= TOLERANCE
+    macs = policy.config.macs()
+    assert np.all(run.instructions >= 4 * macs)
+    assert run.mix["fp-div/sqrt"] >= len(measurements)
+    assert run.functions["buckc_policy_forward"] > 0 and run.functions["tanhf"] > 0
+    # the configuration of 7-14-1 floats (weights and biases) is in the flash the controller adds
+    assert measured.footprint.flash >= 4 * (7 * 14 + 14 + 14 + 1)
+    assert 0 < run.stack_bytes <= 1024
+    assert measured.stack_usage["buckc_policy_forward"] > 0
+
+
+@pytest.mark.embedded
+def test_a_controller_without_a_cortex_m4f_row_is_refused_by_name():
+    from controllers.nn_model import load_model
+    from cosim.study.experiments import nnpc
+
+    online = nnpc(load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD),
+                  SWITCHING_PERIOD)
+    with pytest.raises(ValueError, match="NNPC has no Cortex-M4F build: the embedded controllers are PI, explicit"):
+        cortex_m4.measure(online, np.zeros((2, 6)))
+
+
+def test_the_replay_data_are_the_floats_the_host_build_gets():
+    rows = np.array([[0.1, 12.0, 1 / 3, np.nan, 1e-7, 48.0]])
+    header = cortex_m4.replay_header(rows)
+    literals = header.split("{", 2)[2].split("}")[0].split(", ")
+    assert literals[3] == "NAN"
+    for text, value in zip(literals, rows[0]):
+        if text != "NAN":
+            assert np.float32(text.rstrip("f")) == np.float32(value), (text, value)
+    assert float32.U > 2.0 ** -24  # the bound covers the double build's rounding too
+
+
+@pytest.mark.embedded
+def test_export_controller_writes_the_object_a_firmware_links(tmp_path):
+    """export-controller --precision float32 --cortex-m4 DIR: controller.o defines the three calls of
+    buckc_controller.h and needs only newlib's libm; a firmware for an STM32G4 memory map links it."""
+    import subprocess
+
+    from conftest import cli
+
+    done = cli("export-controller", "pi", "--kp", "0.007", "--ki", "170", "--control-period", "1/75e3", "--precision",
+               "float32", "--out", str(tmp_path / "pi.fmu"), "--cortex-m4", str(tmp_path / "m4"))
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "m4").iterdir()) == ["buckc.h", "buckc_controller.h", "controller.o",
+                                                                   "controller_config.h"]
+    symbols = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "m4" / "controller.o")], capture_output=True,
+                             text=True).stdout
+    for name in ("buckc_controller_init", "buckc_controller_reset", "buckc_controller_step"):
+        assert f" T {name}" in symbols
+    main = tmp_path / "main.c"
+    main.write_text('#include "buckc_controller.h"\nvolatile float vo, out;\nint main(void) {\n'
+                    '    const char *what; buckc_real duty = 0; BuckcMeasurement m = {0, 12, 0, 1, 1, 48};\n'
+                    '    if (buckc_controller_init(&what) != BUCKC_OK) return 1;\n    m.output_voltage = vo;\n'
+                    '    buckc_controller_step(&m, &duty); out = duty; return 0;\n}\n')
+    script = tmp_path / "g4.ld"  # the image's linker script with an STM32G474's flash and SRAM
+    script.write_text(cortex_m4.LINKER_SCRIPT.read_text()
+                      .replace("ORIGIN = 0x00000000, LENGTH = 1M", "ORIGIN = 0x08000000, LENGTH = 512K")
+                      .replace("ORIGIN = 0x20000000, LENGTH = 1M", "ORIGIN = 0x20000000, LENGTH = 128K"))
+    arm = ["arm-none-eabi-gcc", *cortex_m4.ARM_FLAGS]
+    link = subprocess.run([*arm, "-O2", "-DBUCKC_FLOAT32", f"-I{tmp_path / 'm4'}", f"-I{cortex_m4.HERE}",
+                           *cortex_m4.LINK_FLAGS, "-T", str(script), str(cortex_m4.HERE / "startup.c"),
+                           str(cortex_m4.HERE / "semihosting.c"), str(main), str(tmp_path / "m4" / "controller.o"),
+                           "-lm", "-o", str(tmp_path / "fw.elf")], capture_output=True, text=True)
+    assert link.returncode == 0, link.stderr
+    table = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "fw.elf")], capture_output=True, text=True).stdout
+    assert any(line.startswith("08") and line.endswith(" T buckc_controller_step") for line in table.splitlines())
