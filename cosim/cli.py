@@ -177,13 +177,13 @@ def _design_controller(args, binding, period: float, work_dir: Path, policy_path
     return controller
 
 
-def _export_controller_fmu(controller, out: Path) -> tuple[Path, Path]:
-    """Write ``controller`` as a controller FMU at ``out``: (binary FMU, source FMU); a configuration its C twin
-    cannot hold is a ConfigError naming the controller."""
+def _export_controller_fmu(controller, out: Path, fmi_version: int = 2) -> tuple[Path, Path]:
+    """Write ``controller`` as a controller FMU (FMI ``fmi_version``) at ``out``: (binary FMU, source FMU); a
+    configuration its C twin cannot hold is a ConfigError naming the controller."""
     from cosim.fmi.controller_export import export_controller
 
     try:
-        return export_controller(controller, out)
+        return export_controller(controller, out, fmi_version=fmi_version)
     except ValueError as error:  # a configuration the C twins cannot hold
         raise ConfigError(f"{controller.name}: {error}") from None
 
@@ -221,6 +221,11 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _add_fmi_version_option(p, whose: str) -> None:
+    p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help=f"{whose} FMI version: 2 (FMI 2.0, the default) or 3 (FMI 3.0)")
+
+
 def cmd_export_controller(args) -> int:
     out = output_file(args.out)
     if out.suffix.lower() != ".fmu":
@@ -228,10 +233,11 @@ def cmd_export_controller(args) -> int:
     _check_duty_limits(args)
     work_dir = output_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
-    binary, source = _export_controller_fmu(controller, out)
-    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU: "
+    binary, source = _export_controller_fmu(controller, out, args.fmi_version)
+    version = f"FMI {args.fmi_version}.0"
+    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an {version} co-simulation FMU: "
           f"{binary}")
-    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    print(f"source FMU (compile with any {version} tool): {source}")
     return 0
 
 
@@ -343,12 +349,14 @@ def cmd_export(args) -> int:
 def cmd_build_fmu(args) -> int:
     from plant_fmu import export_fmus, fmu_path, source_fmu_path
 
+    version = args.fmi_version
     if args.output:
-        binary, source = export_fmus(output_dir(args.output), force=args.force)
+        binary, source = export_fmus(output_dir(args.output), force=args.force, fmi_version=version)
     else:
-        binary, source = fmu_path(force=args.force), source_fmu_path(force=args.force)
-    print(f"co-simulation + model exchange FMU: {binary}")
-    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+        binary, source = (fmu_path(force=args.force, fmi_version=version),
+                          source_fmu_path(force=args.force, fmi_version=version))
+    print(f"FMI {version}.0 co-simulation + model exchange FMU: {binary}")
+    print(f"source FMU (compile with any FMI {version}.0 tool): {source}")
     return 0
 
 
@@ -733,9 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plant_options(p)
     p.set_defaults(func=cmd_distill)
 
-    p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 co-simulation FMU (C99)",
+    p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 (or 3.0) co-simulation FMU (C99)",
                        description="Write the workbench's PI, predictive controller (NNPC, MPC) or explicit NNPC as "
-                                   "an FMI 2.0 co-simulation FMU built from the hand-written C99 twins of "
+                                   "an FMI 2.0 (--fmi-version 3: FMI 3.0) co-simulation FMU built from the hand-written C99 twins of "
                                    "controllers/c and a generated header of data (gains, the horizon settings and the "
                                    "network's weights, or the policy's weights), plus its source FMU. Its variables "
                                    "carry the workbench's role names (reference, measured_output_voltage, measured_inductor_current, "
@@ -750,6 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                      "on the plant below)")
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand)")
+    _add_fmi_version_option(p, "the controller FMU's")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)
@@ -806,11 +815,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="output folder (default: beside the input)")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu from its C sources with fmpy",
+    p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu (FMI 2.0 or 3.0) from its C sources with fmpy",
                        description="Build the plant FMU (model exchange + co-simulation) with fmpy's CMake "
-                                   "compile; cached by a hash of the sources. Also writes a source-only FMU.")
+                                   "compile; cached by a hash of the sources. Also writes a source-only FMU. "
+                                   "--fmi-version 3 builds the FMI 3.0 edition: the same model code behind the "
+                                   "FMI 3.0 glue (it computes the same values as the FMI 2.0 one).")
     p.add_argument("--output", metavar="DIR", help="copy BuckConverter.fmu and BuckConverter-source.fmu here")
     p.add_argument("--force", action="store_true", help="rebuild even if a cached build exists")
+    _add_fmi_version_option(p, "the plant FMU's")
     p.set_defaults(func=cmd_build_fmu)
 
     p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",

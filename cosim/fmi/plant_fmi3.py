@@ -26,7 +26,7 @@ ticks, so a plant that declares clocks is refused when it is opened.
 from __future__ import annotations
 
 from ctypes import byref, c_bool, c_double
-from typing import Sequence
+from typing import Callable, Sequence
 
 from fmpy.fmi1 import FMICallException
 from fmpy.fmi3 import FMU3Model, FMU3Slave
@@ -127,6 +127,45 @@ class _Fmi3Plant(FmuPlant):
         self._fmu.freeFMUState(state)
 
 
+class Fmi3DoStep:
+    """``fmi3DoStep`` with the shape of the FMI 2.0 call the adapters' stepping loops make --
+    ``(instance, t, h, noSetFMUStatePriorToCurrentPoint) -> status`` -- and its three flags handled for an
+    instance made without event mode and without early return: ``terminateSimulation`` and
+    ``eventHandlingNeeded`` raise ``error`` (a one-line message naming the time), an early return that
+    progressed continues from ``lastSuccessfulTime``, one that did not is refused."""
+
+    def __init__(self, fmu, origin: str, last_log: Callable[[], str], error: type = PlantError):
+        self._call = fmu.dll.fmi3DoStep
+        self._origin, self._last_log, self._error = origin, last_log, error
+        self._event, self._terminate, self._early = c_bool(), c_bool(), c_bool()
+        self._last = c_double()
+        self._flags = (byref(self._event), byref(self._terminate), byref(self._early), byref(self._last))
+
+    def __call__(self, instance, t0: float, h: float, no_set_prior=True) -> int:
+        t, end = t0, t0 + h
+        while True:
+            self._event.value = self._terminate.value = self._early.value = False  # not every FMU writes them
+            self._last.value = end
+            status = self._call(instance, t, end - t, True, *self._flags)
+            if status > 1:
+                return status
+            if self._terminate.value:
+                raise self._error(f"{self._origin}: the FMU asked to terminate the simulation (fmi3DoStep's "
+                                  f"terminateSimulation) at t = {self._last.value:.9g} s{self._last_log()}")
+            if self._event.value:
+                raise self._error(f"{self._origin}: fmi3DoStep asked for event handling (eventHandlingNeeded) at "
+                                  f"t = {self._last.value:.9g} s, but the FMU was instantiated without event mode "
+                                  "(eventModeUsed = false); it must handle its events itself")
+            if not self._early.value:
+                return status
+            last = self._last.value
+            if not t < last < end:
+                raise self._error(f"{self._origin}: fmi3DoStep returned early (earlyReturn) at lastSuccessfulTime = "
+                                  f"{last:.9g} s without progress from t = {t:.9g} s towards {end:.9g} s, although "
+                                  "early return was not allowed")
+            t = last  # an early return that progressed: continue from where it stopped
+
+
 class CoSimulationPlant3(_Fmi3Plant, CoSimulationPlant):
     """An FMI 3.0 co-simulation plant: ``fmi3DoStep`` from one instant to the next (split at ``max_step``)."""
 
@@ -138,38 +177,8 @@ class CoSimulationPlant3(_Fmi3Plant, CoSimulationPlant):
 
     def _instantiate(self, instance_name: str) -> None:
         _Fmi3Plant._instantiate(self, instance_name)
-        self._do_step3 = self._fmu.dll.fmi3DoStep
-        self._event, self._terminate, self._early = c_bool(), c_bool(), c_bool()
-        self._last = c_double()
-        self._flags = (byref(self._event), byref(self._terminate), byref(self._early), byref(self._last))
-        # the FMI 2.0 stepping loop calls _do_step(component, t, h, noSetFMUStatePrior): one FMI 3.0 step each
-        self._do_step = self._step
-
-    def _step(self, component, t0: float, h: float, no_set_prior) -> int:
-        """Advance from ``t0`` by ``h`` with fmi3DoStep, as many calls as early returns need; the status
-        (an error is raised here, not returned, when a flag cannot be honoured)."""
-        t, end = t0, t0 + h
-        while True:
-            self._event.value = self._terminate.value = self._early.value = False  # not every FMU writes them
-            self._last.value = end
-            status = self._do_step3(component, t, end - t, True, *self._flags)
-            if status > 1:
-                return status
-            if self._terminate.value:
-                raise PlantError(f"{self.binding.origin}: the FMU asked to terminate the simulation (fmi3DoStep's "
-                                 f"terminateSimulation) at t = {self._last.value:.9g} s{self._last_log_suffix()}")
-            if self._event.value:
-                raise PlantError(f"{self.binding.origin}: fmi3DoStep asked for event handling (eventHandlingNeeded) at "
-                                 f"t = {self._last.value:.9g} s, but the FMU was instantiated without event mode "
-                                 "(eventModeUsed = false); it must handle its events itself")
-            if not self._early.value:
-                return status
-            last = self._last.value
-            if not t < last < end:
-                raise PlantError(f"{self.binding.origin}: fmi3DoStep returned early (earlyReturn) at "
-                                 f"lastSuccessfulTime = {last:.9g} s without progress from t = {t:.9g} s towards "
-                                 f"{end:.9g} s, although early return was not allowed")
-            t = last  # an early return that progressed: continue from where it stopped
+        # the FMI 2.0 stepping loop calls _do_step(instance, t, h, noSetFMUStatePrior): FMI 3.0's, flags handled
+        self._do_step = Fmi3DoStep(self._fmu, self.binding.origin, self._last_log_suffix)
 
 
 class ModelExchangePlant3(_Fmi3Plant, ModelExchangePlant):
@@ -192,4 +201,4 @@ class ModelExchangePlant3(_Fmi3Plant, ModelExchangePlant):
         self._next_event_time = next_time if defined else None
 
 
-__all__ = ["CoSimulationPlant3", "ModelExchangePlant3", "clock_refusal"]
+__all__ = ["CoSimulationPlant3", "Fmi3DoStep", "ModelExchangePlant3", "clock_refusal"]
