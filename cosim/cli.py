@@ -256,6 +256,12 @@ def cmd_export_ssp(args) -> int:
     _check_duty_limits(args)
     scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
+    if args.fmi_version == 3 and binding.source is None:  # the built-in plant's FMI 3.0 edition
+        from dataclasses import replace
+
+        from plant_fmu import fmu_path
+
+        binding = replace(binding, fmu_path=fmu_path(fmi_version=3))
     check_plant_supports(binding, scenario)  # before any tuning or training
     with tempfile.TemporaryDirectory(prefix="buck-cosim-export-ssp-") as tmp:
         if args.controller in CONTROLLERS:
@@ -263,7 +269,8 @@ def cmd_export_ssp(args) -> int:
             plan_timeline(scenario, period, period)
             controller = _design_controller(args, binding, period, output_dir(args.work_dir))
             fmu, _ = _export_controller_fmu(controller,
-                                            Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu")
+                                            Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu",
+                                            args.fmi_version)
         else:
             from cosim.fmi.controller import controller_binding
 
@@ -781,6 +788,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "event (default: 1e-5, the workbench's recording period)")
     p.add_argument("--out", required=True, metavar="LOOP.ssp", help="the archive to write")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand)")
+    p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help="3: the built-in controller, the scenario source and the built-in plant as FMI 3.0 FMUs (a "
+                        "--plant binding file keeps its FMU); only --engine workbench runs such an archive "
+                        "(default: 2)")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_ssp)
@@ -792,7 +803,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the columns of 'run', metadata naming the engine; controller_compute_time is "
                                    "NaN for fmpy and libcosim) and its metrics (OUT/metrics).")
     p.add_argument("ssp", metavar="LOOP.ssp", help="an archive written by buck-cosim export-ssp")
-    p.add_argument("--engine", choices=["workbench", "fmpy", "libcosim"], required=True, help="co-simulation engine")
+    p.add_argument("--engine", choices=["workbench", "fmpy", "libcosim"], required=True,
+                   help="co-simulation engine (fmpy and libcosim run FMI 2.0 components only)")
     p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",
                    help="communication step in s (default: the archive's); must divide the control period and land "
                         "on every event")
