@@ -2,7 +2,9 @@
 
 Every FMU -- the buck plant, the controllers, the scenario sources -- is the shared FMI 2.0 glue
 (``plant_fmu/glue``) plus one model, described by an :class:`FmuSources`: its model identifier,
-its ``modelDescription.xml`` and its source files. :func:`build` stages them in an FMU folder,
+its ``modelDescription.xml`` and its source files. Its FMI 3.0 edition (:func:`fmi3_edition`,
+``plant_fmu/fmi3.py``) is the same model behind the FMI 3.0 glue, its description derived from the
+FMI 2.0 one. :func:`build` stages them in an FMU folder,
 compiles them with ``fmpy.build.build_platform_binary`` (warnings on, warnings as errors) and
 zips the result; :func:`build_source_fmu` zips the same folder without compiling, for tools that
 compile FMUs themselves. Both are cached under a name that holds a hash of everything that
