@@ -50,15 +50,6 @@ def python_buck3_fmu(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def python_buck2_fmu(tmp_path_factory) -> Path:
-    """The FMI 2.0 pythonfmu plant (tests/corpus/python_buck.py), built here with the shared physics."""
-    from pythonfmu.builder import FmuBuilder
-
-    out = tmp_path_factory.mktemp("pythonfmu2")
-    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck.py", dest=out, project_files=[CORPUS / "buck_math.py"]))
-
-
-@pytest.fixture(scope="session")
 def faulty_fmu3(tmp_path_factory) -> Path:
     from pythonfmu3.builder import FmuBuilder
 
@@ -253,9 +244,9 @@ def test_fmi3_do_step_flags_are_handled_or_refused(buck_fmu3):
 # ------------------------------------------------------------------------------------------ pythonfmu3 plants
 
 
-def test_a_pythonfmu3_plant_runs_pi_and_nnpc_like_its_fmi2_twin(tmp_path, python_buck2_fmu, python_buck3_fmu,
+def test_a_pythonfmu3_plant_runs_pi_and_nnpc_like_its_fmi2_twin(tmp_path, python_buck_fmu, python_buck3_fmu,
                                                                  nnpc_1ms):
-    twin2 = load_binding(bound(tmp_path, BUCK2, python_buck2_fmu, "buck2.toml"))
+    twin2 = load_binding(bound(tmp_path, BUCK2, python_buck_fmu, "buck2.toml"))
     twin3 = load_binding(bound(tmp_path, BUCK3, python_buck3_fmu, "buck3.toml"))
     assert check_fmu(twin3.fmu_path).fmi_major == 3 and check_fmu(twin2.fmu_path).fmi_major == 2
     for controller, scenario in ((pi(), "startup"), (nnpc_1ms, "reference_up"), (nnpc_1ms, "load_change")):
