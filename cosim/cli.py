@@ -178,13 +178,13 @@ def _design_controller(args, binding, period: float, work_dir: Path, policy_path
     return controller
 
 
-def _export_controller_fmu(controller, out: Path, precision: str = "float64") -> tuple[Path, Path]:
-    """Write ``controller`` as a controller FMU at ``out`` from the ``precision`` build of its C twin: (binary FMU,
-    source FMU); a configuration its C twin cannot hold is a ConfigError naming the controller."""
+def _export_controller_fmu(controller, out: Path, precision: str = "float64", fmi_version: int = 2) -> tuple[Path, Path]:
+    """Write ``controller`` as a controller FMU (FMI ``fmi_version``) at ``out`` from the ``precision`` build of its
+    C twin: (binary FMU, source FMU); a configuration its C twin cannot hold is a ConfigError naming the controller."""
     from cosim.fmi.controller_export import export_controller
 
     try:
-        return export_controller(controller, out, precision=precision)
+        return export_controller(controller, out, precision=precision, fmi_version=fmi_version)
     except ValueError as error:  # a configuration the C twins cannot hold
         raise ConfigError(f"{controller.name}: {error}") from None
 
@@ -222,6 +222,11 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _add_fmi_version_option(p, whose: str) -> None:
+    p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help=f"{whose} FMI version: 2 (FMI 2.0, the default) or 3 (FMI 3.0)")
+
+
 def cmd_export_controller(args) -> int:
     out = output_file(args.out)
     if out.suffix.lower() != ".fmu":
@@ -241,11 +246,12 @@ def cmd_export_controller(args) -> int:
                           f"{', '.join(FLOAT32_CONTROLLERS)}")
     work_dir = output_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
-    binary, source = _export_controller_fmu(controller, out, args.precision)
+    binary, source = _export_controller_fmu(controller, out, args.precision, args.fmi_version)
+    version = f"FMI {args.fmi_version}.0"
     build = "" if args.precision == "float64" else f" ({args.precision} build of the C twin)"
-    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an FMI 2.0 co-simulation FMU{build}: "
+    print(f"{controller.name} sampled every {controller.sample_period:.6g} s as an {version} co-simulation FMU{build}: "
           f"{binary}")
-    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+    print(f"source FMU (compile with any {version} tool): {source}")
     if args.cortex_m4:
         from cosim.benchmark_harness.cortex_m4 import EmbeddedError, export_object
 
@@ -273,6 +279,12 @@ def cmd_export_ssp(args) -> int:
     _check_duty_limits(args)
     scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
+    if args.fmi_version == 3 and binding.source is None:  # the built-in plant's FMI 3.0 edition
+        from dataclasses import replace
+
+        from plant_fmu import fmu_path
+
+        binding = replace(binding, fmu_path=fmu_path(fmi_version=3))
     check_plant_supports(binding, scenario)  # before any tuning or training
     with tempfile.TemporaryDirectory(prefix="buck-cosim-export-ssp-") as tmp:
         if args.controller in CONTROLLERS:
@@ -280,7 +292,8 @@ def cmd_export_ssp(args) -> int:
             plan_timeline(scenario, period, period)
             controller = _design_controller(args, binding, period, output_dir(args.work_dir))
             fmu, _ = _export_controller_fmu(controller,
-                                            Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu")
+                                            Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu",
+                                            args.fmi_version)
         else:
             from cosim.fmi.controller import controller_binding
 
@@ -366,12 +379,14 @@ def cmd_export(args) -> int:
 def cmd_build_fmu(args) -> int:
     from plant_fmu import export_fmus, fmu_path, source_fmu_path
 
+    version = args.fmi_version
     if args.output:
-        binary, source = export_fmus(output_dir(args.output), force=args.force)
+        binary, source = export_fmus(output_dir(args.output), force=args.force, fmi_version=version)
     else:
-        binary, source = fmu_path(force=args.force), source_fmu_path(force=args.force)
-    print(f"co-simulation + model exchange FMU: {binary}")
-    print(f"source FMU (compile with any FMI 2.0 tool): {source}")
+        binary, source = (fmu_path(force=args.force, fmi_version=version),
+                          source_fmu_path(force=args.force, fmi_version=version))
+    print(f"FMI {version}.0 co-simulation + model exchange FMU: {binary}")
+    print(f"source FMU (compile with any FMI {version}.0 tool): {source}")
     return 0
 
 
@@ -756,9 +771,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plant_options(p)
     p.set_defaults(func=cmd_distill)
 
-    p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 co-simulation FMU (C99)",
+    p = sub.add_parser("export-controller", help="a controller as an FMI 2.0 (or 3.0) co-simulation FMU (C99)",
                        description="Write the workbench's PI, predictive controller (NNPC, MPC) or explicit NNPC as "
-                                   "an FMI 2.0 co-simulation FMU built from the hand-written C99 twins of "
+                                   "an FMI 2.0 (--fmi-version 3: FMI 3.0) co-simulation FMU built from the hand-written C99 twins of "
                                    "controllers/c and a generated header of data (gains, the horizon settings and the "
                                    "network's weights, or the policy's weights), plus its source FMU. Its variables "
                                    "carry the workbench's role names (reference, measured_output_voltage, measured_inductor_current, "
@@ -781,6 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --precision float32: also cross-compile the controller for a Cortex-M4F into "
                         "DIR/controller.o (+ buckc_controller.h, buckc.h), the object a firmware links "
                         "(needs gcc-arm-none-eabi and libnewlib-arm-none-eabi)")
+    _add_fmi_version_option(p, "the controller FMU's")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_controller)
@@ -803,6 +819,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "event (default: 1e-5, the workbench's recording period)")
     p.add_argument("--out", required=True, metavar="LOOP.ssp", help="the archive to write")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand)")
+    p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help="3: the built-in controller, the scenario source and the built-in plant as FMI 3.0 FMUs (a "
+                        "--plant binding file keeps its FMU); only --engine workbench runs such an archive "
+                        "(default: 2)")
     _add_controller_design_options(p)
     _add_plant_options(p)
     p.set_defaults(func=cmd_export_ssp)
@@ -814,7 +834,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the columns of 'run', metadata naming the engine; controller_compute_time is "
                                    "NaN for fmpy and libcosim) and its metrics (OUT/metrics).")
     p.add_argument("ssp", metavar="LOOP.ssp", help="an archive written by buck-cosim export-ssp")
-    p.add_argument("--engine", choices=["workbench", "fmpy", "libcosim"], required=True, help="co-simulation engine")
+    p.add_argument("--engine", choices=["workbench", "fmpy", "libcosim"], required=True,
+                   help="co-simulation engine (fmpy and libcosim run FMI 2.0 components only)")
     p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",
                    help="communication step in s (default: the archive's); must divide the control period and land "
                         "on every event")
@@ -837,11 +858,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="output folder (default: beside the input)")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu from its C sources with fmpy",
+    p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu (FMI 2.0 or 3.0) from its C sources with fmpy",
                        description="Build the plant FMU (model exchange + co-simulation) with fmpy's CMake "
-                                   "compile; cached by a hash of the sources. Also writes a source-only FMU.")
+                                   "compile; cached by a hash of the sources. Also writes a source-only FMU. "
+                                   "--fmi-version 3 builds the FMI 3.0 edition: the same model code behind the "
+                                   "FMI 3.0 glue (it computes the same values as the FMI 2.0 one).")
     p.add_argument("--output", metavar="DIR", help="copy BuckConverter.fmu and BuckConverter-source.fmu here")
     p.add_argument("--force", action="store_true", help="rebuild even if a cached build exists")
+    _add_fmi_version_option(p, "the plant FMU's")
     p.set_defaults(func=cmd_build_fmu)
 
     p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",

@@ -283,10 +283,13 @@ def check_parameter_events(scenario: Scenario, model_description, origin: str) -
     """Refuse, before anything runs, a parameter event the plant FMU cannot take during a run:
     a name that is not a Real parameter with ``variability="tunable"``, or a value outside the
     variable's declared min/max. Messages name the scenario file, the key and its line."""
+    from cosim.fmi.binding import is_float
+
     variables = {v.name: v for v in model_description.modelVariables}
+    real = "Float64" if str(model_description.fmiVersion).startswith("3") else "Real"  # the FMI version's name
     tunable = sorted(v.name for v in model_description.modelVariables
-                     if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real")
-    choices = ", ".join(tunable) if tunable else "none: the FMU declares no tunable Real parameter"
+                     if v.causality == "parameter" and v.variability == "tunable" and is_float(v))
+    choices = ", ".join(tunable) if tunable else f"none: the FMU declares no tunable {real} parameter"
     for i, event in enumerate(scenario.events):
         if not event.parameters:
             continue
@@ -296,10 +299,10 @@ def check_parameter_events(scenario: Scenario, model_description, origin: str) -
             variable = variables.get(name)
             if variable is None:
                 raise ConfigError(f"{at}: {label}.{name}: {origin} has no variable {name!r} (tunable: {choices})")
-            if variable.causality != "parameter" or variable.variability != "tunable" or variable.type != "Real":
-                kind = f"a {variable.variability} {variable.causality}" + ("" if variable.type == "Real" else
+            if variable.causality != "parameter" or variable.variability != "tunable" or not is_float(variable):
+                kind = f"a {variable.variability} {variable.causality}" + ("" if is_float(variable) else
                                                                            f" of type {variable.type}")
-                raise ConfigError(f"{at}: {label}.{name}: {name!r} is {kind}; only tunable Real parameters can "
+                raise ConfigError(f"{at}: {label}.{name}: {name!r} is {kind}; only tunable {real} parameters can "
                                   f"change during a run (tunable: {choices})")
             low, high = _declared_range(variable)
             if (low is not None and value < low) or (high is not None and value > high):

@@ -2,7 +2,9 @@
 
 Every FMU -- the buck plant, the controllers, the scenario sources -- is the shared FMI 2.0 glue
 (``plant_fmu/glue``) plus one model, described by an :class:`FmuSources`: its model identifier,
-its ``modelDescription.xml`` and its source files. :func:`build` stages them in an FMU folder,
+its ``modelDescription.xml`` and its source files. Its FMI 3.0 edition (:func:`fmi3_edition`,
+``plant_fmu/fmi3.py``) is the same model behind the FMI 3.0 glue, its description derived from the
+FMI 2.0 one. :func:`build` stages them in an FMU folder,
 compiles them with ``fmpy.build.build_platform_binary`` (warnings on, warnings as errors) and
 zips the result; :func:`build_source_fmu` zips the same folder without compiling, for tools that
 compile FMUs themselves. Both are cached under a name that holds a hash of everything that
@@ -37,6 +39,14 @@ GLUE_FILES = ("fmi2_glue.c", "fmu_model.h")
 REAL_CO_SIMULATION_ONLY = "real_co_simulation_only.c"
 PLANT_FILES = ("buck_model.c", "buck_model.h", "buck_variables.h", "buck_fmu.c")
 MODEL_DESCRIPTION = "modelDescription.xml"
+#: the FMI versions the workbench builds its FMUs for (one glue layer each: glue/fmi2_glue.c, glue/fmi3_glue.c)
+FMI_VERSIONS = (2, 3)
+#: the plant's event indicators (buck_event_indicators in buck_model.c), named for FMI 3.0, which makes them variables
+PLANT_EVENT_INDICATORS = (
+    ("diode_event_indicator", "Diode zero crossing: iL while the diode conducts, the unblocking margin while it "
+                              "blocks"),
+    ("conduction_boundary_event_indicator", "CCM/DCM boundary of the averaged model (1 in switched mode)"),
+)
 #: warnings as errors; no fused multiply-add (the C twins must round like the Python references)
 CMAKE_OPTIONS = {"CMAKE_COMPILE_WARNING_AS_ERROR:BOOL": "ON", "CMAKE_C_FLAGS:STRING": "-ffp-contract=off"}
 
@@ -119,10 +129,25 @@ def model_description_text(root: ElementTree.Element) -> str:
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
-def plant_sources() -> FmuSources:
-    """The buck converter plant FMU."""
-    return FmuSources(MODEL_IDENTIFIER, (SOURCE_DIR / MODEL_DESCRIPTION).read_text(encoding="utf-8"),
-                      glue_files() + read_files(SOURCE_DIR, PLANT_FILES))
+def plant_sources(fmi_version: int = 2) -> FmuSources:
+    """The buck converter plant FMU: FMI 2.0, or its FMI 3.0 edition (the same model code, the FMI 3.0 glue)."""
+    sources = FmuSources(MODEL_IDENTIFIER, (SOURCE_DIR / MODEL_DESCRIPTION).read_text(encoding="utf-8"),
+                         glue_files() + read_files(SOURCE_DIR, PLANT_FILES))
+    return sources if check_fmi_version(fmi_version) == 2 else fmi3_edition(sources, PLANT_EVENT_INDICATORS)
+
+
+def check_fmi_version(fmi_version: int) -> int:
+    """``fmi_version`` if the workbench builds FMUs of that FMI version (2 or 3), else a ValueError."""
+    if fmi_version not in FMI_VERSIONS:
+        raise ValueError(f"FMI version {fmi_version!r} is not built: expected one of {', '.join(map(str, FMI_VERSIONS))}")
+    return fmi_version
+
+
+def fmi3_edition(sources: FmuSources, event_indicators=()) -> FmuSources:
+    """:func:`plant_fmu.fmi3.fmi3_edition`: the FMI 3.0 edition of an FMU's sources."""
+    from plant_fmu import fmi3
+
+    return fmi3.fmi3_edition(sources, event_indicators)
 
 
 def cache_dir() -> Path:
@@ -218,14 +243,15 @@ def build_source_fmu(sources: FmuSources, force: bool = False) -> Path:
     return _cached(sources, "-source", compile_first=False, force=force)
 
 
-def fmu_path(force: bool = False) -> Path:
-    """Path of the compiled BuckConverter FMU (model exchange + co-simulation), building it if needed."""
-    return build(plant_sources(), force)
+def fmu_path(force: bool = False, fmi_version: int = 2) -> Path:
+    """Path of the compiled BuckConverter FMU (model exchange + co-simulation, FMI 2.0 or 3.0), building it
+    if needed."""
+    return build(plant_sources(fmi_version), force)
 
 
-def source_fmu_path(force: bool = False) -> Path:
+def source_fmu_path(force: bool = False, fmi_version: int = 2) -> Path:
     """Path of the plant's source-only FMU."""
-    return build_source_fmu(plant_sources(), force)
+    return build_source_fmu(plant_sources(fmi_version), force)
 
 
 def export(sources: FmuSources, binary: Path, source: Path, force: bool = False) -> tuple[Path, Path]:
@@ -238,8 +264,9 @@ def export(sources: FmuSources, binary: Path, source: Path, force: bool = False)
     return Path(binary), Path(source)
 
 
-def export_fmus(output_dir: Path, force: bool = False) -> tuple[Path, Path]:
-    """Copy the compiled and the source plant FMU to ``output_dir`` as BuckConverter.fmu / BuckConverter-source.fmu."""
+def export_fmus(output_dir: Path, force: bool = False, fmi_version: int = 2) -> tuple[Path, Path]:
+    """Copy the compiled and the source plant FMU to ``output_dir`` as BuckConverter.fmu / BuckConverter-source.fmu
+    (``fmi_version`` 3: the FMI 3.0 edition, under the same names)."""
     output_dir = Path(output_dir)
-    return export(plant_sources(), output_dir / f"{MODEL_IDENTIFIER}.fmu",
+    return export(plant_sources(fmi_version), output_dir / f"{MODEL_IDENTIFIER}.fmu",
                   output_dir / f"{MODEL_IDENTIFIER}-source.fmu", force)

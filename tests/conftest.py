@@ -176,11 +176,12 @@ CORPUS = Path(__file__).parent / "corpus"
 
 @pytest.fixture(scope="session")
 def python_buck_fmu(tmp_path_factory) -> Path:
-    """An outside-authored plant: built here with pythonfmu (co-simulation only, its own names/units)."""
+    """An outside-authored plant: built here with pythonfmu (co-simulation only, its own names/units; its physics,
+    tests/corpus/buck_math.py, bundled with it)."""
     from pythonfmu.builder import FmuBuilder
 
     out = tmp_path_factory.mktemp("pythonfmu")
-    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck.py", dest=out))
+    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck.py", dest=out, project_files=[CORPUS / "buck_math.py"]))
 
 
 @pytest.fixture(scope="session")

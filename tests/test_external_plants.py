@@ -206,8 +206,8 @@ def _crafted(tmp_path: Path, buck_fmu: Path, kind: str) -> Path:
         return path
     if kind == "fmi1":
         return _fmu_with(tmp_path, "fmi1.fmu", {"modelDescription.xml": MD.format(v="1.0")})
-    if kind == "fmi3":
-        return _fmu_with(tmp_path, "fmi3.fmu", {"modelDescription.xml": MD.format(v="3.0")})
+    if kind == "fmi4":
+        return _fmu_with(tmp_path, "fmi4.fmu", {"modelDescription.xml": MD.format(v="4.0")})
     if kind == "no binary":
         from plant_fmu import source_fmu_path
 
@@ -228,7 +228,7 @@ def _crafted(tmp_path: Path, buck_fmu: Path, kind: str) -> Path:
     ("climbing member", r"member '../../evil.so' climbs out of the archive"),
     ("huge", r"huge.fmu would expand to 4096 MiB, more than the limit of 1024 MiB"),
     ("fmi1", r"fmi1.fmu is FMI 1.0; the workbench supports FMI 2.0"),
-    ("fmi3", r"fmi3.fmu is FMI 3.0; the workbench supports FMI 2.0"),
+    ("fmi4", r"fmi4.fmu is FMI 4.0; the workbench supports FMI 2.0 and FMI 3.0"),
     ("no binary", r"source.fmu has no linux64 binary for its interfaces \(co-simulation, model-exchange\); binaries present: none"),
     ("no description", r"nodesc.fmu has no modelDescription.xml"),
     ("malformed description", r"bad.fmu: modelDescription.xml is not well-formed XML"),

@@ -2,7 +2,8 @@
 
 Loading an FMU runs its native code in this process, so an archive is refused early, with one
 line naming the problem, if it is not a zip, has members that would land outside the extraction
-folder, would expand to an unreasonable size, is not FMI 2.0, or has no binary for this platform.
+folder, would expand to an unreasonable size, is neither FMI 2.0 nor FMI 3.0, or has no binary for this
+platform (FMI 2.0 keeps it under ``binaries/linux64/``, FMI 3.0 under ``binaries/x86_64-linux/``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from fmpy.model_description import ModelDescription
 from cosim.base.errors import FmuArchiveError
 
 MAX_UNCOMPRESSED_BYTES = 1 << 30  # 1 GiB: far above any plant model, far below a zip bomb
-SUPPORTED = "FMI 2.0 (model exchange or co-simulation)"
+SUPPORTED = "FMI 2.0 and FMI 3.0 (model exchange or co-simulation)"
 SHARED_LIBRARY_SUFFIX = {"linux64": ".so", "darwin64": ".dylib", "win64": ".dll", "win32": ".dll"}
 
 
@@ -30,6 +31,11 @@ class CheckedFmu:
     model_description: ModelDescription
     interfaces: tuple[str, ...]  # "co-simulation" and/or "model-exchange" with a binary for this platform
     platforms: tuple[str, ...]
+
+    @property
+    def fmi_major(self) -> int:
+        """2 or 3: which adapter drives the FMU (the archive's fmiVersion)."""
+        return 3 if self.model_description.fmiVersion.startswith("3.") else 2
 
 
 def _member_problem(name: str) -> str | None:
@@ -87,7 +93,7 @@ def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_B
     version = root.get("fmiVersion")
     if version is None:
         raise FmuArchiveError(f"FMU {path}: modelDescription.xml has no fmiVersion attribute")
-    if version != "2.0":
+    if version != "2.0" and not version.startswith("3.0"):
         raise FmuArchiveError(f"FMU {path} is FMI {version}; the workbench supports {SUPPORTED}")
     try:
         model_description = fmpy.read_model_description(str(path), validate=False)
@@ -96,18 +102,23 @@ def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_B
         raise FmuArchiveError(f"FMU {path}: malformed modelDescription.xml ({message})") from None
     platforms = _binary_platforms(names)
     suffix = SHARED_LIBRARY_SUFFIX.get(fmpy.platform, ".so")
+    platform = fmpy.platform if version == "2.0" else fmpy.platform_tuple  # linux64 / x86_64-linux
     interfaces = []
     for label, interface in (("co-simulation", model_description.coSimulation),
                              ("model-exchange", model_description.modelExchange)):
         if interface is not None:
-            if f"binaries/{fmpy.platform}/{interface.modelIdentifier}{suffix}" in names:
+            if f"binaries/{platform}/{interface.modelIdentifier}{suffix}" in names:
                 interfaces.append(label)
+    if not interfaces and getattr(model_description, "scheduledExecution", None) is not None and not (
+            model_description.coSimulation or model_description.modelExchange):
+        raise FmuArchiveError(f"FMU {path} offers only Scheduled Execution (FMI 3.0), which the workbench does not "
+                              "drive: expected co-simulation or model exchange")
     if not interfaces:
         declared = [label for label, i in (("co-simulation", model_description.coSimulation),
                                            ("model-exchange", model_description.modelExchange)) if i]
         have = ", ".join(platforms) if platforms else "none"
         raise FmuArchiveError(
-            f"FMU {path} has no {fmpy.platform} binary for its interfaces ({', '.join(declared) or 'none declared'}); "
+            f"FMU {path} has no {platform} binary for its interfaces ({', '.join(declared) or 'none declared'}); "
             f"binaries present: {have}"
         )
     return CheckedFmu(path=path, model_description=model_description, interfaces=tuple(interfaces),

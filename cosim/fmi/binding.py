@@ -162,20 +162,78 @@ class ResolvedParameter:
 
     name: str
     value_reference: int
-    type: str  # "Real", "Integer", "Enumeration", "Boolean" or "String"
+    type: str  # FMI 2.0: "Real", "Integer", "Enumeration", "Boolean", "String"; FMI 3.0: "Float64", "Int32", ...
     value: float | int | bool | str
 
 
-_PARAMETER_TYPES = {"Real": (int, float), "Integer": (int,), "Enumeration": (int,), "Boolean": (bool,),
-                    "String": (str,)}
+# ---------------------------------------------------------------------------------------------
+# Variable types of both FMI versions: the one place the workbench knows them
+
+#: the types of a signal role's variable: FMI 2.0's Real, FMI 3.0's Float64 (the workbench computes in doubles)
+FLOAT_TYPES = ("Real", "Float64")
+#: FMI 3.0's sized integers (and FMI 2.0's Integer, 32 bits): the values each holds
+INTEGER_RANGES = {"Integer": (-2**31, 2**31 - 1), "Enumeration": (-2**31, 2**31 - 1),
+                  **{f"Int{n}": (-2**(n - 1), 2**(n - 1) - 1) for n in (8, 16, 32, 64)},
+                  **{f"UInt{n}": (0, 2**n - 1) for n in (8, 16, 32, 64)}}
+_FLOAT_LIMITS = {"Real": float("inf"), "Float64": float("inf"), "Float32": 3.4028234663852886e38}
+
+
+def is_float(variable) -> bool:
+    """A Real (FMI 2.0) or Float64 (FMI 3.0) variable: what signal roles and tunable parameters can be."""
+    return variable.type in FLOAT_TYPES
+
+
+def is_integer(variable) -> bool:
+    """An Integer (FMI 2.0) or Int8 ... UInt64 (FMI 3.0) variable (not an enumeration)."""
+    return variable.type in INTEGER_RANGES and variable.type != "Enumeration"
+
+
+def array_shape(variable) -> tuple[int, ...]:
+    """An FMI 3.0 array variable's shape (its Dimension elements); () for a scalar (always, in FMI 2.0)."""
+    if not getattr(variable, "dimensions", None):
+        return ()
+    return tuple(getattr(variable, "shape", None) or (len(variable.dimensions) * (0,)))
+
+
+def _fits(kind: str, value) -> bool:
+    if kind in _FLOAT_LIMITS:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(float(value)) \
+            and abs(float(value)) <= _FLOAT_LIMITS[kind]
+    if kind in INTEGER_RANGES:
+        low, high = INTEGER_RANGES[kind]
+        return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+    if kind == "Boolean":
+        return isinstance(value, bool)
+    if kind == "String":
+        return isinstance(value, str)
+    return False
+
+
+def _expected(kind: str) -> str:
+    if kind in _FLOAT_LIMITS:
+        return "a finite number" + (" within +-3.4e38" if kind == "Float32" else "")
+    if kind in INTEGER_RANGES:
+        low, high = INTEGER_RANGES[kind]
+        return f"a whole number in [{low}, {high}]"
+    return {"Boolean": "true or false", "String": "text"}.get(kind, "nothing: the workbench cannot set it")
+
+
+#: fmpy's FMI 3.0 setter per type (FMI 3.0 sets enumerations as Int64)
+_FMI3_SETTERS = {"Enumeration": "setInt64"}
 
 
 def apply_parameters(fmu, parameters) -> None:
-    """Set each :class:`ResolvedParameter` on an FMI 2.0 instance (fmpy's ``FMU2Slave`` or ``FMU2Model``) with
-    the setter of its declared type, in order; before initialisation, as the binding's parameters and start
-    values are set (plant and controller FMUs alike)."""
+    """Set each :class:`ResolvedParameter` on an instance -- fmpy's ``FMU2Slave``/``FMU2Model`` (FMI 2.0) or
+    ``FMU3Slave``/``FMU3Model`` (FMI 3.0) -- with the setter of its declared type, in order; before
+    initialisation, as the binding's parameters and start values are set (plant and controller FMUs alike)."""
+    from fmpy.fmi3 import _FMU3
+
+    fmi3 = isinstance(fmu, _FMU3)
     for p in parameters:
-        if p.type == "Real":
+        if fmi3:
+            value = float(p.value) if p.type in _FLOAT_LIMITS else p.value
+            getattr(fmu, _FMI3_SETTERS.get(p.type, f"set{p.type}"))([p.value_reference], [value])
+        elif p.type == "Real":
             fmu.setReal([p.value_reference], [float(p.value)])
         elif p.type in ("Integer", "Enumeration"):
             fmu.setInteger([p.value_reference], [int(p.value)])
@@ -198,9 +256,14 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
         if variable is None:
             raise BindingMismatch(f"role {role!r} names variable {mapping.variable!r}, which {fmu_name} does not "
                                   "have", "role", role)
-        if variable.type != "Real":
-            raise BindingMismatch(f"role {role!r} needs a Real variable, but {mapping.variable!r} is {variable.type}",
-                                  "role", role)
+        if not is_float(variable):
+            wanted_type = "Real" if variable.type in ("Integer", "Boolean", "String", "Enumeration") else "Float64"
+            why = ": the workbench exchanges signals as 64-bit floats" if variable.type == "Float32" else ""
+            raise BindingMismatch(f"role {role!r} needs a {wanted_type} variable, but {mapping.variable!r} is "
+                                  f"{variable.type}{why}", "role", role)
+        if array_shape(variable):
+            raise BindingMismatch(f"role {role!r} needs a scalar variable, but {mapping.variable!r} is an FMI 3.0 array "
+                                  f"(shape {list(array_shape(variable))}): a role carries one value", "role", role)
         wanted = ("input", "parameter") if role in input_roles else ("output", "local")
         if variable.causality not in wanted:
             raise BindingMismatch(f"role {role!r} needs causality {' or '.join(wanted)}, but {mapping.variable!r} "
@@ -213,8 +276,9 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
 
 
 def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_name: str) -> list[ResolvedParameter]:
-    """Each parameter names a variable of the FMU and has a value of its type (a Real takes any
-    finite number; Integer and Enumeration whole numbers; Boolean true/false; String text).
+    """Each parameter names a scalar variable of the FMU and has a value of its type (Real, Float64, Float32:
+    a finite number; Integer, Enumeration and FMI 3.0's Int8 ... UInt64: a whole number the type holds;
+    Boolean true/false; String text). FMI 3.0 arrays, Binary variables and clocks cannot be set from a binding.
     Raises :class:`BindingMismatch` naming the parameter."""
     variables = {v.name: v for v in model_description.modelVariables}
     resolved = []
@@ -223,12 +287,15 @@ def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_
         if variable is None:
             raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}", "parameter", name)
         kind = variable.type
-        expected = _PARAMETER_TYPES.get(kind, ())
-        fits = isinstance(value, expected) and (kind == "Boolean" or not isinstance(value, bool))
-        if fits and kind == "Real" and not math.isfinite(float(value)):
-            fits = False
-        if not fits:
+        if array_shape(variable):
+            raise BindingMismatch(f"parameter {name!r} is an FMI 3.0 array in {fmu_name} (shape "
+                                  f"{list(array_shape(variable))}): a binding sets scalar parameters only; leave it at "
+                                  "its start value", "parameter", name)
+        if kind in ("Binary", "Clock"):
+            raise BindingMismatch(f"parameter {name!r} is a {kind} variable of {fmu_name}: a binding sets numbers, "
+                                  "true/false and text only", "parameter", name)
+        if not _fits(kind, value):
             raise BindingMismatch(f"parameter {name!r} is {kind} in {fmu_name}, got {value!r} "
-                                  f"({type(value).__name__})", "parameter", name)
+                                  f"({type(value).__name__}): expected {_expected(kind)}", "parameter", name)
         resolved.append(ResolvedParameter(name, variable.valueReference, kind, value))
     return resolved

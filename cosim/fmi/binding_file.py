@@ -52,6 +52,8 @@ from cosim.fmi.binding import (
     BindingMismatch,
     PlantBinding,
     RoleMap,
+    array_shape,
+    is_float,
     resolve_parameters,
     resolve_roles,
 )
@@ -236,7 +238,8 @@ def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
     for role, (pattern, units) in _PATTERNS.items():
         wanted = ("input",) if role in INPUT_ROLES else ("output",)
         for variable in model_description.modelVariables:
-            if variable.type != "Real" or variable.causality not in wanted or variable.name in taken:
+            if not is_float(variable) or array_shape(variable) or variable.causality not in wanted \
+                    or variable.name in taken:
                 continue
             unit = _unit_of(variable)
             if re.search(pattern, variable.name, re.IGNORECASE) and (unit in units or not units):
@@ -280,7 +283,8 @@ def draft_binding_text(fmu_path: Path, binding_path: Path) -> str:
             lines.append("")
         else:
             lines += [f"# [roles.{role}]   # not found: {ROLE_DESCRIPTIONS[role]}", '# variable = "..."', ""]
-    parameters = [v for v in md.modelVariables if v.causality == "parameter" and v.start is not None]
+    parameters = [v for v in md.modelVariables if v.causality == "parameter" and v.start is not None
+                  and not array_shape(v) and v.type not in ("Binary", "Clock")]  # what a binding can set
     if parameters:
         lines.append("[parameters]   # current start values; edit to override")
         for v in parameters:

@@ -151,7 +151,7 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     check_against(binding, checked, loc, CONTROLLER_INPUT_ROLES + CONTROLLER_PARAMETER_ROLES)
     if "co-simulation" not in checked.interfaces:
         raise ConfigError(f"{where(path, loc, 'fmu')}: {fmu_path.name} offers no co-simulation for this platform "
-                          "(a controller FMU is stepped with fmi2DoStep)")
+                          "(a controller FMU is stepped with fmi2DoStep / fmi3DoStep)")
     return binding
 
 
@@ -178,7 +178,23 @@ def controller_binding(text: str) -> ControllerBinding:
 
 
 class FmuController:
-    """A controller FMU with the controller protocol of :mod:`controllers.base`."""
+    """A controller FMU with the controller protocol of :mod:`controllers.base`.
+
+    ``FmuController(binding)`` of an FMI 3.0 FMU makes a :class:`cosim.fmi.controller_fmi3.FmuController3`
+    (the FMI 3.0 calls beneath the same protocol): callers do not learn the FMU's version."""
+
+    #: how messages name the FMI calls of :meth:`step`
+    _calls = {"step": "fmi2DoStep", "set": "fmi2SetReal", "get": "fmi2GetReal", "reset": "fmi2Reset",
+              "instantiate": "fmi2Instantiate"}
+
+    def __new__(cls, binding: ControllerBinding, checked: CheckedFmu | None = None, name: str | None = None):
+        if cls is FmuController:
+            checked = checked or check_fmu(binding.fmu_path)
+            if checked.fmi_major == 3:
+                from cosim.fmi.controller_fmi3 import FmuController3
+
+                cls = FmuController3
+        return super().__new__(cls)
 
     def __init__(self, binding: ControllerBinding, checked: CheckedFmu | None = None, name: str | None = None):
         checked = checked or check_fmu(binding.fmu_path)
@@ -207,23 +223,31 @@ class FmuController:
         self._duty_map = (duty.scale, duty.offset)
         self._unzipdir = fmpy.extract(str(binding.fmu_path))
         self._callbacks = self._make_callbacks()
-        self._fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir,
-                              modelIdentifier=md.coSimulation.modelIdentifier, instanceName="controller")
+        self._fmu = None
         try:
-            self._fmu.instantiate(callbacks=self._callbacks, loggingOn=True)
-        except Exception:
-            self._fmu.freeLibrary()
-            self._fmu = None
+            self._instantiate(md)
+        except Exception as error:
+            if self._fmu is not None:
+                self._fmu.freeLibrary()
+                self._fmu = None
             shutil.rmtree(self._unzipdir, ignore_errors=True)
-            raise ConfigError(f"{binding.origin}: fmi2Instantiate failed{self._last_log()}") from None
-        dll = self._fmu.dll
-        self._set_real, self._get_real, self._do_step = dll.fmi2SetReal, dll.fmi2GetReal, dll.fmi2DoStep
+            if isinstance(error, ConfigError):
+                raise
+            raise ConfigError(f"{binding.origin}: {self._calls['instantiate']} failed{self._last_log()}") from None
         self._component = self._fmu.component
         self._initialized = False
         self.time = 0.0
         self._try_initialization()  # a parameter the FMU refuses is a configuration error, found now
 
     # ------------------------------------------------------------------ set-up
+    def _instantiate(self, md) -> None:
+        """Load and instantiate the FMU; set the C calls of :meth:`step` (FMI 2.0's signatures)."""
+        self._fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir,
+                              modelIdentifier=md.coSimulation.modelIdentifier, instanceName="controller")
+        self._fmu.instantiate(callbacks=self._callbacks, loggingOn=True)
+        dll = self._fmu.dll
+        self._set_real, self._get_real, self._do_step = dll.fmi2SetReal, dll.fmi2GetReal, dll.fmi2DoStep
+
     def _sample_period(self, binding: ControllerBinding, variables) -> float:
         own = None
         if "sample_period" in binding.roles:
@@ -288,7 +312,7 @@ class FmuController:
             try:
                 self._fmu.reset()
             except FMICallException:
-                raise ControllerError(f"{self.binding.origin}: fmi2Reset failed{self._last_log()}") from None
+                raise ControllerError(f"{self.binding.origin}: {self._calls['reset']} failed{self._last_log()}") from None
             self._initialized = False
 
     def step(self, measurement: Measurement) -> float:
@@ -299,17 +323,17 @@ class FmuController:
             elif t > self.time:
                 status = self._do_step(self._component, self.time, t - self.time, fmi2True)
                 if status > 1:
-                    raise FMICallException("fmi2DoStep", status)
+                    raise FMICallException(self._calls["step"], status)
                 self.time = t
             buffer = self._in_value
             for i, (name, (scale, offset)) in enumerate(zip(self._fields, self._in_maps)):
                 buffer[i] = scale * getattr(measurement, name) + offset
             status = self._set_real(self._component, self._in_vr, len(buffer), buffer)
             if status > 1:
-                raise FMICallException("fmi2SetReal", status)
+                raise FMICallException(self._calls["set"], status)
             status = self._get_real(self._component, self._out_vr, 1, self._out_value)
             if status > 1:
-                raise FMICallException("fmi2GetReal", status)
+                raise FMICallException(self._calls["get"], status)
         except FMICallException as error:
             label = STATUS_NAMES[error.status] if 0 <= error.status < len(STATUS_NAMES) else str(error.status)
             raise ControllerError(f"{self.binding.origin}: {error.function} failed ({label}) at t = {t:.9g} s"

@@ -1,4 +1,4 @@
-"""Controller FMUs: a workbench controller as an FMI 2.0 co-simulation unit built from C.
+"""Controller FMUs: a workbench controller as an FMI 2.0 (or 3.0) co-simulation unit built from C.
 
 :func:`controller_sources` stages what the FMU is compiled from: the shared FMI 2.0 glue of the
 plant FMU (``plant_fmu/glue``), the hand-written algorithms of ``controllers/c``, the controller
@@ -31,8 +31,10 @@ from controllers.native import SOURCE_DIR as ALGORITHM_DIR
 from plant_fmu.build import (
     REAL_CO_SIMULATION_ONLY,
     FmuSources,
+    check_fmi_version,
     co_simulation_description_root,
     export,
+    fmi3_edition,
     glue_files,
     model_description_text,
     read_files,
@@ -157,13 +159,18 @@ def float32_wrapper(name: str) -> str:
             f'#define BUCKC_FLOAT32 1\n#include "{name}"\n')
 
 
-def export_controller(controller, out: Path, force: bool = False, precision: str = "float64") -> tuple[Path, Path]:
-    """Build the controller's FMU and write ``out`` (``NAME.fmu``) and ``NAME-source.fmu`` beside it
+def export_controller(controller, out: Path, force: bool = False, precision: str = "float64",
+                      fmi_version: int = 2) -> tuple[Path, Path]:
+    """Build the controller's FMU and write ``out`` (``NAME.fmu``) and ``NAME-source.fmu`` beside it:
+    FMI 2.0, or (``fmi_version`` 3) its FMI 3.0 edition -- the same model and algorithm code, the FMI 3.0
+    glue, the description translated by :func:`plant_fmu.fmi3.fmi3_model_description`
     (``precision="float32"``: from the float32 build of the twins)."""
     out = Path(out)
     identifier = _identifier(out.stem)
-    return export(controller_sources(controller, identifier, precision), out,
-                  out.with_name(f"{out.stem}-source.fmu"), force)
+    sources = controller_sources(controller, identifier, precision)
+    if check_fmi_version(fmi_version) == 3:
+        sources = fmi3_edition(sources)
+    return export(sources, out, out.with_name(f"{out.stem}-source.fmu"), force)
 
 
 def _identifier(stem: str) -> str:

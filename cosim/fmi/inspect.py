@@ -1,10 +1,11 @@
-"""Describe any FMU: FMI version, interfaces, platforms and variables, after the archive checks."""
+"""Describe any FMU (FMI 2.0 or 3.0): FMI version, interfaces, platforms and variables, after the archive checks."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from cosim.fmi.archive import check_fmu
+from cosim.fmi.binding import array_shape
 
 
 def _unit(variable) -> str:
@@ -29,6 +30,12 @@ def describe_fmu(path: str | Path) -> str:
         cs = md.coSimulation
         lines.append(f"co-simulation    variable step size: {bool(cs.canHandleVariableCommunicationStepSize)}, "
                      f"FMU state: {bool(cs.canGetAndSetFMUstate)}")
+        if checked.fmi_major == 3:
+            lines.append(f"                 event mode: {bool(cs.hasEventMode)}, early return: "
+                         f"{bool(cs.mightReturnEarlyFromDoStep)} (the workbench uses neither)")
+    clocks = [v.name for v in md.modelVariables if v.type == "Clock"]
+    if clocks:
+        lines.append(f"clocks           {', '.join(clocks)} (FMI 3.0; a plant with clocks is refused)")
     if md.defaultExperiment is not None:
         de = md.defaultExperiment
         lines.append(f"default run      start {de.startTime}, stop {de.stopTime}, step {de.stepSize}")
@@ -38,6 +45,8 @@ def describe_fmu(path: str | Path) -> str:
     lines.append("-" * len(header))
     for v in md.modelVariables:
         start = "" if v.start is None else str(v.start)
-        lines.append(f"{v.name:<28} {v.causality:<16} {v.variability:<12} {v.type:<8} {_unit(v):<8} {start:<12} "
+        shape = array_shape(v)
+        kind = v.type + (f"[{','.join(str(n) for n in shape)}]" if shape else "")  # an FMI 3.0 array
+        lines.append(f"{v.name:<28} {v.causality:<16} {v.variability:<12} {kind:<8} {_unit(v):<8} {start:<12} "
                      f"{v.description or ''}")
     return "\n".join(lines)

@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 
 from cosim.base.errors import ConfigError, FmuArchiveError, PlantError, WorkbenchError
 from cosim.fmi.archive import CheckedFmu
-from cosim.fmi.binding import PlantBinding
+from cosim.fmi.binding import PlantBinding, is_float
 from cosim.fmi.plant import FATAL_REFUSAL, plant_signals
 
 #: how long the child may take to start and to answer a set-up call [s]; steps have no limit
@@ -230,7 +230,7 @@ class IsolatedPlant:
     def tunable_parameters(self) -> dict[str, int]:
         """As :attr:`cosim.fmi.plant.FmuPlant.tunable_parameters` (read off the model description)."""
         return {v.name: v.valueReference for v in self.model_description.modelVariables
-                if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real"}
+                if v.causality == "parameter" and v.variability == "tunable" and is_float(v)}
 
     def set_parameters(self, values: Mapping[str, float]) -> None:
         """As :meth:`cosim.fmi.plant.FmuPlant.set_parameters`, in order with the queued steps."""

@@ -1,4 +1,5 @@
-"""Plant FMUs stepped by fmpy: one plant interface, one small class per FMI interface.
+"""Plant FMUs stepped by fmpy: one plant interface, one small class per FMI interface (FMI 2.0 here, FMI 3.0
+in :mod:`cosim.fmi.plant_fmi3`, which :func:`open_plant` picks by the archive's fmiVersion).
 
 * :class:`CoSimulationPlant` -- the FMU's own solver through ``fmi2DoStep`` (fmpy's
   ``FMU2Slave``), steps subdivided to the binding's ``max_step``;
@@ -37,6 +38,7 @@ from cosim.fmi.binding import (
     BindingMismatch,
     PlantBinding,
     apply_parameters,
+    is_float,
     resolve_parameters,
     resolve_roles,
 )
@@ -91,7 +93,12 @@ def open_plant(binding: PlantBinding, interface: str | None = None, relative_tol
 
         return IsolatedPlant(binding, checked, chosen, relative_tolerance=relative_tolerance,
                              instance_name=instance_name)
-    cls = CoSimulationPlant if chosen == CO_SIMULATION else ModelExchangePlant
+    if checked.fmi_major == 3:  # the FMI 3.0 adapters, beneath the same interface
+        from cosim.fmi.plant_fmi3 import CoSimulationPlant3, ModelExchangePlant3
+
+        cls = CoSimulationPlant3 if chosen == CO_SIMULATION else ModelExchangePlant3
+    else:
+        cls = CoSimulationPlant if chosen == CO_SIMULATION else ModelExchangePlant
     return cls(binding, checked, relative_tolerance=relative_tolerance, instance_name=instance_name,
                unzip_dir=unzip_dir)
 
@@ -229,11 +236,7 @@ class FmuPlant:
         except BindingMismatch as error:
             raise ConfigError(f"{self.binding.origin}: {error}") from None
         try:
-            fmu.setupExperiment(startTime=start_time)
-            apply_parameters(fmu, self._parameters + extra)
-            fmu.enterInitializationMode()
-            self._write_inputs(inputs)
-            fmu.exitInitializationMode()
+            self._initialization(start_time, self._parameters + extra, inputs)
         except FMICallException as error:
             # failing before the first step means the set-up was refused: a parameter, start value
             # or input the FMU does not accept (its log message names it) -- a configuration error
@@ -242,6 +245,15 @@ class FmuPlant:
         self.time = start_time
         self._initialized = True
         self._after_initialization(start_time)
+
+    def _initialization(self, start_time: float, parameters, inputs: Sequence[float]) -> None:
+        """The FMI calls of :meth:`initialize`, from instantiated to initialised (FMI 3.0: cosim.fmi.plant_fmi3)."""
+        fmu = self._fmu
+        fmu.setupExperiment(startTime=start_time)
+        apply_parameters(fmu, parameters)
+        fmu.enterInitializationMode()
+        self._write_inputs(inputs)
+        fmu.exitInitializationMode()
 
     def _after_initialization(self, start_time: float) -> None:
         """Interface-specific start (model exchange: the solver)."""
@@ -355,7 +367,7 @@ class FmuPlant:
     def tunable_parameters(self) -> dict[str, int]:
         """Real parameters the FMU lets change during a run (``variability="tunable"``): name -> value reference."""
         return {v.name: v.valueReference for v in self.model_description.modelVariables
-                if v.causality == "parameter" and v.variability == "tunable" and v.type == "Real"}
+                if v.causality == "parameter" and v.variability == "tunable" and is_float(v)}
 
     def _write_parameters(self, values: Mapping[str, float]) -> None:
         tunable = self.tunable_parameters
@@ -363,7 +375,10 @@ class FmuPlant:
         if unknown:
             raise ConfigError(f"{self.binding.origin}: {', '.join(map(repr, unknown))} is not a tunable Real parameter "
                               f"of {self.binding.fmu_path.name} (tunable: {', '.join(sorted(tunable)) or 'none'})")
-        self._fmu.setReal([tunable[name] for name in values], [float(v) for v in values.values()])
+        self._set_reals([tunable[name] for name in values], [float(v) for v in values.values()])
+
+    def _set_reals(self, value_references: list[int], values: list[float]) -> None:
+        self._fmu.setReal(value_references, values)
 
     def set_parameters(self, values: Mapping[str, float]) -> None:
         """Change tunable parameters (FMU names and units) between two steps of a run, e.g. a
@@ -412,6 +427,7 @@ class CoSimulationPlant(FmuPlant):
 
     interface = CO_SIMULATION
     _fmu_class = FMU2Slave
+    _step_call = "fmi2DoStep"  # how messages name the step
 
     def _model_identifier(self) -> str:
         return self.model_description.coSimulation.modelIdentifier
@@ -431,7 +447,7 @@ class CoSimulationPlant(FmuPlant):
         if not self.binding.max_step:  # the common case, kept lean: one call
             status = self._do_step(self._component, t0, t_next - t0, fmi2True)
             if status > 1:
-                raise self._fail("fmi2DoStep", status, at=t0)
+                raise self._fail(self._step_call, status, at=t0)
         else:
             self._advance_in_pieces(t0, t_next, self.binding.max_step)
         self.time = t_next
@@ -444,7 +460,7 @@ class CoSimulationPlant(FmuPlant):
             end = t0 + h * (i + 1) / n if i + 1 < n else t_next
             status = self._do_step(self._component, start, end - start, fmi2True)
             if status > 1:
-                raise self._fail("fmi2DoStep", status, at=start)
+                raise self._fail(self._step_call, status, at=start)
 
 
 class _NoInput:
@@ -459,6 +475,7 @@ class ModelExchangePlant(FmuPlant):
 
     interface = MODEL_EXCHANGE
     _fmu_class = FMU2Model
+    _derivatives = "getDerivatives"  # fmpy's name for the derivatives call
 
     def __init__(self, binding: PlantBinding, checked: CheckedFmu, relative_tolerance: float = 1e-8,
                  instance_name: str = "plant", unzip_dir: str | None = None):
@@ -483,7 +500,7 @@ class ModelExchangePlant(FmuPlant):
             nz=md.numberOfEventIndicators,
             get_x=fmu.getContinuousStates,
             set_x=fmu.setContinuousStates,
-            get_dx=fmu.getDerivatives,
+            get_dx=getattr(fmu, self._derivatives),
             get_z=fmu.getEventIndicators,
             get_nominals=fmu.getNominalsOfContinuousStates,
             set_time=fmu.setTime,

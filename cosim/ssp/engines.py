@@ -67,6 +67,7 @@ from cosim.master import simulate
 from cosim.recorder import COLUMNS, SCHEMA, UNITS
 from cosim.results import RUN_FORMAT, RunInfo, RunResult, json_ready, package_versions
 from cosim.ssp.package import (
+    COMPONENTS,
     CONTROLLER,
     PLANT,
     SCENARIO,
@@ -99,6 +100,14 @@ DEVIATIONS = (
     "(simulate_ssp applies neither)",
     "communication points are start + k h (simulate_ssp accumulates t += h)",
 )
+
+
+#: the engines that cannot run FMI 3.0 components, and why (found by running an FMI 3.0 loop with each)
+FMI2_ONLY_ENGINES = {
+    "fmpy": "fmpy 0.3.32's SSP simulation instantiates every component with FMU2Slave and looks for an FMI 2.0 "
+            "binary",
+    "libcosim": "libcosimpy 0.0.6's libcosim refuses FMI 3.0 FMUs: 'Unsupported FMI version'",
+}
 
 
 class EngineError(WorkbenchError):
@@ -212,6 +221,12 @@ def prepare(path: str | Path, engine: str, step: float | None = None) -> tuple[L
     binding = PlantBinding(fmu_path=Path(loop.components[PLANT].source), roles=loop.plant_roles,
                            label=loop.plant_label)
     check_step(step, loop.control_period, loop.scenario, loop.settle, binding)
+    newer = [name for name in COMPONENTS if not loop.components[name].fmi_version.startswith(("1.", "2."))]
+    if engine in FMI2_ONLY_ENGINES and newer:
+        raise SspError(f"{path}: engine {engine} runs FMI 1.0 and 2.0 components only ({FMI2_ONLY_ENGINES[engine]}); "
+                       f"{'components' if len(newer) > 1 else 'component'} {', '.join(repr(n) for n in newer)} "
+                       f"{'are' if len(newer) > 1 else 'is'} FMI {loop.components[newer[0]].fmi_version}: run this "
+                       "archive with --engine workbench")
     if engine == "libcosim":
         nanoseconds = step * 1e9
         if abs(nanoseconds - round(nanoseconds)) > 1e-6 * max(1.0, nanoseconds):

@@ -38,7 +38,7 @@ import functools
 import math
 import tempfile
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 
 import fmpy.ssp
@@ -47,7 +47,7 @@ from lxml import etree
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.files import atomic_write
 from cosim.fmi.archive import CheckedFmu, _member_problem, check_fmu
-from cosim.fmi.binding import INPUT_ROLES, PLANT_MODE_CODES, PlantBinding, RoleMap
+from cosim.fmi.binding import INPUT_ROLES, PLANT_MODE_CODES, PlantBinding, RoleMap, is_float, is_integer
 from cosim.fmi.controller import CONTROLLER_INPUT_ROLES, builtin_controller_binding
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario, parse_scenario
@@ -104,6 +104,7 @@ class Component:
     connectors: tuple[Connector, ...]
     parameters: dict = field(default_factory=dict)  # name -> value, from the component's .ssv
     parameter_source: str | None = None  # member of the archive
+    fmi_version: str = "2.0"  # the component FMU's fmiVersion (read back from the archive)
 
 
 @dataclass(frozen=True)
@@ -296,8 +297,18 @@ def _connector(checked: CheckedFmu, name: str, kind: str) -> Connector:
     variable = next((v for v in checked.model_description.modelVariables if v.name == name), None)
     if variable is None:
         raise SspError(f"FMU {checked.path.name} has no variable {name!r}")
-    kind_type = "Integer" if variable.type == "Enumeration" else variable.type
+    kind_type = ssp_type(variable)
     return Connector(name, kind, kind_type, _real_parameter_unit(checked, name) if kind_type == "Real" else None)
+
+
+def ssp_type(variable) -> str:
+    """The SSP 1.0 connector type of an FMU variable: SSP 1.0 knows FMI 2.0's types only, so an FMI 3.0
+    Float64 connects as Real and an Int8 ... UInt64 as Integer (as enumerations do)."""
+    if is_float(variable):
+        return "Real"
+    if variable.type == "Enumeration" or is_integer(variable):
+        return "Integer"
+    return variable.type
 
 
 def build_loop(scenario: Scenario, binding: PlantBinding, controller: CheckedFmu, scenario_source: CheckedFmu,
@@ -308,7 +319,7 @@ def build_loop(scenario: Scenario, binding: PlantBinding, controller: CheckedFmu
     plant = check_fmu(binding.fmu_path)
     if "co-simulation" not in plant.interfaces:
         raise SspError(f"{binding.origin}: the plant FMU offers no co-simulation for this platform (an SSP's "
-                       "engines step every FMU with fmi2DoStep)")
+                       "engines step every FMU with fmi2DoStep or fmi3DoStep)")
     check_step(step, control_period, scenario, settle, binding)
     roles = dict(binding.roles)
     # plant connectors: every bound role's variable (inputs and outputs), then the parameters
@@ -324,7 +335,7 @@ def build_loop(scenario: Scenario, binding: PlantBinding, controller: CheckedFmu
     controller_variables = {v.name: v for v in controller_md.modelVariables}
     controller_inputs = [r for r in CONTROLLER_INPUT_ROLES if r in controller_variables]
     controller_parameters = {v.name: float(v.start) for v in controller_md.modelVariables
-                             if v.causality == "parameter" and v.start is not None and v.type == "Real"}
+                             if v.causality == "parameter" and v.start is not None and is_float(v)}
     controller_connectors = [_connector(controller, r, "input") for r in controller_inputs]
     controller_connectors.append(_connector(controller, "duty_cycle", "output"))
     controller_connectors += [_connector(controller, name, "parameter") for name in controller_parameters]
@@ -383,6 +394,7 @@ def export_ssp(scenario: Scenario, binding: PlantBinding, controller_fmu: Path, 
                step: float | None = None) -> Loop:
     """Write the loop of ``scenario`` on ``binding``'s plant with the controller FMU (the
     workbench's role names, e.g. from ``export-controller``) as an SSP 1.0 archive ``out``.
+    The scenario FMU is of the controller FMU's FMI version (2.0 or 3.0); the plant's is its own.
 
     ``step``: the communication step [s] (default: 10 us, the workbench's recording period); it
     must divide the controller's sample period and land on every event. Everything is checked and
@@ -395,7 +407,7 @@ def export_ssp(scenario: Scenario, binding: PlantBinding, controller_fmu: Path, 
     check_plant_supports(binding, scenario)
     control_period = controller_sample_period(controller)
     step = DEFAULT_STEP if step is None else step
-    source = check_fmu(scenario_fmu(scenario, control_period))
+    source = check_fmu(scenario_fmu(scenario, control_period, fmi_version=controller.fmi_major))
     loop = build_loop(scenario, binding, controller, source, control_period, step)
     description = (f"buck-cosim closed loop: scenario {scenario.name} ({scenario.description}), controller "
                    f"{controller.model_description.modelName} sampled every {control_period:.6g} s, plant "
@@ -537,6 +549,7 @@ def _read_loop(archive: zipfile.ZipFile, path: Path) -> Loop:
                 fmus[name] = check_fmu(target)
             except WorkbenchError as error:
                 raise SspError(f"{path}!{component.source}: {str(error).split(': ', 1)[-1]}") from None
+            components[name] = replace(component, fmi_version=fmus[name].model_description.fmiVersion)
         _check_connectors(components, fmus, where)
     connections = []
     declared = {(c.name, k.name): k for c in components.values() for k in c.connectors}

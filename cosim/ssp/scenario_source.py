@@ -29,6 +29,8 @@ from plant_fmu.build import (
     REAL_CO_SIMULATION_ONLY,
     FmuSources,
     build,
+    check_fmi_version,
+    fmi3_edition,
     co_simulation_description_root,
     glue_files,
     model_description_text,
@@ -138,9 +140,11 @@ def scenario_sources(scenario: Scenario, control_period: float) -> FmuSources:
     return FmuSources(identifier, md, files)
 
 
-def scenario_fmu(scenario: Scenario, control_period: float, force: bool = False) -> Path:
-    """The compiled scenario FMU (from the cache, or built now)."""
-    return build(scenario_sources(scenario, control_period), force)
+def scenario_fmu(scenario: Scenario, control_period: float, force: bool = False, fmi_version: int = 2) -> Path:
+    """The compiled scenario FMU (from the cache, or built now): FMI 2.0, or its FMI 3.0 edition (the same
+    model code behind the FMI 3.0 glue, the same GUID as instantiation token)."""
+    sources = scenario_sources(scenario, control_period)
+    return build(sources if check_fmi_version(fmi_version) == 2 else fmi3_edition(sources), force)
 
 
 # ---------------------------------------------------------------------------------------------

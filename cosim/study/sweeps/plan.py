@@ -22,7 +22,7 @@ import numpy as np
 
 from cosim.base.errors import ConfigError
 from cosim.fmi.archive import check_fmu
-from cosim.fmi.binding import BindingMismatch, PlantBinding, resolve_parameters
+from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe, canonical, digest
@@ -123,10 +123,10 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
                               f"{variable.causality} of {fmu}, not a parameter"
                               + (" (sweep the scenario's supply and load under [operating_point])"
                                  if axis.name in OPERATING_POINT else ""))
-        if variable.type not in ("Real", "Integer"):
+        if not (is_float(variable) or is_integer(variable)):  # Real/Integer (FMI 2.0), Float64/Int32 ... (FMI 3.0)
             raise ConfigError(f"{axis.place}: parameters.{axis.name} is {variable.type} in {fmu}: a sweep varies "
                               "Real and Integer parameters")
-        integer = variable.type == "Integer"
+        integer = is_integer(variable)
         if integer and axis.random:
             raise ConfigError(f"{axis.place}: parameters.{axis.name} is an Integer parameter of {fmu}: give a grid "
                               "(values = [...]), not a distribution")
