@@ -4,6 +4,8 @@
 #include <string.h>
 
 #include "buckc.h"
+#include "compensator.h"
+#include "current_mode.h"
 #include "explicit_policy.h"
 #include "nn_model.h"
 #include "pi.h"
@@ -45,6 +47,10 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcPredictive);
     SIZE(BuckcPolicyConfig);
     SIZE(BuckcPolicy);
+    SIZE(BuckcCurrentModeConfig);
+    SIZE(BuckcCurrentMode);
+    SIZE(BuckcCompensatorConfig);
+    SIZE(BuckcCompensator);
 #undef SIZE
     return 0;
 }

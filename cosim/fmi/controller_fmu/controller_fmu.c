@@ -1,5 +1,6 @@
-/* A workbench controller as an FMU model (fmu_model.h): the PI, the predictive controller or the
- * explicit NNPC (explicit policy) of controllers/c/, sampled on the FMU's own clock.
+/* A workbench controller as an FMU model (fmu_model.h): the PI, the predictive controller, the
+ * explicit NNPC (explicit policy), the average-current-mode controller or the discrete compensator
+ * (Type-III) of controllers/c/, sampled on the FMU's own clock.
  *
  * The algorithm and its settings come from the generated controller_config.h (data only: the
  * kind, the PI gains, the predictive configuration with the network's weights, or the explicit
@@ -19,14 +20,17 @@
 #include <stdio.h>
 #include <string.h>
 
+#include "compensator.h"
 #include "controller_variables.h"
+#include "current_mode.h"
 #include "explicit_policy.h"
 #include "fmu_model.h"
 #include "pi.h"
 #include "predictive.h"
 
 #include "controller_config.h" /* generated: CONTROLLER_KIND, CONTROLLER_NAME, CONTROLLER_GUID, PI_CONFIG,
-                                  PREDICTIVE_CONFIG, POLICY_CONFIG */
+                                  PREDICTIVE_CONFIG, POLICY_CONFIG, CURRENT_MODE_CONFIG,
+                                  COMPENSATOR_CONFIG */
 
 typedef struct {
     double time;          /* the FMU's clock [s] */
@@ -40,6 +44,8 @@ typedef struct {
     BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
     BuckcPi pi, pi_pending;
     BuckcPolicy policy, policy_pending;
+    BuckcCurrentMode current_mode, current_mode_pending;
+    BuckcCompensator compensator, compensator_pending;
     BuckcPredictiveState predictive_pending;
     BuckcPredictive predictive; /* last: the big one (the predictors' caches) */
 } ControllerData;
@@ -56,13 +62,24 @@ const FmuModelInfo FMU_MODEL = {
 
 /* a configuration value of the controller this FMU was generated for (the PI's may be set) */
 static double fixed_sample_period(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return CURRENT_MODE_CONFIG.sample_period;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return COMPENSATOR_CONFIG.sample_period;
     return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.sample_period : PREDICTIVE_CONFIG.sample_period;
 }
 static double fixed_duty_min(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return CURRENT_MODE_CONFIG.duty_min;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return COMPENSATOR_CONFIG.duty_min;
     return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_min : PREDICTIVE_CONFIG.duty_min;
 }
 static double fixed_duty_max(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return CURRENT_MODE_CONFIG.duty_max;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return COMPENSATOR_CONFIG.duty_max;
     return CONTROLLER_KIND == CONTROLLER_EXPLICIT ? POLICY_CONFIG.duty_max : PREDICTIVE_CONFIG.duty_max;
+}
+static double nominal_input_voltage(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return CURRENT_MODE_CONFIG.nominal_input_voltage;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return COMPENSATOR_CONFIG.nominal_input_voltage;
+    return PREDICTIVE_CONFIG.nominal_input_voltage;
 }
 
 static double sample_period(const ControllerData *d) {
@@ -83,7 +100,7 @@ void model_set_defaults(void *data) {
     ControllerData *d = (ControllerData *)data;
     memset(d, 0, sizeof *d);
     d->pi_config = PI_CONFIG;
-    d->inputs[VR_INPUT_VOLTAGE] = PREDICTIVE_CONFIG.nominal_input_voltage;
+    d->inputs[VR_INPUT_VOLTAGE] = nominal_input_voltage();
     d->inputs[VR_MEASURED_LOAD_CURRENT] = NAN;
 }
 
@@ -94,6 +111,10 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
     (void)fmu;
     if (CONTROLLER_KIND == CONTROLLER_PI) status = buckc_pi_init(&d->pi, &d->pi_config, &what);
     else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) status = buckc_policy_init(&d->policy, &POLICY_CONFIG, &what);
+    else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE)
+        status = buckc_current_mode_init(&d->current_mode, &CURRENT_MODE_CONFIG, &what);
+    else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR)
+        status = buckc_compensator_init(&d->compensator, &COMPENSATOR_CONFIG, &what);
     else status = buckc_predictive_init(&d->predictive, &PREDICTIVE_CONFIG, &what);
     if (status != BUCKC_OK) {
         snprintf(buffer, size, "%s refuses its configuration: %s (%s)", CONTROLLER_NAME, what ? what : "",
@@ -130,6 +151,12 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
             d->policy.config = &POLICY_CONFIG; /* again: a deserialized FMU state may come from another process */
             d->policy_pending = d->policy; /* committed by fmi2DoStep, not by reading the duty */
             status = buckc_policy_step(&d->policy_pending, &m, &duty);
+        } else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) {
+            d->current_mode_pending = d->current_mode; /* committed by fmi2DoStep, not by reading the duty */
+            status = buckc_current_mode_step(&d->current_mode_pending, &m, &duty);
+        } else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) {
+            d->compensator_pending = d->compensator;
+            status = buckc_compensator_step(&d->compensator_pending, &m, &duty);
         } else {
             BuckcPredictiveState committed = d->predictive.state;
             status = buckc_predictive_step(&d->predictive, &m, &duty);
@@ -256,6 +283,8 @@ fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step)
         }
         if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
         else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
+        else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) d->current_mode = d->current_mode_pending;
+        else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) d->compensator = d->compensator_pending;
         else d->predictive.state = d->predictive_pending;
         d->duty = d->pending_duty;
         d->next += 1;
