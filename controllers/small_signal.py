@@ -53,6 +53,9 @@ from scipy.linalg import expm
 from controllers.predictors import CircuitParameters, circuit_matrix, measured_from_state
 
 SENSORS = ("average", "sample")
+#: how the duty reaches the circuit: held over the period (the averaged FMU's input), or a sawtooth
+#: (trailing-edge) PWM whose small-signal duty perturbation is a pulse at the falling edge D Ts
+MODULATORS = ("zoh", "trailing-edge")
 #: outputs and inputs of :class:`DiscretePlant` (indices)
 CURRENT, VOLTAGE = 0, 1
 DUTY, LOAD_CURRENT = 0, 1
@@ -123,26 +126,42 @@ class DiscretePlant:
     sample_period: float
     sensor: str
     operating_point: OperatingPoint
+    modulator: str = "zoh"
 
     def response(self, output: int, input_: int, z) -> np.ndarray:
         return np.polyval(self.num[output][input_], z) / np.polyval(self.den, z)
 
 
+def _integral(a: np.ndarray, t: float) -> np.ndarray:
+    """int_0^t e^(A s) ds (block matrix exponential)."""
+    n = len(a)
+    block = np.zeros((2 * n, 2 * n))
+    block[:n, :n], block[:n, n:] = a, np.eye(n)
+    return expm(block * t)[:n, n:]
+
+
 def discrete_plant(p: CircuitParameters, op: OperatingPoint, sample_period: float,
-                   sensor: str = "average") -> DiscretePlant:
-    """The exact zero-order-hold discretisation of :func:`continuous_model` with the sensor (module docstring)."""
+                   sensor: str = "average", modulator: str = "zoh") -> DiscretePlant:
+    """The exact discretisation of :func:`continuous_model` with the sensor (module docstring). With
+    ``modulator = "trailing-edge"`` (the switched FMU's sawtooth PWM: on for [0, D Ts)), a duty
+    perturbation moves the falling edge: a pulse of Ts dd at D Ts instead of a level held over the
+    period -- the sampled-data model of the modulator, which leads the hold by (1/2 - D) Ts."""
     if sensor not in SENSORS:
         raise ValueError(f"sensor {sensor!r} is unknown: expected one of {', '.join(SENSORS)}")
+    if modulator not in MODULATORS:
+        raise ValueError(f"modulator {modulator!r} is unknown: expected one of {', '.join(MODULATORS)}")
     a, b, c, d = continuous_model(p, op)
     ts = sample_period
     n = 2
     block = np.zeros((3 * n, 3 * n))  # [[A, B, 0], [0, 0, I], [0, 0, 0]]
     block[:n, :n], block[:n, n:2 * n], block[n:2 * n, 2 * n:] = a, b, np.eye(n)
     e = expm(block * ts)
-    phi, gamma, gamma2 = e[:n, :n], e[:n, n:2 * n], e[:n, 2 * n:]
-    integral = np.zeros((2 * n, 2 * n))
-    integral[:n, :n], integral[:n, n:] = a, np.eye(n)
-    mi = expm(integral * ts)[:n, n:]  # int_0^Ts e^(A t) dt
+    phi, gamma, gamma2 = e[:n, :n], e[:n, n:2 * n].copy(), e[:n, 2 * n:].copy()
+    mi = _integral(a, ts)  # int_0^Ts e^(A t) dt
+    if modulator == "trailing-edge":
+        rest = (1.0 - steady_duty(p, op)) * ts  # from the falling edge to the period's end
+        gamma[:, DUTY] = expm(a * rest) @ b[:, DUTY] * ts
+        gamma2[:, DUTY] = ts * _integral(a, rest) @ b[:, DUTY]  # Ts x the period mean of the pulse's response
     q = np.array([[-phi[1, 1], phi[0, 1]], [phi[1, 0], -phi[0, 0]]])  # adj(zI - Phi) = z I + Q
     det = np.array([1.0, -np.trace(phi), np.linalg.det(phi)])
     if sensor == "sample":
@@ -154,7 +173,7 @@ def discrete_plant(p: CircuitParameters, op: OperatingPoint, sample_period: floa
         den = np.polymul(det, Z)
     num = tuple(tuple(padd(np.array([first[o, i], second[o, i]]), feed[o, i] * det) for i in range(2))
                 for o in range(2))
-    return DiscretePlant(num=num, den=den, sample_period=ts, sensor=sensor, operating_point=op)
+    return DiscretePlant(num=num, den=den, sample_period=ts, sensor=sensor, operating_point=op, modulator=modulator)
 
 
 @dataclass(frozen=True)

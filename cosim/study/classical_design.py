@@ -123,6 +123,7 @@ class DesignTargets:
     cascade_phase_margin_deg: float = 45.0  # the current-mode cascade broken at the duty (both loops closed)
     computation_delay: int = 1  # [samples]
     sensor: str = "average"  # what the controller reads (controllers.small_signal.SENSORS)
+    modulator: str = "trailing-edge"  # how the duty reaches the circuit (controllers.small_signal.MODULATORS)
     operating_point: OperatingPoint = OperatingPoint(TABLE_II.output_voltage, TABLE_II.load_resistance,
                                                      TABLE_II.input_voltage)
     current_limit: float = 8.0  # [A] the current-mode controller's inductor-current limit
@@ -245,7 +246,7 @@ def envelope_margins(controller, parameters: CircuitParameters, targets: DesignT
     it was moved there from the envelope's own load, and the margins of the controller's loops."""
     rows = []
     for op, moved in design_corners(parameters, targets):
-        plant = discrete_plant(parameters, op, targets.sample_period, targets.sensor)
+        plant = discrete_plant(parameters, op, targets.sample_period, targets.sensor, targets.modulator)
         rows.append({"operating_point": asdict(op), "load_at_ccm_boundary": moved, "loops": _loops_of(controller, plant)})
     return rows
 
@@ -255,7 +256,7 @@ def design_current_mode(parameters: CircuitParameters, targets: DesignTargets = 
     """Average-current-mode control designed by the method of the module docstring."""
     op, ts, delay = targets.operating_point, targets.sample_period, targets.computation_delay
     vs = op.input_voltage
-    plant = discrete_plant(parameters, op, ts, targets.sensor)
+    plant = discrete_plant(parameters, op, ts, targets.sensor, targets.modulator)
     notes = []
 
     def inner_shape(kp, ki):
@@ -362,8 +363,8 @@ def design_type_iii(parameters: CircuitParameters, targets: DesignTargets = Desi
         raise ValueError(f"Type-III method {method!r} is unknown: expected one of {', '.join(TYPE_III_METHODS)}")
     op, ts, delay = targets.operating_point, targets.sample_period, targets.computation_delay
     vs = op.input_voltage
-    plant = discrete_plant(parameters, op, ts, targets.sensor)
-    corner_plants = [(c, discrete_plant(parameters, c, ts, targets.sensor)) for c, _ in design_corners(parameters, targets)]
+    plant = discrete_plant(parameters, op, ts, targets.sensor, targets.modulator)
+    corner_plants = [(c, discrete_plant(parameters, c, ts, targets.sensor, targets.modulator)) for c, _ in design_corners(parameters, targets)]
     chosen = None
     for fc in _candidates(targets.crossover_target_hz):
         placed = _type_iii_placement(method, fc, plant, parameters, targets)
@@ -410,7 +411,7 @@ def design_type_iii(parameters: CircuitParameters, targets: DesignTargets = Desi
 
 def linear_design(kind: str, controller, parameters: CircuitParameters, targets: DesignTargets, method: str) -> Design:
     """The margins of a controller designed otherwise (the PIs tuned on the plant FMU), for the same file."""
-    plant = discrete_plant(parameters, targets.operating_point, targets.sample_period, targets.sensor)
+    plant = discrete_plant(parameters, targets.operating_point, targets.sample_period, targets.sensor, targets.modulator)
     design = Design(kind, controller, method, targets, _loops_of(controller, plant))
     design.envelope = envelope_margins(controller, parameters, targets)
     return design
@@ -452,8 +453,9 @@ __all__ = ["DesignTargets", "Envelope", "Design", "design_current_mode", "design
 
 def targets_for(binding, control_period: float) -> DesignTargets:
     """The design targets for a built-in plant binding at ``control_period``: the sensor it gives the
-    controllers (the switched FMU's period mean, the averaged FMU's plain outputs = a sample) and the
-    one-sample computation delay. Designs need one sample per PWM period (a ValueError otherwise)."""
+    controllers (the switched FMU's period mean, the averaged FMU's plain outputs = a sample), its
+    modulator (the switched FMU's sawtooth PWM, the averaged FMU's held duty) and the one-sample
+    computation delay. Designs need one sample per PWM period (a ValueError otherwise)."""
     if abs(control_period * TABLE_II.switching_frequency - 1) > 1e-9:
         raise ValueError(f"the classical designs sample once per PWM period ({TABLE_II.switching_period:.6g} s), not "
                          f"every {control_period:.6g} s")
@@ -462,7 +464,9 @@ def targets_for(binding, control_period: float) -> DesignTargets:
     switched = binding.parameters.get("plant_mode") == PLANT_MODE_CODES["switched"]
     averaging = binding.roles.get("measured_output_voltage") is not None and \
         binding.roles["measured_output_voltage"].variable.startswith("average")
-    return DesignTargets(sample_period=control_period, sensor="average" if (switched and averaging) else "sample")
+    sawtooth = binding.parameters.get("pwm_carrier", 0) == 0
+    return DesignTargets(sample_period=control_period, sensor="average" if (switched and averaging) else "sample",
+                         modulator="trailing-edge" if (switched and sawtooth) else "zoh")
 
 
 def design_files(out_dir: Path, tag: str) -> dict[str, Path]:

@@ -42,7 +42,7 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import classical_design, explicit, tolerance_study
+from cosim.study import classical_design, explicit, frequency_response, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
@@ -307,6 +307,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     if true_parameters is not None:  # the classical baselines at 1/fsw: current-mode, Type-III, envelope PI
         controllers += classical_design.in_pipeline(pipeline, binding, true_parameters, pi.controller(), out_dir,
                                                     profile.quick, timings, log)
+        frequency_response.in_pipeline(pipeline, binding, [pi.controller(), *controllers], out_dir, profile.quick,
+                                       timings, log)  # loop gains and output impedances by injection
     if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
         from cosim.fmi.controller import FmuController, controller_binding
 
