@@ -77,6 +77,10 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
     settings = {"network": config.label, "origin": origin,
                 "held_out_one_step_rmse_V": rmse.get("one_step_rmse_voltage_V"),
                 "held_out_one_step_rmse_A": rmse.get("one_step_rmse_current_A")}
+    if entry.policy is not None:  # the explicit NNPC in shadow: its first move on the NNPC's own states
+        import base64
+
+        settings["shadow_policy"] = base64.b64encode(Path(entry.policy).read_bytes()).decode()
     return ControllerRecipe(entry.kind, entry.name, period, _json(settings), blob)
 
 
@@ -230,7 +234,20 @@ def _build_pi(recipe: ControllerRecipe, binding: PlantBinding):
 def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.study.experiments import nnpc
 
-    return nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period, recipe.name)
+    controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
+                      recipe.name)
+    shadow = recipe.settings.get("shadow_policy")
+    if shadow is None:
+        return controller
+    import base64
+
+    from cosim.study.experiments import explicit_nnpc, implemented
+    from cosim.study.explicit import ShadowPolicy
+
+    policy = _policy_from_bytes(base64.b64decode(shadow), recipe.control_period)
+    # the NNPC as the worker implements it (its C twin by default), the policy in shadow beside it
+    return ShadowPolicy(implemented(controller, recipe.settings.get("implementation", "c")), explicit_nnpc(policy),
+                        start=0.0)
 
 
 def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
@@ -247,19 +264,24 @@ def _build_oracle(recipe: ControllerRecipe, binding: PlantBinding):
 _policies: dict[str, object] = {}
 
 
-def _build_explicit(recipe: ControllerRecipe, binding: PlantBinding):
+def _policy_from_bytes(blob: bytes, period: float):
+    """A distilled policy from a file's bytes, read through :func:`load_policy`'s checks; cached per process."""
     from controllers.explicit_policy import load_policy
-    from cosim.study.experiments import explicit_nnpc
 
-    key = f"{recipe.blob_digest}:{recipe.control_period!r}"
+    key = f"{digest(blob)}:{period!r}"
     with _models_lock:
         if key not in _policies:
             with tempfile.TemporaryDirectory(prefix="buck-cosim-policy-") as folder:
                 path = Path(folder) / "policy.pt"
-                path.write_bytes(recipe.blob)
-                _policies[key] = load_policy(path, expect_period=recipe.control_period)
-        policy = _policies[key]
-    return explicit_nnpc(policy, recipe.name)
+                path.write_bytes(blob)
+                _policies[key] = load_policy(path, expect_period=period)
+        return _policies[key]
+
+
+def _build_explicit(recipe: ControllerRecipe, binding: PlantBinding):
+    from cosim.study.experiments import explicit_nnpc
+
+    return explicit_nnpc(_policy_from_bytes(recipe.blob, recipe.control_period), recipe.name)
 
 
 def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):

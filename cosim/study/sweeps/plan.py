@@ -321,6 +321,9 @@ def _entry_identity(entry) -> dict:
     described = entry.describe()
     if entry.model is not None:
         described["model"] = digest(Path(entry.model).read_bytes())
+    for key in ("policy", "design"):  # by content, like the model
+        if getattr(entry, key, None) is not None:
+            described[key] = digest(Path(getattr(entry, key)).read_bytes())
     if entry.path is not None:
         files = [entry.path, entry.fmu] if Path(entry.path).suffix.lower() == ".toml" else [entry.path]
         described["path"] = digest(*(Path(f).read_bytes() for f in files))

@@ -89,7 +89,7 @@ OPERATING_POINT = {"input_voltage": "V", "load_resistance": "Ohm", "reference": 
 CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu", "mpc-oracle", "nnpc-explicit", "current-mode",
                     "type-iii", "pi-envelope")
 CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path", "policy", "design", "settle"}
-KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed"}, "nnpc-paper": {"model", "samples", "seed"},
+KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"}, "nnpc-paper": {"model", "samples", "seed"},
              "mpc-nominal": set(), "fmu": {"path"}, "mpc-oracle": set(), "nnpc-explicit": {"policy"},
              "current-mode": {"design"}, "type-iii": {"design"}, "pi-envelope": {"kp", "ki"}}
 KIND_KEYS = {kind: keys | {"settle"} for kind, keys in KIND_KEYS.items()}
