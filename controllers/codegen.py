@@ -24,12 +24,24 @@ import uuid
 
 import numpy as np
 
+from controllers.compensator import CompensatorController
+from controllers.current_mode import CurrentModeController
 from controllers.explicit_policy import ExplicitPolicyController
-from controllers.native import PredictiveConfig, check_precision, native_twin, real_mirrors
+from controllers.native import (
+    CompensatorConfigC,
+    CurrentModeConfigC,
+    PredictiveConfig,
+    check_precision,
+    compensator_config,
+    current_mode_config,
+    native_twin,
+    real_mirrors,
+)
 from controllers.pi import PIController
 from controllers.predictive import PredictiveController
 
 KIND_PI, KIND_PREDICTIVE, KIND_EXPLICIT = "CONTROLLER_PI", "CONTROLLER_PREDICTIVE", "CONTROLLER_EXPLICIT"
+KIND_CURRENT_MODE, KIND_COMPENSATOR = "CONTROLLER_CURRENT_MODE", "CONTROLLER_COMPENSATOR"
 
 
 def _number(value, precision: str = "float64") -> str:
@@ -73,35 +85,49 @@ def controller_kind(controller) -> str:
         return KIND_PREDICTIVE
     if isinstance(controller, ExplicitPolicyController):
         return KIND_EXPLICIT
+    if isinstance(controller, CurrentModeController):
+        return KIND_CURRENT_MODE
+    if isinstance(controller, CompensatorController):
+        return KIND_COMPENSATOR
     raise ValueError(f"controller {getattr(controller, 'name', controller)!r} ({type(controller).__name__}) has no C "
-                     "twin to generate: expected the PI, a predictive controller (NNPC, MPC) or the explicit NNPC")
+                     "twin to generate: expected the PI, a predictive controller (NNPC, MPC), the explicit NNPC, the "
+                     "current-mode controller or a compensator (Type-III)")
 
 
 def config_header(controller, name: str | None = None, precision: str = "float64") -> str:
-    """``controller_config.h`` for a Python PI, predictive or explicit-policy controller (data only), in
-    ``precision`` (float32: the PI or the explicit NNPC, for a build with ``-DBUCKC_FLOAT32``)."""
+    """``controller_config.h`` for a Python PI, predictive, explicit-policy, current-mode or compensator
+    controller (data only), in ``precision`` (float32: the controllers with a float32 build, for a build with
+    ``-DBUCKC_FLOAT32``)."""
     kind = controller_kind(controller)
     twin = native_twin(controller, check_precision(precision))  # the configuration the twins run, checked
     mirrors = real_mirrors(precision)
     pi, policy = mirrors.PiConfig(), mirrors.PolicyConfigC()
     predictive = PredictiveConfig()
+    current_mode, compensator = CurrentModeConfigC(), CompensatorConfigC()
     if kind == KIND_PI:
         pi = mirrors.PiConfig(twin.kp, twin.ki, twin.sample_period, *twin.duty_limits)
     elif kind == KIND_PREDICTIVE:
         predictive = twin.config
-    else:
+    elif kind == KIND_EXPLICIT:
         policy = twin.config
+    elif kind == KIND_CURRENT_MODE:
+        current_mode = current_mode_config(controller)
+    else:
+        compensator = compensator_config(controller)
     name = name or controller.name
     body = [f"static const int CONTROLLER_KIND = {kind};",
             f"static const BuckcPiConfig PI_CONFIG = {initializer(pi, precision)};"]
     if precision == "float64":
         body.append(f"static const BuckcPredictiveConfig PREDICTIVE_CONFIG = {initializer(predictive)};")
     body.append(f"static const BuckcPolicyConfig POLICY_CONFIG = {initializer(policy, precision)};")
+    body.append(f"static const BuckcCurrentModeConfig CURRENT_MODE_CONFIG = {initializer(current_mode, precision)};")
+    body.append(f"static const BuckcCompensatorConfig COMPENSATOR_CONFIG = {initializer(compensator, precision)};")
     data = "\n".join(body)
     guid = "{" + str(uuid.UUID(hashlib.sha256((name + data).encode()).hexdigest()[:32])) + "}"
     includes = ['#include "controller_variables.h"', '#include "pi.h"']
     includes += ['#include "predictive.h"'] if precision == "float64" else []
     includes += ['#include "explicit_policy.h"']
+    includes += ['#include "current_mode.h"', '#include "compensator.h"']
     # the sample clock of an FMU stays in double: a float Ts would drift off the master's sample instants
     period = _number(float(controller.sample_period))
     clock = [] if precision == "float64" else [f"#define CONTROLLER_SAMPLE_PERIOD {period} /* [s], double */"]

@@ -43,6 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from controllers.base import Measurement, check_duty_limits, check_sample_period
+from controllers.compensator import CompensatorController
+from controllers.current_mode import CurrentModeController
 from controllers.explicit_policy import N_FEATURES, ExplicitPolicyController
 from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
 from controllers.pi import PIController, check_gains
@@ -151,7 +153,8 @@ def build_c(name: str, sources: list[Path], headers: list[Path], flags: tuple[st
 #: the arithmetic of a build of the twins (``buckc_real`` in ``controllers/c/buckc.h``)
 PRECISIONS = ("float64", "float32")
 #: the files with a float32 build (buckc.h): predictive.c and predictors.c compute in double only
-FLOAT32_SOURCES = ("buckc.c", "pi.c", "load_estimate.c", "nn_model.c", "explicit_policy.c")
+FLOAT32_SOURCES = ("buckc.c", "pi.c", "load_estimate.c", "nn_model.c", "explicit_policy.c", "current_mode.c",
+                   "compensator.c")
 #: what a float32 build adds to FLAGS: buckc_real = float, and no expression silently computed in double
 FLOAT32_FLAGS = ("-DBUCKC_FLOAT32", "-Wdouble-promotion")
 
@@ -217,6 +220,7 @@ NEAR_OFFSETS = LIMITS["BUCKC_NEAR_OFFSETS"]
 POLICY_MAX_HIDDEN_LAYERS = LIMITS["BUCKC_POLICY_MAX_HIDDEN_LAYERS"]
 POLICY_MAX_WIDTH = LIMITS["BUCKC_POLICY_MAX_WIDTH"]
 POLICY_MAX_LAYERS = POLICY_MAX_HIDDEN_LAYERS + 1
+COMPENSATOR_MAX_ORDER = LIMITS["BUCKC_COMPENSATOR_MAX_ORDER"]
 assert LIMITS["BUCKC_POLICY_INPUTS"] == N_FEATURES, "explicit_policy.h and explicit_policy.FEATURES disagree"
 
 OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT = 0, -1, -2, -3, -4
@@ -397,13 +401,40 @@ class PredictiveState(ctypes.Structure):
                 ("best_call", c_int), ("best_row", c_int)]
 
 
+class CurrentModeConfigC(ctypes.Structure):
+    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
+                ("nominal_input_voltage", c_double), ("kp_voltage", c_double), ("ki_voltage", c_double),
+                ("kp_current", c_double), ("ki_current", c_double), ("current_limit", c_double),
+                ("computation_delay", c_int)]
+
+
+class CurrentModeC(ctypes.Structure):
+    _fields_ = [("config", CurrentModeConfigC), ("voltage_integral", c_double), ("current_integral", c_double),
+                ("pending_duty", c_double)]
+
+
+class CompensatorConfigC(ctypes.Structure):
+    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
+                ("nominal_input_voltage", c_double), ("order", c_int),
+                ("numerator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)),
+                ("denominator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)), ("computation_delay", c_int)]
+
+
+class CompensatorC(ctypes.Structure):
+    _fields_ = [("config", CompensatorConfigC), ("state", _array(c_double, COMPENSATOR_MAX_ORDER)),
+                ("pending_duty", c_double)]
+
+
 #: ctypes mirror -> C type name of the double-only structs (predictors.h, predictive.h), checked like RealMirrors'
 PREDICTIVE_MIRRORS = {CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
                       AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig",
                       SwitchedTable: "BuckcSwitchedTable", HorizonSettingsC: "BuckcHorizonSettings",
                       Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
                       PredictiveConfig: "BuckcPredictiveConfig", PredictiveState: "BuckcPredictiveState"}
-MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS}
+#: the classical controllers' structs (current_mode.h, compensator.h): in buckc_real, bound in the double build only
+CLASSICAL_MIRRORS = {CurrentModeConfigC: "BuckcCurrentModeConfig", CurrentModeC: "BuckcCurrentMode",
+                     CompensatorConfigC: "BuckcCompensatorConfig", CompensatorC: "BuckcCompensator"}
+MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS, **CLASSICAL_MIRRORS}
 
 COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
 
@@ -435,6 +466,12 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
     "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
     "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
+    "buckc_current_mode_init": (c_int, [_P(CurrentModeC), _P(CurrentModeConfigC), _P(ctypes.c_char_p)]),
+    "buckc_current_mode_reset": (None, [_P(CurrentModeC)]),
+    "buckc_current_mode_step": (c_int, [_P(CurrentModeC), _P(MeasurementC), _D]),
+    "buckc_compensator_init": (c_int, [_P(CompensatorC), _P(CompensatorConfigC), _P(ctypes.c_char_p)]),
+    "buckc_compensator_reset": (None, [_P(CompensatorC)]),
+    "buckc_compensator_step": (c_int, [_P(CompensatorC), _P(MeasurementC), _D]),
 }
 
 
@@ -609,6 +646,9 @@ class NativePIController:
     def state(self):
         """The C PI (its copy of the configuration and the integral; a live view)."""
         return self._pi
+
+    def linear_model(self, input_voltage: float | None = None):
+        return PIController(self.kp, self.ki, self.sample_period, self.duty_limits).linear_model(input_voltage)
 
     def reset(self) -> None:
         self._lib.buckc_pi_reset(self._ref)
@@ -799,6 +839,89 @@ class NativeExplicitPolicyController(_MeasurementStepper):
                 "implementation": "C twin (controllers/c/explicit_policy.c)" + _build_note(self.precision)}
 
 
+def current_mode_config(controller: CurrentModeController) -> CurrentModeConfigC:
+    g = controller.gains
+    low, high = controller.duty_limits
+    return CurrentModeConfigC(controller.sample_period, low, high, controller.nominal_input_voltage, g.kp_voltage,
+                              g.ki_voltage, g.kp_current, g.ki_current, g.current_limit, g.computation_delay)
+
+
+def compensator_config(controller: CompensatorController) -> CompensatorConfigC:
+    k = controller.coefficients
+    if k.order > COMPENSATOR_MAX_ORDER:
+        raise ValueError(f"compensator of order {k.order} has no C twin: > BUCKC_COMPENSATOR_MAX_ORDER "
+                         f"({COMPENSATOR_MAX_ORDER})")
+    c = CompensatorConfigC()
+    c.sample_period = controller.sample_period
+    c.duty_min, c.duty_max = controller.duty_limits
+    c.nominal_input_voltage = controller.nominal_input_voltage
+    c.order = k.order
+    for i, (b, a) in enumerate(zip(k.numerator, k.denominator)):
+        c.numerator[i], c.denominator[i] = b, a
+    c.computation_delay = k.computation_delay
+    return c
+
+
+class _LinearTwin(_MeasurementStepper):
+    """A classical controller's C twin: its configuration copied into the C state, one step per sample."""
+
+    def __init__(self, state, config, init, reset, step, name: str, description: dict):
+        self._lib = library()
+        self.name = name
+        self.sample_period = check_sample_period(config.sample_period, name)
+        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
+        self._description = description
+        self._state = state
+        self._reset = reset
+        what = ctypes.c_char_p()
+        _check(init(ctypes.byref(state), ctypes.byref(config), ctypes.byref(what)), what, name)
+        self._bind_step(step, ctypes.byref(state))
+
+    @property
+    def state(self):
+        """The C controller's state between samples (a live view: read, do not write)."""
+        return self._state
+
+    def reset(self) -> None:
+        self._reset(ctypes.byref(self._state))
+
+
+class NativeCurrentModeController(_LinearTwin):
+    """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``)."""
+
+    def __init__(self, controller: CurrentModeController):
+        lib = library()
+        self.python = controller
+        self.gains, self.nominal_input_voltage = controller.gains, controller.nominal_input_voltage
+        super().__init__(CurrentModeC(), current_mode_config(controller), lib.buckc_current_mode_init,
+                         lib.buckc_current_mode_reset, lib.buckc_current_mode_step, controller.name,
+                         controller.describe())
+
+    def linear_model(self, input_voltage: float | None = None):
+        return self.python.linear_model(input_voltage)
+
+    def describe(self) -> dict:
+        return {**self._description, "implementation": "C twin (controllers/c/current_mode.c)"}
+
+
+class NativeCompensatorController(_LinearTwin):
+    """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``)."""
+
+    def __init__(self, controller: CompensatorController):
+        lib = library()
+        self.python = controller
+        self.coefficients, self.nominal_input_voltage = controller.coefficients, controller.nominal_input_voltage
+        super().__init__(CompensatorC(), compensator_config(controller), lib.buckc_compensator_init,
+                         lib.buckc_compensator_reset, lib.buckc_compensator_step, controller.name,
+                         controller.describe())
+
+    def linear_model(self, input_voltage: float | None = None):
+        return self.python.linear_model(input_voltage)
+
+    def describe(self) -> dict:
+        return {**self._description, "implementation": "C twin (controllers/c/compensator.c)"}
+
+
 def native_twin(controller, precision: str = "float64"):
     """The C twin of a Python PI, predictive or explicit-policy controller (an adaptive NNPC: the
     same adaptation around the twin of its NNPC); any other controller is returned as it is.
@@ -819,6 +942,10 @@ def native_twin(controller, precision: str = "float64"):
         return NativePredictiveController.from_python(controller)
     if isinstance(controller, ExplicitPolicyController):
         return NativeExplicitPolicyController.from_python(controller, precision)
+    if isinstance(controller, CurrentModeController):
+        return NativeCurrentModeController(controller)
+    if isinstance(controller, CompensatorController):
+        return NativeCompensatorController(controller)
     return controller
 
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from controllers.base import Measurement, check_duty_limits, check_sample_period
 
 
@@ -54,6 +56,13 @@ class PIController:
         if not (pushing_high or pushing_low):
             self.integral = integral
         return duty
+
+    def linear_model(self, input_voltage: float | None = None):
+        """d = C(z) (r - vo) with C(z) = kp + ki Ts z / (z - 1), unsaturated (:mod:`controllers.small_signal`)."""
+        from controllers.small_signal import LinearController, pi_polynomials
+
+        num, den = pi_polynomials(self.kp, self.ki, self.sample_period)
+        return LinearController(reference=num, current=np.zeros(1), voltage=num, den=den)
 
     def describe(self) -> dict:
         return {

@@ -10,7 +10,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
 
@@ -234,26 +233,6 @@ def test_the_exported_fmu_driven_by_the_master_gives_the_python_duty_at_every_sa
             assert len(exported) == len(reference) > 100
             assert np.array_equal(exported, reference), (mode, scenario.name)
     fmu.close()
-
-
-# ------------------------------------------------------------------ the map's bookkeeping
-
-
-def test_the_map_share_needs_both_steps_within_overshoot_and_settling():
-    from cosim.study.explicit import point_results, shares
-
-    steps = pd.DataFrame([
-        # point (5 V, 6 Ohm): NNPC meets both; the explicit one overshoots 6 % in the load step
-        (5, 6, "reference_step", "NNPC", 1.0, 0.1), (5, 6, "load_step", "NNPC", 4.9, 0.5),
-        (5, 6, "reference_step", "NNPC-explicit", 1.0, 0.1), (5, 6, "load_step", "NNPC-explicit", 6.0, 0.1),
-        # point (15 V, 60 Ohm): the NNPC never settles in one step; the explicit one meets both
-        (15, 60, "reference_step", "NNPC", 0.0, math.nan), (15, 60, "load_step", "NNPC", 0.0, 0.1),
-        (15, 60, "reference_step", "NNPC-explicit", 5.0, 0.49), (15, 60, "load_step", "NNPC-explicit", 0.0, 0.0),
-    ], columns=["reference_V", "load_Ohm", "step", "controller", "overshoot_pct", "settling_time_ms"])
-    assert shares(steps) == {"NNPC": 50.0, "NNPC-explicit": 50.0}
-    points = point_results(steps).set_index(["controller", "reference_V"])
-    assert points.loc[("NNPC", 15), "settling_time_ms"] == math.inf
-    assert not points.loc[("NNPC-explicit", 5), "meets"] and points.loc[("NNPC-explicit", 15), "meets"]
 
 
 # ------------------------------------------------------------------ command line

@@ -44,21 +44,34 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
             "MPC-oracle (averaged model)", "MPC-oracle (sync. sample)", "NNPC (seed 1)",
             "MPC-nominal (no disturbance estimate)", "NNPC (7 hidden, one-step)", "NNPC (+ closed-loop round)",
             "NNPC (+ closed-loop round) (seed 1)", "NNPC-adaptive", "NNPC (identified on the drifted plant)",
-            "NNPC-explicit"} <= controllers
+            "NNPC-explicit", "CMC", "Type-III", "PI-envelope"} <= controllers
     # 4 pipelines x 2 scenarios x 5 controllers, + the no-estimate MPC on the mismatch plant, + the
     # ablations (N = 3 at 1 ms; eq. 3 and sync. sample at 13.33 us, and two identification variants
     # there on the start-up), + seed 1 on the three nominal pipelines (with its identification
     # variants at 13.33 us), + the drift study, + the controller FMU in the three 1 ms pipelines,
-    # + the explicit NNPC at 13.33 us (with its policy and the operating-region map)
-    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 2 + 2 + 2 + (2 + 2) + 3 + 3 * 2 + 2
+    # + the explicit NNPC at 13.33 us (with its policy), + the current-mode controller, the Type-III and
+    # the envelope PI there
+    assert len(metrics) == 4 * 2 * 5 + 2 + 2 + 2 + 2 + 2 + 2 + 2 + (2 + 2) + 3 + 3 * 2 + 2 + 3 * 2
     fmu = metrics[metrics["controller"] == "my_pi (FMU)"]
     assert set(fmu["pipeline"]) == {t for t in QUICK.pipelines if t.endswith("__1ms")} and len(fmu) == 3 * 2
     assert fmu["iae_Vs"].notna().all() and (fmu["iae_Vs"] > 0).all()
     assert (reproduction / "runs" / "startup__my-pi-fmu__nominal-switched__1ms.parquet").is_file()
     assert set(metrics.loc[metrics["controller"] == "NNPC-explicit", "pipeline"]) == {"nominal-switched__13p33us"}
     assert (reproduction / "models" / "nominal-switched__13p33us__nnpc-explicit.pt").is_file()
-    for name in ("map", "first_move"):
-        assert (reproduction / "explicit" / f"{name}__nominal-switched__13p33us.csv").is_file()
+    for kind in ("current-mode", "type-iii", "pi-envelope", "pi-margins"):  # the designs, with their margins
+        design = json.loads((reproduction / "tuning" / f"{kind}__nominal-switched__13p33us.json").read_text())
+        assert design["loops"]["duty"]["closed_loop_stable"]
+    # the envelope map on the sweep engine: every point, step and controller; its shares from its table
+    steps = pd.read_csv(reproduction / "envelope" / "map.csv")
+    assert len(steps) == 4 * 2 * 7 and set(steps["controller"]) >= {"NNPC", "MPC-oracle", "CMC", "PI-envelope"}
+    shares = pd.read_csv(reproduction / "envelope" / "shares.csv")
+    overall = shares[shares["input_voltage_V"] == "all"].set_index("controller")["share_pct"]
+    points = pd.read_csv(reproduction / "envelope" / "points.csv")
+    assert overall.to_dict() == pytest.approx((100 * points.groupby("controller")["meets"].mean()).to_dict())
+    assert steps.loc[steps["controller"] == "NNPC", "first_move_samples"].gt(0).all()
+    # the frequency responses: loop gains and output impedances against the closed form
+    loop = pd.read_csv(reproduction / "frequency-response" / "loop_gain.csv")
+    assert set(loop["controller"]) == {"PI", "CMC", "Type-III"} and loop["phase_error_deg"].abs().max() <= 5
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
     assert set(seed_study["pipeline"]) == {"nominal-averaged__1ms", "nominal-switched__1ms", "nominal-switched__13p33us"}
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
@@ -98,8 +111,10 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     cost = report.split("## What the NNPC costs in C")[1].split("\n## ")[0]
     rows = [line for line in cost.splitlines() if line.startswith(("| 1 ms |", "| 13.33 µs |"))]
     assert len(rows) == 2 and rows[0].endswith("| yes |")  # the 1 ms NNPC fits a Cortex-M4F, counted
-    assert "## Explicit NNPC" in report and "**Operating-region map**" in report
-    assert targets["target"].str.startswith("Operating-region map").any()
+    assert "## Explicit NNPC" in report and "## Control quality over the operating envelope" in report
+    assert targets["target"].str.startswith("Envelope map: current-mode controller (CMC) share >= 60 %").any()
+    assert targets["target"].str.contains("x current-mode (CMC) IAE, every paper scenario and seed", regex=False).any()
+    assert "**Against the best-designed classical controller at the nominal point**" in report
     assert targets["target"].str.startswith("NNPC-explicit IAE <= 1.05 x online NNPC IAE").any()
     for figure in report.split("](figures/")[1:]:
         assert (reproduction / "figures" / figure.split(")")[0]).is_file()

@@ -4,6 +4,8 @@
 #include <string.h>
 
 #include "buckc.h"
+#include "compensator.h"
+#include "current_mode.h"
 #include "explicit_policy.h"
 #include "nn_model.h"
 #include "pi.h"
@@ -54,6 +56,10 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcPredictiveState);
     SIZE(BuckcPredictive);
 #endif
+    SIZE(BuckcCurrentModeConfig);
+    SIZE(BuckcCurrentMode);
+    SIZE(BuckcCompensatorConfig);
+    SIZE(BuckcCompensator);
 #undef SIZE
     return 0;
 }

@@ -25,7 +25,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
-from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind, header_guid
+from controllers.codegen import (
+    KIND_COMPENSATOR,
+    KIND_CURRENT_MODE,
+    KIND_EXPLICIT,
+    KIND_PI,
+    config_header,
+    controller_kind,
+    header_guid,
+)
 from controllers.native import FLOAT32_SOURCES, check_precision
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
 from plant_fmu.build import (
@@ -45,16 +53,18 @@ MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
                    "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
-                   "explicit_policy.h")
+                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h")
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
 #: modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
-            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c")
+            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c", "current_mode.c", "compensator.c")
 #: the float32 FMU: the files with a float32 build that the PI and the explicit NNPC need, each through a
 #: wrapper that defines BUCKC_FLOAT32 (the glue does not include buckc.h: compiled as it is)
-FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c")
+FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c",
+                                       "current_mode.c", "compensator.c")
                            if f in FLOAT32_SOURCES)
-FLOAT32_HEADERS = ("buckc.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h")
+FLOAT32_HEADERS = ("buckc.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h", "current_mode.h",
+                   "compensator.h")
 FLOAT32_COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "f32_controller_fmu.c",
                     *(f"f32_{f}" for f in FLOAT32_ALGORITHMS))
 
@@ -126,7 +136,7 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
 
 
 def controller_sources(controller, identifier: str, precision: str = "float64") -> FmuSources:
-    """What the FMU of a Python PI, predictive or explicit-policy controller is built from (``precision``:
+    """What the FMU of a Python PI, predictive, explicit-policy, current-mode or compensator controller is built from (``precision``:
     the build of the twins it computes with; ValueError for a controller without a float32 build)."""
     header = config_header(controller, name=identifier, precision=check_precision(precision))
     kind = controller_kind(controller)
@@ -137,7 +147,8 @@ def controller_sources(controller, identifier: str, precision: str = "float64") 
               "input_voltage": repr(float(getattr(controller, "nominal_input_voltage", 48.0)))}
     if pi:
         starts.update(kp=repr(float(controller.kp)), ki=repr(float(controller.ki)))
-    algorithm = "PI" if pi else "explicit policy" if kind == KIND_EXPLICIT else "predictive"
+    algorithm = {KIND_PI: "PI", KIND_EXPLICIT: "explicit policy", KIND_CURRENT_MODE: "average-current-mode control",
+                 KIND_COMPENSATOR: "discrete compensator"}.get(kind, "predictive")
     build = "" if precision == "float64" else f", {precision} build"
     description = (f"{controller.name} controller of the buck-cosim workbench, sampled every "
                    f"{controller.sample_period:.6g} s ({algorithm}; hand-written C99, generated configuration{build})")

@@ -26,6 +26,7 @@ from cosim.study.vocabulary import (
     NOMINAL,
     pipeline_tag,
 )
+from plant_fmu.table_ii import TABLE_II
 
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
@@ -134,7 +135,11 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
             check_gains(kp, ki)
     except ValueError as error:
         raise ConfigError(str(error)) from None
-    needs_current = [n for n in names if n in (*NETWORKS, "nnpc-adaptive", "nnpc-explicit")]
+    needs_current = [n for n in names if n in (*NETWORKS, "nnpc-adaptive", "nnpc-explicit", "current-mode")]
+    designed = [n for n in names if n in ("current-mode", "type-iii")]
+    if designed and abs(period * TABLE_II.switching_frequency - 1) > 1e-9:
+        raise ConfigError(f"{designed[0]} is designed for one sample per PWM period (--control-period 1/75e3), not "
+                          f"{period:.6g} s")
     if needs_current and not binding.has("inductor_current"):
         raise ConfigError(f"{needs_current[0]} needs the inductor_current role, which {binding.origin} does not bind")
     if policy_path and "nnpc-explicit" not in names:
@@ -173,6 +178,18 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                                    model_path=None, progress=progress)
                     policy = distilled_policy(model, binding, period, out_dir, seed=seed, progress=progress)
                 controllers.append(explicit_nnpc(policy, NNPC_EXPLICIT))
+            elif name in ("current-mode", "type-iii"):
+                from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
+
+                parameters = true_parameters(binding) if binding.source is None else NOMINAL
+                design = (design_current_mode if name == "current-mode" else design_type_iii)(
+                    parameters, replace(targets_for(binding, period), duty_limits=tuple(duty_limits)), CONTROLLERS[name])
+                controllers.append(design.controller)
+            elif name == "pi-envelope":
+                from cosim.study.pi_tuning import tune_pi_envelope
+
+                tuning = tune_pi_envelope(binding, period, progress=progress)
+                controllers.append(tuning.controller(duty_limits, name=CONTROLLERS[name]))
             elif name == "mpc-oracle":
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":

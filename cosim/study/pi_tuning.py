@@ -26,7 +26,7 @@ from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.metrics import run_metrics
-from cosim.scenarios import load_scenario
+from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
 from plant_fmu.table_ii import TABLE_II
 
 TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
@@ -135,6 +135,87 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
                     cost=best_cost, worst_overshoot_pct=float(worst.get((a, b), math.nan)),
                     evaluations=evaluations, plant=binding.label)
+
+
+#: the envelope PI's operating points: (reference [V], load [Ohm], supply [V]) -- the envelope's corners in
+#: reference and load (CCM and deep DCM), the nominal point, the lightly damped 25 Ohm, and both supply extremes
+ENVELOPE_POINTS = ((3.0, 4.0, 48.0), (3.0, 100.0, 48.0), (12.0, 6.0, 48.0), (12.0, 25.0, 48.0), (20.0, 4.0, 36.0),
+                   (20.0, 100.0, 60.0))
+ENVELOPE_AGGREGATES = ("max", "sum")
+METHOD_ENVELOPE = (
+    "minimise the {aggregate} over operating points {points} (reference V, load Ohm, supply V) of ISE / r^2 of a "
+    "start-up to 0.8 r, a reference step to r and a load step 1.25 R -> R on the plant FMU, plus the penalties of the "
+    "nominal method (overshoot/undershoot <= 5 %, |steady-state error| <= 0.5 %); grid over a = Kp*Vs, b = Ki*Ts*Vs, "
+    "then Nelder-Mead")
+
+
+def envelope_scenario(reference: float, load: float, supply: float) -> Scenario:
+    """One operating point of the envelope tuning: start-up from rest to 0.8 r at 1.25 R, a reference step to
+    r at 4 ms, a load step to R at 8 ms; metrics from the reference step on."""
+    return Scenario(name="envelope_point", description=f"start-up to {0.8 * reference:g} V, step to {reference:g} V, "
+                    f"load {1.25 * load:g} -> {load:g} Ohm, {supply:g} V supply", duration=12e-3,
+                    initial={"reference": 0.8 * reference, "load_resistance": 1.25 * load, "input_voltage": supply},
+                    events=(ScenarioEvent(4e-3, {"reference": reference}), ScenarioEvent(8e-3, {"load_resistance": load})))
+
+
+def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELOPE_POINTS, aggregate: str = "max",
+                     *, record_period: float = 1e-5, input_voltage: float = TABLE_II.input_voltage,
+                     quick: bool = False, progress: bool = False) -> PITuning:
+    """The PI tuned for the envelope: the nominal method's ISE and penalties at each of ``points``,
+    normalised by r^2 (so every point weighs alike), aggregated by ``aggregate`` ("max": min-max, or
+    "sum"); the same grid and Nelder-Mead search. ``quick`` (smoke tests): a 2 x 2 grid, 6 evaluations."""
+    if aggregate not in ENVELOPE_AGGREGATES:
+        raise ValueError(f"aggregate {aggregate!r} is unknown: expected one of {', '.join(ENVELOPE_AGGREGATES)}")
+    scenarios = [(r, envelope_scenario(r, load, vs)) for r, load, vs in points]
+    evaluations = 0
+    worst: dict[tuple[float, float], float] = {}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc=f"tuning the envelope PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False)
+    with open_plant(binding) as plant:
+
+        def cost(params: np.ndarray) -> float:
+            nonlocal evaluations
+            a, b = float(params[0]), float(params[1])
+            controller = PIController(max(a / input_voltage, 0.0), max(b / (control_period * input_voltage), 0.0),
+                                      control_period)
+            scores, worst_os = [], 0.0
+            for reference, scenario in scenarios:
+                try:
+                    metrics = run_metrics(run(plant, controller, scenario, record_period=record_period))
+                except WorkbenchError:
+                    if plant.fatal:
+                        raise
+                    return 1e6
+                if not math.isfinite(metrics["ise_V2s"]):
+                    return 1e6
+                excess = max(metrics["overshoot_pct"], metrics["undershoot_pct"]) - OVERSHOOT_LIMIT_PCT
+                sse = abs(metrics["steady_state_error_pct"]) - STEADY_STATE_LIMIT_PCT
+                scores.append(metrics["ise_V2s"] / reference ** 2 * 1e3 + 0.1 * max(0.0, excess) ** 2
+                              + 10.0 * max(0.0, sse) ** 2)
+                worst_os = max(worst_os, metrics["overshoot_pct"], metrics["undershoot_pct"])
+            evaluations += 1
+            worst[(a, b)] = worst_os
+            if bar is not None:
+                bar.update(1)
+            return max(scores) if aggregate == "max" else sum(scores)
+
+        grid = [(a, b) for a in ((0.0, 0.1) if quick else GRID_A) for b in ((0.01, 0.3) if quick else GRID_B)]
+        scores = [cost(np.array(p)) for p in grid]
+        start = np.array(grid[int(np.argmin(scores))])
+        result = minimize(cost, start, method="Nelder-Mead", bounds=[(0.0, 3.0), (1e-4, 1.5)],
+                          options={"maxfev": 6 if quick else 40, "xatol": 1e-3, "fatol": 1e-7,
+                                   "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
+    if bar is not None:
+        bar.close()
+    best = result.x if result.fun <= min(scores) else start
+    a, b = float(best[0]), float(best[1])
+    method = METHOD_ENVELOPE.format(aggregate=aggregate, points=", ".join(f"({r:g}, {R:g}, {v:g})" for r, R, v in points))
+    return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
+                    cost=float(min(result.fun, min(scores))), worst_overshoot_pct=float(worst.get((a, b), math.nan)),
+                    evaluations=evaluations, plant=binding.label, method=method)
 
 
 def load_or_tune(path: Path, binding: PlantBinding, control_period: float, **kwargs) -> PITuning:

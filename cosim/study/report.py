@@ -14,7 +14,7 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
-from cosim.study import explicit
+from cosim.study import envelope, explicit
 from cosim.study.c_cost import section as c_cost_section
 from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_configs, small_network
 from cosim.study.identification import training_settings
@@ -102,7 +102,8 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     ]
     if profile.quick:
         lines += ["", "**Quick profile (CI smoke test): tiny data sets and shortened runs; the numbers mean nothing.**"]
-    lines += ["", "## Summary", ""] + _summary(metrics, pipelines, models, physics, targets, drift_rows, drift) + [""]
+    lines += ["", "## Summary", ""] + _summary(metrics, pipelines, models, physics, targets, drift_rows, drift)
+    lines += envelope.sentences(metrics, out_dir) + [""]  # the NNPC against the best classical design, on the envelope
     lines += ["## Targets", "", "Each quality target of the project, checked against this reproduction "
               "(also in `targets.csv`); where the NNPC is identified from several seeds' data a target holds only "
               "for every seed, and the measured value is the worst seed's. The wall-clock targets are in "
@@ -137,6 +138,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     if cost:
         lines += ["## What the NNPC costs in C", ""] + cost + [""]
     lines += explicit.report_section(out_dir, metrics, pipelines)
+    lines += envelope.report_section(out_dir, metrics)
     lines += ["## Seeds", ""] + _seeds(outputs, metrics, models) + [""]
     lines += ["## Ablations", ""] + _ablations(metrics, models) + [""]
     lines += ["## Model mismatch", ""] + _mismatch(metrics, pipelines) + [""]

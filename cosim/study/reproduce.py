@@ -42,7 +42,7 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import explicit, tolerance_study
+from cosim.study import classical_design, envelope, explicit, frequency_response, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
@@ -304,6 +304,11 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
             controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL_NO_ESTIMATE, binding=binding, offset_free=False))
     controllers += explicit.in_pipeline(pipeline, binding, models["nnpc"], pi.controller(), out_dir, profile, seed,
                                         implementation, timings, log)  # the explicit NNPC at 1/fsw, and its map
+    if true_parameters is not None:  # the classical baselines at 1/fsw: current-mode, Type-III, envelope PI
+        controllers += classical_design.in_pipeline(pipeline, binding, true_parameters, pi.controller(), out_dir,
+                                                    profile.quick, timings, log)
+        frequency_response.in_pipeline(pipeline, binding, [pi.controller(), *controllers], out_dir, profile.quick,
+                                       timings, log)  # loop gains and output impedances by injection
     if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
         from cosim.fmi.controller import FmuController, controller_binding
 
@@ -587,7 +592,7 @@ SOURCE_PRIORITY, STUDY_PRIORITY = 100, -10
 
 
 def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
-                    implementation: str, workers: int, resume: bool, study_wanted: bool):
+                    implementation: str, workers: int, resume: bool, study_wanted: bool, map_wanted: bool = False):
     """The reproduction as dask tasks on a LocalCluster: the PI tunings first (every job of a plant
     and rate needs its gains), then the jobs (longest first, so the workers finish together; a job
     that depends on another is submitted when that one finishes), and the tolerance study's tasks as
@@ -607,8 +612,9 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         waiting = [job for job in todo if job.after is not None and job.after in keys]
         # submitted in the order they should start (idle workers take the first ones at once; the
         # rest wait in the scheduler's queue by priority): the study's source pipeline, then longest first
+        sources = (tolerance_study.SOURCE_PIPELINE, pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD))
         order = sorted((job for job in todo if job not in waiting),
-                       key=lambda job: (job.key != tolerance_study.SOURCE_PIPELINE, -job.cost()))
+                       key=lambda job: (job.key not in sources, -job.cost()))
         futures: dict[str, Job] = {}
         queue = as_completed(loop=client.loop)
 
@@ -621,6 +627,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         for rank, job in enumerate(order):
             submit(job, SOURCE_PRIORITY if job.key == tolerance_study.SOURCE_PIPELINE else len(order) - rank)
         study, execution = None, None
+        envelope_map, envelope_execution = None, None
 
         def finished_pipelines():
             return (job.key for job in outputs if job.kind == "pipeline")
@@ -633,13 +640,27 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
             for future in execution.submit(client, priority=STUDY_PRIORITY):
                 queue.add(future)
 
-        if study_wanted and tolerance_study.ready(finished_pipelines()):
-            start_study()
+        def start_map():  # the envelope map, once the nominal switched pipeline at 1/fsw has its controllers
+            nonlocal envelope_map, envelope_execution
+            envelope_map = envelope.start(out_dir, quick=profile.quick, resume=resume)
+            envelope_execution = envelope_map.execution()
+            log(f"  {envelope_map.describe_start('the same cluster')}")
+            for future in envelope_execution.submit(client, priority=STUDY_PRIORITY):
+                queue.add(future)
+
+        def maybe_start():
+            if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
+                start_study()
+            if map_wanted and envelope_map is None and envelope.ready(finished_pipelines()):
+                start_map()
+
+        maybe_start()
         try:
             done = 0
             for future in queue:
-                if execution is not None and execution.owns(future):
-                    for new in execution.handle(future):
+                owner = next((e for e in (execution, envelope_execution) if e is not None and e.owns(future)), None)
+                if owner is not None:
+                    for new in owner.handle(future):
                         queue.add(new)
                     continue
                 job = futures.pop(future.key)
@@ -651,17 +672,21 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
                 for ready in [j for j in waiting if j.after == job.key]:
                     waiting.remove(ready)
                     submit(ready, SOURCE_PRIORITY)
-                if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
-                    start_study()
+                maybe_start()
         except BaseException:
-            if execution is not None:
-                execution.cancel()
+            for e in (execution, envelope_execution):
+                if e is not None:
+                    e.cancel()
             raise
+        if envelope_execution is not None:
+            envelope_execution.close()
+            log(f"  envelope map: {envelope_execution.counts.runs} run(s) written ({envelope_execution.counts.failed} "
+                "failed)")
         if execution is None:
-            return None, None
+            return None, None, envelope_map, envelope_execution
         execution.close()
         log(f"  tolerance study: {execution.counts.runs} run(s) written ({execution.counts.failed} failed)")
-        return study, execution.counts
+        return study, execution.counts, envelope_map, envelope_execution
 
 
 def _study_timing(study, counts) -> dict | None:
@@ -720,13 +745,20 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     log(f"reproduction: {len(todo)} job(s) on {workers} worker(s) -> {out_dir}/"
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
     study_wanted = not binding_file and tolerance_study.SOURCE_PIPELINE in {p.tag for p in selected}
-    study = study_counts = None
-    if todo or study_wanted:
+    map_wanted = not binding_file and pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD) in {p.tag for p in selected}
+    study = study_counts = envelope_map = map_execution = None
+    if todo or study_wanted or map_wanted:
         try:
-            study, study_counts = _run_on_cluster(todo, tunings, outputs, out_dir, profile, implementation, workers,
-                                                  resume, study_wanted)
+            study, study_counts, envelope_map, map_execution = _run_on_cluster(
+                todo, tunings, outputs, out_dir, profile, implementation, workers, resume, study_wanted, map_wanted)
         finally:
             remove_temporary_files(out_dir)  # what unfinished writes left, once the workers are gone
+    map_started = time.perf_counter()
+    if envelope_map is not None:
+        envelope.write_outputs(envelope_map, out_dir)
+    map_timing = _study_timing(envelope_map, map_execution.counts if map_execution is not None else None)
+    if map_timing is not None:
+        map_timing["outputs_s"] = time.perf_counter() - map_started
     ordered = [outputs[job] for job in jobs]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
@@ -738,7 +770,8 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
         append_to_report(out_dir, report, quick=profile.quick)
     elapsed = time.perf_counter() - started
-    write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts))
+    write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts),
+                  envelope=map_timing)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.labels import period_label
+from cosim.study.envelope import target_rows as envelope_target_rows
 from cosim.study.explicit import target_rows as explicit_target_rows
 from cosim.study.summaries import model_key, ratio_table, seed_controllers, value, worst
 from cosim.study.vocabulary import (
@@ -138,6 +139,7 @@ class Targets:
                 f"{adapted / offline:.3f}", adapted / offline <= 1.10,
                 f"non-adapting NNPC: {frozen / offline:.3f}")
         self.rows += explicit_target_rows(m, pipelines, out_dir)  # the explicit NNPC (cosim/study/explicit.py)
+        self.rows += envelope_target_rows(m, out_dir)  # the envelope map and the classical baselines (envelope.py)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows, columns=["target", "measured", "met", "note"])

@@ -18,7 +18,7 @@ from cosim.study.targets import TimingTargets
 
 
 def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, workers: int,
-                  tolerance: dict | None = None) -> Path:
+                  tolerance: dict | None = None, envelope: dict | None = None) -> Path:
     """Write ``timings.md`` (tables) and ``timings.csv`` (one row per figure: kind, pipeline,
     what, value, unit). ``tolerance``: the tolerance study's runs, worker time and last part [s]."""
     out_dir = Path(out_dir)
@@ -32,6 +32,13 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
                   "value": tolerance["worker_s"], "unit": "s"},
                  {"kind": "tolerance study", "pipeline": "", "what": "last part written after its first task",
                   "value": tolerance["last_part_s"], "unit": "s"}]
+    if envelope:
+        rows += [{"kind": "envelope map", "pipeline": "", "what": f"{envelope['runs']} runs: worker time",
+                  "value": envelope["worker_s"], "unit": "s"},
+                 {"kind": "envelope map", "pipeline": "", "what": "last part written after its first task",
+                  "value": envelope["last_part_s"], "unit": "s"},
+                 {"kind": "envelope map", "pipeline": "", "what": "tables and figures",
+                  "value": envelope.get("outputs_s", 0.0), "unit": "s"}]
     for o in outputs:
         rows += [{"kind": "stage", "pipeline": getattr(o, "key", "") or o.pipeline.tag, "what": stage, "value": seconds,
                   "unit": "s"}
@@ -49,7 +56,10 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
              "many repetitions.", "",
              f"Whole reproduction: {elapsed:.1f} s on {workers} worker process(es)."
              + (f" The tolerance study's {tolerance['runs']} runs took {tolerance['worker_s']:.1f} s of worker time, "
-                "shared with the pipelines still running." if tolerance else ""), "",
+                "shared with the pipelines still running." if tolerance else "")
+             + (f" The envelope map's {envelope['runs']} runs took {envelope['worker_s']:.1f} s of worker time "
+                f"(its last part {envelope['last_part_s']:.1f} s after its first task; tables and figures "
+                f"{envelope.get('outputs_s', 0.0):.1f} s)." if envelope else ""), "",
              "## Timing targets", ""]
     lines += markdown_table(targets, ["target", "measured", "met", "note"])
     lines += ["", "## Stages per job [s] (a pipeline, a seed job of it, or the drift study)", ""]

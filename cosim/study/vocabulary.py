@@ -104,9 +104,16 @@ MPC_NOMINAL = "MPC-nominal"
 MPC_MISMATCHED = "MPC-mismatched"
 #: the explicit NNPC: a policy network distilled from the online NNPC (cosim.study.distillation)
 NNPC_EXPLICIT = "NNPC-explicit"
+#: the classical baselines designed from the small-signal model (cosim.study.classical_design) and the PI
+#: tuned over the envelope (cosim.study.pi_tuning.tune_pi_envelope)
+CURRENT_MODE = "CMC"
+TYPE_III = "Type-III"
+PI_ENVELOPE = "PI-envelope"
+CLASSICAL = (PI, PI_ENVELOPE, CURRENT_MODE, TYPE_III)
 #: command-line key -> the name a run, a metrics row and a figure legend carry
 CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-adaptive": f"{NNPC}-adaptive", "nnpc-paper": NNPC_PAPER,
-               "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT}
+               "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT,
+               "current-mode": CURRENT_MODE, "type-iii": TYPE_III, "pi-envelope": PI_ENVELOPE}
 #: the command-line keys whose C twin has a float32 build (export-controller --precision float32; the Cortex-M4F)
 FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit")
 #: the NN plant models per rate, by command-line key
@@ -176,6 +183,9 @@ CONTROLLER_STYLES = {
     NNPC_ADAPTIVE: ("tab:green", "-"),
     NNPC_DRIFTED: ("tab:gray", (0, (4, 2))),
     NNPC_EXPLICIT: ("tab:brown", (0, (5, 1))),
+    CURRENT_MODE: ("tab:cyan", "-"),
+    TYPE_III: ("tab:olive", (0, (3, 1))),
+    PI_ENVELOPE: ("tab:pink", (0, (2, 1))),
 }
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
-/* A workbench controller as an FMU model (fmu_model.h): the PI, the predictive controller or the
- * explicit NNPC (explicit policy) of controllers/c/, sampled on the FMU's own clock.
+/* A workbench controller as an FMU model (fmu_model.h): the PI, the predictive controller, the
+ * explicit NNPC (explicit policy), the average-current-mode controller or the discrete compensator
+ * (Type-III) of controllers/c/, sampled on the FMU's own clock.
  *
  * The algorithm and its settings come from the generated controller_config.h (data only: the
  * kind, the PI gains, the predictive configuration with the network's weights, or the explicit
@@ -25,7 +26,9 @@
 #include <stdio.h>
 #include <string.h>
 
+#include "compensator.h"
 #include "controller_variables.h"
+#include "current_mode.h"
 #include "explicit_policy.h"
 #include "fmu_model.h"
 #include "pi.h"
@@ -34,7 +37,8 @@
 #endif
 
 #include "controller_config.h" /* generated: CONTROLLER_KIND, CONTROLLER_NAME, CONTROLLER_GUID, PI_CONFIG,
-                                  PREDICTIVE_CONFIG, POLICY_CONFIG */
+                                  PREDICTIVE_CONFIG, POLICY_CONFIG, CURRENT_MODE_CONFIG,
+                                  COMPENSATOR_CONFIG */
 
 typedef struct {
     double time;          /* the FMU's clock [s] */
@@ -49,6 +53,8 @@ typedef struct {
     BuckcPiConfig pi_config; /* PI: its parameters may be set before initialisation */
     BuckcPi pi, pi_pending;
     BuckcPolicy policy, policy_pending;
+    BuckcCurrentMode current_mode, current_mode_pending;
+    BuckcCompensator compensator, compensator_pending;
 #if BUCKC_HAVE_PREDICTIVE
     BuckcPredictiveState predictive_pending;
     BuckcPredictive predictive; /* last: the big one (the predictors' caches) */
@@ -77,6 +83,8 @@ static double fixed_sample_period(void) { return CONTROLLER_SAMPLE_PERIOD; }
 #define DEFAULT_PERIOD CONTROLLER_SAMPLE_PERIOD
 #else
 static double fixed_sample_period(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return (double)CURRENT_MODE_CONFIG.sample_period;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return (double)COMPENSATOR_CONFIG.sample_period;
     return PREDICTIVE_OR(POLICY_CONFIG.sample_period, PREDICTIVE_CONFIG.sample_period);
 }
 #define DEFAULT_PERIOD ((double)PI_CONFIG.sample_period)
@@ -86,9 +94,21 @@ static double fixed_sample_period(void) {
 #else
 #define FIXED_TOLERANCE 1e-12
 #endif
-static double fixed_duty_min(void) { return PREDICTIVE_OR(POLICY_CONFIG.duty_min, PREDICTIVE_CONFIG.duty_min); }
-static double fixed_duty_max(void) { return PREDICTIVE_OR(POLICY_CONFIG.duty_max, PREDICTIVE_CONFIG.duty_max); }
-static double nominal_input_voltage(void) { return PREDICTIVE_OR(48.0, PREDICTIVE_CONFIG.nominal_input_voltage); }
+static double fixed_duty_min(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return (double)CURRENT_MODE_CONFIG.duty_min;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return (double)COMPENSATOR_CONFIG.duty_min;
+    return PREDICTIVE_OR(POLICY_CONFIG.duty_min, PREDICTIVE_CONFIG.duty_min);
+}
+static double fixed_duty_max(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return (double)CURRENT_MODE_CONFIG.duty_max;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return (double)COMPENSATOR_CONFIG.duty_max;
+    return PREDICTIVE_OR(POLICY_CONFIG.duty_max, PREDICTIVE_CONFIG.duty_max);
+}
+static double nominal_input_voltage(void) {
+    if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) return (double)CURRENT_MODE_CONFIG.nominal_input_voltage;
+    if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) return (double)COMPENSATOR_CONFIG.nominal_input_voltage;
+    return PREDICTIVE_OR(48.0, PREDICTIVE_CONFIG.nominal_input_voltage);
+}
 
 static double sample_period(const ControllerData *d) {
     return CONTROLLER_KIND == CONTROLLER_PI ? d->period : fixed_sample_period();
@@ -120,6 +140,10 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
     (void)fmu;
     if (CONTROLLER_KIND == CONTROLLER_PI) status = buckc_pi_init(&d->pi, &d->pi_config, &what);
     else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) status = buckc_policy_init(&d->policy, &POLICY_CONFIG, &what);
+    else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE)
+        status = buckc_current_mode_init(&d->current_mode, &CURRENT_MODE_CONFIG, &what);
+    else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR)
+        status = buckc_compensator_init(&d->compensator, &COMPENSATOR_CONFIG, &what);
 #if BUCKC_HAVE_PREDICTIVE
     else status = buckc_predictive_init(&d->predictive, &PREDICTIVE_CONFIG, &what);
 #else
@@ -161,6 +185,12 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
             d->policy.config = &POLICY_CONFIG; /* again: a deserialized FMU state may come from another process */
             d->policy_pending = d->policy; /* committed by fmi2DoStep, not by reading the duty */
             status = buckc_policy_step(&d->policy_pending, &m, &duty);
+        } else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) {
+            d->current_mode_pending = d->current_mode; /* committed by fmi2DoStep, not by reading the duty */
+            status = buckc_current_mode_step(&d->current_mode_pending, &m, &duty);
+        } else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) {
+            d->compensator_pending = d->compensator;
+            status = buckc_compensator_step(&d->compensator_pending, &m, &duty);
         } else {
 #if BUCKC_HAVE_PREDICTIVE
             BuckcPredictiveState committed = d->predictive.state;
@@ -290,6 +320,8 @@ fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step)
         }
         if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
         else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
+        else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) d->current_mode = d->current_mode_pending;
+        else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) d->compensator = d->compensator_pending;
 #if BUCKC_HAVE_PREDICTIVE
         else d->predictive.state = d->predictive_pending;
 #endif

@@ -24,6 +24,7 @@ typedef enum {
 #define CONTROLLER_INPUTS 5
 
 /* what kind of algorithm a generated configuration holds (controller_config.h: CONTROLLER_KIND) */
-enum { CONTROLLER_PI = 0, CONTROLLER_PREDICTIVE = 1, CONTROLLER_EXPLICIT = 2 };
+enum { CONTROLLER_PI = 0, CONTROLLER_PREDICTIVE = 1, CONTROLLER_EXPLICIT = 2, CONTROLLER_CURRENT_MODE = 3,
+       CONTROLLER_COMPENSATOR = 4 };
 
 #endif

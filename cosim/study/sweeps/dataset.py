@@ -43,14 +43,15 @@ METRIC_UNITS = {"rise_time_ms": "ms", "overshoot_pct": "%", "undershoot_pct": "%
                 "controller_p50_us": "us", "controller_p99_us": "us"}
 
 
-def row_schema(axes: list[tuple[str, str, bool]]) -> pa.Schema:
-    """The rows' columns: ``axes`` is (name, unit, integer) per swept quantity."""
+def row_schema(axes: list[tuple[str, str, bool]], extra: tuple[pa.Field, ...] = ()) -> pa.Schema:
+    """The rows' columns: ``axes`` is (name, unit, integer) per swept quantity; ``extra``: columns a
+    measuring controller reports per run (the frequency response's correlations), after the metrics."""
     fields = [pa.field("run_id", pa.string()), pa.field("point", pa.int64()), pa.field("sample", pa.int64())]
     for name, unit, integer in axes:
         fields.append(pa.field(name, pa.int64() if integer else pa.float64(), metadata={"unit": unit}))
     fields += [pa.field("status", pa.string()), pa.field("error", pa.string())]
     fields += [pa.field(m, pa.float64(), metadata={"unit": METRIC_UNITS.get(m, "")}) for m in DETERMINISTIC_METRICS]
-    return pa.schema(fields)
+    return pa.schema(fields + list(extra))
 
 
 TIMING_SCHEMA = pa.schema([pa.field("run_id", pa.string()), pa.field("wall_time_s", pa.float64()),

@@ -77,6 +77,10 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
     settings = {"network": config.label, "origin": origin,
                 "held_out_one_step_rmse_V": rmse.get("one_step_rmse_voltage_V"),
                 "held_out_one_step_rmse_A": rmse.get("one_step_rmse_current_A")}
+    if entry.policy is not None:  # the explicit NNPC in shadow: its first move on the NNPC's own states
+        import base64
+
+        settings["shadow_policy"] = base64.b64encode(Path(entry.policy).read_bytes()).decode()
     return ControllerRecipe(entry.kind, entry.name, period, _json(settings), blob)
 
 
@@ -88,6 +92,86 @@ def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, wo
     # for an external FMU only Table II is known
     circuit = true_parameters(binding) if binding.source is None else NOMINAL
     return ControllerRecipe("mpc-nominal", entry.name, period, _json({"circuit": asdict(circuit)}))
+
+
+def _design_oracle(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
+                   progress: bool) -> ControllerRecipe:
+    """The MPC with the plant's own circuit: the oracle where no axis changes the plant (the sweep plan
+    refuses it beside [parameters] axes)."""
+    from cosim.study.controller_factory import true_parameters
+
+    try:
+        circuit = true_parameters(binding)
+    except ConfigError as error:
+        raise ConfigError(f"{entry.place}: {error}") from None
+    return ControllerRecipe("mpc-oracle", entry.name, period, _json({"circuit": asdict(circuit)}))
+
+
+def _design_explicit(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
+                     progress: bool) -> ControllerRecipe:
+    """The explicit NNPC of a policy file (``policy``), else distilled on the nominal plant from its NNPC."""
+    from controllers.explicit_policy import load_policy
+
+    if entry.policy is not None:
+        try:
+            load_policy(Path(entry.policy), expect_period=period)
+        except ModelFileError as error:
+            raise ConfigError(f"{entry.place}: {error}") from None
+        path, origin = Path(entry.policy), entry.origin or f"policy file {Path(entry.policy).name}"
+    else:
+        from cosim.study.controller_factory import distilled_policy, trained_model
+        from cosim.study.vocabulary import pipeline_tag
+
+        model = trained_model("nnpc", binding, period, work_dir, samples=entry.samples, seed=entry.seed,
+                              model_path=None, progress=progress)
+        distilled_policy(model, binding, period, work_dir, seed=entry.seed, progress=progress)
+        path = work_dir / "models" / f"{pipeline_tag(binding.tag, period)}__nnpc-explicit.pt"
+        origin = "distilled on the nominal plant"
+    return ControllerRecipe("nnpc-explicit", entry.name, period, _json({"origin": origin}), path.read_bytes())
+
+
+def _design_classical(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
+                      progress: bool) -> ControllerRecipe:
+    """The current-mode controller or the Type-III: from a design file (``design``), else designed on
+    the nominal plant by :mod:`cosim.study.classical_design`."""
+    from cosim.study.classical_design import (
+        controller_from_file,
+        design_current_mode,
+        design_type_iii,
+        targets_for,
+    )
+    from cosim.study.controller_factory import true_parameters
+
+    try:
+        if entry.design is not None:
+            controller = controller_from_file(Path(entry.design), entry.name)
+            origin = entry.origin or f"design file {Path(entry.design).name}"
+        else:
+            parameters = true_parameters(binding) if binding.source is None else NOMINAL
+            design = (design_current_mode if entry.kind == "current-mode" else design_type_iii)(
+                parameters, targets_for(binding, period), entry.name)
+            controller, origin = design.controller, "designed on the nominal plant"
+    except (ValueError, KeyError, OSError) as error:
+        raise ConfigError(f"{entry.place}: {entry.kind}: {error}") from None
+    if abs(controller.sample_period - period) > 1e-9 * period:
+        raise ConfigError(f"{entry.place}: {entry.kind}: the design samples every {controller.sample_period:.6g} s, "
+                          f"not at the sweep's control period {period:.6g} s")
+    return ControllerRecipe(entry.kind, entry.name, period, _json({"controller": controller.describe(),
+                                                                   "origin": origin}))
+
+
+def _design_envelope_pi(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
+                        progress: bool) -> ControllerRecipe:
+    if entry.kp is not None:
+        settings = {"kp_per_V": entry.kp, "ki_per_V_s": entry.ki,
+                    "tuning": {"method": entry.origin or "given in the sweep file"}}
+    else:
+        from cosim.study.pi_tuning import tune_pi_envelope
+
+        tuning = tune_pi_envelope(binding, period, progress=progress)
+        settings = {"kp_per_V": tuning.kp, "ki_per_V_s": tuning.ki,
+                    "tuning": {"method": tuning.method, "cost": tuning.cost, "plant": tuning.plant}}
+    return ControllerRecipe("pi-envelope", entry.name, period, _json(settings))
 
 
 def _design_fmu(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
@@ -150,7 +234,20 @@ def _build_pi(recipe: ControllerRecipe, binding: PlantBinding):
 def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.study.experiments import nnpc
 
-    return nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period, recipe.name)
+    controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
+                      recipe.name)
+    shadow = recipe.settings.get("shadow_policy")
+    if shadow is None:
+        return controller
+    import base64
+
+    from cosim.study.experiments import explicit_nnpc, implemented
+    from cosim.study.explicit import ShadowPolicy
+
+    policy = _policy_from_bytes(base64.b64decode(shadow), recipe.control_period)
+    # the NNPC as the worker implements it (its C twin by default), the policy in shadow beside it
+    return ShadowPolicy(implemented(controller, recipe.settings.get("implementation", "c")), explicit_nnpc(policy),
+                        start=0.0)
 
 
 def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
@@ -158,6 +255,59 @@ def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
 
     circuit = CircuitParameters(**recipe.settings["circuit"])
     return model_mpc(circuit, recipe.control_period, recipe.name, binding=binding)
+
+
+def _build_oracle(recipe: ControllerRecipe, binding: PlantBinding):
+    return _build_mpc(recipe, binding)
+
+
+_policies: dict[str, object] = {}
+
+
+def _policy_from_bytes(blob: bytes, period: float):
+    """A distilled policy from a file's bytes, read through :func:`load_policy`'s checks; cached per process."""
+    from controllers.explicit_policy import load_policy
+
+    key = f"{digest(blob)}:{period!r}"
+    with _models_lock:
+        if key not in _policies:
+            with tempfile.TemporaryDirectory(prefix="buck-cosim-policy-") as folder:
+                path = Path(folder) / "policy.pt"
+                path.write_bytes(blob)
+                _policies[key] = load_policy(path, expect_period=period)
+        return _policies[key]
+
+
+def _build_explicit(recipe: ControllerRecipe, binding: PlantBinding):
+    from cosim.study.experiments import explicit_nnpc
+
+    return explicit_nnpc(_policy_from_bytes(recipe.blob, recipe.control_period), recipe.name)
+
+
+def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):
+    from cosim.study.classical_design import controller_from_description
+
+    return controller_from_description(recipe.settings["controller"], recipe.name)
+
+
+def injected_recipe(inner: ControllerRecipe, name: str, frequency: float, amplitude: float, point: str, start: float,
+                    samples: int, implementation: str = "c") -> ControllerRecipe:
+    """A recipe of ``inner`` with a sine injected (:class:`controllers.injection.InjectedController`): one
+    point of a frequency response (:mod:`cosim.study.frequency_response`)."""
+    settings = {"inner": {"kind": inner.kind, "name": inner.name, "settings_json": inner.settings_json},
+                "frequency_hz": frequency, "amplitude": amplitude, "point": point, "start_s": start,
+                "samples": samples, "implementation": implementation}
+    return ControllerRecipe("injected", name, inner.control_period, _json(settings), inner.blob)
+
+
+def _build_injected(recipe: ControllerRecipe, binding: PlantBinding):
+    from controllers.injection import InjectedController
+
+    s = recipe.settings
+    inner = ControllerRecipe(s["inner"]["kind"], s["inner"]["name"], recipe.control_period, s["inner"]["settings_json"],
+                             recipe.blob)
+    return InjectedController(build(inner, binding, s["implementation"]), s["frequency_hz"], s["amplitude"],
+                              s["point"], s["start_s"], s["samples"])
 
 
 def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
@@ -198,6 +348,12 @@ KINDS: dict[str, Kind] = {
     "nnpc-paper": Kind(_design_nn, _build_nn),
     "mpc-nominal": Kind(_design_mpc, _build_mpc),
     "fmu": Kind(_design_fmu, _build_fmu),
+    "mpc-oracle": Kind(_design_oracle, _build_oracle),
+    "nnpc-explicit": Kind(_design_explicit, _build_explicit),
+    "current-mode": Kind(_design_classical, _build_classical),
+    "type-iii": Kind(_design_classical, _build_classical),
+    "pi-envelope": Kind(_design_envelope_pi, _build_pi),
+    "injected": Kind(None, _build_injected),  # built by the frequency response, never from a sweep file
 }
 
 
@@ -206,7 +362,14 @@ def design(entries, binding: PlantBinding, period: float, work_dir: Path, progre
     identified models are cached in ``work_dir``, so a resumed sweep designs nothing again)."""
     if not (period > 0 and math.isfinite(period)):
         raise ConfigError(f"control period {period} s is invalid: expected a finite value > 0")
-    return [KINDS[entry.kind].design(entry, binding, period, Path(work_dir), progress) for entry in entries]
+    recipes = []
+    for entry in entries:
+        recipe = KINDS[entry.kind].design(entry, binding, period, Path(work_dir), progress)
+        if entry.settle is not None:  # the worker runs this controller's scenarios with its own settle time
+            settings = {**recipe.settings, "settle_s": entry.settle}
+            recipe = ControllerRecipe(recipe.kind, recipe.name, recipe.control_period, _json(settings), recipe.blob)
+        recipes.append(recipe)
+    return recipes
 
 
 def build(recipe: ControllerRecipe, binding: PlantBinding, implementation: str = "c"):

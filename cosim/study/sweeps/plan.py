@@ -57,6 +57,7 @@ class PlannedRun:
     operating_point: tuple[tuple[str, float], ...]  # scenario signal -> initial value for this run
     scenario: str
     controller: str
+    anchors: tuple[tuple[str, str], ...] = ()  # operating-point signal -> "final" where its value is the final one
 
     @property
     def values(self) -> dict[str, float | int]:
@@ -108,7 +109,7 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
     for axis in spec.axes:
         if axis.group == "operating_point":
             role = axis.name
-            if not binding.has(role):
+            if role != "reference" and not binding.has(role):
                 raise ConfigError(f"{axis.place}: operating_point.{axis.name}: {binding.origin} binds no variable to "
                                   f"the role {role!r}, so the scenarios cannot change it")
             infos.append(AxisInfo(axis, OPERATING_POINT[axis.name], None, minimum=0.0))
@@ -157,14 +158,24 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
     return infos
 
 
-def at_operating_point(scenario: Scenario, values: dict[str, float]) -> Scenario:
-    """``scenario`` with its supply and/or load moved: the initial value becomes the run's, and
-    every later value of that signal is scaled by the same factor (a 6 -> 5 Ohm step at 12 Ohm
-    initial load becomes 12 -> 10 Ohm)."""
+def anchor_value(scenario: Scenario, signal: str, anchor: str = "initial") -> float:
+    """The value of ``signal`` an operating-point axis sets: its initial one, or its final one (after the
+    scenario's last change of it)."""
+    return scenario.schedule(signal)[-1][1] if anchor == "final" else scenario.initial[signal]
+
+
+def at_operating_point(scenario: Scenario, values: dict[str, float], anchors=()) -> Scenario:
+    """``scenario`` with its supply, load and/or reference moved: the anchored value (the initial one,
+    or the final one for signals ``anchors`` names "final") becomes the run's, and every other value of
+    that signal is scaled by the same factor (a 6 -> 5 Ohm step at 12 Ohm initial load becomes 12 -> 10
+    Ohm; a reference step 9.6 -> 12 V anchored at its final value 5 V becomes 4 -> 5 V)."""
     if not values:
         return scenario
-    factors = {signal: value / scenario.initial[signal] for signal, value in values.items()}
-    initial = {**scenario.initial, **values}
+    anchored = dict(anchors)
+    factors = {signal: value / anchor_value(scenario, signal, anchored.get(signal, "initial"))
+               for signal, value in values.items()}
+    initial = {**scenario.initial, **{k: values[k] if anchored.get(k, "initial") == "initial"
+                                      else scenario.initial[k] * f for k, f in factors.items()}}
     events = tuple(replace(e, changes={k: (v * factors[k] if k in factors else v) for k, v in e.changes.items()})
                    for e in scenario.events)
     return replace(scenario, initial=initial, events=events)
@@ -182,6 +193,11 @@ class SweepPlan:
         self.spec = spec
         self.binding = binding or nominal_binding(spec)
         self.axes = check_axes(spec, self.binding)
+        oracle = next((c for c in spec.controllers if c.kind == "mpc-oracle"), None)
+        if oracle is not None and any(a.group == "parameters" for a in spec.axes):
+            raise ConfigError(f"{oracle.place}: mpc-oracle knows the nominal plant's circuit only, and [parameters] "
+                              "axes change the circuit unit by unit: use mpc-nominal (the robustness question) or "
+                              "sweep the operating point only")
         self.plant = PlantRecipe.of(self.binding)
         self._points = list(itertools.product(*(a.values for a in spec.grid_axes))) or [()]
         draws = {a.key: a.draw(spec.seed, spec.samples) for a in spec.random_axes}
@@ -204,7 +220,7 @@ class SweepPlan:
         drawn = float(self._draws[axis.key][sample])
         if not axis.relative:
             return drawn
-        nominal = info.nominal if axis.group == "parameters" else scenario.initial[axis.name]
+        nominal = info.nominal if axis.group == "parameters" else anchor_value(scenario, axis.name, axis.anchor)
         return nominal * drawn
 
     def values(self, scenario: Scenario, point: int, sample: int) -> tuple[dict, dict]:
@@ -245,6 +261,7 @@ class SweepPlan:
         spec = self.spec
         implementation = implementation or spec.implementation
         plant = self.plant.identity()
+        anchors = tuple((a.name, a.anchor) for a in spec.axes if a.group == "operating_point" and a.anchor != "initial")
         runs = []
         for controller in controllers:
             for scenario in spec.scenarios:
@@ -256,9 +273,11 @@ class SweepPlan:
                                    "operating_point": operating, "scenario": identity,
                                    "controller": controller.digest, "control_period_s": spec.control_period,
                                    "record_period_s": spec.record_period, "implementation": implementation}
+                        if anchors:  # only then: the ids of sweeps without anchored axes stay what they were
+                            payload["anchors"] = dict(anchors)
                         run_id = digest(canonical(payload))[:RUN_ID_LENGTH]
                         runs.append(PlannedRun(run_id, point, sample, tuple(parameters.items()),
-                                               tuple(operating.items()), scenario.name, controller.name))
+                                               tuple(operating.items()), scenario.name, controller.name, anchors))
         return runs
 
     def batch_size(self, runs_per_partition: int) -> int:
@@ -284,7 +303,8 @@ class SweepPlan:
         the description, the thresholds (they only decide the summary) or the batching."""
         s = self.spec
         axes = [{"key": a.key, "kind": a.kind, "relative": a.relative, "values": list(a.values),
-                 "settings": dict(a.settings)} for a in s.axes]
+                 "settings": dict(a.settings), **({"anchor": a.anchor} if a.anchor != "initial" else {})}
+                for a in s.axes]
         return {"plant": self.plant.identity(), "axes": axes, "samples": s.samples, "seed": s.seed,
                 "scenarios": [scenario_identity(x) for x in s.scenarios],
                 "controllers": controllers if controllers is not None else [_entry_identity(c) for c in s.controllers],
@@ -301,6 +321,9 @@ def _entry_identity(entry) -> dict:
     described = entry.describe()
     if entry.model is not None:
         described["model"] = digest(Path(entry.model).read_bytes())
+    for key in ("policy", "design"):  # by content, like the model
+        if getattr(entry, key, None) is not None:
+            described[key] = digest(Path(getattr(entry, key)).read_bytes())
     if entry.path is not None:
         files = [entry.path, entry.fmu] if Path(entry.path).suffix.lower() == ".toml" else [entry.path]
         described["path"] = digest(*(Path(f).read_bytes() for f in files))

@@ -27,9 +27,10 @@ line, the value and what was expected. The format (README, *Sweeps and Monte Car
     inductor_resistance = { distribution = "log-normal", median = 0.05, sigma = 0.4 }
     switching_frequency = { values = [60e3, 75e3, 90e3] }   # a grid
 
-    [operating_point]               # the scenarios' supply and load, scaled run by run
+    [operating_point]               # the scenarios' supply, load and reference, scaled run by run
     input_voltage = { distribution = "normal", tolerance = 0.1 }
     load_resistance = { values = [4.0, 6.0, 12.0] }     # the initial load [Ohm]; later steps scale alike
+    reference = { values = [5.0, 12.0], anchor = "final" }  # [V] the value after the last step; earlier scale alike
 
     [spec]                          # the yield: share of runs meeting every threshold
     overshoot_pct = 5.0             # metric <= value (signed steady-state errors: |metric| <= value)
@@ -75,17 +76,23 @@ TOP_KEYS = {"name", "description", "plant", "parameters", "operating_point", "sa
 PLANT_KEYS = {"mode", "variant", "sensor", "binding"}
 PLANT_MODES = ("averaged", "switched")
 DISTRIBUTIONS = ("uniform", "normal", "log-normal")
-AXIS_KEYS = {"values", "distribution", "tolerance", "low", "high", "mean", "std", "median", "sigma"}
+AXIS_KEYS = {"values", "distribution", "tolerance", "low", "high", "mean", "std", "median", "sigma", "anchor"}
+#: what an operating-point axis's value is: the signal's initial value (default; later values scale alike) or
+#: its final value (the value after the scenario's last change of it; earlier values scale alike)
+ANCHORS = ("initial", "final")
 #: the keys each distribution takes (``tolerance`` is the relative form of each)
 DISTRIBUTION_KEYS = {"uniform": {"tolerance", "low", "high"}, "normal": {"tolerance", "mean", "std"},
                      "log-normal": {"tolerance", "median", "sigma"}}
 #: operating-point axes: the scenario signals a sweep may scale, with their units
-OPERATING_POINT = {"input_voltage": "V", "load_resistance": "Ohm"}
+OPERATING_POINT = {"input_voltage": "V", "load_resistance": "Ohm", "reference": "V"}
 #: controller kinds a sweep designs once on the nominal plant (``fmu``: a given controller FMU, run as it is)
-CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu")
-CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path"}
-KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed"}, "nnpc-paper": {"model", "samples", "seed"},
-             "mpc-nominal": set(), "fmu": {"path"}}
+CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu", "mpc-oracle", "nnpc-explicit", "current-mode",
+                    "type-iii", "pi-envelope")
+CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path", "policy", "design", "settle"}
+KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"}, "nnpc-paper": {"model", "samples", "seed"},
+             "mpc-nominal": set(), "fmu": {"path"}, "mpc-oracle": set(), "nnpc-explicit": {"policy"},
+             "current-mode": {"design"}, "type-iii": {"design"}, "pi-envelope": {"kp", "ki"}}
+KIND_KEYS = {kind: keys | {"settle"} for kind, keys in KIND_KEYS.items()}
 #: what ``path`` of an ``fmu`` controller may name
 CONTROLLER_FILE_SUFFIXES = (".fmu", ".toml")
 #: how closely a controller FMU's sample period must match the sweep's control period (relative)
@@ -114,6 +121,7 @@ class Axis:
     values: tuple = ()  # grid values
     settings: tuple[tuple[str, float], ...] = ()  # distribution settings (absolute, or factors if relative)
     place: str = ""  # file:line of the axis, for messages
+    anchor: str = "initial"  # operating-point axes: the value is the signal's initial or final one (ANCHORS)
 
     @property
     def random(self) -> bool:
@@ -181,10 +189,16 @@ class ControllerEntry:
     fmu: Path | None = None  # fmu: the controller FMU itself (``path``, or the FMU a binding file names)
     place: str = ""
     origin: str = ""  # how given gains or a given model were made, for the summary (set by code, not the file)
+    policy: Path | None = None  # nnpc-explicit: a distilled policy file
+    design: Path | None = None  # current-mode / type-iii: a design file (results/tuning/), else designed here
+    settle: float | None = None  # [s] this controller's closed-loop operation before t = 0 (else the scenarios')
 
     def describe(self) -> dict:
         described = {"kind": self.kind, "name": self.name, "kp": self.kp, "ki": self.ki,
                      "model": str(self.model) if self.model else None, "samples": self.samples, "seed": self.seed}
+        for key in ("policy", "design", "settle"):
+            if getattr(self, key) is not None:  # only then: the ids of sweeps that give none stay what they were
+                described[key] = str(getattr(self, key)) if key != "settle" else self.settle
         if self.kind == "fmu":
             described["path"] = str(self.path)
         return described
@@ -443,6 +457,12 @@ def _axis(r: _Reader, group: str, name: str, entry) -> Axis:
     for key in entry:
         if key not in AXIS_KEYS:
             r.fail(place, f"unknown key '{label}.{key}': expected one of {', '.join(sorted(AXIS_KEYS))}")
+    anchor = "initial"
+    if "anchor" in entry:
+        if group != "operating_point":
+            r.fail(place, f"{label}.anchor applies to [operating_point] axes only")
+        anchor = r.choice(entry["anchor"], f"{label}.anchor", place, ANCHORS)
+        entry = {k: v for k, v in entry.items() if k != "anchor"}
     if "values" in entry:
         others = [k for k in entry if k != "values"]
         if others:
@@ -456,7 +476,7 @@ def _axis(r: _Reader, group: str, name: str, entry) -> Axis:
         if len(set(values)) != len(values):
             twice = next(v for v in values if values.count(v) > 1)
             r.fail(place, f"{label}.values lists {twice!r} twice")
-        return Axis(name, group, "grid", values=tuple(values), place=place)
+        return Axis(name, group, "grid", values=tuple(values), place=place, anchor=anchor)
 
     kind = r.choice(entry.get("distribution", "uniform"), f"{label}.distribution", place, DISTRIBUTIONS)
     allowed = DISTRIBUTION_KEYS[kind] | {"distribution"}
@@ -470,7 +490,7 @@ def _axis(r: _Reader, group: str, name: str, entry) -> Axis:
             r.fail(place, f"{label}: tolerance (relative to the nominal value) and {absolute[0]} (absolute) "
                           "exclude each other")
         return Axis(name, group, kind, relative=True, settings=_relative(r, label, place, kind, entry["tolerance"]),
-                    place=place)
+                    place=place, anchor=anchor)
     if kind == "uniform":
         if "low" not in entry or "high" not in entry:
             r.fail(place, f"{label}: a uniform distribution needs low and high (or tolerance)")
@@ -500,7 +520,7 @@ def _axis(r: _Reader, group: str, name: str, entry) -> Axis:
         if not sigma > 0:
             r.fail(place, f"{label}.sigma = {sigma:g} is invalid: expected > 0")
         settings = (("median", median), ("sigma", sigma))
-    return Axis(name, group, kind, settings=settings, place=place)
+    return Axis(name, group, kind, settings=settings, place=place, anchor=anchor)
 
 
 def _relative(r: _Reader, label: str, place: str, kind: str, tolerance) -> tuple[tuple[str, float], ...]:
@@ -551,8 +571,7 @@ def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> l
             r.fail(place, f"controllers[{index}] has no kind: expected one of {', '.join(CONTROLLER_KINDS)}")
         kind = entry["kind"]
         if kind not in CONTROLLER_KINDS:
-            hint = " (the oracle knows each unit's parameters, which a sweep over units does not allow)" \
-                if kind == "mpc-oracle" else ""
+            hint = ""
             r.fail(place, f"controllers[{index}].kind = {kind!r} is unknown: expected one of "
                           f"{', '.join(CONTROLLER_KINDS)}{hint}")
         for key in entry:
@@ -579,7 +598,7 @@ def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> l
             r.fail(at("name") if "name" in entry else place,
                    f"controller name {name!r} is used twice: give the second one a name = \"...\"")
         kp = ki = model = None
-        if kind == "pi" and ("kp" in entry or "ki" in entry):
+        if kind in ("pi", "pi-envelope") and ("kp" in entry or "ki" in entry):
             if "kp" not in entry or "ki" not in entry:
                 r.fail(place, f"controllers[{index}]: kp and ki go together (or neither: tuned on the nominal plant)")
             kp = r.number(entry["kp"], f"controllers[{index}].kp", at("kp"))
@@ -590,10 +609,22 @@ def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> l
             model = base / r.text(entry["model"], f"controllers[{index}].model", at("model"))
             if not model.is_file():
                 r.fail(at("model"), f"controllers[{index}].model: model file {model} does not exist")
+        files = {}
+        for key in ("policy", "design"):
+            if key in entry:
+                files[key] = base / r.text(entry[key], f"controllers[{index}].{key}", at(key))
+                if not files[key].is_file():
+                    r.fail(at(key), f"controllers[{index}].{key}: file {files[key]} does not exist")
+        settle = None
+        if "settle" in entry:
+            settle = r.number(entry["settle"], f"controllers[{index}].settle", at("settle"))
+            if settle < 0:
+                r.fail(at("settle"), f"controllers[{index}].settle = {settle:g} s is invalid: expected >= 0")
         samples = r.integer(entry.get("samples", 10_000), f"controllers[{index}].samples", at("samples"), 200)
         seed = r.integer(entry.get("seed", 0), f"controllers[{index}].seed", at("seed"), 0)
         controllers.append(ControllerEntry(kind=kind, name=name, kp=kp, ki=ki, model=model, samples=samples,
-                                           seed=seed, path=path, fmu=fmu, place=place))
+                                           seed=seed, path=path, fmu=fmu, place=place, policy=files.get("policy"),
+                                           design=files.get("design"), settle=settle))
     return controllers
 
 

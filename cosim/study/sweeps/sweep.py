@@ -105,14 +105,14 @@ def check_workers(client, plan: SweepPlan) -> None:
 class PreparedSweep:
     """A sweep with its controllers designed and its remaining runs grouped into tasks."""
 
-    def __init__(self, plan: SweepPlan, out_dir: Path, recipes, progress: bool = False):
+    def __init__(self, plan: SweepPlan, out_dir: Path, recipes, progress: bool = False, extra_columns=()):
         self.plan, self.spec, self.out_dir, self.recipes = plan, plan.spec, Path(out_dir), recipes
         self.runs = plan.runs(recipes)
         done = dataset.done_run_ids(self.out_dir)
         self.todo = [r for r in self.runs if r.run_id not in done]
         self.done_before = len(self.runs) - len(self.todo)
         self.tasks = plan.batches(self.todo)
-        self.schema = dataset.row_schema([(i.axis.name, i.unit, i.integer) for i in plan.axes])
+        self.schema = dataset.row_schema([(i.axis.name, i.unit, i.integer) for i in plan.axes], tuple(extra_columns))
         self.progress = progress
         self.sweep_id = plan.sweep_id()
 

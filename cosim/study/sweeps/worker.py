@@ -23,7 +23,7 @@ import socket
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from cosim.base.errors import WorkbenchError
@@ -181,6 +181,9 @@ def run_batch(plant_recipe: PlantRecipe, controller_recipe: ControllerRecipe, sc
             result.rows.append(run_row(run, FAILED, f"setting up on worker {name}: {error}", {}))
             result.timings.append(timing_row(run, math.nan, {}, name))
         return result
+    settle = controller_recipe.settings.get("settle_s")  # a controller's own closed-loop time before t = 0
+    if settle is not None:
+        scenario = replace(scenario, settle=float(settle))
     for run in runs:
         if plant.fatal or _plant_key(plant_recipe) not in _cache():
             plant, binding = _plant(plant_recipe)
@@ -188,11 +191,14 @@ def run_batch(plant_recipe: PlantRecipe, controller_recipe: ControllerRecipe, sc
         metrics, status, error, trace = {}, OK, None, None
         try:
             plant.replace_parameters({**nominal_parameters, **dict(run.parameters)})
-            outcome = run_checked(plant, controller, at_operating_point(scenario, dict(run.operating_point)),
+            outcome = run_checked(plant, controller, at_operating_point(scenario, dict(run.operating_point), run.anchors),
                                   record_period=settings.record_period,
                                   extra_metadata={"sweep_run": {"run_id": run.run_id, "point": run.point,
                                                                 "sample": run.sample, "values": run.values}})
             metrics = run_metrics(outcome)
+            results = getattr(controller, "run_results", None)  # what a measuring controller found (frequency response)
+            if results is not None:
+                metrics.update(results())
             trace = outcome
         except RunFailed as failure:
             status, error, trace = FAILED, str(failure), failure.partial
@@ -212,10 +218,15 @@ def run_batch(plant_recipe: PlantRecipe, controller_recipe: ControllerRecipe, sc
 
 
 def run_row(run: PlannedRun, status: str, error: str | None, metrics: dict) -> dict:
+    """A run's row: ids, values, status and every deterministic metric, plus what a measuring
+    controller's ``run_results()`` reported (columns of the dataset's schema beyond the metrics)."""
     row = {"run_id": run.run_id, "point": run.point, "sample": run.sample, **run.values, "status": status,
            "error": " ".join(error.split()) if error else None}
     for column in DETERMINISTIC_METRICS:
         row[column] = float(metrics.get(column, math.nan))
+    for column, value in metrics.items():
+        if column not in row and column not in WALLCLOCK_METRICS:
+            row[column] = value
     return row
 
 
