@@ -57,7 +57,7 @@ void buckc_compensator_reset(BuckcCompensator *c)
     c->pending_duty = BUCKC_REAL_LITERAL(0.0);
 }
 
-int buckc_compensator_step(BuckcCompensator *c, const BuckcMeasurement *m, double *duty)
+int buckc_compensator_step(BuckcCompensator *c, const BuckcMeasurement *m, buckc_real *duty)
 {
     const BuckcCompensatorConfig *g;
     const buckc_real *b, *a;
@@ -92,6 +92,6 @@ int buckc_compensator_step(BuckcCompensator *c, const BuckcMeasurement *m, doubl
         c->pending_duty = d;
         d = applied;
     }
-    *duty = (double)d;
+    *duty = d;
     return BUCKC_OK;
 }

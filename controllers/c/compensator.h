@@ -14,7 +14,7 @@
 #define BUCKC_COMPENSATOR_H
 
 #include "buckc.h"
-#include "predictive.h" /* BuckcMeasurement */
+/* BuckcMeasurement: buckc.h */
 
 #define BUCKC_COMPENSATOR_MAX_ORDER 4
 
@@ -39,6 +39,6 @@ typedef struct {
 int buckc_compensator_init(BuckcCompensator *controller, const BuckcCompensatorConfig *config, const char **what);
 void buckc_compensator_reset(BuckcCompensator *controller);
 /* CompensatorController.step: *duty receives the duty to hold until the next sample. */
-int buckc_compensator_step(BuckcCompensator *controller, const BuckcMeasurement *measurement, double *duty);
+int buckc_compensator_step(BuckcCompensator *controller, const BuckcMeasurement *measurement, buckc_real *duty);
 
 #endif

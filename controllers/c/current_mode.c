@@ -52,7 +52,7 @@ void buckc_current_mode_reset(BuckcCurrentMode *c)
     c->pending_duty = BUCKC_REAL_LITERAL(0.0);
 }
 
-int buckc_current_mode_step(BuckcCurrentMode *c, const BuckcMeasurement *m, double *duty)
+int buckc_current_mode_step(BuckcCurrentMode *c, const BuckcMeasurement *m, buckc_real *duty)
 {
     const BuckcCurrentModeConfig *g;
     buckc_real zero = BUCKC_REAL_LITERAL(0.0);
@@ -89,6 +89,6 @@ int buckc_current_mode_step(BuckcCurrentMode *c, const BuckcMeasurement *m, doub
         c->pending_duty = d;
         d = applied;
     }
-    *duty = (double)d;
+    *duty = d;
     return BUCKC_OK;
 }

@@ -13,7 +13,7 @@
 #define BUCKC_CURRENT_MODE_H
 
 #include "buckc.h"
-#include "predictive.h" /* BuckcMeasurement */
+/* BuckcMeasurement: buckc.h */
 
 typedef struct {
     buckc_real sample_period;         /* [s] */
@@ -39,6 +39,6 @@ typedef struct {
 int buckc_current_mode_init(BuckcCurrentMode *controller, const BuckcCurrentModeConfig *config, const char **what);
 void buckc_current_mode_reset(BuckcCurrentMode *controller);
 /* CurrentModeController.step: *duty receives the duty to hold until the next sample. */
-int buckc_current_mode_step(BuckcCurrentMode *controller, const BuckcMeasurement *measurement, double *duty);
+int buckc_current_mode_step(BuckcCurrentMode *controller, const BuckcMeasurement *measurement, buckc_real *duty);
 
 #endif
