@@ -154,6 +154,20 @@ def test_impossible_targets_are_refused():
         targets_for(plant_binding("nominal", "switched"), 1e-3)
 
 
+def test_a_type_iii_short_of_its_gain_margin_is_the_best_there_is_and_says_so():
+    """The mismatch-study switched plant (L +20 %, C -20 %, parasitics, the averaging sensor): no
+    crossover reaches GM >= 6 dB at PM >= 60 deg (the largest is 5.67 dB near 4.8 kHz, with 6 of 8
+    envelope corners stable there); the design is the stable one with the largest gain margin, and says
+    that the target is not met instead of stopping the reproduction."""
+    targets = targets_for(plant_binding("mismatch", "switched"), SWITCHING_PERIOD)
+    design = design_type_iii(MISMATCH, targets)
+    duty = design.loops["duty"]
+    assert not design.meets() and 5.0 < duty["gain_margin_db"] < targets.gain_margin_db
+    assert duty["closed_loop_stable"] and duty["phase_margin_deg"] >= targets.phase_margin_deg - 1e-6
+    assert all(corner["loops"]["duty"]["closed_loop_stable"] for corner in design.envelope)
+    assert any(note.startswith("target not met: no crossover gives GM >= 6.0 dB") for note in design.notes)
+
+
 def test_a_design_rebuilds_from_its_description(designs):
     for design in designs:
         again = controller_from_description(design.controller.describe())
