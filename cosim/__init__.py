@@ -15,10 +15,16 @@ The public names, importable from here (README, "Bring your own Python controlle
   ``write_run`` / ``read_run`` -- CSV and Parquet with metadata;
 * ``open_controller(path)`` -- a controller FMU (or controller-binding file) as a controller.
 
-They are looked up on first use, so ``import cosim`` stays cheap (no torch, no FMU build).
+They are looked up on first use, so ``import cosim`` stays cheap (no torch, no FMU build). Importing
+any workbench package first pins the numeric kernels of torch, numpy and BLAS for this process and its
+children (:mod:`cosim.base.numeric_env`), so training gives the same bytes on every x86-64 CPU with AVX2.
 """
 
 from __future__ import annotations
+
+from cosim.base.numeric_env import pin as _pin_numeric_kernels
+
+_pin_numeric_kernels()  # before torch or numpy is imported (cosim/base/numeric_env.py)
 
 __all__ = ["Controller", "Measurement", "PIController", "RunResult", "builtin_binding", "load_binding",
            "load_scenario", "open_controller", "read_run", "run_metrics", "simulate", "write_run"]

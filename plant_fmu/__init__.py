@@ -6,6 +6,10 @@ and its FMI 3.0 edition (the same model code behind the FMI 3.0 glue).
 >>> path3 = fmu_path(fmi_version=3)
 """
 
-from plant_fmu.build import PlantBuildError, export_fmus, fmu_path, source_fmu_path
+from cosim.base.numeric_env import pin as _pin_numeric_kernels
+
+_pin_numeric_kernels()  # before torch or numpy is imported (cosim/base/numeric_env.py)
+
+from plant_fmu.build import PlantBuildError, export_fmus, fmu_path, source_fmu_path  # noqa: E402
 
 __all__ = ["PlantBuildError", "export_fmus", "fmu_path", "source_fmu_path"]

@@ -9,6 +9,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+# isort: off
+import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load, cosim/base/numeric_env.py)
+# isort: on
 import numpy as np
 import pytest
 

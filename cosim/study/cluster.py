@@ -13,6 +13,10 @@
   environment overrides this): the workbench reports a worker death or a failed task itself, in one
   line, and dask would print the task's traceback even for a fault the workbench handles.
 
+* Every worker must run the numeric kernels of this process (:mod:`cosim.base.numeric_env`: local
+  workers inherit them with the environment); a cluster with a worker that differs is refused with
+  one line (a :class:`ConfigError`) before anything is submitted.
+
 A crash in a task's native code (an FMU that segfaults) kills its worker process; the nanny starts
 a new one and the scheduler runs the task again, up to ``allowed_failures`` times on a local
 cluster, then the task's future raises ``KilledWorker`` and the caller decides.
@@ -30,6 +34,7 @@ from typing import Iterator
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from cosim.base.errors import ConfigError
+from cosim.base.numeric_env import check_worker_environment, kernel_environment
 
 #: dask settings of the local workers, for FMU loops and controllers that hold the GIL and allocate
 #: many small numpy arrays: no statistical profiler (it samples every thread's stack every 10 ms
@@ -132,6 +137,9 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
         client = Client(cluster, set_as_default=False)
     stopping = False
     try:
+        mismatch = check_worker_environment(client.run(kernel_environment))
+        if mismatch:  # their models would not be this machine's bytes (cosim/base/numeric_env.py)
+            raise ConfigError(mismatch)
         if cluster is not None:  # our own workers only: a user's `dask worker` keeps its Ctrl-C
             client.register_plugin(IgnoreInterrupts())
         yield client
