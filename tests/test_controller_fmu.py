@@ -190,13 +190,93 @@ def test_any_communication_step_that_lands_on_the_sample_instants_gives_the_same
     assert trace(1) == trace(3) == trace(7)
 
 
-def test_a_step_past_a_sample_instant_is_an_error_naming_it(fmus):
+def _python_pi_trace(controller: PIController, period: float, times, reference: float, measured: float):
+    """The Python PI sampled at every instant k * period in ``times`` with constant inputs."""
+    from controllers.base import Measurement
+
+    controller.reset()
+    return [controller.step(Measurement(t, reference, measured)) for t in times]
+
+
+def test_a_step_spanning_sample_instants_takes_each_with_the_inputs_held(fmus):
+    from controllers.base import Measurement
+
+    python = PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
     c = RawController(fmus["pi"])
-    c.set(reference=12.0, measured_output_voltage=0.0)
+    c.set(reference=0.5, measured_output_voltage=0.1)
+    c.step(3.5e-3)  # samples at 0, 1, 2 and 3 ms, all with these inputs
+    held = [python.step(Measurement(k * 1e-3, 0.5, 0.1)) for k in range(4)]
+    assert c.duty() == held[-1]  # t = 3.5 ms: the duty of the 3 ms sample, held
+    assert c.fmu.getRealStatus(fmpy.fmi2.fmi2LastSuccessfulTime) == 3.5e-3
+    c.step(0.5e-3)  # lands on the 4 ms instant, which the next step takes
+    c.set(measured_output_voltage=0.2)
+    assert c.duty() == python.step(Measurement(4e-3, 0.5, 0.2))
+    c.step(2.5e-3)  # 4, 5 and 6 ms with vo = 0.2 V
+    assert c.duty() == [python.step(Measurement(k * 1e-3, 0.5, 0.2)) for k in (5, 6)][-1]
+    assert not [m for status, m in c.log if status > 1]
+
+
+@pytest.mark.parametrize("fmi_version", [2, 3])
+def test_plain_fmpy_simulate_fmu_with_default_settings_runs_the_controller_fmu(tmp_path, fmi_version):
+    """fmpy's defaults: stop time 1 s, the DefaultExperiment's stepSize (= Ts = 0.1 ms) doubled until there
+    are at most 1000 steps, i.e. 1.6 ms = 16 sample instants per communication step."""
+    period = 1e-4
+    python = PIController(0.0015, 15.6, period, duty_limits=(0.0, 0.95))
+    path, _ = export_controller(python, tmp_path / "pi.fmu", fmi_version=fmi_version)
+    md = fmpy.read_model_description(str(path))
+    assert float(md.defaultExperiment.stepSize) == period
+    result = fmpy.simulate_fmu(str(path))  # inputs at their start values: reference 0 V
+    assert result["time"][-1] == pytest.approx(1.0) and np.all(result["duty_cycle"] == 0.0)
+    result = fmpy.simulate_fmu(str(path), start_values={"reference": 0.002})
+    times = result["time"]
+    assert len(times) == 626 and times[1] == pytest.approx(16 * period)
+    instants = np.arange(int(round(times[-1] / period)) + 1) * period
+    trace = _python_pi_trace(python, period, instants, 0.002, 0.0)
+    # each output point t = 16 j Ts is a sample instant: the duty read there is that instant's, after the
+    # 16 j samples before it (each taken by the FMU inside the communication steps)
+    expected = [trace[16 * j] for j in range(len(times))]
+    np.testing.assert_allclose(result["duty_cycle"], expected, rtol=0, atol=DUTY_TOLERANCE)
+    assert 0.0 < expected[100] < 0.95  # the integrator is still ramping: each sample counted
+
+
+def test_a_refused_call_leaves_the_instance_usable(fmus):
+    """FMI 2.0 status semantics: a call the FMU refuses (a wrong communication point, a parameter set
+    after initialisation, a call in the wrong state) returns fmi2Error and changes nothing; a step whose
+    sample cannot be computed returns fmi2Discard at fmi2LastSuccessfulTime (stepFailed); either way the
+    instance can still be terminated and freed, and after a refusal the run goes on."""
+    from fmpy.fmi2 import fmi2LastSuccessfulTime
+    from fmpy.fmi1 import FMICallException
+
+    python = PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
+    from controllers.base import Measurement
+
+    c = RawController(fmus["pi"])
+    c.set(reference=0.5, measured_output_voltage=0.1)
+    with pytest.raises(FMICallException) as refused:
+        c.fmu.doStep(0.5e-3, 1e-3)
+    assert refused.value.status == fmpy.fmi2.fmi2Error
+    assert "currentCommunicationPoint = 0.0005" in c.log[-1][1]
+    with pytest.raises(FMICallException):
+        c.set(kp=1.0)
+    assert "can only be set before fmi2ExitInitializationMode" in c.log[-1][1]
+    with pytest.raises(FMICallException):
+        c.fmu.enterInitializationMode()
+    c.step(1e-3)  # the run goes on
+    assert c.duty() == [python.step(Measurement(k * 1e-3, 0.5, 0.1)) for k in range(2)][-1]
+    c.fmu.terminate()
+    c.fmu.freeInstance()
+
+    c = RawController(fmus["nnpc_1ms"])
+    c.set(reference=12.0, measured_output_voltage=1.0, measured_inductor_current=1.0, measured_load_current=2.0)
     c.step(1e-3)
-    with pytest.raises(Exception, match="fmi2DoStep"):
-        c.step(1.5e-3)
-    assert "the step from t = 0.001 s to 0.0025 s passes the sample instant t = 0.002 s" in c.log[-1][1]
+    c.set(measured_inductor_current=float("nan"))
+    with pytest.raises(FMICallException) as discarded:
+        c.fmu.doStep(1e-3, 2.5e-3)
+    assert discarded.value.status == fmpy.fmi2.fmi2Discard
+    assert "measured_inductor_current is not finite" in c.log[-1][1]
+    assert c.fmu.getRealStatus(fmi2LastSuccessfulTime) == 1e-3
+    c.fmu.terminate()  # stepFailed: terminating is allowed
+    c.fmu.freeInstance()
 
 
 def test_fmu_state_round_trips_the_predictive_controller(fmus):

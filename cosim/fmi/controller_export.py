@@ -111,6 +111,9 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
         element = ElementTree.SubElement(units, "Unit", {"name": unit})
         if base:
             ElementTree.SubElement(element, "BaseUnit", base)
+    # a master's default communication step: one sample period (any step works: a step spanning several
+    # sample instants takes each with the inputs held, controller_fmu.c)
+    ElementTree.SubElement(root, "DefaultExperiment", {"startTime": "0", "stepSize": start_values["sample_period"]})
     variables = ElementTree.SubElement(root, "ModelVariables")
     listed = [v for v in VARIABLES if pi or not v.pi_only]
     for v in listed:

@@ -19,6 +19,7 @@ typedef enum {
     STATE_EVENT,
     STATE_CONTINUOUS_TIME,
     STATE_STEP_COMPLETE,
+    STATE_STEP_FAILED, /* fmi2DoStep returned fmi2Discard: fmi2Terminate, fmi2Reset, the getters and fmi2SetFMUstate */
     STATE_TERMINATED,
     STATE_ERROR
 } InstanceState;
@@ -66,11 +67,12 @@ static fmi2Status fail(FmuInstance *inst, const char *function, const char *mess
     return fmi2Error;
 }
 
+/* A call in a state where FMI 2.0 does not allow it is refused with fmi2Error and has no effect: the
+ * instance keeps its state, so the importer can still terminate, reset or free it (and go on). */
 static int allowed(FmuInstance *inst, const char *function, unsigned mask) {
     if (inst == NULL) return 0;
     if (mask & (1u << inst->state)) return 1;
     fmu_log(inst, fmi2Error, "logStatusError", "%s must not be called in the current state", function);
-    inst->state = STATE_ERROR;
     return 0;
 }
 
@@ -78,6 +80,7 @@ static int allowed(FmuInstance *inst, const char *function, unsigned mask) {
 #define ANY_STATE 0xffffu
 #define BEFORE_INIT_DONE (IN(STATE_INSTANTIATED) | IN(STATE_INITIALIZATION))
 #define RUNNING (IN(STATE_EVENT) | IN(STATE_CONTINUOUS_TIME) | IN(STATE_STEP_COMPLETE))
+#define TERMINABLE (RUNNING | IN(STATE_STEP_FAILED))
 #define READABLE (~IN(STATE_ERROR) & ANY_STATE)
 
 static int has_model_exchange(void) { return FMU_MODEL.states > 0; }
@@ -173,17 +176,15 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
     if (!allowed(inst, "fmi2ExitInitializationMode", IN(STATE_INITIALIZATION))) return fmi2Error;
     char message[512];
     const char *problem = model_start(inst, inst->data, model_time(inst->data), message, sizeof message);
-    if (problem != NULL) {
-        inst->state = STATE_ERROR;
+    if (problem != NULL) /* refused: still in Initialization Mode, where the values may be set again */
         return fail(inst, "fmi2ExitInitializationMode", problem);
-    }
     inst->state = inst->type == fmi2ModelExchange ? STATE_EVENT : STATE_STEP_COMPLETE;
     return fmi2OK;
 }
 
 fmi2Status fmi2Terminate(fmi2Component c) {
     FmuInstance *inst = (FmuInstance *)c;
-    if (!allowed(inst, "fmi2Terminate", RUNNING)) return fmi2Error;
+    if (!allowed(inst, "fmi2Terminate", TERMINABLE)) return fmi2Error;
     inst->state = STATE_TERMINATED;
     return fmi2OK;
 }
@@ -299,6 +300,7 @@ fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate FMUstate) {
     if (!allowed(inst, "fmi2SetFMUstate", READABLE)) return fmi2Error;
     if (!valid_snapshot(FMUstate)) return fail(inst, "fmi2SetFMUstate", "not a state of this FMU");
     memcpy(inst->data, (const unsigned char *)FMUstate + sizeof(SnapshotHeader), FMU_MODEL.data_size);
+    if (inst->state == STATE_STEP_FAILED) inst->state = STATE_STEP_COMPLETE; /* restarted from a stored state */
     return fmi2OK;
 }
 
@@ -501,7 +503,9 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint, fmi2R
     }
     model_set_time(inst->data, currentCommunicationPoint); /* the importer's clock is the reference */
     fmi2Status status = model_do_step(inst, inst->data, currentCommunicationPoint, communicationStepSize);
-    if (status >= fmi2Error) inst->state = STATE_ERROR;
+    /* fmi2Discard: only part of the step was computed (up to fmi2LastSuccessfulTime); FMI 2.0's stepFailed */
+    if (status == fmi2Discard) inst->state = STATE_STEP_FAILED;
+    else if (status >= fmi2Error) inst->state = STATE_ERROR;
     return status;
 }
 

@@ -90,8 +90,7 @@ static int allowed(FmuInstance *inst, const char *function, unsigned mask) {
     if (inst == NULL) return 0;
     if (mask & (1u << inst->state)) return 1;
     fmu_log(inst, fmi2Error, "logStatusError", "%s must not be called in %s", function, STATE_NAMES[inst->state]);
-    inst->state = STATE_ERROR;
-    return 0;
+    return 0; /* refused (fmi3Error) without effect: the instance keeps its state */
 }
 
 #define IN(s) (1u << (s))
@@ -242,10 +241,8 @@ fmi3Status fmi3ExitInitializationMode(fmi3Instance instance) {
     if (!allowed(inst, "fmi3ExitInitializationMode", IN(STATE_INITIALIZATION))) return fmi3Error;
     char message[512];
     const char *problem = model_start(inst, inst->data, model_time(inst->data), message, sizeof message);
-    if (problem != NULL) {
-        inst->state = STATE_ERROR;
+    if (problem != NULL) /* refused: still in Initialization Mode, where the values may be set again */
         return fail(inst, "fmi3ExitInitializationMode", problem);
-    }
     inst->state = inst->type == TYPE_MODEL_EXCHANGE ? STATE_EVENT : STATE_STEP;
     return fmi3OK;
 }
@@ -811,6 +808,8 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     }
     model_set_time(inst->data, currentCommunicationPoint); /* the importer's clock is the reference */
     fmi2Status status = model_do_step(inst, inst->data, currentCommunicationPoint, communicationStepSize);
+    /* fmi3Discard: computed up to *lastSuccessfulTime only; the instance stays in Step Mode (it may be
+     * terminated, reset, or set to a stored state) */
     if (status >= fmi2Error) inst->state = STATE_ERROR;
     *lastSuccessfulTime = model_time(inst->data);
     return status3(status);

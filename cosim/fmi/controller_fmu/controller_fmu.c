@@ -13,9 +13,10 @@
  * there computes it (direct feedthrough, declared in modelDescription.xml) without committing
  * it, so a master may set inputs and read the duty as often as it likes; fmi2DoStep from a sample
  * instant commits that computation (the controller's state advances) and moves to the next one.
- * A communication step may end anywhere up to the next sample instant, never beyond it: a master
- * steps the FMU with communication points that land on every sample instant. Between sample
- * instants the duty is held (zero-order hold).
+ * A communication step may end anywhere: one that spans several sample instants takes each of them
+ * with the inputs held over the step (model_do_step), so the FMU runs in any master at any step
+ * size (modelDescription.xml's DefaultExperiment proposes stepSize = Ts). Between sample instants
+ * the duty is held (zero-order hold).
  *
  * Precision. The FMU's variables are doubles (fmi2Real); the controller computes in buckc_real
  * (controllers/c/buckc.h). A float32 FMU (export-controller --precision float32) compiles every
@@ -165,8 +166,9 @@ const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer,
 double model_time(const void *data) { return ((const ControllerData *)data)->time; }
 void model_set_time(void *data, double time) { ((ControllerData *)data)->time = time; }
 
-/* The duty of the sample instant from the inputs now set, without committing the state. */
-static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
+/* The duty of the sample instant from the inputs now set, without committing the state; a failure is
+ * logged with status `failure` (fmi2Error for a read of the duty, fmi2Discard for a step) and returned. */
+static fmi2Status compute(FmuInstance *fmu, ControllerData *d, fmi2Status failure) {
     buckc_real duty = 0;
     if (CONTROLLER_KIND == CONTROLLER_PI) {
         d->pi_pending = d->pi;
@@ -200,16 +202,16 @@ static fmi2Status compute(FmuInstance *fmu, ControllerData *d) {
 #endif
         }
         if (status != BUCKC_OK) {
-            fmu_log(fmu, fmi2Error, "logStatusError", "%s at t = %.9g s: %s%s", CONTROLLER_NAME, d->time,
+            fmu_log(fmu, failure, "logStatusError", "%s at t = %.9g s: %s%s", CONTROLLER_NAME, d->time,
                     buckc_status_text(status),
                     status == BUCKC_ERR_NO_INDUCTOR_CURRENT ? " (measured_inductor_current is not finite)" : "");
-            return fmi2Error;
+            return failure;
         }
     }
     if (!isfinite((double)duty)) {
-        fmu_log(fmu, fmi2Error, "logStatusError", "%s computed a non-finite duty at t = %.9g s", CONTROLLER_NAME,
+        fmu_log(fmu, failure, "logStatusError", "%s computed a non-finite duty at t = %.9g s", CONTROLLER_NAME,
                 d->time);
-        return fmi2Error;
+        return failure;
     }
     d->pending_duty = (double)duty;
     d->computed = 1;
@@ -235,7 +237,7 @@ fmi2Status model_get_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
             return fmi2OK;
         }
         if (at_sample(d) && !d->computed) {
-            fmi2Status status = compute(fmu, d);
+            fmi2Status status = compute(fmu, d, fmi2Error);
             if (status != fmi2OK) return status;
         }
         *value = at_sample(d) ? d->pending_duty : d->duty;
@@ -310,34 +312,44 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
 /* ------------------------------------------------------------------------------------------ */
 /* Co-simulation                                                                              */
 
+/* Commit the sample instant `next` at the FMU's time: its duty (computed now from the inputs held, unless
+ * a read computed it already) takes effect and the controller's state advances. */
+static fmi2Status commit_sample(FmuInstance *fmu, ControllerData *d) {
+    if (!d->computed) {
+        fmi2Status status = compute(fmu, d, fmi2Discard);
+        if (status != fmi2OK) return status;
+    }
+    if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
+    else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
+    else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) d->current_mode = d->current_mode_pending;
+    else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) d->compensator = d->compensator_pending;
+#if BUCKC_HAVE_PREDICTIVE
+    else d->predictive.state = d->predictive_pending;
+#endif
+    d->duty = d->pending_duty;
+    d->next += 1;
+    d->computed = 0;
+    return fmi2OK;
+}
+
+/* A communication step of any length: the sample instant the step starts on (if it does) and every
+ * sample instant strictly inside the step are taken in turn, each with the inputs set before the step
+ * (held over it), as a master stepping from instant to instant would with those inputs. A step that ends
+ * on a sample instant lands exactly on it; that instant is taken by the next step (its duty reads from
+ * the inputs set there). A sample that cannot be computed ends the step there with fmi2Discard: the
+ * FMU stays at that instant (fmi2GetRealStatus(fmi2LastSuccessfulTime)), nothing of it committed. */
 fmi2Status model_do_step(FmuInstance *fmu, void *data, double time, double step) {
     ControllerData *d = (ControllerData *)data;
+    double end = d->time + step, next;
     (void)time;
-    if (at_sample(d)) {
-        if (!d->computed) {
-            fmi2Status status = compute(fmu, d);
-            if (status != fmi2OK) return status;
-        }
-        if (CONTROLLER_KIND == CONTROLLER_PI) d->pi = d->pi_pending;
-        else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) d->policy = d->policy_pending;
-        else if (CONTROLLER_KIND == CONTROLLER_CURRENT_MODE) d->current_mode = d->current_mode_pending;
-        else if (CONTROLLER_KIND == CONTROLLER_COMPENSATOR) d->compensator = d->compensator_pending;
-#if BUCKC_HAVE_PREDICTIVE
-        else d->predictive.state = d->predictive_pending;
-#endif
-        d->duty = d->pending_duty;
-        d->next += 1;
-        d->computed = 0;
+    if (at_sample(d) && commit_sample(fmu, d) != fmi2OK) return fmi2Discard;
+    for (;;) {
+        next = sample_time(d, d->next);
+        if (next >= end - tolerance(d)) break;
+        d->time = next; /* a sample instant inside the step */
+        if (commit_sample(fmu, d) != fmi2OK) return fmi2Discard;
     }
-    double end = d->time + step, next = sample_time(d, d->next);
-    if (end > next + tolerance(d)) {
-        fmu_log(fmu, fmi2Error, "logStatusError",
-                "fmi2DoStep: the step from t = %.12g s to %.12g s passes the sample instant t = %.12g s of %s "
-                "(sample period %.6g s): a master must stop at every sample instant", d->time, end, next,
-                CONTROLLER_NAME, sample_period(d));
-        return fmi2Error;
-    }
-    d->time = fabs(end - next) <= tolerance(d) ? next : end; /* land exactly on the sample instant */
+    d->time = fabs(end - next) <= tolerance(d) ? next : end; /* land exactly on a sample instant */
     return fmi2OK;
 }
 
