@@ -1,5 +1,5 @@
 # The two commands of the README. Each creates .venv and installs everything it needs.
-.PHONY: reproduce test bench bootstrap
+.PHONY: reproduce test bench bootstrap docs
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -15,3 +15,7 @@ test: bootstrap
 # Benchmarks (not run by CI; a smoke test runs each once on a tiny size).
 bench: bootstrap
 	.venv/bin/buck-cosim bench
+
+# The documentation site, built with --strict into site/ (docs/, mkdocs.yml).
+docs: bootstrap
+	NO_MKDOCS_2_WARNING=1 .venv/bin/python -m mkdocs build --strict

@@ -1,4 +1,5 @@
-"""The README's Python example runs as written, with the public names of the package top level."""
+"""The user guide's Python example (docs/guide/python-controller.md) runs as written, with the public names
+of the package top level."""
 
 from __future__ import annotations
 
@@ -7,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[1] / "docs" / "guide" / "python-controller.md"
 
 
 def readme_example() -> str:
     text = README.read_text(encoding="utf-8")
     match = re.search(r"<!-- python-api-example -->\n```python\n(.*?)```", text, re.DOTALL)
-    assert match, "the README lost its Python example"
+    assert match, "the user guide lost its Python example"
     return match.group(1)
 
 
@@ -21,7 +22,7 @@ def test_the_readme_example_runs_a_controller_on_the_plant_fmu(capsys):
     code = readme_example()
     assert len([line for line in code.splitlines() if line.strip()]) <= 20
     namespace: dict = {}
-    exec(compile(code, str(README), "exec"), namespace)  # exactly the README's lines
+    exec(compile(code, str(README), "exec"), namespace)  # exactly the guide's lines
     result = namespace["result"]
     assert result.complete and result.metadata["controller"]["name"] == "integrator"
     tail = result.frame[result.frame["time"] > 0.025]
