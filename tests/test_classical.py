@@ -5,7 +5,6 @@ through the exported controller FMU), and the envelope PI's tuning."""
 from __future__ import annotations
 
 import math
-import shutil
 import subprocess
 from dataclasses import replace
 
@@ -218,7 +217,6 @@ def test_twins_on_the_switched_plant_and_as_controller_fmus(designs, tmp_path):
         assert np.max(np.abs(through_fmu - reference)) <= 1e-12
 
 
-@pytest.mark.skipif(shutil.which("gcc") is None, reason="needs gcc")
 def test_twins_compile_in_single_precision():
     for source in ("current_mode.c", "compensator.c"):
         done = subprocess.run(["gcc", "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-DBUCKC_FLOAT32",
