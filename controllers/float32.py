@@ -174,3 +174,82 @@ def pi_step_bound(kp: float, ki: float, sample_period: float, duty_limits, integ
     e_proportional = abs(kp) * e_error + 2.0 * U * abs(proportional)
     unclamped = proportional + updated
     return e_proportional + e_updated + U * abs(unclamped) + U * max(abs(duty_limits[0]), abs(duty_limits[1]))
+
+
+def _takes_input(input_voltage: float) -> bool:
+    return math.isfinite(input_voltage) and input_voltage > 0
+
+
+def _divided_clipped(numerator: float, e_numerator: float, input_voltage: float, nominal_input_voltage: float,
+                     duty_limits) -> float:
+    """The bound of ``clip(numerator / supply, low, high)`` given the numerator's bound, the supply being the
+    measured input voltage if finite and > 0, else the nominal: the division rounds (u), the supply is an
+    input or a configuration value rounded to float (u), the clip is 1-Lipschitz and its limits are rounded
+    to float (u |limit|). Which supply each build takes is decided on the input as each build has it, so
+    it is known exactly: a voltage that underflows or overflows in float takes the nominal in the float32
+    build only, and the bound adds the jump between the two quotients."""
+    with np.errstate(over="ignore"):
+        single = float(np.float32(input_voltage))
+    supply = input_voltage if _takes_input(input_voltage) else nominal_input_voltage
+    unclamped = numerator / supply
+    bound = e_numerator / abs(supply) + 2.0 * U * abs(unclamped)
+    if _takes_input(input_voltage) and not _takes_input(single):  # (the other way round cannot happen)
+        bound += abs(unclamped - numerator / nominal_input_voltage)
+    low, high = duty_limits
+    return bound + U * max(abs(low), abs(high))
+
+
+def _pi_terms(kp: float, ki: float, sample_period: float, integral: float, error: float, e_error: float):
+    """``kp e + (I + (ki Ts) e)`` as the classical twins compute it, and its bound (``integral`` the double
+    state, rounded to float by the float32 build; ``e_error`` the error's bound)."""
+    gain = ki * sample_period
+    e_gain = 3.0 * U * abs(gain)  # ki and Ts rounded, one product
+    increment = gain * error
+    e_increment = abs(gain) * e_error + abs(error) * e_gain + U * abs(increment)
+    updated = integral + increment
+    e_updated = U * abs(integral) + e_increment + U * abs(updated)
+    proportional = kp * error
+    e_proportional = abs(kp) * e_error + 2.0 * U * abs(proportional)
+    total = proportional + updated
+    return total, e_proportional + e_updated + U * abs(total)
+
+
+def current_mode_step_bound(controller, measurement, state) -> float:
+    """The bound on |d_float32 - d_double| of the duty one ``buckc_current_mode_step``
+    (``controllers/c/current_mode.c``) computes -- the one it returns without a computation delay, the one
+    it holds for the next sample with it: ``controller`` the
+    :class:`controllers.current_mode.CurrentModeController`, ``measurement`` the step's
+    :class:`controllers.base.Measurement`, ``state`` the double build's state before the step
+    (``voltage_integral``, ``current_integral``), which the float32 build starts from rounded to float.
+    The anti-windup decisions change only the state kept for the next step, not this step's duty; the
+    current reference's clip to [0, I_max] is 1-Lipschitz."""
+    g, m = controller.gains, measurement
+    r, vo, il = m.reference, m.output_voltage, m.inductor_current
+    error_v = r - vo
+    e_error_v = U * (abs(r) + abs(vo)) + U * abs(error_v)
+    reference, e_reference = _pi_terms(g.kp_voltage, g.ki_voltage, controller.sample_period, state.voltage_integral,
+                                       error_v, e_error_v)
+    reference = min(max(reference, 0.0), g.current_limit)
+    e_reference += U * g.current_limit
+    error_i = reference - il
+    e_error_i = e_reference + U * abs(il) + U * abs(error_i)
+    node, e_node = _pi_terms(g.kp_current, g.ki_current, controller.sample_period, state.current_integral, error_i,
+                             e_error_i)
+    return _divided_clipped(node, e_node, m.input_voltage, controller.nominal_input_voltage, controller.duty_limits)
+
+
+def compensator_step_bound(controller, measurement, state) -> float:
+    """The bound on |d_float32 - d_double| of the duty one ``buckc_compensator_step``
+    (``controllers/c/compensator.c``) computes (returned, or held for the next sample with a computation
+    delay): ``y = b0 e + s_1``, then ``clip(y / Vs)``; ``state`` the double build's state before the step
+    (``state[0]`` = s_1, rounded to float by the float32 build), ``b0`` rounded to float. The states'
+    update and its anti-windup decision affect the next step only."""
+    m = measurement
+    r, vo = m.reference, m.output_voltage
+    error = r - vo
+    e_error = U * (abs(r) + abs(vo)) + U * abs(error)
+    b0, s1 = controller.coefficients.numerator[0], state.state[0]
+    product = b0 * error
+    y = product + s1
+    e_y = abs(b0) * e_error + 2.0 * U * abs(product) + U * abs(s1) + U * abs(y)
+    return _divided_clipped(y, e_y, m.input_voltage, controller.nominal_input_voltage, controller.duty_limits)

@@ -166,13 +166,41 @@ def test_the_explicit_nnpc_on_the_cortex_m4f_within_the_tolerance_of_the_host_fl
 
 
 @pytest.mark.embedded
+@pytest.mark.parametrize("index", [0, 1], ids=["current-mode", "Type-III"])
+def test_the_classical_controllers_on_the_cortex_m4f_give_the_host_float32_duties_bit_for_bit(index):
+    """The current-mode controller and the Type-III as make reproduce designs them (nominal switched plant,
+    13.33 us): no libm in their steps, so the target's duties are the host float32 build's, bit for bit, on a
+    replay that saturates and regulates; their state is all the RAM they take beside the stack."""
+    import ctypes
+
+    from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
+    from cosim.study.vocabulary import NOMINAL
+
+    targets = targets_for(plant_binding("nominal", "switched"), SWITCHING_PERIOD)
+    controller = (design_current_mode, design_type_iii)[index](NOMINAL, targets).controller
+    measurements = _recorded(controller)
+    measured = cortex_m4.measure(controller, measurements)
+    run = measured.replay
+    host = _host_float32(controller, measurements)
+    assert np.array_equal(run.duty, host)
+    assert np.any((host > 0) & (host < 1)) and np.any(host == 0) | np.any(host == 1)
+    assert 40 <= run.instructions.min() <= run.instructions.max() < 200  # two PIs or a third-order filter
+    assert np.all(run.instructions <= run.cycles_low) and np.all(run.cycles_low <= run.cycles)
+    assert run.mix["fp-div/sqrt"] == len(measurements)  # the input-voltage feed-forward: one VDIV per step
+    state = (native.real_mirrors("float32").CurrentModeC, native.real_mirrors("float32").CompensatorC)[index]
+    assert measured.footprint.bss == ctypes.sizeof(state) and measured.footprint.data == 0
+    assert 0 < measured.footprint.flash < 4096 and 0 <= run.stack_bytes <= 64
+
+
+@pytest.mark.embedded
 def test_a_controller_without_a_cortex_m4f_row_is_refused_by_name():
     from controllers.nn_model import load_model
     from cosim.study.experiments import nnpc
 
     online = nnpc(load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD),
                   SWITCHING_PERIOD)
-    with pytest.raises(ValueError, match="NNPC has no Cortex-M4F build: the embedded controllers are PI, explicit"):
+    with pytest.raises(ValueError, match="NNPC has no Cortex-M4F build: the embedded controllers are PI, explicit NNPC, "
+                                         "current-mode, Type-III"):
         cortex_m4.measure(online, np.zeros((2, 6)))
 
 

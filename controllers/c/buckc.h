@@ -36,8 +36,8 @@
  * an expression that silently computes in double (software floating point on a Cortex-M4F).
  * BUCKC_REAL_NAME names the build ("float64" / "float32") for bindings and generated headers.
  *
- * Which files have a float32 build: pi.c, load_estimate.c, nn_model.c, explicit_policy.c (and
- * buckc.c). predictive.c and predictors.c (the online NNPC's optimizer and the circuit
+ * Which files have a float32 build: pi.c, load_estimate.c, nn_model.c, explicit_policy.c,
+ * current_mode.c, compensator.c (and buckc.c). predictive.c and predictors.c (the online NNPC's optimizer and the circuit
  * predictors) compute in double only: BUCKC_HAVE_PREDICTIVE is 0 in a float32 build, and code
  * shared by both (controller_fmu.c) leaves the predictive controller out there.
  */

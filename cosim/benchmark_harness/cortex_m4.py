@@ -39,7 +39,14 @@ from typing import Callable
 
 import numpy as np
 
-from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind
+from controllers.codegen import (
+    KIND_COMPENSATOR,
+    KIND_CURRENT_MODE,
+    KIND_EXPLICIT,
+    KIND_PI,
+    config_header,
+    controller_kind,
+)
 from controllers.native import FLOAT32_SOURCES, SOURCE_DIR, cache_dir
 
 HERE = Path(__file__).parent / "cortex_m4"
@@ -104,6 +111,12 @@ EMBEDDED_CONTROLLERS = (
     EmbeddedController("explicit NNPC", KIND_EXPLICIT, ("explicit_policy.c", "load_estimate.c"), "BuckcPolicy",
                        "buckc_policy_init(state, &POLICY_CONFIG, what)", "buckc_policy_reset(state)",
                        "buckc_policy_step(state, m, duty)", _policy_limits),
+    EmbeddedController("current-mode", KIND_CURRENT_MODE, ("current_mode.c",), "BuckcCurrentMode",
+                       "buckc_current_mode_init(state, &CURRENT_MODE_CONFIG, what)", "buckc_current_mode_reset(state)",
+                       "buckc_current_mode_step(state, m, duty)"),
+    EmbeddedController("Type-III", KIND_COMPENSATOR, ("compensator.c",), "BuckcCompensator",
+                       "buckc_compensator_init(state, &COMPENSATOR_CONFIG, what)", "buckc_compensator_reset(state)",
+                       "buckc_compensator_step(state, m, duty)"),
 )
 
 
