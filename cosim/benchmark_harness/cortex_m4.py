@@ -373,72 +373,141 @@ def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> Cor
 
 @dataclass(frozen=True)
 class CycleTable:
-    """Cycles of the Cortex-M4's instructions (ARM Cortex-M4 Technical Reference Manual r0p1, Table 3-1
-    "Cortex-M4 instruction set summary" and Table 7-1 "FPU instruction set" cycle counts).
+    """Cycles of the Cortex-M4's instructions, from the ARM Cortex-M4 Processor Technical Reference Manual
+    (r0p1; ARM DDI 0439, reissued as ARM 100166_0001_00): section 3.3.1, Table 3-1 "Processor instruction set
+    summary" (the integer core), section 3.3.2 "Load/store timings", and the FPU chapter's instruction-set
+    table ("Table 7-1" in DDI 0439). Every entry, and where it comes from:
 
-    Assumptions: zero-wait-state memory for code and data (the mps2-an386's SSRAM; on an STM32G4, code in
-    CCM SRAM, or flash behind the ART accelerator hitting), no cache, no interrupt during the step, each
-    instruction takes its table count (no further interlocks). ``P``, the pipeline refill after a taken
-    branch, is 1 to 3 cycles (TRM 3.3.1); a load or store is 2 cycles, 1 when it pipelines behind another
-    load or store (TRM 3.3.2): the *upper* table takes P = 3 and never pipelines, the *lower* P = 1 and
-    pipelines every load/store that follows another. A conditional instruction in an IT block costs its
-    count whether or not it executes (the trace cannot tell). SDIV/UDIV: 12 (upper) / 2 (lower), VDIV and
-    VSQRT 14, VMLA/VMLS/VFMA 3, other FPU arithmetic, VMOV, VCMP, VCVT, VMRS 1, VLDR/VSTR 2, VLDM/VSTM/
-    VPUSH/VPOP 1 + N, LDM/STM/PUSH/POP 1 + N (+P when POP or LDM loads PC), 32-bit multiplies and
-    multiply-accumulates (MUL, MLA, MLS, SMULL, UMULL, SMLAL, UMLAL) 1."""
+    ====================================================  ========================  =========================
+    instructions                                          cycles                    source
+    ====================================================  ========================  =========================
+    data processing (MOV, ADD, SUB, CMP, logic, shifts,   1                         Table 3-1
+    bit fields, extend, saturate, IT, ...)
+    MOV PC / ADD PC (writes PC)                           1 + P                     Table 3-1
+    MUL, MLA, MLS, SMULL, UMULL, SMLAL, UMLAL             1                         Table 3-1
+    SDIV, UDIV                                            2 ... 12 (early           Table 3-1 and its note
+                                                          termination): upper 12,
+                                                          lower 2
+    LDR, LDRB, LDRH, LDRSB, LDRSH (single load)           2                         Table 3-1
+    ... pipelined behind a single load (LDR [any]) whose  1                         3.3.2 (lower reading
+    destination does not form this address                                          only, see below)
+    LDR Rx, [PC, #imm] (literal; VLDR [PC] alike)         + 1 in the upper reading  3.3.2 ("might add a
+                                                                                    cycle": fetch contention)
+    LDR PC, [...]                                         2 + P, never pipelined    3.3.2 ("at least five")
+    STR, STRB, STRH with an immediate offset (incl.       1                         3.3.2 ("always one
+    pre-/post-indexed)                                                              cycle")
+    STR, STRB, STRH with a register offset                2 (1 behind a single      Table 3-1, 3.3.2
+                                                          load, lower reading)
+    LDRD, STRD                                            1 + N = 3, never          Table 3-1, 3.3.2
+                                                          pipelined
+    LDM, STM, PUSH, POP (N registers)                     1 + N, never pipelined    Table 3-1, 3.3.2
+    POP / LDM with PC                                     1 + N + P                 Table 3-1
+    B<cc> not taken / taken                               1 / 1 + P                 Table 3-1
+    B, BL, BX, BLX                                        1 + P                     Table 3-1
+    CBZ, CBNZ not taken / taken                           1 / 1 + P                 Table 3-1
+    TBB, TBH                                              2 + P (lower), 3 + P      Table 3-1; 3.3.2 ("at
+                                                          (upper)                   least six cycles")
+    any load or store whose address register the          + 1                       3.3.2 ("no forwarding
+    immediately preceding data-processing instruction                               path")
+    wrote
+    VADD, VSUB, VMUL, VNMUL, VNEG, VABS, VCMP(E), VCVT,   1                         FPU table
+    VMOV immediate or S <- S, VMOV half of D <-> core
+    VMOV one S <-> one core register, two S / one D <->   2                         FPU table
+    two core registers
+    VMRS, VMSR                                            1                         FPU table
+    VMLA, VMLS, VNMLA, VNMLS, VFMA, VFMS, VFNMA, VFNMS    3                         FPU table
+    VDIV, VSQRT                                           14                        FPU table
+    VLDR / VSTR of a single, of a double                  2, 3 (1 less behind a     FPU table; the pipelining
+                                                          single load, lower        is assumed like LDR's
+                                                          reading)                  (the TRM states it for
+                                                                                    LDR/STR)
+    VLDM, VSTM, VPUSH, VPOP (N singles / N doubles)       1 + N / 1 + 2 N           FPU table
+    ====================================================  ========================  =========================
 
-    refill: float
-    divide: float
-    pipelined_memory: bool
+    ``P``, the pipeline refill after a taken branch, is 1 to 3 cycles "depending on the alignment and width
+    of the target instruction, and whether the processor manages to speculate the address early" (Table 3-1's
+    legend); a single load or store pipelines behind a single load (LDR [any]) when the load's destination
+    does not form the next address (3.3.2), but the TRM's note says 32-bit opcodes at odd halfword addresses
+    "might not pipeline optimally". Hence two readings: the *upper* (:data:`CYCLE_TABLE`: P = 3, SDIV 12,
+    nothing pipelines, the literal load's extra cycle) and the *lower* (:data:`CYCLE_TABLE_LOW`: P = 1, SDIV 2,
+    every pipelining the rule allows). Assumptions of both: zero-wait-state memory for code and data (the
+    mps2-an386's SSRAM; on an STM32G4, code in CCM SRAM, or flash behind the ART accelerator hitting), no
+    cache, the write buffer never full, no interrupt during the step; a conditional instruction in an IT
+    block costs its count whether or not it executes (the trace cannot tell); the FPU's result latencies
+    (GCC's cortex-m4-fpu.md models 2 cycles for VADD/VMUL results) and VDIV's out-of-order completion are
+    not modelled -- the table's counts are issue cycles."""
 
-    def cycles(self, mnemonic: str, operands: str, taken: bool, after_memory: bool) -> float:
+    refill: float  # P
+    divide: float  # SDIV/UDIV
+    pipelines: bool  # a single load or store behind a single load costs one cycle less (3.3.2)
+    literal_penalty: float  # LDR Rx, [PC, #imm]: fetch contention
+    table_branch: float  # TBB/TBH, before P
+
+    def cycles(self, mnemonic: str, operands: str, taken: bool, previous: tuple[str, str] | None = None) -> float:
+        """Cycles of one executed instruction; ``taken``: a branch that was taken; ``previous``: the mnemonic
+        and operands of the instruction executed just before it in the step (None at its start)."""
         base, _ = _base(mnemonic)
-        registers = _register_count(operands)
-        memory = 1.0 if (self.pipelined_memory and after_memory) else 2.0
+        stall = 1.0 if _address_stall(base, operands, previous) else 0.0
+        return self._cycles(base, mnemonic, operands, taken, previous) + stall
+
+    def _cycles(self, base: str, mnemonic: str, operands: str, taken: bool, previous) -> float:
         writes_pc = bool(re.match(r"pc\b", operands))
         if base in ("b", "bl", "bx", "blx"):
             return 1.0 + self.refill if (taken or base != "b") else 1.0
         if base in ("cbz", "cbnz"):
             return 1.0 + self.refill if taken else 1.0
         if base in ("tbb", "tbh"):
-            return 2.0 + self.refill
-        if base in ("ldm", "ldmia", "ldmdb", "pop"):
-            return 1.0 + registers + (self.refill if "pc" in operands else 0.0)
-        if base in ("stm", "stmia", "stmdb", "push"):
-            return 1.0 + registers
+            return self.table_branch + self.refill
+        if base in _MULTIPLE_LOADS:
+            return 1.0 + _register_count(operands) + (self.refill if re.search(r"\bpc\b", operands) else 0.0)
+        if base in _MULTIPLE_STORES:
+            return 1.0 + _register_count(operands)
         if base in ("ldrd", "strd"):
-            return 1.0 + 2.0
-        if base.startswith("ldr"):
-            return memory + (self.refill if writes_pc else 0.0)
-        if base.startswith("str"):
-            return memory
+            return 3.0
+        if base in ("vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop"):
+            return 1.0 + _single_count(operands)
+        if base in _SINGLE_LOADS or base in _SINGLE_STORES or base in ("vldr", "vstr"):
+            if base in _SINGLE_LOADS and writes_pc:
+                return 2.0 + self.refill
+            if base in _SINGLE_STORES:
+                cost = 2.0 if _register_offset(operands) else 1.0
+            else:
+                cost = 3.0 if (base == "vldr" or base == "vstr") and re.match(r"d\d", operands) else 2.0
+                cost += self.literal_penalty if re.search(r"\[pc\b", operands) else 0.0
+            if self.pipelines and _pipelines_behind(operands, previous):
+                cost = max(1.0, cost - 1.0)
+            return cost
         if base in ("sdiv", "udiv"):
             return self.divide
         if base in ("vdiv", "vsqrt"):
             return 14.0
         if base in ("vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms"):
             return 3.0
-        if base in ("vldr", "vstr"):
-            return memory
-        if base in ("vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop"):
-            return 1.0 + _single_count(operands)
-        if base == "vmov" and operands.count(",") >= 2:  # two core registers <-> two singles or a double
-            return 2.0
+        if base == "vmov":
+            return 2.0 if _core_registers(operands) and not re.search(r"d\d+\[", operands) \
+                and any(re.fullmatch(r"[sd]\d+", r) for r in _operand_list(operands)) else 1.0
         if writes_pc:  # mov pc, ..., add pc, ...
             return 1.0 + self.refill
         return 1.0
 
 
-CYCLE_TABLE = CycleTable(refill=3.0, divide=12.0, pipelined_memory=False)
-CYCLE_TABLE_LOW = CycleTable(refill=1.0, divide=2.0, pipelined_memory=True)
+CYCLE_TABLE = CycleTable(refill=3.0, divide=12.0, pipelines=False, literal_penalty=1.0, table_branch=3.0)
+CYCLE_TABLE_LOW = CycleTable(refill=1.0, divide=2.0, pipelines=True, literal_penalty=0.0, table_branch=2.0)
 
 _CONDITIONS = ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt", "le", "al")
+_SINGLE_LOADS = ("ldr", "ldrb", "ldrh", "ldrsb", "ldrsh", "ldrex", "ldrexb", "ldrexh", "ldrt", "ldrbt", "ldrht")
+_SINGLE_STORES = ("str", "strb", "strh", "strt", "strbt", "strht")
+_MULTIPLE_LOADS = ("ldm", "ldmia", "ldmdb", "ldmfd", "pop")
+_MULTIPLE_STORES = ("stm", "stmia", "stmdb", "stmfd", "push")
+#: instructions that compare or control and write no core register
+_NO_DESTINATION = ("cmp", "cmn", "tst", "teq", "it", "nop", "bkpt", "dsb", "dmb", "isb", "cpsie", "cpsid", "svc")
+_CORE_REGISTER = re.compile(r"(r\d+|sb|sl|fp|ip|sp|lr|pc)")
 #: the mnemonics the table prices differently from 1 cycle (and the FPU moves of the mix)
-_PRICED = {"b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh", "ldr", "ldrb", "ldrh", "ldrsb", "ldrsh", "ldrd",
-           "ldrex", "str", "strb", "strh", "strd", "strex", "ldm", "ldmia", "ldmdb", "stm", "stmia", "stmdb", "push",
-           "pop", "sdiv", "udiv", "mul", "mla", "mls", "smull", "umull", "smlal", "umlal", "vdiv", "vsqrt", "vmla",
-           "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms", "vldr", "vstr", "vldm", "vldmia", "vldmdb",
-           "vstm", "vstmia", "vstmdb", "vpush", "vpop", "vmov", "vmrs", "vmsr", "vcvt", "vcvtr", "mov", "add"}
+_PRICED = {"b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh", "ldrd", "strd", "sdiv", "udiv", "mul", "mla", "mls",
+           "smull", "umull", "smlal", "umlal", "vdiv", "vsqrt", "vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms",
+           "vfnma", "vfnms", "vldr", "vstr", "vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop",
+           "vmov", "vmrs", "vmsr", "vcvt", "vcvtr", "mov", "add", *_SINGLE_LOADS, *_SINGLE_STORES, *_MULTIPLE_LOADS,
+           *_MULTIPLE_STORES}
 
 
 def _base(mnemonic: str) -> tuple[str, bool]:
@@ -452,6 +521,65 @@ def _base(mnemonic: str) -> tuple[str, bool]:
     if name.endswith("s") and name[:-1] in _PRICED:
         return name[:-1], False
     return name, False
+
+
+def _operand_list(operands: str) -> list[str]:
+    return [part.strip().rstrip("!") for part in re.split(r"[,\[\]{}]", operands) if part.strip()]
+
+
+def _core_registers(operands: str) -> list[str]:
+    return [r for r in _operand_list(operands) if _CORE_REGISTER.fullmatch(r)]
+
+
+def _address_registers(base: str, operands: str) -> set[str]:
+    """The core registers that form a load's or store's address: those inside [...] of a single transfer,
+    the base register of LDM/STM/VLDM/VSTM, SP of PUSH/POP/VPUSH/VPOP; empty for other instructions."""
+    if base in ("push", "pop", "vpush", "vpop"):
+        return {"sp"}
+    if base in _MULTIPLE_LOADS or base in _MULTIPLE_STORES or base.startswith(("vldm", "vstm")):
+        return {operands.split(",")[0].strip().rstrip("!")}
+    if base in _SINGLE_LOADS or base in _SINGLE_STORES or base in ("ldrd", "strd", "vldr", "vstr"):
+        inside = re.search(r"\[([^\]]*)\]", operands)
+        return set(_core_registers(inside.group(1))) if inside else set()
+    return set()
+
+
+def _written_by_data_processing(previous: tuple[str, str] | None) -> set[str]:
+    """The core registers the previous instruction wrote, if it was an integer data-processing instruction
+    (not a load, store, branch or FPU instruction): its destination (two for the long multiplies)."""
+    if previous is None:
+        return set()
+    base, _ = _base(previous[0])
+    if (base.startswith(("v", "ld", "st", "it")) or base in _BRANCHES or base in _NO_DESTINATION
+            or base in _MULTIPLE_LOADS or base in _MULTIPLE_STORES):
+        return set()
+    registers = _operand_list(previous[1])
+    count = 2 if base in ("smull", "umull", "smlal", "umlal") else 1
+    return {r for r in registers[:count] if _CORE_REGISTER.fullmatch(r)}
+
+
+def _address_stall(base: str, operands: str, previous) -> bool:
+    """TRM 3.3.2: a load or store whose address depends on the result of the preceding data-processing
+    operation stalls one cycle (no forwarding path)."""
+    return bool(_address_registers(base, operands) & _written_by_data_processing(previous))
+
+
+def _register_offset(operands: str) -> bool:
+    """A single store's address has a register offset ([Rn, Rm{, LSL #n}]) rather than an immediate."""
+    inside = re.search(r"\[([^\]]*)\]", operands)
+    return bool(inside) and len(_core_registers(inside.group(1))) > 1
+
+
+def _pipelines_behind(operands: str, previous) -> bool:
+    """TRM 3.3.2: a single load or store pipelines behind a single load (LDR [any]; VLDR assumed alike) whose
+    destination is not used to compute its address -- not behind a store, LDRD, LDM, or a load of PC."""
+    if previous is None:
+        return False
+    base, _ = _base(previous[0])
+    if not (base in _SINGLE_LOADS or base == "vldr") or re.match(r"pc\b", previous[1]):
+        return False
+    destination = _operand_list(previous[1])[0]
+    return destination not in _address_registers("ldr", operands)
 
 
 def _register_count(operands: str) -> int:
@@ -510,7 +638,7 @@ _INSN = re.compile(r"^0x([0-9a-f]+):\s+((?:[0-9a-f]{4}\s?)+)\s+(\S+)\s*(.*)$")
 
 def _is_control(mnemonic: str, operands: str) -> bool:
     base, _ = _base(mnemonic)
-    return base in _BRANCHES or (base in ("pop", "ldm", "ldmia") and "pc" in operands) or bool(
+    return base in _BRANCHES or (base in _MULTIPLE_LOADS and re.search(r"\bpc\b", operands) is not None) or bool(
         re.match(r"pc\b", operands))
 
 
@@ -540,26 +668,24 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
     inside = False
     pending: list | None = None  # the last executed block of the step (its final branch awaits the successor)
     insn = high = low = 0.0
-    after_memory = False
+    previous: tuple[str, str] | None = None  # the instruction executed before, for the TRM's pairing rules
 
     def account(block, successor: int | None):
-        nonlocal insn, high, low, after_memory
+        nonlocal insn, high, low, previous
         for i, (address, size, mnemonic, operands) in enumerate(block):
             if any(a <= address < b for a, b in excluded):
-                after_memory = False
+                previous = None
                 continue
             last = i == len(block) - 1
             taken = last and successor is not None and successor != address + size and _is_control(mnemonic,
                                                                                                   operands)
-            base, _ = _base(mnemonic)
-            memory_op = base.startswith(("ldr", "str", "vldr", "vstr"))
             insn += 1
-            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, after_memory)
+            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, previous)
             high += cycles
-            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, after_memory)
+            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, previous)
             mix[instruction_class(mnemonic)] += 1
             functions[owner(address)] += cycles
-            after_memory = memory_op
+            previous = (mnemonic, operands)
 
     with open(log, encoding="utf-8", errors="replace") as lines:
         for line in lines:
@@ -583,7 +709,7 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
                 account(pending, pc)
                 pending = None
             if pc == begin:
-                inside, insn, high, low, after_memory = True, 0.0, 0.0, 0.0, False
+                inside, insn, high, low, previous = True, 0.0, 0.0, 0.0, None
             elif pc == end and inside:
                 steps_insn.append(insn)
                 steps_high.append(high)
