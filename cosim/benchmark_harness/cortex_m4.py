@@ -235,7 +235,8 @@ def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _C
 def export_object(controller, folder: Path) -> Path:
     """The controller as a firmware links it: ``folder``/controller.o (the float32 build for a Cortex-M4F:
     code, configuration, state; see the README's *On a microcontroller*) beside the headers a firmware's
-    source includes (buckc_controller.h, buckc.h; compile it with -DBUCKC_FLOAT32). Returns controller.o."""
+    source includes (buckc_controller.h, buckc.h and the buckc_tanhf.h it includes; compile it with
+    -DBUCKC_FLOAT32). Returns controller.o."""
     problem = toolchain_problem()
     if problem:
         raise EmbeddedError(problem)
@@ -243,7 +244,8 @@ def export_object(controller, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
         _, _, built = _controller_object(controller, Path(tmp))
-        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h"):
+        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h",
+                     SOURCE_DIR / "buckc_tanhf.h"):
             staged = folder / f".{path.name}.tmp"
             shutil.copyfile(path, staged)
             staged.replace(folder / path.name)

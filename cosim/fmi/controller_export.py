@@ -64,8 +64,8 @@ COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c
 FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c",
                                        "current_mode.c", "compensator.c")
                            if f in FLOAT32_SOURCES)
-FLOAT32_HEADERS = ("buckc.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h", "current_mode.h",
-                   "compensator.h")
+FLOAT32_HEADERS = ("buckc.h", "buckc_tanhf.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h",
+                   "current_mode.h", "compensator.h")
 FLOAT32_COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "f32_controller_fmu.c",
                     *(f"f32_{f}" for f in FLOAT32_ALGORITHMS))
 
