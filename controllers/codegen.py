@@ -10,8 +10,8 @@ written with 17 significant digits (``repr``), which a C compiler reads back to 
 
 ``precision="float32"`` writes the data of the float32 build (``buckc_real`` = float, see
 ``controllers/c/buckc.h``): the PI's, the explicit policy's, the current-mode controller's or the
-compensator's configuration from the float32 mirrors, every number the shortest literal that reads back to the same float, with an ``f``
-suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
+compensator's configuration from the float32 mirrors, every number the shortest literal that reads
+back to the same float, with an ``f`` suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
 controller has no float32 build (its optimizer computes in double): a ValueError says so.
 """
 

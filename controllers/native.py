@@ -893,7 +893,8 @@ class _LinearTwin(_MeasurementStepper):
 
 class NativeCurrentModeController(_LinearTwin):
     """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``;
-    ``precision="float32"``: the float32 build, its duties within :func:`controllers.float32.current_mode_step_bound`)."""
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.current_mode_step_bound`)."""
 
     def __init__(self, controller: CurrentModeController, precision: str = "float64"):
         lib = library(precision)
@@ -913,7 +914,8 @@ class NativeCurrentModeController(_LinearTwin):
 
 class NativeCompensatorController(_LinearTwin):
     """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``;
-    ``precision="float32"``: the float32 build, its duties within :func:`controllers.float32.compensator_step_bound`)."""
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.compensator_step_bound`)."""
 
     def __init__(self, controller: CompensatorController, precision: str = "float64"):
         lib = library(precision)

@@ -4,9 +4,9 @@ buckc_tanhf (the float32 build's tanh) computes tanh|x| = 1 - 2 / (e**(2|x|) + 1
 e**(2|x|) = 2**n 2**f, n the integer nearest to 2|x| / ln 2 and |f| <= 1/2; 2**f is the polynomial
 1 + c1 f + ... + cD f**D this script fits: the coefficients minimising max |p(f) / 2**f - 1| over
 [-1/2, 1/2] with p(0) = 1 exactly, found as a linear programme (the error level bisected, feasibility
-by scipy's HiGHS on 4 001 points, its tolerances tightened to 1e-10), then rounded to float. It prints them as the C literals the header
-holds and the fitted relative error in exact arithmetic; what the float evaluation adds is measured over
-every float by tests/test_float32.py.
+by scipy's HiGHS on 4 001 points, its tolerances tightened to 1e-10), then rounded to float. It prints
+them as the C literals the header holds and the fitted relative error in exact arithmetic; what the
+float evaluation adds is measured over the floats by tests/test_float32.py.
 
     ./.venv/bin/python scripts/fit_tanhf.py [DEGREE]      (the header uses degree 6)
 """

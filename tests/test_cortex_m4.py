@@ -106,7 +106,8 @@ def test_a_trace_with_a_missing_step_is_an_error(tmp_path):
     ("vfma.f32", "s12, s14, s13", False, None, 3, 3), ("vsqrt.f32", "s0, s0", False, None, 14, 14),
     ("vpush", "{d8, d9}", False, None, 5, 5), ("vldmia", "r3!, {s16, s17, s18}", False, None, 4, 4),
     # VMOV: one single <-> one core register 2 (corrected: was 1), two <-> two 2, immediate / S <- S / half of D 1
-    ("vmov", "r3, s0", False, None, 2, 2), ("vmov", "s15, r3", False, None, 2, 2), ("vmov", "r0, r1, d0", False, None, 2, 2),
+    ("vmov", "r3, s0", False, None, 2, 2), ("vmov", "s15, r3", False, None, 2, 2),
+    ("vmov", "r0, r1, d0", False, None, 2, 2),
     ("vmov.f32", "s15, #1.000000e+00", False, None, 1, 1), ("vmovgt.f32", "s0, s1", False, None, 1, 1),
     ("vmov.32", "r0, d0[1]", False, None, 1, 1), ("vmrs", "apsr_nzcv, fpscr", False, None, 1, 1),
     # VLDR of a double 3 (corrected: was 2), of a single 2; a literal load one more in the upper reading
@@ -121,13 +122,15 @@ def test_a_trace_with_a_missing_step_is_an_error(tmp_path):
     ("ldr", "r3, [r1]", False, ("ldr", "r1, [r0]"), 2, 2), ("ldr", "r3, [r2]", False, ("str", "r1, [r0]"), 2, 2),
     ("ldrd", "r2, r4, [sp, #0xc]", False, ("ldr", "r1, [r0]"), 3, 3), ("ldr", "pc, [sp], #4", True, None, 5, 3),
     # 3.3.2: an address formed by the preceding data-processing instruction stalls one cycle (added)
-    ("ldr", "r3, [r2, #4]", False, ("adds", "r2, #4"), 3, 3), ("vldr", "s14, [lr, #32]", False, ("add.w", "lr, r3, r7"), 3, 3),
+    ("ldr", "r3, [r2, #4]", False, ("adds", "r2, #4"), 3, 3),
+    ("vldr", "s14, [lr, #32]", False, ("add.w", "lr, r3, r7"), 3, 3),
     ("ldr", "r0, [r2]", False, ("bic", "r2, r2, #3"), 3, 3), ("ldr", "r0, [r2]", False, ("cmp", "r2, #0"), 2, 2),
     ("push", "{r4, lr}", False, ("sub", "sp, #8"), 4, 4), ("ldr", "r0, [r2]", False, ("vmov", "r2, s0"), 2, 2),
     # Table 3-1: branches 1 + P taken, 1 not; TBB 2 + P (the upper reading 3 + P: 3.3.2's "at least six")
     ("bls", "#0x40", True, None, 4, 2), ("bls", "#0x40", False, None, 1, 1), ("bl", "#0x800", True, None, 4, 2),
     ("cbz", "r0, #0x20", False, None, 1, 1), ("tbb", "[pc, r3]", True, None, 6, 3),
-    ("pop", "{r4, r5, r6, pc}", True, None, 8, 6), ("pop.w", "{r4, r5, r6, r7, r8, sb, sl, fp, pc}", True, None, 13, 11),
+    ("pop", "{r4, r5, r6, pc}", True, None, 8, 6),
+    ("pop.w", "{r4, r5, r6, r7, r8, sb, sl, fp, pc}", True, None, 13, 11),
     # Table 3-1: SDIV 2-12, the multiplies 1 (MLA and the long ones too, on the M4)
     ("sdiv", "r0, r1, r2", False, None, 12, 2), ("muls", "r0, r1, r0", False, None, 1, 1),
     ("mla", "r0, r1, r2, r3", False, None, 1, 1), ("umull", "r2, r3, r6, r1", False, None, 1, 1),
@@ -219,14 +222,25 @@ def test_the_classical_controllers_on_the_cortex_m4f_give_the_host_float32_dutie
 
 
 @pytest.mark.embedded
+def test_the_tanh_probe_measures_buckc_tanhf_on_the_cortex_m4f():
+    """The target's buckc_tanhf within float32.TANH_ERROR of tanh on the probe's 256 arguments in [-4.5, 4.5);
+    a call costs its VDIV (14), the polynomial's 12 operations and the rest: 40 to 80 cycles, the lower
+    reading at most the upper."""
+    probe = cortex_m4.measure_tanh()
+    assert len(probe.values) == 256 and probe.arguments[0] == -4.5 and probe.arguments[-1] < 4.5
+    assert np.max(np.abs(probe.values - np.tanh(probe.arguments))) <= float32.TANH_ERROR
+    assert np.all((40 <= probe.cycles_low) & (probe.cycles_low <= probe.cycles) & (probe.cycles <= 80))
+
+
+@pytest.mark.embedded
 def test_a_controller_without_a_cortex_m4f_row_is_refused_by_name():
     from controllers.nn_model import load_model
     from cosim.study.experiments import nnpc
 
     online = nnpc(load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD),
                   SWITCHING_PERIOD)
-    with pytest.raises(ValueError, match="NNPC has no Cortex-M4F build: the embedded controllers are PI, explicit NNPC, "
-                                         "current-mode, Type-III"):
+    with pytest.raises(ValueError, match="NNPC has no Cortex-M4F build: the embedded controllers are PI, explicit "
+                                         "NNPC, current-mode, Type-III"):
         cortex_m4.measure(online, np.zeros((2, 6)))
 
 
@@ -275,3 +289,20 @@ def test_export_controller_writes_the_object_a_firmware_links(tmp_path):
     assert link.returncode == 0, link.stderr
     table = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "fw.elf")], capture_output=True, text=True).stdout
     assert any(line.startswith("08") and line.endswith(" T buckc_controller_step") for line in table.splitlines())
+
+
+@pytest.mark.embedded
+def test_export_controller_writes_the_type_iii_for_a_cortex_m4f(tmp_path):
+    """export-controller type-iii --precision float32 --cortex-m4 DIR: the classical controllers have a float32
+    build too; their controller.o needs no library function at all."""
+    import subprocess
+
+    from conftest import cli
+
+    done = cli("export-controller", "type-iii", "--control-period", "1/75e3", "--precision", "float32", "--out",
+               str(tmp_path / "t3.fmu"), "--cortex-m4", str(tmp_path / "m4"))
+    assert done.returncode == 0, done.stderr
+    symbols = subprocess.run(["arm-none-eabi-nm", str(tmp_path / "m4" / "controller.o")], capture_output=True,
+                             text=True).stdout
+    assert " T buckc_compensator_step" in symbols and " T buckc_controller_step" in symbols
+    assert [line.split()[-1] for line in symbols.splitlines() if line.split()[0] == "U"] == []

@@ -340,34 +340,84 @@ class CortexM4Replay:
     functions: Counter | None = None  # cycles (upper table) per function over all steps
 
 
-def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
-    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
-    argv = [*QEMU, "-kernel", str(result.replay)]
-    log = result.folder / "trace.log"
-    if trace:
+def _execute(image: Path, steps: int, what: str, log: Path | None) -> list[str]:
+    """Run ``image`` in ``qemu-system-arm -M mps2-an386`` (with ``log``: QEMU's execution trace written there)
+    and return its semihosting console's lines, the last of which must be ``done <steps>``."""
+    argv = [*QEMU, "-kernel", str(image)]
+    if log is not None:
         argv += ["-d", "exec,nochain,in_asm", "-D", str(log)]
     try:  # QEMU writes the semihosting console to stderr
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=result.folder)
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=image.parent)
     except (OSError, subprocess.TimeoutExpired) as error:
-        raise EmbeddedError(f"the Cortex-M4F replay image did not finish in QEMU: {error}") from None
+        raise EmbeddedError(f"the Cortex-M4F {what} image did not finish in QEMU: {error}") from None
     lines = (done.stdout + done.stderr).splitlines()
-    if done.returncode != 0 or not lines or lines[-1] != f"done {samples}":
+    if done.returncode != 0 or not lines or lines[-1] != f"done {steps}":
         problem = next((line for line in lines if line.startswith(("error:", "fault:"))), "\n".join(lines[-5:]))
-        raise EmbeddedError(f"the Cortex-M4F replay image failed in QEMU (exit {done.returncode}): {problem}")
-    bits = np.zeros(samples, dtype=np.uint32)
-    stack = -1
+        raise EmbeddedError(f"the Cortex-M4F {what} image failed in QEMU (exit {done.returncode}): {problem}")
+    return lines
+
+
+def _printed_floats(lines: list[str], key: str, count: int) -> np.ndarray:
+    """The floats an image printed as ``<key> <k> <8 hex digits>`` lines, in the order of k."""
+    bits = np.zeros(count, dtype=np.uint32)
     for line in lines:
-        if line.startswith("duty "):
+        if line.startswith(key + " "):
             _, k, value = line.split()
             bits[int(k)] = int(value, 16)
-        elif line.startswith("stack "):
-            stack = int(line.split()[1])
-    out = CortexM4Replay(bits.view(np.float32).astype(float), stack)
+    return bits.view(np.float32).astype(float)
+
+
+def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
+    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
+    log = result.folder / "trace.log" if trace else None
+    lines = _execute(result.replay, samples, "replay", log)
+    stack = next((int(line.split()[1]) for line in lines if line.startswith("stack ")), -1)
+    out = CortexM4Replay(_printed_floats(lines, "duty", samples), stack)
     if trace:
         counts = count_steps(log, _symbols(result.replay), samples)
         out.instructions, out.cycles, out.cycles_low, out.mix, out.functions = counts
         log.unlink()
     return out
+
+
+#: cortex_m4/tanh_probe.c's batch and steps
+PROBE_BATCH, PROBE_STEPS = 16, 16
+
+
+@dataclass
+class TanhProbe:
+    """buckc_tanhf on the Cortex-M4F (``cortex_m4/tanh_probe.c``): its values and its cycles per call."""
+
+    arguments: np.ndarray  # the floats it was given, [-4.5, 4.5)
+    values: np.ndarray  # what it returned on the target
+    cycles: np.ndarray  # per call (a step over its batch), upper reading of the TRM table
+    cycles_low: np.ndarray  # the same, lower reading
+
+
+def probe_arguments() -> np.ndarray:
+    """x_k = -4.5 + 9 k / 256 as tanh_probe.c computes them in float (every operation exact)."""
+    k = np.arange(PROBE_BATCH * PROBE_STEPS, dtype=np.float32)
+    return (np.float32(-4.5) + np.float32(9.0) * k / np.float32(PROBE_BATCH * PROBE_STEPS)).astype(float)
+
+
+def measure_tanh() -> TanhProbe:
+    """Cross-compile the tanh probe with the controllers' flags and run it in QEMU, traced: what buckc_tanhf
+    costs a call inlined in a loop (the cost model's tanh, :mod:`controllers.cost_model`)."""
+    problem = toolchain_problem()
+    if problem:
+        raise EmbeddedError(problem)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
+        folder = Path(tmp)
+        image = folder / "tanh_probe.elf"
+        sources = [HERE / "startup.c", HERE / "semihosting.c", HERE / "tanh_probe.c"]
+        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *C_FLAGS, f"-I{SOURCE_DIR}", f"-I{HERE}", *LINK_FLAGS, "-T",
+              str(LINKER_SCRIPT), *map(str, sources), *LIBRARIES, "-o", str(image)], "building the tanh probe",
+             folder)
+        log = folder / "trace.log"
+        lines = _execute(image, PROBE_STEPS, "tanh probe", log)
+        _, high, low, _, _ = count_steps(log, _symbols(image), PROBE_STEPS)
+        return TanhProbe(probe_arguments(), _printed_floats(lines, "tanh", PROBE_BATCH * PROBE_STEPS),
+                         high / PROBE_BATCH, low / PROBE_BATCH)
 
 
 # ------------------------------------------------------------------------------------------ cycles
