@@ -54,8 +54,11 @@ def main(argv: list[str]) -> int:
     p = 1.0 + sum(float(c) * f ** (k + 1) for k, c in enumerate(rounded))
     print(f"degree {degree}: fitted relative error {level:.3g}, with float coefficients "
           f"{np.max(np.abs(p / np.exp2(f) - 1)):.3g} (exact arithmetic)")
-    for k, c in enumerate(rounded, start=1):
-        print(f"#define BUCKC_EXP2_C{k} {np.format_float_scientific(c, unique=True)}f")
+    literals = [f"{np.format_float_scientific(c, unique=True)}f" for c in rounded]
+    print(f"    p = {literals[-1]};       /* 2^f, Horner */")  # as controllers/c/buckc_tanhf.h writes them
+    for literal in reversed(literals[:-1]):
+        print(f"    p = p * f + {literal};")
+    print("    p = p * f + 1.0f;")
     return 0
 
 

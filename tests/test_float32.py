@@ -165,6 +165,21 @@ def test_the_float32_builds_tanh_is_within_its_stated_error_on_every_float(tmp_p
     assert max(errors) > 1e-7 and float(above) <= 3.1e-8  # measured 1.19e-7, 1.18e-7; 1 - tanh(9.5) above
 
 
+def test_the_tanh_polynomial_is_the_one_the_fitting_script_finds():
+    """controllers/c/buckc_tanhf.h's 2^f polynomial, line for line, is what scripts/fit_tanhf.py prints."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(root / "scripts" / "fit_tanhf.py")], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    printed = [line.strip() for line in done.stdout.splitlines() if line.strip().startswith("p = ")]
+    header = [line.strip() for line in (native.SOURCE_DIR / "buckc_tanhf.h").read_text().splitlines()
+              if line.strip().startswith("p = ")]
+    assert len(printed) == 7 and printed == header
+
+
 def test_float32_and_double_agree_in_closed_loop_on_the_plant_fmu(closed_loop):
     """IAE within 1 %, overshoot within 0.2 points: PI, explicit NNPC, current-mode and Type-III, 4 scenarios,
     both plants, 13.33 us."""

@@ -11,12 +11,15 @@ machine (``qemu-system-arm -M mps2-an386``) executes:
 * the same run with QEMU's execution trace (``-d exec,nochain,in_asm``: every translated block's
   instructions and every block executed) gives the **instructions executed per step** and, from the
   executed instruction mix, the **cycles** per step by the Cortex-M4 TRM's cycle tables
-  (:data:`CYCLE_TABLE`, assumptions in its docstring); the Debian QEMU ships no TCG plugins, and
-  ``-icount`` with the board's 25 MHz timers resolves only 40 instructions, so the trace it is;
+  (:data:`CYCLE_TABLE`: each entry, its source and the assumptions in its docstring); the Debian QEMU
+  ships no TCG plugins, and ``-icount`` with the board's 25 MHz timers resolves only 40 instructions,
+  so the trace it is;
 * :func:`footprint` links the controller object once with a minimal main and once without it: the
   difference in text, data and bss is the controller's flash and RAM, its library functions
   included; the replay measures the stack the steps use (a painted stack) and ``-fstack-usage``
-  gives each function's frame.
+  gives each function's frame;
+* :func:`measure_tanh` runs the tanh probe (``cortex_m4/tanh_probe.c``): what the float32 build's
+  tanh costs a call, the cost model's calibration (:mod:`controllers.cost_model`).
 
 **Adding a controller** is a row of :data:`EMBEDDED_CONTROLLERS`: the ``controllers/codegen.py`` kind
 whose float32 configuration it reads, its C files (which must have a float32 build), the C type of its
