@@ -276,11 +276,35 @@ class RealMirrors:
                         ("previous_voltage", real), ("previous_duty", real), ("conductance", real),
                         ("integral", real), ("last_output", real)]
 
+        class CurrentModeConfigC(ctypes.Structure):
+            _fields_ = [("sample_period", real), ("duty_min", real), ("duty_max", real),
+                        ("nominal_input_voltage", real), ("kp_voltage", real), ("ki_voltage", real),
+                        ("kp_current", real), ("ki_current", real), ("current_limit", real),
+                        ("computation_delay", c_int)]
+
+        class CurrentModeC(ctypes.Structure):
+            _fields_ = [("config", CurrentModeConfigC), ("voltage_integral", real), ("current_integral", real),
+                        ("pending_duty", real)]
+
+        class CompensatorConfigC(ctypes.Structure):
+            _fields_ = [("sample_period", real), ("duty_min", real), ("duty_max", real),
+                        ("nominal_input_voltage", real), ("order", c_int),
+                        ("numerator", _array(real, COMPENSATOR_MAX_ORDER + 1)),
+                        ("denominator", _array(real, COMPENSATOR_MAX_ORDER + 1)), ("computation_delay", c_int)]
+
+        class CompensatorC(ctypes.Structure):
+            _fields_ = [("config", CompensatorConfigC), ("state", _array(real, COMPENSATOR_MAX_ORDER)),
+                        ("pending_duty", real)]
+
         self.PiConfig, self.Pi, self.NnConfig, self.NnShared = PiConfig, Pi, NnConfig, NnShared
+        self.CurrentModeConfigC, self.CurrentModeC = CurrentModeConfigC, CurrentModeC
+        self.CompensatorConfigC, self.CompensatorC = CompensatorConfigC, CompensatorC
         self.MeasurementC, self.PolicyConfigC, self.PolicyC = MeasurementC, PolicyConfigC, PolicyC
         #: mirror -> C type name, checked against sizeof() in the library when it is loaded
         self.names = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
-                      MeasurementC: "BuckcMeasurement", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy"}
+                      MeasurementC: "BuckcMeasurement", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy",
+                      CurrentModeConfigC: "BuckcCurrentModeConfig", CurrentModeC: "BuckcCurrentMode",
+                      CompensatorConfigC: "BuckcCompensatorConfig", CompensatorC: "BuckcCompensator"}
 
     def signatures(self) -> dict:
         """restype, argtypes of the functions written in buckc_real (both builds have them)."""
@@ -302,6 +326,12 @@ class RealMirrors:
             "buckc_policy_reset": (None, [P(self.PolicyC)]),
             "buckc_policy_forward": (real, [P(self.PolicyConfigC), rp]),
             "buckc_policy_step": (c_int, [P(self.PolicyC), P(self.MeasurementC), rp]),
+            "buckc_current_mode_init": (c_int, [P(self.CurrentModeC), P(self.CurrentModeConfigC), P(ctypes.c_char_p)]),
+            "buckc_current_mode_reset": (None, [P(self.CurrentModeC)]),
+            "buckc_current_mode_step": (c_int, [P(self.CurrentModeC), P(self.MeasurementC), rp]),
+            "buckc_compensator_init": (c_int, [P(self.CompensatorC), P(self.CompensatorConfigC), P(ctypes.c_char_p)]),
+            "buckc_compensator_reset": (None, [P(self.CompensatorC)]),
+            "buckc_compensator_step": (c_int, [P(self.CompensatorC), P(self.MeasurementC), rp]),
         }
 
     @property
@@ -321,6 +351,8 @@ def real_mirrors(precision: str = "float64") -> RealMirrors:
 _DOUBLE = REAL_MIRRORS["float64"]
 PiConfig, Pi, NnConfig, NnShared = _DOUBLE.PiConfig, _DOUBLE.Pi, _DOUBLE.NnConfig, _DOUBLE.NnShared
 MeasurementC, PolicyConfigC, PolicyC = _DOUBLE.MeasurementC, _DOUBLE.PolicyConfigC, _DOUBLE.PolicyC
+CurrentModeConfigC, CurrentModeC = _DOUBLE.CurrentModeConfigC, _DOUBLE.CurrentModeC
+CompensatorConfigC, CompensatorC = _DOUBLE.CompensatorConfigC, _DOUBLE.CompensatorC
 
 
 class CircuitParametersC(ctypes.Structure):
@@ -401,40 +433,13 @@ class PredictiveState(ctypes.Structure):
                 ("best_call", c_int), ("best_row", c_int)]
 
 
-class CurrentModeConfigC(ctypes.Structure):
-    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_input_voltage", c_double), ("kp_voltage", c_double), ("ki_voltage", c_double),
-                ("kp_current", c_double), ("ki_current", c_double), ("current_limit", c_double),
-                ("computation_delay", c_int)]
-
-
-class CurrentModeC(ctypes.Structure):
-    _fields_ = [("config", CurrentModeConfigC), ("voltage_integral", c_double), ("current_integral", c_double),
-                ("pending_duty", c_double)]
-
-
-class CompensatorConfigC(ctypes.Structure):
-    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_input_voltage", c_double), ("order", c_int),
-                ("numerator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)),
-                ("denominator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)), ("computation_delay", c_int)]
-
-
-class CompensatorC(ctypes.Structure):
-    _fields_ = [("config", CompensatorConfigC), ("state", _array(c_double, COMPENSATOR_MAX_ORDER)),
-                ("pending_duty", c_double)]
-
-
 #: ctypes mirror -> C type name of the double-only structs (predictors.h, predictive.h), checked like RealMirrors'
 PREDICTIVE_MIRRORS = {CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
                       AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig",
                       SwitchedTable: "BuckcSwitchedTable", HorizonSettingsC: "BuckcHorizonSettings",
                       Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
                       PredictiveConfig: "BuckcPredictiveConfig", PredictiveState: "BuckcPredictiveState"}
-#: the classical controllers' structs (current_mode.h, compensator.h): in buckc_real, bound in the double build only
-CLASSICAL_MIRRORS = {CurrentModeConfigC: "BuckcCurrentModeConfig", CurrentModeC: "BuckcCurrentMode",
-                     CompensatorConfigC: "BuckcCompensatorConfig", CompensatorC: "BuckcCompensator"}
-MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS, **CLASSICAL_MIRRORS}
+MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS}
 
 COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
 
@@ -466,12 +471,6 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
     "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
     "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
-    "buckc_current_mode_init": (c_int, [_P(CurrentModeC), _P(CurrentModeConfigC), _P(ctypes.c_char_p)]),
-    "buckc_current_mode_reset": (None, [_P(CurrentModeC)]),
-    "buckc_current_mode_step": (c_int, [_P(CurrentModeC), _P(MeasurementC), _D]),
-    "buckc_compensator_init": (c_int, [_P(CompensatorC), _P(CompensatorConfigC), _P(ctypes.c_char_p)]),
-    "buckc_compensator_reset": (None, [_P(CompensatorC)]),
-    "buckc_compensator_step": (c_int, [_P(CompensatorC), _P(MeasurementC), _D]),
 }
 
 
@@ -839,19 +838,22 @@ class NativeExplicitPolicyController(_MeasurementStepper):
                 "implementation": "C twin (controllers/c/explicit_policy.c)" + _build_note(self.precision)}
 
 
-def current_mode_config(controller: CurrentModeController) -> CurrentModeConfigC:
+def current_mode_config(controller: CurrentModeController, precision: str = "float64"):
+    """The C configuration of a current-mode controller (``precision``'s mirror: float32 rounds each value)."""
     g = controller.gains
     low, high = controller.duty_limits
-    return CurrentModeConfigC(controller.sample_period, low, high, controller.nominal_input_voltage, g.kp_voltage,
-                              g.ki_voltage, g.kp_current, g.ki_current, g.current_limit, g.computation_delay)
+    return real_mirrors(precision).CurrentModeConfigC(
+        controller.sample_period, low, high, controller.nominal_input_voltage, g.kp_voltage, g.ki_voltage, g.kp_current,
+        g.ki_current, g.current_limit, g.computation_delay)
 
 
-def compensator_config(controller: CompensatorController) -> CompensatorConfigC:
+def compensator_config(controller: CompensatorController, precision: str = "float64"):
+    """The C configuration of a compensator (``precision``'s mirror: float32 rounds each coefficient)."""
     k = controller.coefficients
     if k.order > COMPENSATOR_MAX_ORDER:
         raise ValueError(f"compensator of order {k.order} has no C twin: > BUCKC_COMPENSATOR_MAX_ORDER "
                          f"({COMPENSATOR_MAX_ORDER})")
-    c = CompensatorConfigC()
+    c = real_mirrors(precision).CompensatorConfigC()
     c.sample_period = controller.sample_period
     c.duty_min, c.duty_max = controller.duty_limits
     c.nominal_input_voltage = controller.nominal_input_voltage
@@ -863,14 +865,17 @@ def compensator_config(controller: CompensatorController) -> CompensatorConfigC:
 
 
 class _LinearTwin(_MeasurementStepper):
-    """A classical controller's C twin: its configuration copied into the C state, one step per sample."""
+    """A classical controller's C twin: its configuration copied into the C state, one step per sample
+    (``precision``: the build of the twins it runs in)."""
 
-    def __init__(self, state, config, init, reset, step, name: str, description: dict):
-        self._lib = library()
-        self.name = name
-        self.sample_period = check_sample_period(config.sample_period, name)
-        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
-        self._description = description
+    def __init__(self, controller, state, config, init, reset, step, precision: str):
+        self.precision = check_precision(precision)
+        self.name = controller.name
+        # the Python controller's (double) period and limits: a float32 config's period rounded to float would
+        # drift off the master's sample instants
+        self.sample_period, self.duty_limits = controller.sample_period, controller.duty_limits
+        self._description = controller.describe()
+        name = self.name
         self._state = state
         self._reset = reset
         what = ctypes.c_char_p()
@@ -887,46 +892,52 @@ class _LinearTwin(_MeasurementStepper):
 
 
 class NativeCurrentModeController(_LinearTwin):
-    """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``)."""
+    """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``;
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.current_mode_step_bound`)."""
 
-    def __init__(self, controller: CurrentModeController):
-        lib = library()
+    def __init__(self, controller: CurrentModeController, precision: str = "float64"):
+        lib = library(precision)
         self.python = controller
         self.gains, self.nominal_input_voltage = controller.gains, controller.nominal_input_voltage
-        super().__init__(CurrentModeC(), current_mode_config(controller), lib.buckc_current_mode_init,
-                         lib.buckc_current_mode_reset, lib.buckc_current_mode_step, controller.name,
-                         controller.describe())
+        super().__init__(controller, real_mirrors(precision).CurrentModeC(), current_mode_config(controller, precision),
+                         lib.buckc_current_mode_init, lib.buckc_current_mode_reset, lib.buckc_current_mode_step,
+                         precision)
 
     def linear_model(self, input_voltage: float | None = None):
         return self.python.linear_model(input_voltage)
 
     def describe(self) -> dict:
-        return {**self._description, "implementation": "C twin (controllers/c/current_mode.c)"}
+        return {**self._description,
+                "implementation": "C twin (controllers/c/current_mode.c)" + _build_note(self.precision)}
 
 
 class NativeCompensatorController(_LinearTwin):
-    """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``)."""
+    """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``;
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.compensator_step_bound`)."""
 
-    def __init__(self, controller: CompensatorController):
-        lib = library()
+    def __init__(self, controller: CompensatorController, precision: str = "float64"):
+        lib = library(precision)
         self.python = controller
         self.coefficients, self.nominal_input_voltage = controller.coefficients, controller.nominal_input_voltage
-        super().__init__(CompensatorC(), compensator_config(controller), lib.buckc_compensator_init,
-                         lib.buckc_compensator_reset, lib.buckc_compensator_step, controller.name,
-                         controller.describe())
+        super().__init__(controller, real_mirrors(precision).CompensatorC(), compensator_config(controller, precision),
+                         lib.buckc_compensator_init, lib.buckc_compensator_reset, lib.buckc_compensator_step,
+                         precision)
 
     def linear_model(self, input_voltage: float | None = None):
         return self.python.linear_model(input_voltage)
 
     def describe(self) -> dict:
-        return {**self._description, "implementation": "C twin (controllers/c/compensator.c)"}
+        return {**self._description,
+                "implementation": "C twin (controllers/c/compensator.c)" + _build_note(self.precision)}
 
 
 def native_twin(controller, precision: str = "float64"):
     """The C twin of a Python PI, predictive or explicit-policy controller (an adaptive NNPC: the
     same adaptation around the twin of its NNPC); any other controller is returned as it is.
-    ``precision="float32"``: the float32 build, which the PI and the explicit NNPC have (a predictive
-    controller is a ValueError saying so)."""
+    ``precision="float32"``: the float32 build, which the PI, the explicit NNPC, the current-mode controller
+    and the compensator have (a predictive controller is a ValueError saying so)."""
     from controllers.adaptation import AdaptiveNNPC
 
     check_precision(precision)
@@ -938,14 +949,15 @@ def native_twin(controller, precision: str = "float64"):
     if isinstance(controller, PredictiveController):
         if precision != "float64":
             raise ValueError(f"{controller.name} has no {precision} build: the predictive controller's C files "
-                             "(predictive.c, predictors.c) compute in double; float32: the PI and the explicit NNPC")
+                             "(predictive.c, predictors.c) compute in double; float32: the PI, the explicit NNPC, "
+                             "the current-mode controller and the compensator")
         return NativePredictiveController.from_python(controller)
     if isinstance(controller, ExplicitPolicyController):
         return NativeExplicitPolicyController.from_python(controller, precision)
     if isinstance(controller, CurrentModeController):
-        return NativeCurrentModeController(controller)
+        return NativeCurrentModeController(controller, precision)
     if isinstance(controller, CompensatorController):
-        return NativeCompensatorController(controller)
+        return NativeCompensatorController(controller, precision)
     return controller
 
 

@@ -9,7 +9,8 @@ and a cycle estimate for a 170 MHz Cortex-M4F.
 * :func:`~controllers.cost_model.operation_counts` (re-exported here) turns candidate evaluations
   into multiply-accumulates, activations (tanh) and square roots per step -- exact for the code
   paths of ``controllers/c`` -- and :func:`~controllers.cost_model.cortex_m4f_cycles` into cycles
-  with the cost model of :data:`~controllers.cost_model.CORTEX_M4F`.
+  with the cost model of :data:`~controllers.cost_model.CORTEX_M4F` (calibrated on the float32 builds
+  measured on an emulated Cortex-M4F: :mod:`cosim.benchmark_harness.cortex_m4`).
 """
 
 from __future__ import annotations

@@ -53,8 +53,9 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                 f"NNPC {label} per step on a 170 MHz Cortex-M4F (float32 port, estimated cycles)",
                 float(np.median(cycles)), float(np.percentile(cycles, 99)), "cycles",
                 f"fits {CORTEX_M4F.clock_hz * period:.0f} cycles", fraction <= 1.0,
-                f"p99 is {fraction:.3g} x the period; cost model: {CORTEX_M4F.mac} cycles/MAC, {CORTEX_M4F.tanh}/tanh, "
-                f"{CORTEX_M4F.sqrt}/sqrt, {CORTEX_M4F.candidate}/candidate, {CORTEX_M4F.interrupt} per sample for "
-                "ADC/PWM/ISR (cosim/benchmark_harness); the twins compute in double precision, which the M4F "
-                "emulates in software -- a float32 port is assumed"))
+                f"p99 is {fraction:.3g} x the period; cost model: {CORTEX_M4F.mac:g} cycles/MAC and "
+                f"{CORTEX_M4F.tanh:g}/tanh (calibrated: group embedded), {CORTEX_M4F.sqrt:g}/sqrt, "
+                f"{CORTEX_M4F.candidate:g}/candidate (assumed), {CORTEX_M4F.interrupt:g} per sample for ADC/PWM/ISR "
+                "(controllers/cost_model.py); the online NNPC's optimizer computes in double only -- a float32 "
+                "port is assumed"))
     return rows

@@ -83,15 +83,19 @@ def section(out_dir: Path, periods, scenario_names) -> list[str]:
         "The NNPC's step as the controller FMU runs it (the C twins of `controllers/c`), on the paper's "
         "scenarios and the nominal switched plant: operations counted per control sample from the "
         "optimizer's candidate evaluations (exact for the C code paths; `controllers/cost_model.py`), and "
-        f"cycles on a {m.clock_hz / 1e6:.0f} MHz Cortex-M4F for a float32 port under a stated cost model: "
-        f"{m.mac:g} cycles per multiply-accumulate (published figures for small MLPs compiled to C on Cortex-M4), "
-        f"{m.tanh:g} per tanh (one expf and one VDIV.F32), {m.sqrt:g} per square root (VSQRT.F32), {m.candidate:g} per "
-        f"candidate (lattice, clipping, compare) and {m.interrupt:g} per sample for ADC, PWM and the interrupt. "
+        f"cycles on a {m.clock_hz / 1e6:.0f} MHz Cortex-M4F for a float32 port under a cost model: "
+        f"{m.mac:g} cycles per multiply-accumulate and {m.tanh:g} per tanh (the float32 build's buckc_tanhf), "
+        "calibrated on the explicit NNPC's forward pass measured on an emulated Cortex-M4F, "
+        f"{m.sqrt:g} per square root (VSQRT.F32), {m.candidate:g} per "
+        f"candidate (lattice, clipping, compare: assumed) and {m.interrupt:g} per sample for ADC, PWM and the "
+        "interrupt. "
         "Nanoseconds per step on this machine (C harness vs Python) are wall-clock figures: "
         "[benchmarks.md](benchmarks.md), group `c-controllers`. These cycles are the cost model's estimate: the "
-        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC) it is measured on an "
-        "emulated Cortex-M4F, with the model's prediction against the measurement: [benchmarks.md](benchmarks.md), "
-        "group `embedded` (the model under-predicts there: read these figures as a lower bound).",
+        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC, the current-mode "
+        "controller, the Type-III) it is measured on an emulated Cortex-M4F, with the model's prediction against "
+        "the measurement: [benchmarks.md](benchmarks.md), group `embedded` (the explicit NNPC's 0.91, the small "
+        "controllers' 0.5-0.7: the model's 30 cycles of a step's or a candidate's bookkeeping are about half what "
+        "was measured -- read these figures as a lower bound).",
         "",
         "| rate | samples | candidates p50 / max | MACs p50 / max | tanh p50 / max | M4F cycles p99 / max "
         "| cycles in a period | fraction of the period p99 / max | fits |",
