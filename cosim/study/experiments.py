@@ -13,7 +13,7 @@ from dataclasses import replace
 
 from controllers.adaptation import AdaptationSettings, AdaptiveNNPC
 from controllers.nn_model import NNConfig, NNPlantModel
-from controllers.predictive import HorizonSettings, PredictiveController
+from controllers.predictive import HorizonSettings, PredictiveController, RtiSettings
 from controllers.predictors import (
     AveragedModelPredictor,
     CircuitParameters,
@@ -118,6 +118,23 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
 
 
+#: the predictive controllers' optimizers: the real-time iteration (Gauss-Newton steps from the last plan, the
+#: search as fallback at a cold start and at large steps) and the search alone (grid + pattern search, the reference)
+OPTIMIZERS = ("rti", "search")
+#: the optimizer of the NNPC and the MPC baselines unless one is asked for (the optimizer ablation of the
+#: reproduction compares both: cosim.study.optimizer_ablation)
+DEFAULT_OPTIMIZER = "search"
+
+
+def rti_settings(control_period: float, optimizer: str | None = None) -> RtiSettings | None:
+    """The RTI settings of a predictive controller at ``control_period`` for ``optimizer`` (None: the
+    default), or None for the search alone."""
+    optimizer = DEFAULT_OPTIMIZER if optimizer is None else optimizer
+    if optimizer not in OPTIMIZERS:
+        raise ConfigError(f"optimizer {optimizer!r} is unknown: expected one of {', '.join(OPTIMIZERS)}")
+    return RtiSettings() if optimizer == "rti" else None
+
+
 #: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every
 #: sample; the default, several times faster for the predictive controllers) or the Python reference
 IMPLEMENTATIONS = ("c", "python")
@@ -143,19 +160,23 @@ NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_in
 
 
 def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon: int | None = None,
-         duty_limits: tuple[float, float] = (0.0, 1.0)) -> PredictiveController:
+         duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None) -> PredictiveController:
+    """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`)."""
     return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
-                                duty_limits, name=name, **NOMINAL_OPERATING_POINT)
+                                duty_limits, name=name, **NOMINAL_OPERATING_POINT,
+                                rti=rti_settings(control_period, optimizer))
 
 
 def adaptive_nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC-adaptive",
                   settings: AdaptationSettings = AdaptationSettings(),
-                  duty_limits: tuple[float, float] = (0.0, 1.0)) -> AdaptiveNNPC:
+                  duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None) -> AdaptiveNNPC:
     """The NNPC whose output layer follows the plant online (:mod:`controllers.adaptation`), on its
     own copy of ``model`` (the adaptation rewrites the output layer in place)."""
     own = copy.deepcopy(model)
-    return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits), own, settings, name,
-                        nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+    return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits, optimizer=optimizer), own, settings,
+                        name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+
+
 def explicit_nnpc(policy, name: str = "NNPC-explicit"):
     """The explicit NNPC (:mod:`controllers.explicit_policy`) of a distilled policy; its load estimate
     starts from the nominal load, as the online NNPC's does."""
@@ -189,14 +210,16 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
 
 def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
               duty_limits: tuple[float, float] = (0.0, 1.0), binding: PlantBinding | None = None,
-              offset_free: bool = True) -> PredictiveController:
+              offset_free: bool = True, optimizer: str | None = None) -> PredictiveController:
     """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant; ``offset_free=False``
-    drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error)."""
+    drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error);
+    ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`)."""
     settings = horizon_settings(control_period)
     if not offset_free:
         settings = replace(settings, bias_filter=0.0)
     return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,
-                                settings, duty_limits, name=name, **NOMINAL_OPERATING_POINT)
+                                settings, duty_limits, name=name, **NOMINAL_OPERATING_POINT,
+                                rti=rti_settings(control_period, optimizer))
 
 
 def scenarios_for(control_period: float, names=PAPER_SCENARIOS) -> list[Scenario]:
