@@ -270,14 +270,21 @@ class RtiSettings:
     """The real-time-iteration optimizer (:class:`RealTimeIteration`) and when the controller falls back
     to the search (:class:`HorizonOptimizer`) instead."""
 
-    iterations: int = 2  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known
+    iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known
     smoothing: float = 0.05  # eps [V] of the smoothed norm sqrt(|e|^2 + eps^2) that stands in for |e| (eq. 16)
     step_limit: float = 0.25  # trust region: the most a block's duty moves in one step (/4 after a rejected step)
     regularization: float = 1e-6  # Levenberg-Marquardt: mu = this x mean(diag H) (+ 1e-12) added to H's diagonal
     qp_iterations: int = 24  # the box QP's active-set iterations, at most (controllers.box_qp)
-    reference_step: float = 0.5  # [V] fall back to the search when the reference moves more than this ...
-    load_step: float = 0.1  # ... the load-conductance estimate more than this fraction ...
-    innovation: float = 1.0  # ... or the measured vo more than this [V] from the one-step prediction (with its bias)
+    # fall back to the search (besides a cold start) when the reference moves more than reference_step [V], the
+    # load-conductance estimate more than the fraction load_step, or the measured vo lands more than innovation [V]
+    # from the one-step prediction (with its bias); 0 = never. Off by default, as measured: on the study's
+    # 13.33 us runs the RTI followed reference and load steps at least as well as the search did (the nominal
+    # switched NNPC's reference step overshot 3.1 % without the fallback, 7.2 % with it), a poor model (the
+    # paper's 3-7-2 network at 13.33 us) set the prediction-error trigger off at most samples, and a search step
+    # costs 0.1-3 ms in C, so one per reference or load change sets the p99 of a run
+    reference_step: float = 0.0
+    load_step: float = 0.0
+    innovation: float = 0.0
 
     def __post_init__(self):
         if not 1 <= self.iterations <= 3:
@@ -291,8 +298,8 @@ class RtiSettings:
         if self.qp_iterations < 1:
             raise ValueError(f"RTI qp_iterations = {self.qp_iterations} is invalid: expected >= 1")
         for name in ("reference_step", "load_step", "innovation"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected > 0")
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected >= 0 (0: never)")
 
 
 class RealTimeIteration:
@@ -442,19 +449,20 @@ class PredictiveController:
     def fallback_reason(self, reference: float, conductance: float, previous_conductance: float,
                         surprise: float) -> str:
         """Why this sample needs the search rather than an RTI step from the last plan ("" if it does not):
-        no plan yet (a cold start), or the measurements show a change one Gauss-Newton step cannot follow
-        -- the reference moved by more than ``reference_step`` volts, the load-conductance estimate by more
-        than the fraction ``load_step``, or the output voltage landed more than ``innovation`` volts from
-        the model's one-step prediction (``surprise``, its disturbance estimate included). Each of these
-        moves the optimum far from the shifted plan, where the cost is far from quadratic."""
+        no plan yet (a cold start: the search's global candidates find the start-up's bang-bang plan), or,
+        where :class:`RtiSettings` enables them (off by default, see there), the measurements show a change
+        one Gauss-Newton step might not follow -- the reference moved by more than ``reference_step`` volts,
+        the load-conductance estimate by more than the fraction ``load_step``, or the output voltage landed
+        more than ``innovation`` volts from the model's one-step prediction (``surprise``, its disturbance
+        estimate included)."""
         st = self.rti
         if self._warm is None:
             return "cold start"
-        if abs(reference - self._previous_reference) > st.reference_step:
+        if st.reference_step and abs(reference - self._previous_reference) > st.reference_step:
             return "reference step"
-        if abs(conductance - previous_conductance) > st.load_step * previous_conductance:
+        if st.load_step and abs(conductance - previous_conductance) > st.load_step * previous_conductance:
             return "load step"
-        if surprise > st.innovation:
+        if st.innovation and surprise > st.innovation:
             return "prediction error"
         return ""
 

@@ -156,3 +156,143 @@ def test_linearize_rolls_out_like_rollout_and_its_jacobian_matches_finite_differ
             scale = max(1.0, float(np.abs(jacobian).max()))
             assert np.abs(difference - jacobian[:, :, b]).max() <= 1e-5 * scale, b
             assert np.all(jacobian[:of_step.tolist().index(b), :, b] == 0.0)  # no effect before the block starts
+
+
+# ------------------------------------------------------------------------------------------ the optimizer and the controller
+
+
+def rti_controller(predictor, settings: RtiSettings = RtiSettings(), horizon: int = 23) -> PredictiveController:
+    return PredictiveController(predictor, TS, HorizonSettings(horizon=horizon), name="RTI", **OPERATING_POINT,
+                                rti=settings)
+
+
+def test_rti_settings_are_validated_by_name():
+    for field, value, message in (("iterations", 4, "RTI iterations = 4 is invalid: expected 1, 2 or 3"),
+                                  ("smoothing", 0.0, "RTI smoothing = 0.0 is invalid"),
+                                  ("step_limit", 1.5, "RTI step_limit = 1.5 is invalid"),
+                                  ("reference_step", -1.0, r"RTI reference_step = -1.0 is invalid: expected >= 0")):
+        with pytest.raises(ValueError, match=message):
+            RtiSettings(**{field: value})
+    with pytest.raises(ValueError, match="at most 8 move blocks"):
+        rti_controller(AveragedModelPredictor(NOMINAL, TS), horizon=30).settings  # noqa: B018
+        PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=9, blocks=(1,) * 9),
+                             **OPERATING_POINT, rti=RtiSettings())
+
+
+def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits():
+    """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a
+    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout."""
+    settings = HorizonSettings(horizon=6, blocks=(1, 2, 3))
+    predictor = AveragedModelPredictor(NOMINAL, TS)
+    ctx = PredictionContext(history=np.array([[1.0, 9.0, 0.0]]), input_voltage=48.0, load_resistance=6.0,
+                            load_conductance=1 / 6.0, load_current=1.5, previous_duty=0.2)
+    weights = settings.discount ** np.arange(6)
+    target = np.array([2.0, 12.0])
+    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3), settings, (0.1, 0.6), weights)
+
+    def cost(duties):
+        e = predictor.rollout(ctx, duties, np.zeros(2)) - target
+        return np.sqrt((e * e).sum(axis=2)) @ weights
+
+    def linearize(duties):
+        return predictor.linearize(ctx, duties, np.zeros(2), optimizer.block_of_step, 3)
+
+    def evaluate(duties):
+        return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+    plan = np.full(6, 0.1)
+    previous = cost(plan[None])[0]
+    for sample in range(12):  # the same problem: the shift only moves the plan within its own blocks
+        plan, exact, first = optimizer.solve(linearize, evaluate, target, plan)
+        assert np.all((plan >= 0.1) & (plan <= 0.6))
+        assert exact == pytest.approx(cost(plan[None])[0], rel=1e-12)
+        np.testing.assert_allclose(first, evaluate(plan)[0], rtol=1e-12)
+    _, searched = HorizonOptimizer(settings, (0.1, 0.6)).solve(cost, anchor=0.25)
+    assert exact <= searched * 1.001 and exact < previous
+
+
+def test_an_rti_step_never_plans_worse_than_the_shifted_warm_start():
+    """The accept test: whatever the quadratic model says, the plan applied is predicted no worse
+    (smoothed cost) than the previous plan shifted -- here from plans far off on the NN model."""
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    predictor = NNPredictor(model)
+    settings = HorizonSettings(horizon=23)
+    rng = np.random.default_rng(3)
+    optimizer = RealTimeIteration(RtiSettings(iterations=2), settings, (0.0, 1.0), settings.discount ** np.arange(23))
+    target = np.array([2.0, 12.0])
+    for trial in range(20):
+        history = np.array([[rng.uniform(0, 4), rng.uniform(0, 16), 0.0], [rng.uniform(0, 4), rng.uniform(0, 16),
+                                                                          rng.uniform(0, 1)]])
+        ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0,
+                                load_current=2.0, previous_duty=float(history[1, 2]))
+        disturbance = rng.normal(0, 0.05, 2)
+        warm = rng.uniform(0, 1, 23)
+
+        def linearize(duties):
+            return predictor.linearize(ctx, duties, disturbance, optimizer.block_of_step, optimizer.n_blocks)
+
+        def evaluate(duties):
+            return predictor.rollout(ctx, duties[None], disturbance)[0]
+
+        shifted = optimizer.expand(optimizer.shifted(warm))
+        before = optimizer.costs(evaluate(shifted), target)[0]
+        plan, exact, _ = optimizer.solve(linearize, evaluate, target, warm)
+        assert optimizer.smoothed_cost <= before * (1 + 1e-12)
+        assert 0 <= optimizer.accepted <= 2 and optimizer.qp_iterations >= 2
+
+
+def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_only_where_enabled():
+    predictor = AveragedModelPredictor(PARASITICS, TS)
+    ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(20)]
+    step = [Measurement((20 + k) * TS, 15.0, 6.0, 2.0, 1.0, 48.0) for k in range(3)]
+    plain = rti_controller(predictor)
+    for triggered, settings in ((False, RtiSettings()), (True, RtiSettings(reference_step=0.5))):
+        controller = rti_controller(predictor, settings)
+        solvers = []
+        for m in ramp + step:
+            controller.step(m)
+            solvers.append((controller.last_solver, controller.last_fallback))
+        assert solvers[0] == ("search", "cold start")
+        assert set(solvers[1:20]) == {("rti", "")}
+        assert solvers[20] == (("search", "reference step") if triggered else ("rti", ""))
+        assert set(solvers[21:]) == {("rti", "")}
+        controller.reset()
+        assert controller.step(ramp[0]) == rti_controller(predictor).step(ramp[0])  # reset forgets the plan
+        assert controller.last_fallback == "cold start"
+    description = plain.describe()["optimizer"]
+    assert description["type"].startswith("real-time iteration") and description["iterations"] == 1
+
+
+def test_search_last_sample_leaves_the_controller_as_it_was():
+    controller = rti_controller(AveragedModelPredictor(PARASITICS, TS))
+    ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(6)]
+    twin = rti_controller(AveragedModelPredictor(PARASITICS, TS))
+    for m in ramp:
+        duty = controller.step(m)
+        sequence, cost = controller.search_last_sample()
+        assert twin.step(m) == duty and len(sequence) == 23 and cost > 0
+    assert np.array_equal(controller._warm, twin._warm) and np.array_equal(controller._bias, twin._bias)
+
+
+def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
+    """The study's comparison on a short start-up and load change at 13.33 us (the fixture's NNPC on the
+    mismatch switched plant): both runs exist, the audit compared every RTI sample with the search."""
+    from cosim.scenarios import load_scenario
+    from cosim.study.experiments import nnpc, plant_binding
+    from cosim.study.optimizer_ablation import compare, verdict
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    scenarios = [replace(load_scenario("startup"), duration=0.0008)]
+    rows = compare(plant_binding("mismatch", "switched"), lambda optimizer: nnpc(model, TS, optimizer=optimizer),
+                   scenarios)
+    (row,) = rows
+    assert row["samples"] == 61 and row["search_samples"] == 1 and row["fallbacks"] == {"cold start": 1}
+    assert len(row["cost_excess"]) == 60 and row["closed_loop_cost_rti_Vs"] > 0
+    assert row["iae_ratio"] == pytest.approx(row["iae_rti_Vs"] / row["iae_search_Vs"])
+    assert row["overshoot_difference_points"] == pytest.approx(row["overshoot_rti_pct"] - row["overshoot_search_pct"])
+    assert row["cost_excess_median"] == pytest.approx(float(np.median(row["cost_excess"])))
+    assert 0.8 < row["iae_ratio"] < 1.2  # the same model, the same plant: close, whichever wins
+    targets = verdict(rows)
+    assert targets["iae_ratio_worst"] == (row["iae_ratio"], row["iae_ratio"] <= 1.02)
+    assert targets["startup_overshoot_increase_points_worst"] == (row["overshoot_difference_points"],
+                                                                  row["overshoot_difference_points"] <= 0.5)

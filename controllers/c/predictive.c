@@ -414,8 +414,9 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
             FAIL(BUCKC_ERR_INVALID, "rti regularization: expected 0 <= mu < 1");
         if (r->qp_iterations < 1)
             FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
-        if (!(r->reference_step > 0.0) || !(r->load_step > 0.0) || !(r->innovation > 0.0))
-            FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected > 0");
+        if (!(r->reference_step >= 0.0 && isfinite(r->reference_step)) || !(r->load_step >= 0.0 && isfinite(r->load_step))
+            || !(r->innovation >= 0.0 && isfinite(r->innovation)))
+            FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
     }
     memset(c, 0, sizeof(*c));
     status = buckc_optimizer_init(&c->optimizer, &config->horizon, config->duty_min, config->duty_max, what);
@@ -646,11 +647,11 @@ static int fallback_reason(const BuckcPredictive *c, double reference, double co
     const BuckcPredictiveState *s = &c->state;
     if (!s->have_warm)
         return BUCKC_FALLBACK_COLD_START;
-    if (fabs(reference - s->previous_reference) > st->reference_step)
+    if (st->reference_step != 0.0 && fabs(reference - s->previous_reference) > st->reference_step)
         return BUCKC_FALLBACK_REFERENCE_STEP;
-    if (fabs(conductance - previous_conductance) > st->load_step * previous_conductance)
+    if (st->load_step != 0.0 && fabs(conductance - previous_conductance) > st->load_step * previous_conductance)
         return BUCKC_FALLBACK_LOAD_STEP;
-    if (surprise > st->innovation)
+    if (st->innovation != 0.0 && surprise > st->innovation)
         return BUCKC_FALLBACK_PREDICTION_ERROR;
     return BUCKC_FALLBACK_NONE;
 }

@@ -91,7 +91,7 @@ typedef struct {
     int qp_iterations;         /* the box QP's active-set iterations, at most */
     double reference_step;     /* [V] fallback when the reference moves more than this, */
     double load_step;          /* the load-conductance estimate more than this fraction, */
-    double innovation;         /* or vo lands more than this [V] from the one-step prediction */
+    double innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
 } BuckcRtiSettings;
 
 /* PredictiveController.last_solver and last_fallback */
