@@ -260,7 +260,7 @@ def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_on
         assert controller.step(ramp[0]) == rti_controller(predictor).step(ramp[0])  # reset forgets the plan
         assert controller.last_fallback == "cold start"
     description = plain.describe()["optimizer"]
-    assert description["type"].startswith("real-time iteration") and description["iterations"] == 1
+    assert description["type"].startswith("real-time iteration") and description["iterations"] == 2
 
 
 def test_search_last_sample_leaves_the_controller_as_it_was():

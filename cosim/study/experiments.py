@@ -121,9 +121,6 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
 #: the predictive controllers' optimizers: the real-time iteration (Gauss-Newton steps from the last plan, the
 #: search as fallback at a cold start and at large steps) and the search alone (grid + pattern search, the reference)
 OPTIMIZERS = ("rti", "search")
-#: RTI steps per sample: one where the step must fit a switching period (1 + 1 rollouts of the 23-step horizon),
-#: two at 1 ms, where the one-block problem costs little
-RTI_ITERATIONS = {"fast": 1, "slow": 2}
 
 
 def default_optimizer(control_period: float) -> str:
@@ -144,7 +141,7 @@ def rti_settings(control_period: float, optimizer: str | None = None) -> RtiSett
         raise ConfigError(f"optimizer {optimizer!r} is unknown: expected one of {', '.join(OPTIMIZERS)}")
     if optimizer == "search":
         return None
-    return RtiSettings(iterations=RTI_ITERATIONS["slow" if transient_within_sample(control_period) else "fast"])
+    return RtiSettings()
 
 
 #: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every
