@@ -339,9 +339,114 @@ def bench_adaptation(quick: bool) -> list[BenchRow]:
     if len(updated):
         rows.append(BenchRow("online adaptation per RLS update (samples that passed the guards)",
                              float(np.median(updated)), _p99(updated), "us"))
-    rows.append(BenchRow("NNPC step the adaptation wraps (C twin), same run", float(np.median(inner_times)) * 1e-3,
-                         _p99(np.array(inner_times) * 1e-3), "us"))
+    optimizer = "real-time iteration" if adaptive.inner.rti is not None else "search"
+    rows.append(BenchRow(f"NNPC step the adaptation wraps (C twin, {optimizer}), same run",
+                         float(np.median(inner_times)) * 1e-3, _p99(np.array(inner_times) * 1e-3), "us",
+                         note="issue 24's target, the adaptive NNPC's C step including the RLS update p99 <= 13.3 us, "
+                              "cannot be measured: the adaptation (controllers/adaptation.py) has no C twin, it "
+                              "runs in Python around the C NNPC (rows above)"))
     return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# the do-mpc peer: the same NNPC problem solved by do-mpc (CasADi + IPOPT)
+
+
+def bench_dompc(quick: bool) -> list[BenchRow]:
+    """The workbench's C RTI NNPC and do-mpc on the same problem (network, cost, horizon, blocks, bounds,
+    estimation: cosim/study/dompc_peer.py), each in closed loop on the nominal switched plant FMU through the
+    paper's start-up and load change at 13.33 us: time per step (the C RTI's by the C harness replaying its
+    own closed loop's measurements; do-mpc's solve timed in-process), IAE and the eq. 16 cost of the plans."""
+    from cosim.benchmark_harness import record_measurements, replay
+    from cosim.master import simulate
+    from cosim.metrics import run_metrics
+    from cosim.study.dompc_peer import DoMpcNnpc
+    from cosim.study.experiments import (
+        NOMINAL_OPERATING_POINT,
+        horizon_settings,
+        implemented,
+        nnpc,
+        plant_binding,
+        scenarios_for,
+    )
+
+    period = SWITCHING_PERIOD
+    binding = plant_binding("nominal", "switched")
+    model, origin = _nn_model("nnpc", period, quick)
+    rows = []
+    for scenario in scenarios_for(period, ("startup", "load_change")):
+        if quick:
+            scenario = replace_scenario(scenario, 0.0003)
+        rti = nnpc(model, period, NNPC, optimizer="rti")
+        costs: list[float] = []
+
+        class Costed:  # the C RTI, keeping each plan's eq. 16 cost
+            name, sample_period, duty_limits = rti.name, rti.sample_period, rti.duty_limits
+
+            def __init__(self):
+                self.twin = implemented(rti)
+
+            def reset(self):
+                self.twin.reset()
+
+            def step(self, m):
+                duty = self.twin.step(m)
+                costs.append(self.twin.best_cost)
+                return duty
+
+            def describe(self):
+                return self.twin.describe()
+
+        result_rti = simulate(binding, Costed(), scenario, record_period=period)
+        measurements = record_measurements(binding, implemented(rti), scenario)
+        timed = replay(rti, measurements, repeats=1 if quick else 3)
+        peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
+        peer_costs: list[float] = []
+
+        class CostedPeer:
+            name, sample_period, duty_limits = peer.name, peer.sample_period, peer.duty_limits
+
+            def reset(self):
+                peer.reset()
+
+            def step(self, m):
+                duty = peer.step(m)
+                peer_costs.append(peer.best_cost)
+                return duty
+
+            def describe(self):
+                return peer.describe()
+
+        result_peer = simulate(binding, CostedPeer(), scenario, record_period=period)
+        solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
+        c_ns = timed.ns * 1e-3
+        iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
+        label = f"{scenario.name}, 13.33 us, nominal switched plant"
+        rows += [
+            BenchRow(f"C RTI NNPC step, {label} ({len(measurements)} samples)", float(np.median(c_ns)),
+                     _p99(c_ns), "us", note=f"NN: {origin}"),
+            BenchRow(f"do-mpc (IPOPT) step on the same problem, {label} ({len(solve)} solves after the first)",
+                     float(np.median(solve)), _p99(solve), "us",
+                     note=f"the first solve (IPOPT's set-up included) took {peer.solve_times[0] * 1e3:.4g} ms"),
+            BenchRow(f"do-mpc step / C RTI step, {label} (p50)", float(np.median(solve)) / float(np.median(c_ns)),
+                     None, "ratio", ">= 1000", float(np.median(solve)) / float(np.median(c_ns)) >= 1000),
+            BenchRow(f"closed-loop IAE, C RTI / do-mpc, {label}", iae_rti / iae_peer, None, "ratio", "<= 1.02",
+                     iae_rti / iae_peer <= 1.02, f"IAE {iae_rti:.4g} V s (RTI), {iae_peer:.4g} V s (do-mpc)"),
+            BenchRow(f"eq. 16 cost of the plan per step, C RTI, {label}", float(np.mean(costs)),
+                     float(np.percentile(costs, 99)), "V (discounted sum)", note="mean in the median column"),
+            BenchRow(f"eq. 16 cost of the plan per step, do-mpc, {label}", float(np.mean(peer_costs)),
+                     float(np.percentile(peer_costs, 99)), "V (discounted sum)",
+                     note="mean in the median column; do-mpc minimises the smoothed norm (eps = "
+                          f"{peer.smoothing} V), the cost is the exact eq. 16 of its plan"),
+        ]
+    return rows
+
+
+def replace_scenario(scenario, duration: float):
+    """``scenario`` cut to ``duration`` [s] (its events that fall inside kept): the quick profile."""
+    from dataclasses import replace
+
+    return replace(scenario, duration=duration, events=tuple(e for e in scenario.events if e.time < duration))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -502,8 +607,15 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
     """ns per step of the C PI and NNPC (the FMU's sources, controllers/c + the generated header)
     replaying recorded closed-loop measurements, next to the Python controller on the same inputs;
     the NNPC's operations counted and a Cortex-M4F cycle estimate (cosim.benchmark_harness)."""
-    from cosim.benchmark_harness import CORTEX_M4F, cortex_m4f_cycles, operation_counts, record_measurements, replay
-    from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
+    from cosim.benchmark_harness import (
+        CORTEX_M4F,
+        cortex_m4f_cycles,
+        operation_counts,
+        record_measurements,
+        replay,
+        rti_operation_counts,
+    )
+    from cosim.study.experiments import default_optimizer, implemented, model_mpc, nnpc, plant_binding
 
     binding = plant_binding("nominal", "switched")
     rows = []
@@ -511,7 +623,10 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         samples = 40 if quick else (3000 if transient_within_sample(period) else 600)
         scenario = _mixed_scenario(period, samples)
         model, origin = _nn_model("nnpc", period, quick)
-        controllers = [_benchmark_pi(period), nnpc(model, period, NNPC)]
+        default = default_optimizer(period)
+        other = "search" if default == "rti" else "rti"
+        controllers = [_benchmark_pi(period), nnpc(model, period, NNPC), nnpc(model, period, f"{NNPC} ({other})",
+                                                                              optimizer=other)]
         if not transient_within_sample(period):
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
         for controller in controllers:
@@ -520,26 +635,39 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             c_p50, c_p99, py_p50, py_p99 = _c_and_python_step_us(controller, measurements, result)
             budget = period * 1e6
             target, met = "", None
-            if controller.name == NNPC:
-                target, met = ("p99 <= 5 us", c_p99 <= 5.0) if transient_within_sample(period) else \
-                    ("p99 <= 13.3 us (stretch)", c_p99 <= budget)
+            online = controller.name.startswith(NNPC)
+            rti = getattr(controller, "rti", None) is not None
+            if online and rti:  # issue 24's targets for the online NNPC with the real-time iteration
+                target, met = ("p99 <= 2 us", c_p99 <= 2.0) if transient_within_sample(period) else \
+                    ("p99 <= 13.3 us", c_p99 <= budget)
+            fallbacks = int(np.count_nonzero(~result.rti)) if rti else 0
+            note = f"NN: {origin}" if online else ""
+            if rti:
+                note += (f"; {fallbacks} of {len(measurements)} steps planned by the search (the cold start"
+                         f"{' and the fallback rule' if fallbacks > 1 else ''}); RTI steps alone: p99 "
+                         f"{float(np.percentile(result.ns.reshape(-1, len(measurements))[:, result.rti], 99)) * 1e-3:.3g} "
+                         "us, max " f"{float(np.max(result.ns)) * 1e-3:.4g} us (all steps)")
             rows.append(BenchRow(f"C step, {controller.name}, {label} ({len(measurements)} replayed samples, "
                                  f"{100 * c_p99 / budget:.3g} % of the period at p99)", c_p50, c_p99, "us", target, met,
-                                 f"NN: {origin}" if controller.name == NNPC else ""))
+                                 note))
             rows.append(BenchRow(f"Python step, {controller.name}, {label} (same inputs)", py_p50, py_p99, "us"))
             rows.append(BenchRow(f"speed-up of C over Python, {controller.name}, {label} (p50)", py_p50 / c_p50, None,
                                  "ratio"))
-            if controller.name != NNPC:
+            if not online:
                 continue
-            counts = operation_counts(controller, result.evaluations)
+            if rti:
+                counts = rti_operation_counts(controller, result.rti, result.qp_iterations, result.evaluations)
+            else:
+                counts = operation_counts(controller, result.evaluations)
             cycles = cortex_m4f_cycles(counts)
-            for key, what in (("candidates", "candidate evaluations"), ("macs", "multiply-accumulates"),
-                              ("tanh", "tanh calls")):
-                rows.append(BenchRow(f"NNPC {label} per step: {what} (counted)", float(np.median(counts[key])),
-                                     float(np.percentile(counts[key], 99)), "count"))
+            quantities = [("candidates", "candidate evaluations (rollouts)"), ("macs", "multiply-accumulates"),
+                          ("tanh", "tanh calls")] + ([("qp_iterations", "box-QP iterations")] if rti else [])
+            for key, what in quantities:
+                rows.append(BenchRow(f"{controller.name} {label} per step: {what} (counted)",
+                                     float(np.median(counts[key])), float(np.percentile(counts[key], 99)), "count"))
             fraction = float(np.percentile(cycles, 99)) / (CORTEX_M4F.clock_hz * period)
             rows.append(BenchRow(
-                f"NNPC {label} per step on a 170 MHz Cortex-M4F (float32 port, estimated cycles)",
+                f"{controller.name} {label} per step on a 170 MHz Cortex-M4F (float32 port, estimated cycles)",
                 float(np.median(cycles)), float(np.percentile(cycles, 99)), "cycles",
                 f"fits {CORTEX_M4F.clock_hz * period:.0f} cycles", fraction <= 1.0,
                 f"p99 is {fraction:.3g} x the period; cost model: {CORTEX_M4F.mac} cycles/MAC, {CORTEX_M4F.tanh}/tanh, "
@@ -857,6 +985,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "controllers": bench_controllers,
     "c-controllers": bench_c_controllers,
     "adaptation": bench_adaptation,
+    "do-mpc": bench_dompc,
     "explicit": bench_explicit,
     "embedded": bench_embedded,
     "training": bench_training,
