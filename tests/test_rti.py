@@ -246,7 +246,7 @@ def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_on
     ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(20)]
     step = [Measurement((20 + k) * TS, 15.0, 6.0, 2.0, 1.0, 48.0) for k in range(3)]
     plain = rti_controller(predictor)
-    for triggered, settings in ((False, RtiSettings()), (True, RtiSettings(reference_step=0.5))):
+    for triggered, settings in ((False, RtiSettings(reference_step=0.0)), (True, RtiSettings())):
         controller = rti_controller(predictor, settings)
         solvers = []
         for m in ramp + step:

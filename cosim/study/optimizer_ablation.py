@@ -18,8 +18,8 @@ default:
   run's RTI samples (target <= 1 %) and the worst; negative where the RTI plans better than the search;
 * how often the RTI controller fell back to the search, and why.
 
-The search runs as its C twin (equal to the Python reference at every sample); the RTI run as the
-Python reference, because the audit asks the search about each of its samples.
+Both run as their C twins by default (equal to the Python references at every sample: tests/test_c_twins.py),
+the audit's search too.
 """
 
 from __future__ import annotations
@@ -44,7 +44,9 @@ COST_EXCESS_TARGET = 0.01
 class AuditedRti:
     """An RTI predictive controller that, after each of its steps, asks the search for the same problem."""
 
-    def __init__(self, inner: PredictiveController, audit: bool = True):
+    def __init__(self, inner, audit: bool = True):
+        """``inner``: a :class:`PredictiveController` with the RTI, or its C twin (the audit then runs the C
+        search: :meth:`~controllers.native.NativePredictiveController.search_last_sample`)."""
         if inner.rti is None:
             raise ValueError(f"{inner.name}: the audit compares the RTI with the search; this controller has no RTI")
         self.inner, self.audit = inner, audit
@@ -64,7 +66,9 @@ class AuditedRti:
         searched = c.best_cost
         if c.last_solver == "rti" and self.audit:
             _, searched = c.search_last_sample()
-        qp = c.rti_optimizer.qp_iterations if c.last_solver == "rti" else 0
+        qp = 0
+        if c.last_solver == "rti":  # the Python reference or its C twin
+            qp = c.rti_optimizer.qp_iterations if hasattr(c, "rti_optimizer") else c.state.qp_iterations
         self.rows.append((c.last_solver, c.last_fallback, c.best_cost, searched, qp))
         return duty
 
@@ -86,15 +90,16 @@ def closed_loop_cost(result: RunResult) -> float:
 def compare(binding, make_controller: Callable[[str], PredictiveController], scenarios, audit: bool = True,
             search_runner: Callable | None = None) -> list[dict]:
     """One row per scenario: the search and the RTI (``make_controller("search")``, ``make_controller("rti")``:
-    the same model and settings) on ``binding``'s plant. ``search_runner(controller)`` maps the search
-    controller to what runs it (default: its C twin, :func:`cosim.study.experiments.implemented`)."""
+    the same model and settings) on ``binding``'s plant. ``search_runner(controller)`` maps each controller
+    to what runs it (default: its C twin, :func:`cosim.study.experiments.implemented`; ``lambda c: c`` for
+    the Python references)."""
     from cosim.study.experiments import implemented
 
     runner = search_runner or implemented
     rows = []
     for scenario in scenarios:
         search = make_controller("search")
-        audited = AuditedRti(make_controller("rti"), audit)
+        audited = AuditedRti(runner(make_controller("rti")), audit)
         period = search.sample_period
         result_search = simulate(binding, runner(search), scenario, record_period=period)
         result_rti = simulate(binding, audited, scenario, record_period=period)
@@ -120,6 +125,38 @@ def compare(binding, make_controller: Callable[[str], PredictiveController], sce
             "qp_iterations_max": max((r[4] for r in rti_rows), default=0),
         })
     return rows
+
+
+def summary(row: dict) -> dict:
+    """A :func:`compare` row without its per-sample array (JSON-ready: the pipeline files keep these)."""
+    return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in row.items() if k != "cost_excess"}
+
+
+def report_lines(rows: list[dict]) -> list[str]:
+    """The reproduction report's table of :func:`summary` rows (any pipelines), with the targets."""
+    if not rows:
+        return []
+    lines = ["Old vs new optimizer on the same models (seed 0): the search (grid + pattern search) and the real-time "
+             "iteration (Gauss-Newton steps from the shifted plan, the search at a cold start and a reference step: "
+             "`controllers/predictive.py`) drive the same plant through the same scenarios. Targets for the RTI to be "
+             f"the default (issue 24): IAE within {100 * (IAE_RATIO_TARGET - 1):.0f} % of the search's, start-up "
+             f"overshoot at most {OVERSHOOT_POINTS_TARGET} points above it, and the plan's eq. 16 cost at the median "
+             f"RTI sample within {100 * COST_EXCESS_TARGET:.0f} % of the best the search finds for the same problem "
+             "(negative: the RTI plans better). *eq. 16 cost* is the closed loop's, on the measured trajectory "
+             "[`cosim/study/optimizer_ablation.py`].", "",
+             "| pipeline | controller | scenario | IAE search [V s] | IAE RTI / search | eq. 16 cost RTI / search "
+             "| overshoot search -> RTI [%] | plan cost excess median / worst [%] | search steps | meets |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        meets = (r["iae_ratio"] <= IAE_RATIO_TARGET and (r["scenario"] != "startup" or
+                                                         r["overshoot_difference_points"] <= OVERSHOOT_POINTS_TARGET)
+                 and r["cost_excess_median"] <= COST_EXCESS_TARGET)
+        lines.append(f"| {r.get('pipeline', '')} | {r['controller']} | {r['scenario']} | {r['iae_search_Vs']:.4g} | "
+                     f"{r['iae_ratio']:.3f} | {r['closed_loop_cost_rti_Vs'] / r['closed_loop_cost_search_Vs']:.3f} | "
+                     f"{r['overshoot_search_pct']:.2f} -> {r['overshoot_rti_pct']:.2f} | "
+                     f"{100 * r['cost_excess_median']:.2f} / {100 * r['cost_excess_worst']:.1f} | "
+                     f"{r['search_samples']} of {r['samples']} | {'yes' if meets else '**no**'} |")
+    return lines + [""]
 
 
 def verdict(rows: list[dict]) -> dict[str, tuple[float, bool]]:
