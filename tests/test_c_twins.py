@@ -560,9 +560,15 @@ def replay_case(name: str, model_1ms):
     from cosim.study.experiments import model_mpc, nnpc, plant_binding
     from cosim.study.vocabulary import MISMATCH
 
-    if name.endswith("-rti"):  # the same case with the real-time iteration (and the search as its fallback)
-        binding, controller, scenarios = replay_case(name[:-4], model_1ms)
-        return binding, with_rti(controller), scenarios
+    rti = name.endswith("-rti")  # the same case with the real-time iteration (and the search as its fallback)
+    binding, controller, scenarios = _replay_case(name.removesuffix("-rti"), model_1ms)
+    return binding, with_rti(controller, search=not rti), scenarios
+
+
+def _replay_case(name: str, model_1ms):
+    from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+    from cosim.study.experiments import model_mpc, nnpc, plant_binding
+    from cosim.study.vocabulary import MISMATCH
 
     if name == "nnpc-1ms":  # the paper's scenarios and random references and loads (dead-beat moves repeat)
         from cosim.study.data_collection import random_scenario
