@@ -330,6 +330,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         model_meta["optimizer_ablation"] = [optimizer_ablation.summary(row) for make in makers.values()
                                             for row in optimizer_ablation.compare(binding, make, scenarios)]
         timings["optimizer_ablation_s"] = time.perf_counter() - start_ablation
+    if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
         if transient_within_sample(period):  # does a longer horizon change anything at 1 ms?
             metrics.append(run_batch(batch, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],
                                      out_dir, seed=seed, figures=False).metrics)
