@@ -15,8 +15,8 @@ by the steady-state duty, bang-bang openings (full or zero duty for the first bl
 previous solution shifted by one sample (warm start); then a batched pattern search refines the
 best candidate block by block with a shrinking step.
 
-Real-time iteration (:class:`RealTimeIteration`, the default where it meets the study's quality
-targets; :class:`RtiSettings`): instead of searching, a fixed number of Gauss-Newton steps on the
+Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; not yet the study's default, see
+``cosim.study.experiments.default_optimizer``): instead of searching, a fixed number of Gauss-Newton steps on the
 blocked duties from the previous solution shifted by one sample, each a small box-constrained QP
 (:mod:`controllers.box_qp`) built from the predictor's forward sensitivities
 (:meth:`~controllers.predictors.Predictor.linearize`). Eq. 16 sums *non-squared* norms, which have

@@ -174,7 +174,7 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     plant at ``control_period`` [s]. ``log`` gets one line per round (None: silent); ``progress``
     shows a bar over the episodes."""
     settings.check()  # torch trains on one thread (train_policy), and nothing else here uses it
-    # the labels come from the search, not the RTI that is the online default at this rate: labels are made
+    # the labels come from the search, even where the RTI plans the online NNPC: labels are made
     # offline (no real-time budget), and on episodes like these (references 3-20 V, loads 4-100 Ohm, a step every
     # 20-100 samples) the RTI's plans cost > 1 % more than the search's at 3-7.5 % of the samples, worst 3-16 x,
     # right at the steps the policy must learn (its median plan is cheaper: issue 24's measurement, 3 episodes of
