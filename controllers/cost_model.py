@@ -82,6 +82,56 @@ def operation_counts(controller, evaluations: np.ndarray) -> dict[str, np.ndarra
             "sqrt": evaluations * horizon, "candidates": evaluations}
 
 
+def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.ndarray,
+                         evaluations: np.ndarray) -> dict[str, np.ndarray]:
+    """Operations per step of a predictive controller with the real-time iteration, from the C code paths
+    (``controllers/c``): where ``rti_steps`` is False the search planned (:func:`operation_counts` of its
+    ``evaluations``); an RTI step does a fixed amount of work -- ``iterations`` linearisations of the NN
+    (``nn_model.c``, buckc_nn_sensitivities) and one rollout (the shared path), the cost of each trial,
+    the Gauss-Newton model (at most ``iterations`` times) and ``qp_iterations`` box-QP iterations
+    (``box_qp.c``: H x, a Cholesky of at most n x n, two triangular solves), counted at the most the
+    code can do except for the QP, whose iterations are read off the step.
+
+    Per NN linearisation step j with c = block(j) + 1 propagated directions (one hidden layer of H, n_in
+    inputs, D delays): the forward pass n_in H + 2 H MACs and H tanh, the sensitivities 2 D H c (the window's
+    states) + D H (its duties, unit directions) + H (the slope 1 - a^2) + H c (the slope times the
+    sensitivity) + 2 H c (the output layer); further hidden layers H_l-1 H_l (1 + c) each. The model per
+    horizon step: 2 nb^2 + 3 nb MACs, one square root and one division; a trial's cost: 4 MACs and two
+    square roots per step."""
+    from controllers.predictors import NNPredictor
+
+    if controller.rti is None or not isinstance(controller.predictor, NNPredictor):
+        raise ValueError("RTI operation counts are defined for the NN predictor with the real-time iteration")
+    rti_steps = np.asarray(rti_steps, dtype=bool)
+    search = operation_counts(controller, np.where(rti_steps, 0, np.asarray(evaluations, dtype=float)))
+    config = controller.predictor.model.config
+    settings, iterations = controller.settings, controller.rti.iterations
+    blocks = np.repeat(np.arange(len(settings.blocks)), settings.blocks)
+    nb, hidden, delays = len(settings.blocks), list(config.hidden), config.delays
+    directions = blocks + 1
+    first = hidden[0]
+    macs_linearize = 0.0
+    for c in directions:
+        macs = config.n_inputs * first + 2 * hidden[-1] + 2 * delays * first * c + delays * first + first + first * c
+        for a, b in zip(hidden[:-1], hidden[1:]):
+            macs += a * b * (1 + c) + b + b * c
+        macs += 2 * hidden[-1] * c
+        macs_linearize += macs
+    widths = [config.n_inputs, *hidden, 2]
+    macs_rollout = settings.horizon * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
+    macs_model = settings.horizon * (2 * nb * nb + 3 * nb)
+    qp = np.asarray(qp_iterations, dtype=float) * (2 * nb * nb + nb ** 3 / 6.0)
+    per_step = iterations * macs_linearize + macs_rollout + iterations * macs_model + (iterations + 1) * 4 * settings.horizon
+    horizon, tanh = settings.horizon, sum(hidden)
+    return {"macs": np.where(rti_steps, per_step + qp, search["macs"]),
+            "tanh": np.where(rti_steps, (iterations + 1) * horizon * tanh, search["tanh"]),
+            "sqrt": np.where(rti_steps, (iterations + 1) * 2 * horizon + iterations * horizon + qp_iterations * nb,
+                             search["sqrt"]),
+            "division": np.where(rti_steps, iterations * horizon, 0.0),
+            "candidates": np.where(rti_steps, iterations + 1, search["candidates"]),
+            "qp_iterations": np.where(rti_steps, np.asarray(qp_iterations, dtype=float), 0.0)}
+
+
 def policy_operation_counts(config) -> dict[str, float]:
     """Operations per step of the explicit NNPC (``controllers/c/explicit_policy.c``), the same at
     every step: the layers' multiply-accumulates plus the feature product G r and the integral

@@ -54,11 +54,13 @@ MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
                    "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
-                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h")
+                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h",
+                   "box_qp.c", "box_qp.h")
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
 #: modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
-            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c", "current_mode.c", "compensator.c")
+            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c", "current_mode.c", "compensator.c",
+            "box_qp.c")
 #: the float32 FMU: the files with a float32 build that its controllers need, each through a
 #: wrapper that defines BUCKC_FLOAT32 (the glue does not include buckc.h: compiled as it is)
 FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c",

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_counts
+from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_counts, rti_operation_counts
 from controllers.nn_model import load_model
 from cosim.base.labels import period_text
 from cosim.master import simulate
@@ -29,13 +29,18 @@ class _CountingTwin:
         self.twin = twin
         self.name, self.sample_period, self.duty_limits = twin.name, twin.sample_period, twin.duty_limits
         self.evaluations: list[int] = []
+        self.rti: list[bool] = []
+        self.qp_iterations: list[int] = []
 
     def reset(self):
         self.twin.reset()
 
     def step(self, measurement):
         duty = self.twin.step(measurement)
-        self.evaluations.append(int(self.twin.state.evaluations))
+        state = self.twin.state
+        self.evaluations.append(int(state.evaluations))
+        self.rti.append(self.twin.last_solver == "rti")
+        self.qp_iterations.append(int(state.qp_iterations))
         return duty
 
     def describe(self):
@@ -43,15 +48,19 @@ class _CountingTwin:
 
 
 def count_nnpc_operations(model_path: Path, period: float, scenario_names) -> dict[str, np.ndarray]:
-    """Per control sample of the NNPC (``model_path``, at ``period`` [s]) over ``scenario_names`` on
-    the nominal switched plant: candidate evaluations, MACs, tanh calls, square roots and
-    Cortex-M4F cycles."""
+    """Per control sample of the NNPC (``model_path``, at ``period`` [s], with its default optimizer: the RTI at
+    one switching period, the search at 1 ms) over ``scenario_names`` on the nominal switched plant: rollouts
+    (candidate evaluations), MACs, tanh calls, square roots and Cortex-M4F cycles."""
     controller = nnpc(load_model(model_path, expect_period=period), period, NNPC)
     counting = _CountingTwin(implemented(controller, "c"))
     binding = plant_binding("nominal", "switched")
     for scenario in scenarios_for(period, scenario_names):
         simulate(binding, counting, scenario, record_period=period)
-    counts = operation_counts(controller, np.array(counting.evaluations))
+    if controller.rti is not None:
+        counts = rti_operation_counts(controller, np.array(counting.rti), np.array(counting.qp_iterations),
+                                      np.array(counting.evaluations))
+    else:
+        counts = operation_counts(controller, np.array(counting.evaluations))
     counts["cycles"] = cortex_m4f_cycles(counts)
     return counts
 

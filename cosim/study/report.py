@@ -14,7 +14,7 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
 from cosim.results import package_versions
-from cosim.study import envelope, explicit
+from cosim.study import envelope, explicit, optimizer_ablation
 from cosim.study.c_cost import section as c_cost_section
 from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_configs, small_network
 from cosim.study.identification import training_settings
@@ -298,6 +298,8 @@ def _ablations(metrics: pd.DataFrame, models: dict) -> list[str]:
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
          "steady_state_error_pct": "SS error [%]"})
     lines += _identification_ablation(metrics, models)
+    ablation = [{**row, "pipeline": tag} for tag, meta in models.items() for row in meta.get("optimizer_ablation", [])]
+    lines += optimizer_ablation.report_lines(ablation)
     return lines
 
 
