@@ -229,7 +229,7 @@ OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT = 0, -1, -2, -3, -
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
 SOLVERS = ("search", "rti")  # BUCKC_SOLVER_...: the names PredictiveController.last_solver uses
 #: BUCKC_FALLBACK_...: the reasons PredictiveController.fallback_reason gives ("" for none)
-FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error")
+FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error", "start-up")
 
 c_double, c_int = ctypes.c_double, ctypes.c_int
 
@@ -427,9 +427,10 @@ class PredictorConfig(ctypes.Structure):
 
 
 class RtiSettingsC(ctypes.Structure):
-    _fields_ = [("enabled", c_int), ("iterations", c_int), ("smoothing", c_double), ("step_limit", c_double),
-                ("regularization", c_double), ("qp_iterations", c_int), ("reference_step", c_double),
-                ("load_step", c_double), ("innovation", c_double)]
+    _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("smoothing", c_double),
+                ("step_limit", c_double), ("regularization", c_double), ("qp_iterations", c_int),
+                ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
+                ("startup_region", c_double), ("duty_resolution", c_double)]
 
 
 class PredictiveConfig(ctypes.Structure):
@@ -442,7 +443,8 @@ class PredictiveState(ctypes.Structure):
     _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
-                ("conductance", c_double), ("previous_reference", c_double), ("best_cost", c_double),
+                ("conductance", c_double), ("previous_reference", c_double), ("starting", c_int),
+                ("best_cost", c_double),
                 ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
                 ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
                 ("warm_before_valid", c_int), ("warm_before", _array(c_double, MAX_HORIZON)), ("anchor", c_double)]
@@ -608,6 +610,7 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
         return c
     c.enabled = 1
     c.iterations = settings.iterations
+    c.line_search = int(settings.line_search)
     c.smoothing = settings.smoothing
     c.step_limit = settings.step_limit
     c.regularization = settings.regularization
@@ -615,6 +618,8 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.reference_step = settings.reference_step
     c.load_step = settings.load_step
     c.innovation = settings.innovation
+    c.startup_region = settings.startup_region
+    c.duty_resolution = settings.duty_resolution
     return c
 
 
@@ -804,6 +809,11 @@ class NativePredictiveController(_MeasurementStepper):
     @property
     def best_cost(self) -> float:
         return self._state.best_cost
+
+    @property
+    def plan_sequence(self) -> np.ndarray | None:
+        """:attr:`PredictiveController.plan_sequence`: the last step's per-step plan (None before the first)."""
+        return np.array(self._state.warm[:self._config.horizon.horizon]) if self._state.have_warm else None
 
     def search_last_sample(self) -> tuple[np.ndarray, float]:
         """:meth:`PredictiveController.search_last_sample` in C: the search on the last step's problem."""

@@ -467,7 +467,12 @@ def test_the_c_audit_searches_the_last_problem_like_python_without_changing_the_
         assert bytes(twin.state) == state  # the C controller's state is untouched
         # the warm start is the RTI's plan, equal to ~1e-14: so are the search's lattices around it
         assert np.max(np.abs(sequence_c - sequence)) <= DUTY_TOLERANCE and cost_c == pytest.approx(cost, rel=1e-9)
-        assert cost <= controller.best_cost * 1.5 or twin.last_solver == "search"
+        # the RTI's plan, not rolled out in the step (best_cost NaN), evaluated by cost() in both twins
+        plan_cost, first = controller.cost(controller.plan_sequence)
+        plan_cost_c, first_c = twin.cost(twin.plan_sequence)
+        assert plan_cost_c == pytest.approx(plan_cost, rel=1e-9) and np.allclose(first_c, first, rtol=1e-12)
+        assert math.isnan(controller.best_cost) == math.isnan(twin.best_cost) == (twin.last_solver == "rti")
+        assert cost <= plan_cost * 1.5 or twin.last_solver == "search"
     assert twin.last_solver == controller.last_solver == "rti"
 
 
