@@ -323,6 +323,7 @@ class RealMirrors:
             "buckc_pi_step": (real, [P(self.Pi), real, real]),
             "buckc_estimate_conductance": (real, [real, real, real, real]),
             "buckc_nn_check": (c_int, [P(self.NnConfig), P(ctypes.c_char_p)]),
+            "buckc_nn_activate": (None, [c_int, rp, c_int, rp]),
             "buckc_nn_forward": (None, [P(self.NnConfig), rp, rp]),
             "buckc_nn_rollout": (None, [P(self.NnConfig), rp, rp, rp, c_int, rp, rp]),
             "buckc_nn_shared_prepare": (None, [P(self.NnConfig), rp, rp, rp, P(self.NnShared)]),
@@ -1187,6 +1188,17 @@ def expm2(a: np.ndarray, t: float) -> np.ndarray:
 
 def _precision_of(config) -> str:
     return next(p for p, m in REAL_MIRRORS.items() if isinstance(config, (m.NnConfig, m.PolicyConfigC, m.PiConfig)))
+
+
+def nn_activate(z: np.ndarray, activation: str = "tanh", precision: str = "float64") -> np.ndarray:
+    """The NN twins' hidden-layer activation (``buckc_nn_activate``: ``buckc_tanh`` for tanh in double,
+    ``buckc_tanhf`` in float32) of every element of ``z``, returned as float64."""
+    dtype = REAL_MIRRORS[check_precision(precision)].dtype
+    z = np.ascontiguousarray(np.ravel(z), dtype=dtype)
+    out = np.empty_like(z)
+    library(precision).buckc_nn_activate(list(ACTIVATIONS).index(activation), _pointer(z, precision), len(z),
+                                         _pointer(out, precision))
+    return out.astype(float)
 
 
 def nn_forward(config, x: np.ndarray) -> np.ndarray:

@@ -83,10 +83,17 @@ static buckc_real activate(int activation, buckc_real z)
     case BUCKC_ACTIVATION_RELU:
         return z < zero ? zero : z; /* np.maximum(z, 0.0): NaN stays NaN */
     case BUCKC_ACTIVATION_SIGMOID:
-        return half * (BUCKC_REAL_LITERAL(1.0) + BUCKC_TANH(half * z));
+        return half * (BUCKC_REAL_LITERAL(1.0) + BUCKC_NN_TANH(half * z));
     default:
-        return BUCKC_TANH(z);
+        return BUCKC_NN_TANH(z);
     }
+}
+
+void buckc_nn_activate(int activation, const buckc_real *z, int n, buckc_real *out)
+{
+    int i;
+    for (i = 0; i < n; ++i)
+        out[i] = activate(activation, z[i]);
 }
 
 /* y = x @ W_l + b_l: the product summed over the inputs in order, then the bias */
@@ -228,11 +235,11 @@ static buckc_real activate_with_slope(int activation, buckc_real z, buckc_real *
         *slope = z > zero ? one : zero;
         return a;
     case BUCKC_ACTIVATION_SIGMOID:
-        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_TANH(BUCKC_REAL_LITERAL(0.5) * z));
+        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_NN_TANH(BUCKC_REAL_LITERAL(0.5) * z));
         *slope = a * (one - a);
         return a;
     default:
-        a = BUCKC_TANH(z);
+        a = BUCKC_NN_TANH(z);
         *slope = one - a * a;
         return a;
     }
