@@ -15,17 +15,17 @@ by the steady-state duty, bang-bang openings (full or zero duty for the first bl
 previous solution shifted by one sample (warm start); then a batched pattern search refines the
 best candidate block by block with a shrinking step.
 
-Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; not yet the study's default, see
-``cosim.study.experiments.default_optimizer``): instead of searching, a fixed number of Gauss-Newton steps on the
+Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at both rates,
+``cosim.study.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
 blocked duties from the previous solution shifted by one sample, each a small box-constrained QP
 (:mod:`controllers.box_qp`) built from the predictor's forward sensitivities
 (:meth:`~controllers.predictors.Predictor.linearize`). Eq. 16 sums *non-squared* norms, which have
 a kink at zero error; the RTI minimises the smoothed norm sqrt(|e|^2 + eps^2) (eps in volts,
-:attr:`RtiSettings.smoothing`) and every step it takes is judged on it, while the cost it reports
--- and the study's comparison -- is always the paper's exact one. The search above stays as the
-reference and as the fallback at a cold start and when the measurements show a large change (a
-reference or load step, a prediction error far outside the model's), where one step from the last
-plan cannot reach the new optimum (:meth:`PredictiveController.fallback_reason`).
+:attr:`RtiSettings.smoothing`), while the cost it reports -- and the study's comparison -- is always
+the paper's exact one. The search above stays as the reference and as the fallback at a cold start,
+through the start-up's large error, and when the measurements show a large change (a reference or
+load step, a prediction error far outside the model's), where one step from the last plan cannot
+reach the new optimum or the model is poor (:meth:`PredictiveController.fallback_reason`).
 
 Offset-free tracking: the model's one-step prediction made at k-1 for the applied duty is
 compared with the measurement at k; the difference (a state-disturbance estimate, optionally
