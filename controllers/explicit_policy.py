@@ -245,7 +245,8 @@ class ExplicitPolicyController:
                 "network": self.policy.config.label, "macs_per_step": self.policy.config.macs(),
                 "integral_gain_per_V_s": self.policy.config.integral_gain,
                 "integral_band": self.policy.config.integral_band,
-                "distillation": meta.get("distillation"), "expert": meta.get("expert")}
+                "distillation": meta.get("distillation"), "expert": meta.get("expert"),
+                "design_key": (meta.get("design") or {}).get("key")}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cosim.base.digests import file_sha256
 from cosim.base.files import atomic_write, atomic_write_json, json_text, temporary_name
 from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, UNITS, WALLCLOCK_COLUMNS
 
@@ -163,6 +164,7 @@ def run_details(*, scenario, controller, plant, control_period: float, record_pe
             "model_name": md.modelName,
             "guid": md.guid,
             "fmu_file": Path(plant.binding.fmu_path).name,
+            "fmu_sha256": file_sha256(plant.binding.fmu_path),  # which FMU, whatever its name (design keys use it)
         },
         "rates": {"control_period_s": control_period, "record_period_s": record_period},
         "seed": seed,

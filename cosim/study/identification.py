@@ -32,6 +32,7 @@ import pandas as pd
 from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, train
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect
+from cosim.study.design_cache import DesignKey, design_key
 from cosim.study.experiments import collection_settings, horizon_settings, implemented, nnpc
 from cosim.study.vocabulary import (
     CLOSED_LOOP_DITHER,
@@ -66,6 +67,23 @@ class Recipe:
     closed_loop_iterations: int = CLOSED_LOOP_ITERATIONS  # of the refinement after each round, at most
     implementation: str = "c"  # the NNPC in the rounds: its C twin (same duties, faster) or Python
     multi_step_iterations: int = MULTI_STEP_ITERATIONS  # at most, per simulation-error stage
+
+
+def network_design(name: str, binding: PlantBinding, control_period: float, config: NNConfig, seed: int,
+                   samples: int, *, recipe: Recipe | None = None, training: TrainingSettings | None = None,
+                   pi_key: str | None = None) -> DesignKey:
+    """The design key of a network ``name`` identified on ``binding`` at ``control_period`` [s]: by
+    :func:`identify` with ``recipe`` (the workbench's NNPC), else by one ``train`` with ``training``
+    on the PI data (the paper's network); ``samples`` of PI data collected with ``seed`` by the PI
+    whose design key is ``pi_key`` (:mod:`cosim.study.design_cache`)."""
+    collection = collection_settings(control_period, samples, seed)
+    if recipe is not None:
+        training = training_settings(control_period, seed, recipe.multi_step_iterations)
+    settings = {"network": asdict(config), "collection": asdict(collection),
+                "training": asdict(training or TrainingSettings(seed=seed)),
+                "recipe": asdict(recipe) if recipe is not None else None}
+    return design_key(f"nn-model:{name}", binding, control_period, seed=seed, settings=settings,
+                      depends_on={"pi": pi_key})
 
 
 @dataclass
