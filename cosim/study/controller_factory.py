@@ -12,6 +12,7 @@ from pathlib import Path
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError, ModelFileError
+from cosim.base.labels import period_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import announce, design_key, model_file, pi_file, stale_reason
@@ -52,13 +53,13 @@ def announced_tuning(binding: PlantBinding, period: float, path: Path | None, pr
     from cosim.study.pi_tuning import TUNING_SCENARIOS, tune_pi, tuning_evaluations
 
     total = tuning_evaluations()
-    say(f"tuning the PI for {binding.label} at {period * 1e6:.4g} us: at most {total} evaluations x "
+    say(f"tuning the PI for {binding.label} at {period_text(period)}: at most {total} evaluations x "
         f"{len(TUNING_SCENARIOS)} scenarios (give --kp and --ki to skip it)"
         + (f"; saved to {path}" if path is not None else ""))
     start = time.perf_counter()
     tuning = tune_pi(binding, period, progress=progress,
-                     on_first=lambda seconds: say(f"  one evaluation took {seconds:.2g} s: the tuning takes about "
-                                                  f"{seconds * total:.0f} s"))
+                     on_estimate=lambda seconds: say(f"  one evaluation takes {seconds:.2g} s: the tuning takes "
+                                                     f"about {max(1.0, seconds * total):.0f} s"))
     say(f"  tuned in {time.perf_counter() - start:.1f} s ({tuning.evaluations} evaluations, "
         f"{tuning.evaluations * len(TUNING_SCENARIOS)} simulations): Kp = {tuning.kp:.4g} 1/V, "
         f"Ki = {tuning.ki:.4g} 1/(V s), design key {tuning.design_key}")

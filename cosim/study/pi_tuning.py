@@ -111,12 +111,12 @@ def tuning_evaluations(quick: bool = False) -> int:
 
 def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
             input_voltage: float = TABLE_II.input_voltage, progress: bool = False, quick: bool = False,
-            on_first: Callable[[float], None] | None = None) -> PITuning:
+            on_estimate: Callable[[float], None] | None = None) -> PITuning:
     """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring.
 
     ``quick`` (smoke tests only) searches a 2 x 2 grid and 6 Nelder-Mead evaluations.
-    ``on_first``: called with the wall-clock seconds of the first evaluation (for an estimate of
-    the whole tuning's duration: at most :func:`tuning_evaluations` of them).
+    ``on_estimate``: called once, with the wall-clock seconds of the second evaluation (the first
+    also loads the plant), for an estimate of the whole tuning: at most :func:`tuning_evaluations`.
     """
     design = pi_design(binding, control_period, record_period=record_period, input_voltage=input_voltage, quick=quick)
     scenarios = _tuning_scenarios()
@@ -129,12 +129,14 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
 
         bar = tqdm(desc=f"tuning PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False,
                    total=tuning_evaluations(quick))
-    started = time.perf_counter()
+    started = None
 
     with open_plant(binding) as plant:
 
         def cost(params: np.ndarray) -> float:
-            nonlocal evaluations
+            nonlocal evaluations, started
+            if evaluations == 1 and started is None:
+                started = time.perf_counter()
             a, b = float(params[0]), float(params[1])
             kp, ki = a / input_voltage, b / (control_period * input_voltage)
             controller = PIController(max(kp, 0.0), max(ki, 0.0), control_period)
@@ -154,8 +156,8 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
                 worst_os = max(worst_os, metrics["overshoot_pct"], metrics["undershoot_pct"])
             evaluations += 1
             worst[(a, b)] = worst_os
-            if evaluations == 1 and on_first is not None:
-                on_first(time.perf_counter() - started)
+            if evaluations == 2 and started is not None and on_estimate is not None:
+                on_estimate(time.perf_counter() - started)
             if bar is not None:
                 bar.update(1)
             return total
