@@ -120,3 +120,166 @@ def test_design_keys_name_what_changed():
     wanted = {**stored, "plant": {**plant, "fmu_sha256": "b"}, "seed": 1}
     assert changed_inputs(stored, wanted) == ["plant FMU (SHA-256)", "seed"]
     assert changed_inputs(stored, stored) == []
+
+
+# ------------------------------------------------------------------ 8. sweep output
+
+
+def _summary(rows, axes=("capacitor_esr",), controllers=("PI",), scenarios=("load_change",), thresholds=()):
+    """A sweep summary of hand-made rows (the parts of a spec, plan and recipes it reads)."""
+    from types import SimpleNamespace as NS
+
+    from cosim.study.sweeps.summary import _Summary
+
+    spec = NS(name="study", scenarios=[NS(name=s) for s in scenarios], thresholds=thresholds, control_period=1e-3,
+              samples=len(rows) // max(1, len(controllers) * len(scenarios)), grid_points=1)
+    plan = NS(axes=[NS(axis=NS(name=a), unit="Ohm") for a in axes], spec=spec)
+    return _Summary(spec, plan, [NS(name=c) for c in controllers], rows, Path("."), "id")
+
+
+def _rows(n=24, seed=3):
+    import numpy as np
+    import pandas as pd
+
+    rng = np.random.default_rng(seed)
+    esr = np.linspace(0.0, 0.1, n)
+    return pd.DataFrame({"controller": "PI", "scenario": "load_change", "status": "ok", "capacitor_esr": esr,
+                         "overshoot_pct": 2.0 + 30.0 * esr,  # a real effect: 3 % over the range
+                         "steady_state_error_pct": 1e-10 * (1 + esr),  # rounding: rho = +1, span 1e-11 %
+                         "settling_time_ms": rng.normal(1.0, 0.1, n),  # noise: no correlation
+                         "iae_Vs": 4.5e-3 + 1e-4 * esr + rng.normal(0, 1e-6, n),
+                         "point": 0, "sample": np.arange(n), "run_id": [f"r{i}" for i in range(n)]})
+
+
+def test_the_most_influential_parameter_needs_significance_and_a_magnitude():
+    table = _summary(_rows()).influence_table().set_index("metric")
+    assert table.loc["overshoot_pct", "axis"] == "capacitor_esr" and table.loc["overshoot_pct", "p_value"] < 1e-6
+    noise = table.loc["steady_state_error_pct"]
+    assert noise["axis"] == "none" and noise["spearman_rho"] == pytest.approx(1.0) and "spans" in noise["reason"]
+    assert table.loc["settling_time_ms", "axis"] == "none" and "not significant" in table.loc["settling_time_ms",
+                                                                                                 "reason"]
+
+
+def test_the_sweep_panels_keep_every_label_inside_the_figure(monkeypatch, tmp_path):
+    import matplotlib.pyplot as plt
+
+    from cosim.study.sweeps.spec import Threshold
+
+    figures, close = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))  # kept open to be measured
+    summary = _summary(_rows(), thresholds=(Threshold("overshoot_pct", 5.0),))
+    summary.out_dir = tmp_path
+    summary.figures(vector=False)
+    assert len(figures) == 3  # distributions, influence, yield
+    for fig in figures:
+        fig.canvas.draw()
+        width, height = fig.canvas.get_width_height()
+        for ax in fig.axes:
+            (x0, x1), (y0, y1) = sorted(ax.get_xlim()), sorted(ax.get_ylim())
+            texts = [ax.yaxis.label, ax.xaxis.label,  # and the tick labels drawn (inside the view limits)
+                     *[t for v, t in zip(ax.get_yticks(), ax.get_yticklabels()) if y0 <= v <= y1],
+                     *[t for v, t in zip(ax.get_xticks(), ax.get_xticklabels()) if x0 <= v <= x1]]
+            for text in texts:
+                if text.get_text():
+                    box = text.get_window_extent()
+                    assert box.x0 >= 0 and box.x1 <= width and box.y0 >= 0 and box.y1 <= height, text.get_text()
+        close(fig)
+
+
+def test_the_yield_table_names_its_share_columns_once():
+    from cosim.study.sweeps.summary import pass_column
+
+    assert pass_column("overshoot_pct") == "pass_overshoot_pct"
+    assert pass_column("settling_time_ms") == "pass_settling_time_ms_pct"
+
+
+# ------------------------------------------------------------------ figures and metrics: the ripple
+
+
+class FixedDuty:
+    """Open loop: the same duty at every sample."""
+
+    name, sample_period, duty_limits = "D = 0.25", 1 / 75e3, (0.0, 1.0)
+
+    def __init__(self, duty=0.25):
+        self.duty = duty
+
+    def reset(self):
+        pass
+
+    def step(self, m):
+        return self.duty
+
+    def describe(self):
+        return {"type": "fixed duty", "name": self.name, "duty": self.duty}
+
+
+@pytest.fixture(scope="module")
+def open_loop_switched():
+    """The switched plant at D = 0.25 (48 V -> 12 V, 6 Ohm), recorded 40 times per PWM period."""
+    from dataclasses import replace
+
+    from cosim import builtin_binding, load_scenario, simulate
+
+    scenario = replace(load_scenario("startup"), duration=6e-3)
+    return simulate(builtin_binding("switched"), FixedDuty(), scenario, record_period=1 / 75e3 / 40)
+
+
+def test_the_ripple_metrics_match_the_closed_form_of_the_switched_plant(open_loop_switched):
+    """DESIGN.md: in CCM, delta iL = (Vs - Vo) D Ts / L and delta vo = delta iL / (8 C fsw) with an ideal
+    capacitor -- 0.545 A and 90.9 mV at D = 0.25 on Table II."""
+    from cosim.metrics import run_metrics
+    from plant_fmu.table_ii import TABLE_II as P
+
+    d, vo = 0.25, 0.25 * P.input_voltage
+    ripple_i = (P.input_voltage - vo) * d / (P.switching_frequency * P.inductance)
+    ripple_v = ripple_i / (8 * P.capacitance * P.switching_frequency)
+    assert ripple_i == pytest.approx(0.545, abs=1e-3) and ripple_v == pytest.approx(0.0909, abs=1e-4)
+    m = run_metrics(open_loop_switched)
+    assert m["inductor_current_ripple_A"] == pytest.approx(ripple_i, rel=0.01)
+    assert m["output_voltage_ripple_mV"] == pytest.approx(ripple_v * 1e3, rel=0.02)
+
+
+def test_the_averaged_plant_has_no_ripple():
+    from dataclasses import replace
+
+    from cosim import builtin_binding, load_scenario, run_metrics, simulate
+
+    result = simulate(builtin_binding("averaged"), FixedDuty(), replace(load_scenario("startup"), duration=6e-3))
+    m = run_metrics(result)
+    assert m["inductor_current_ripple_A"] < 1e-6 and m["output_voltage_ripple_mV"] < 1e-3
+
+
+def test_the_run_figure_has_a_duty_panel_and_the_transient_with_the_metrics_marked(open_loop_switched):
+    """At 13.33 us the start-up is over in about a millisecond of a 6 ms run: the right column shows it,
+    the overshoot marker sits on the instantaneous peak the metrics report, the settling instant and band
+    are drawn, and the figure says which curve is the PWM-period mean and which the metrics' signal."""
+    import matplotlib.pyplot as plt
+
+    from cosim.metrics import run_metrics
+    from cosim.plots import scenario_figure
+
+    m = run_metrics(open_loop_switched)
+    fig = scenario_figure([open_loop_switched], "start-up", period_means=True)
+    try:
+        v_full, v_zoom, i_full, i_zoom, d_full, d_zoom = fig.axes[:6]
+        assert d_full.get_ylabel() == "duty cycle [1]"
+        duty = [line for line in d_full.get_lines() if line.get_drawstyle() == "steps-post"]
+        assert len(duty) == 1 and set(duty[0].get_ydata()) == {0.25}
+        low, high = v_zoom.get_xlim()
+        assert high <= 1.5 * m["settling_time_ms"] * 1.06 and m["settling_time_ms"] < high  # the transient, not 6 ms
+        assert v_full.get_xlim()[1] >= 5.9
+        frame = open_loop_switched.frame
+        [peak] = [line for line in v_zoom.get_lines() if line.get_marker() == "v"]
+        assert peak.get_ydata()[0] == pytest.approx(frame["output_voltage"].max())
+        assert peak.get_ydata()[0] == pytest.approx(12.0 * (1 + m["overshoot_pct"] / 100))
+        [current_peak] = [line for line in i_zoom.get_lines() if line.get_marker() == "v"]
+        assert current_peak.get_ydata()[0] == pytest.approx(m["peak_inductor_current_A"])
+        settle = [line for line in v_zoom.get_lines() if line.get_linestyle() == ":"]
+        assert settle and settle[0].get_xdata()[0] == pytest.approx(m["settling_time_ms"])
+        legend = [t.get_text() for t in v_zoom.get_legend().get_texts()]
+        assert f"D = 0.25: overshoot {m['overshoot_pct']:.3g} %, settling {m['settling_time_ms']:.3g} ms" in legend
+        assert "2 % settling band" in legend
+        assert "faint: instantaneous -- the metrics' signal" in fig._suptitle.get_text()
+    finally:
+        plt.close(fig)

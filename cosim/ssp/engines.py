@@ -64,7 +64,7 @@ from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding, RoleMap
 from cosim.fmi.controller import CONTROLLER_INPUT_ROLES, ControllerBinding, FmuController
 from cosim.master import simulate
-from cosim.recorder import COLUMNS, SCHEMA, UNITS
+from cosim.recorder import COLUMNS, DESCRIPTIONS, SCHEMA, UNITS
 from cosim.results import RUN_FORMAT, RunInfo, RunResult, json_ready, package_versions
 from cosim.ssp.package import (
     COMPONENTS,
@@ -305,6 +305,7 @@ def _details(loop: Loop, engine: str, step: float, guids: dict[str, str], names:
         "versions": package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system()},
         "units": dict(UNITS),
+        "descriptions": dict(DESCRIPTIONS),
         **_engine_metadata(loop, engine, step),
     }
     if plant_mode_name(loop) is None:  # RunInfo reads the built-in FMU's mode from plant_mode

@@ -12,7 +12,7 @@ from pathlib import Path
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError, ModelFileError
-from cosim.base.labels import period_text
+from cosim.base.labels import did_you_mean, period_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import announce, design_key, model_file, pi_file, stale_reason
@@ -170,8 +170,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int = 10_000, seed: int = 0,
                      progress: bool = False, policy_path: str | None = None) -> list:
-    """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`)
-    or paths of controller FMUs / controller-binding files (which run at their own sample period).
+    """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`),
+    paths of controller FMUs / controller-binding files, or Python controllers (``module:Class``,
+    ``file.py:Class``, :mod:`cosim.python_controller`); those run at their own sample period.
     Everything is checked first (names, gains, duty limits, the period, the roles each controller
     needs, a given model or policy file, controller FMUs and their bindings), then the PI is tuned,
     networks trained and the explicit NNPC distilled where needed -- so a mistake is refused before
@@ -180,10 +181,22 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
     from cosim.fmi.controller import FmuController, controller_binding
+    from cosim.python_controller import is_python_controller, load_python_controller
 
-    bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS}  # FMUs or binding files, checked now
+    for name in names:
+        if name not in CONTROLLERS and not is_python_controller(name) \
+                and Path(name).suffix.lower() not in (".fmu", ".toml"):
+            raise ConfigError(f"--controller {name} is unknown{did_you_mean(name, CONTROLLERS)}: expected one of "
+                              f"{', '.join(CONTROLLERS)}, a controller FMU (.fmu), a controller-binding file (.toml) "
+                              "or a Python controller (module:Class or path/to/file.py:Class)")
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
+    if kp is not None and "pi" not in names:
+        raise ConfigError(f"--kp and --ki set the PI's gains, but no --controller pi is run (controllers: "
+                          f"{', '.join(names)}): drop them or add --controller pi")
+    python = {n: load_python_controller(n, sample_period=period, duty_limits=duty_limits)
+              for n in names if is_python_controller(n)}  # imported and checked now
+    bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS and n not in python}  # FMUs, binding files
     networks = [n for n in names if n in NETWORKS or n == "nnpc-adaptive"]
     if model_path and len(networks) > 1:
         raise ConfigError("--model gives one network: run nnpc, nnpc-paper and nnpc-adaptive separately when you "
@@ -255,8 +268,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":
                 controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
-            else:  # a controller FMU
-                controllers.append(FmuController(bound[name]))
+            elif name in python:  # the user's own Python controller, at its own sample period
+                controllers.append(python[name])
+            else:  # a controller FMU, named NAME (FMU) as the docs say (a binding file's label, if it has one)
+                controllers.append(FmuController(bound[name], name=external_name(name)))
     except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers
@@ -266,7 +281,7 @@ def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[f
     """Controller FMUs / controller-binding files for the reproduction, checked before any work:
     each must open, carry a name no built-in controller has, and sample at one of ``periods`` [s]
     (within 1e-9 relative). Returns the paths by the period whose pipelines run them."""
-    from cosim.base.labels import period_text
+    from cosim.base.labels import did_you_mean, period_text
     from cosim.fmi.controller import FmuController, controller_binding
 
     builtin = set(CONTROLLERS.values())
