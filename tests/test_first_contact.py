@@ -283,3 +283,42 @@ def test_the_run_figure_has_a_duty_panel_and_the_transient_with_the_metrics_mark
         assert "faint: instantaneous -- the metrics' signal" in fig._suptitle.get_text()
     finally:
         plt.close(fig)
+
+
+# ------------------------------------------------------------------ NNPC identification plots
+
+
+def test_identification_writes_learning_curves_and_held_out_predictions_beside_the_model(tmp_path, quick_tuning):
+    import matplotlib.pyplot as plt
+    import numpy as np
+    import pandas as pd
+
+    import cosim.study.controller_factory as factory
+    from controllers.nn_model import build_dataset
+    from cosim.fmi.binding import builtin_binding
+    from cosim.study.identification import identification_figure
+
+    model = factory.trained_model("nnpc-paper", builtin_binding("averaged"), 1e-3, tmp_path, samples=300, seed=1,
+                                  model_path=None)
+    [model_path] = (tmp_path / "models").glob("*__nnpc-paper.pt")
+    figure = model_path.with_name(f"{model_path.stem}.identification.png")
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+    history = np.asarray(model.metadata["training"]["history"])
+    assert history.shape[1] == 3 and history[0, 0] == 0 and len(history) >= 2
+    assert history[:, 2].min() < history[0, 2]  # the validation loss fell from the untrained network's
+
+    data = pd.read_parquet(Path(model.metadata["data_file"]))
+    fig = identification_figure(model, data)
+    try:
+        loss, current, voltage = fig.axes
+        training, validation = loss.get_lines()[:2]
+        assert list(training.get_ydata()) == list(history[:, 1]) and list(validation.get_ydata()) == list(history[:, 2])
+        held_out = data.iloc[int(round(len(data) * 0.8)):]
+        x, y = build_dataset(held_out, model.config)
+        measured, predicted = voltage.get_lines()[:2]
+        assert np.allclose(measured.get_ydata(), y[:400, 1]) and np.allclose(predicted.get_ydata(),
+                                                                             model.predict(x)[:400, 1])
+        rmse = model.metadata["held_out_rmse"]["one_step_rmse_voltage_V"]
+        assert np.sqrt(np.mean((model.predict(x)[:, 1] - y[:, 1]) ** 2)) == pytest.approx(rmse)
+    finally:
+        plt.close(fig)

@@ -17,7 +17,7 @@ from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import announce, design_key, model_file, pi_file, stale_reason
 from cosim.study.experiments import adaptive_nnpc, collection_settings, explicit_nnpc, model_mpc, nn_configs, nnpc
-from cosim.study.identification import Recipe, identify, network_design
+from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
 from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
 from cosim.study.vocabulary import (
     CONTROLLERS,
@@ -115,10 +115,11 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     else:
         model = train(data, config, TrainingSettings(seed=seed), progress=progress, metadata=meta)
     save_model(model, path)
+    figure = write_identification_figure(model, data, path)
     rmse = model.metadata.get("held_out_rmse", {})
     say(f"  {config.label}: held-out one-step RMSE {rmse.get('one_step_rmse_voltage_V', math.nan) * 1e3:.2f} mV, "
-        f"{rmse.get('one_step_rmse_current_A', math.nan) * 1e3:.2f} mA; data {data_path}, model {path}, "
-        f"design key {wanted.key}")
+        f"{rmse.get('one_step_rmse_current_A', math.nan) * 1e3:.2f} mA; data {data_path}, model {path} "
+        f"(identification figure {figure.name}), design key {wanted.key}")
     return model
 
 

@@ -57,7 +57,14 @@ from cosim.study.experiments import (
     small_network,
 )
 from cosim.study.design_cache import model_file, pi_file
-from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, identify, network_design
+from cosim.study.identification import (
+    ONE_STEP,
+    Recipe,
+    closed_loop_round,
+    identify,
+    network_design,
+    write_identification_figure,
+)
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
@@ -304,6 +311,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     model_meta = {}
     for name, model in models.items():
         save_model(model, model_file(out_dir, pipeline.plant_tag, period, name))
+        write_identification_figure(model, data, model_file(out_dir, pipeline.plant_tag, period, name))
         model_meta[name] = _model_summary(model, configs[name])
         rmse = model.metadata["held_out_rmse"]
         log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
