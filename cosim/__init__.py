@@ -1,6 +1,6 @@
 """buck-cosim: an FMU co-simulation workbench for buck-converter control.
 
-The public names, importable from here (README, "Bring your own Python controller"):
+The public names, importable from here (docs/guide/python-controller.md):
 
 * ``Measurement``, ``Controller`` -- what a controller sees at a sample, and the protocol it
   implements (``name``, ``sample_period`` [s], ``duty_limits``, ``reset()``, ``step(m)``,

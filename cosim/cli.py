@@ -21,6 +21,7 @@ from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
 from cosim.study.vocabulary import (
     CONTROLLERS,
     DITHER_FAST,
+    EXPORTABLE_CONTROLLERS,
     DITHER_SLOW,
     FLOAT32_CONTROLLERS,
     PAPER_PERIOD,
@@ -52,6 +53,18 @@ def output_dir(text: str | None) -> Path | None:
         raise ConfigError(f"cannot create output folder {path}: {error.strerror}") from None
     if not os.access(path, os.W_OK):
         raise ConfigError(f"output folder {path} is not writable")
+    return path
+
+
+def cache_dir(text: str) -> Path:
+    """A folder designs are cached in: refused at once if it cannot be one, but created only when
+    something is written there (an export with given gains leaves no empty folder behind)."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    existing = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise ConfigError(f"output folder {path} cannot be created: {existing} is not a writable folder")
     return path
 
 
@@ -138,8 +151,9 @@ def cmd_scenarios(args) -> int:
 
     print(f"Shipped scenarios ({SHIPPED_DIR}):")
     for s in shipped_scenarios():
-        events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(f"{k}={v:g}" for k, v in e.changes.items())
-                           for e in s.events) or "none"
+        events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(
+            [f"{k}={v:g}" for k, v in e.changes.items()] + [f"{k}={v:g}" for k, v in e.parameters.items()])
+            for e in s.events) or "none"
         print(f"  {s.name:<16} {s.description}  [duration {s.duration * 1e3:g} ms, settle {s.settle * 1e3:g} ms; "
               f"events: {events}]")
     return 0
@@ -219,7 +233,21 @@ def cmd_run(args) -> int:
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
     print(output.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     print(f"wrote {len(output.files) + len(files)} files under {out_dir}/")
+    _warn_implausible(output, batch.binding)
     return 0
+
+
+def _warn_implausible(output, binding) -> None:
+    """One warning line on stderr if runs look implausible (:func:`cosim.metrics.implausible_runs`)."""
+    from cosim.metrics import implausible_runs
+
+    found = implausible_runs(output.results, output.metrics)
+    if not found:
+        return
+    hint = ("check the binding's roles and scales (fmu_value = scale * workbench_value + offset; a duty in percent "
+            f"needs scale = 100) in {binding.source}" if binding.source is not None else
+            "check the controller's gains and limits")
+    print(f"warning: implausible runs on {binding.label}: {'; '.join(found)} -- {hint}", file=sys.stderr)
 
 
 def _add_fmi_version_option(p, whose: str) -> None:
@@ -244,7 +272,7 @@ def cmd_export_controller(args) -> int:
         raise ConfigError(f"--precision float32: {args.controller} has no float32 build (the predictive "
                           "controller's optimizer, controllers/c/predictive.c, computes in double); expected one of "
                           f"{', '.join(FLOAT32_CONTROLLERS)}")
-    work_dir = output_dir(args.work_dir)
+    work_dir = cache_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
     binary, source = _export_controller_fmu(controller, out, args.precision, args.fmi_version)
     version = f"FMI {args.fmi_version}.0"
@@ -260,7 +288,7 @@ def cmd_export_controller(args) -> int:
         except EmbeddedError as error:
             raise BuildError(f"--cortex-m4 {args.cortex_m4}: {str(error).splitlines()[0]}") from None
         print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (link it with newlib's "
-              "libm: see the README's 'On a microcontroller')")
+              "libm: see docs/guide/embedded.md)")
     return 0
 
 
@@ -287,10 +315,10 @@ def cmd_export_ssp(args) -> int:
         binding = replace(binding, fmu_path=fmu_path(fmi_version=3))
     check_plant_supports(binding, scenario)  # before any tuning or training
     with tempfile.TemporaryDirectory(prefix="buck-cosim-export-ssp-") as tmp:
-        if args.controller in CONTROLLERS:
+        if args.controller in EXPORTABLE_CONTROLLERS:
             period = args.control_period or PAPER_PERIOD
             plan_timeline(scenario, period, period)
-            controller = _design_controller(args, binding, period, output_dir(args.work_dir))
+            controller = _design_controller(args, binding, period, cache_dir(args.work_dir))
             fmu, _ = _export_controller_fmu(controller,
                                             Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu",
                                             args.fmi_version)
@@ -298,7 +326,7 @@ def cmd_export_ssp(args) -> int:
             from cosim.fmi.controller import controller_binding
 
             if Path(args.controller).suffix.lower() != ".fmu":
-                raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(CONTROLLERS)} or a "
+                raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(EXPORTABLE_CONTROLLERS)} or a "
                                   "controller FMU (.fmu) with the workbench's role names")
             from cosim.fmi.archive import check_fmu
             from cosim.ssp.package import controller_sample_period
@@ -346,12 +374,28 @@ def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
     output_file(args.draft_binding)  # a folder or an unwritable place is refused before anything is read
+    if Path(args.fmu).suffix.lower() == ".toml":  # a binding file: its FMU, and the binding checked against it
+        from cosim.fmi.binding_file import load_binding
+
+        if args.draft_binding:
+            raise ConfigError(f"--draft-binding drafts a binding for an FMU; {args.fmu} is a binding already")
+        binding = load_binding(args.fmu)  # every check, and a warning line if units contradict roles
+        print(describe_fmu(binding.fmu_path))
+        print(f"\nbinding {args.fmu}: " + ", ".join(f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
+                                                    + (f" + {m.offset:g}" if m.offset else "")
+                                                    for role, m in binding.roles.items()))
+        return 0
     print(describe_fmu(args.fmu))
     if args.draft_binding:
-        from cosim.fmi.binding_file import write_draft_binding
+        from cosim.fmi.binding_file import unitless_guesses, write_draft_binding
 
         path = write_draft_binding(args.fmu, args.draft_binding)
         print(f"wrote a draft binding to {path}: the roles are guesses, check every one before use")
+        unitless = unitless_guesses(args.fmu)
+        if unitless:
+            print(f"warning: {path}: the FMU declares no unit for {', '.join(unitless)}: the draft assumes a duty "
+                  "0..1, volts, amperes and ohms -- a duty in percent needs scale = 100, a current in mA "
+                  "scale = 1000", file=sys.stderr)
     return 0
 
 
@@ -373,6 +417,34 @@ def cmd_export(args) -> int:
     else:
         target = write_parquet(frame, result.metadata, out_dir / f"{source.stem}.parquet")
     print(f"wrote {target}")
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from cosim.compare import overlay
+    from cosim.study.vocabulary import CONTROLLER_STYLES
+
+    out = output_file(args.out)
+    files = overlay(args.runs, out, title=args.title, styles=CONTROLLER_STYLES)
+    print(f"wrote {' and '.join(str(f) for f in files)}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from cosim.base.files import atomic_write
+    from cosim.compare import comparison_table, overlay
+    from cosim.metrics import WALLCLOCK_METRICS
+    from cosim.study.vocabulary import CONTROLLER_STYLES
+
+    out_dir = output_dir(args.out)
+    table = comparison_table(args.runs)  # every file read and checked before anything is written
+    files = overlay(args.runs, out_dir / "compare", title=args.title, styles=CONTROLLER_STYLES)
+    deterministic = table.drop(columns=[c for c in WALLCLOCK_METRICS if c in table.columns])
+    files.append(atomic_write(out_dir / "compare.csv", lambda tmp: deterministic.to_csv(tmp, index=False)))
+    columns = ["run", "scenario", "rise_time_ms", "overshoot_pct", "settling_time_ms", "steady_state_error_pct",
+               "iae_Vs", "peak_inductor_current_A", "output_voltage_ripple_mV", "inductor_current_ripple_A"]
+    print(table[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print(f"wrote {', '.join(str(f) for f in files)}")
     return 0
 
 
@@ -412,7 +484,7 @@ def cmd_collect(args) -> int:
     from cosim.study.experiments import collection_settings
 
     output_file(args.out)
-    work_dir = output_dir(args.work_dir)
+    work_dir = cache_dir(args.work_dir)
     settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
@@ -480,7 +552,10 @@ def cmd_train(args) -> int:
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
           f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step (recorded duties and load) "
           f"{rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
-    print(f"wrote {args.out}")
+    from cosim.study.identification import write_identification_figure
+
+    figure = write_identification_figure(model, frame, Path(args.out))
+    print(f"wrote {args.out} and {figure} (learning curves, held-out predictions)")
     return 0
 
 
@@ -637,7 +712,7 @@ def _add_plant_options(parser) -> None:
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
-                             "(--mode/--variant/--sensor then do not apply; see README)")
+                             "(--mode/--variant/--sensor then do not apply; docs/guide/external-plants.md)")
     isolation = parser.add_mutually_exclusive_group()
     isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                            help="step the plant FMU in a child process: a crash inside it ends the run with an error "
@@ -678,7 +753,8 @@ def _add_controller_design_options(parser) -> None:
                         help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
     parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                        help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+                        help="where tuned gains and trained networks are cached, created only when one is "
+                             "(default: results/runs-cli, relative to the current folder)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -700,11 +776,13 @@ def build_parser() -> argparse.ArgumentParser:
                                    "figure per scenario (PNG + SVG) under OUT/figures.")
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                    help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
-    p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml",
+    p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml|MODULE:CLASS",
                    help=f"controller(s) to run; repeat to overlay several (default: pi): {', '.join(CONTROLLERS)}, "
-                        "a controller FMU with the workbench's role names (buck-cosim export-controller), or a "
-                        "controller-binding file for any other controller FMU (it runs at its own sample period). "
-                        "nnpc trains its network on demand (data collected with the tuned PI) unless --model")
+                        "a controller FMU with the workbench's role names (buck-cosim export-controller; named "
+                        "'<file stem> (FMU)'), a controller-binding file for any other controller FMU, or your own "
+                        "Python controller as module:Class or path/to/file.py:Class (docs/guide/python-controller.md); "
+                        "FMUs and Python controllers run at their own sample period. nnpc trains its network on "
+                        "demand (data collected with the tuned PI) unless --model")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
@@ -721,7 +799,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=seed_value, default=0,
                    help=f"random seed for data collection and training, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="output folder (default: results/runs-cli)")
+                   help="output folder (default: results/runs-cli, relative to the current folder)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
     _add_implementation_option(p)
     p.add_argument("--stream", action="store_true",
@@ -742,7 +820,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, {DITHER_FAST} faster; 0 = plain PI)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="where tuned PI gains are cached (default: results/runs-cli)")
+                   help="where tuned PI gains are cached, created only when they are (default: results/runs-cli, "
+                        "relative to the current folder)")
     p.add_argument("--out", required=True, metavar="DATA.parquet", help="output file")
     p.set_defaults(func=cmd_collect)
 
@@ -819,7 +898,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "carry the workbench's role names (reference, measured_output_voltage, measured_inductor_current, "
                                    "measured_load_current, input_voltage -> duty_cycle; parameter sample_period "
                                    "[s]); run it with 'buck-cosim run --controller NAME.fmu'.")
-    p.add_argument("controller", choices=list(CONTROLLERS), help="which controller")
+    p.add_argument("controller", choices=list(EXPORTABLE_CONTROLLERS), help="which controller")
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="sample period in s, e.g. 1e-3 or 1/75e3 (default: 1e-3); the predictive settings are the "
                         "workbench's at that rate")
@@ -850,7 +929,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "'buck-cosim run-ssp', fmpy or libcosim.")
     p.add_argument("scenario", metavar="SCENARIO", help="shipped scenario name or path to a scenario TOML file")
     p.add_argument("--controller", required=True, metavar="NAME|FMU",
-                   help=f"{', '.join(CONTROLLERS)} (exported as with export-controller) or a controller FMU with the "
+                   help=f"{', '.join(EXPORTABLE_CONTROLLERS)} (exported as with export-controller) or a controller FMU with the "
                         "workbench's role names")
     p.add_argument("--control-period", type=parse_period, default=None, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3; a controller FMU's own period)")
@@ -884,8 +963,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("inspect", help="describe any FMU (and draft a binding file for it)",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "
-                                   "variables (causality, variability, unit, start value).")
-    p.add_argument("fmu", help="path to a .fmu file")
+                                   "variables (causality, variability, unit, start value). Given a plant-binding "
+                                   "file, describe its FMU and check the binding against it (a warning line if a "
+                                   "unit the FMU declares contradicts a role or its scale).")
+    p.add_argument("fmu", metavar="FMU|BINDING.toml", help="path to a .fmu file, or a plant-binding file")
     p.add_argument("--draft-binding", metavar="OUT.toml",
                    help="also write a draft plant-binding file, roles guessed from names and units")
     p.set_defaults(func=cmd_inspect)
@@ -897,6 +978,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--to", choices=["csv", "parquet"], required=True, help="target format")
     p.add_argument("--out", metavar="DIR", help="output folder (default: beside the input)")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("plot", help="overlay runs from any folders in one figure (CSV or Parquet runs)",
+                       description="Draw runs written by run, reproduce, a sweep's traces or a Python controller's "
+                                   "write_run (each a .parquet, or a .csv with its .json) overlaid in the run figure: "
+                                   "output voltage, inductor current and duty cycle, the whole run beside the "
+                                   "transient with overshoot, settling band and settling time marked. Runs that share "
+                                   "a controller name are labelled with their folder. Writes FIG.png and FIG.svg.")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
+    p.add_argument("--out", required=True, metavar="FIG", help="the figure to write (FIG.png and FIG.svg)")
+    p.add_argument("--title", help="figure title (default: the scenarios and plants)")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("compare", help="overlay runs from any folders and compare their metrics",
+                       description="Like plot, and the runs' metrics side by side: printed, and written with the "
+                                   "figure to DIR (compare.png, compare.svg, compare.csv: one row per run, its label "
+                                   "and file, every metric of cosim/metrics.py but the wall-clock ones).")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--title", help="figure title (default: the scenarios and plants)")
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("build-fmu", help="compile BuckConverter.fmu (FMI 2.0 or 3.0) from its C sources with fmpy",
                        description="Build the plant FMU (model exchange + co-simulation) with fmpy's CMake "
@@ -949,8 +1050,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "dataset (one row per run: values, status, metrics) under DIR/dataset, the "
                                    "summary DIR/SWEEP.md (yield against the file's [spec], distributions, most "
                                    "influential parameter, worst case) with figures, and DIR/timings.json (wall "
-                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz (README, "
-                                   "'Sweeps and Monte Carlo'). Exit 2 on a mistake, before any work; 3 if some "
+                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz "
+                                   "(docs/guide/sweeps.md). Exit 2 on a mistake, before any work; 3 if some "
                                    "runs failed (each is a row saying why); 130 if interrupted (--resume finishes).")
     p.add_argument("spec", metavar="SPEC.toml", help="sweep file, or the name of a shipped study (e.g. tolerance)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder for the dataset and the summary")

@@ -147,8 +147,8 @@ def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_p
 
 
 def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
-    args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--kp", "0", "--ki", "14",
-            "--out", str(tmp_path), "--no-figures"]
+    args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--out", str(tmp_path),
+            "--no-figures"]  # the PI that collects the data is tuned (--kp/--ki set the gains of a pi run only)
     assert main(args) == 0
     model = next((tmp_path / "models").glob("*__nnpc.pt"))
     mtime = model.stat().st_mtime_ns

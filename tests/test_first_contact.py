@@ -53,7 +53,10 @@ def test_a_changed_plant_retunes_the_cached_pi_and_says_so(own_plant, tmp_path, 
     key = stored["design"]["key"]
     assert first["controller"]["tuning"]["design_key"] == key  # the run names the design it ran
     assert stored["design"]["inputs"]["plant"]["fmu_sha256"] == first["plant"]["fmu_sha256"]
+    # defect 5: the tuning is announced with its size, an estimate and its totals, under --no-progress too
     assert "tuning the PI for" in err and "at most 10 evaluations x 3 scenarios" in err
+    assert "the tuning takes about" in err and f"evaluations, {3 * stored['evaluations']} simulations)" in err
+    assert f"design key {key}" in err
 
     again, err = run_pi(own_plant, out, capsys)  # nothing changed: reused, silently
     assert again["controller"]["tuning"]["design_key"] == key and "tuning the PI" not in err
@@ -322,3 +325,244 @@ def test_identification_writes_learning_curves_and_held_out_predictions_beside_t
         assert np.sqrt(np.mean((model.predict(x)[:, 1] - y[:, 1]) ** 2)) == pytest.approx(rmse)
     finally:
         plt.close(fig)
+
+
+# ------------------------------------------------------------------ 4. implausible bindings: one warning line
+
+
+def test_a_duty_in_percent_bound_without_its_scale_warns_in_inspect_and_run(python_buck_fmu, tmp_path):
+    """The pythonfmu plant takes its duty in percent and declares no units: the draft binds it with scale 1.
+    inspect says the scales are guesses; the run ends far from the reference with the duty at its limit and
+    says so in one warning line (exit 0: the run itself worked)."""
+    from conftest import cli
+
+    done = cli("inspect", str(python_buck_fmu), "--draft-binding", "draft.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "no unit for D (duty_cycle)" in warnings[0] and "scale = 100" in warnings[0]
+    draft = (tmp_path / "draft.toml").read_text()
+    assert 'variable = "D"' in draft and "scale = 100" not in draft.split('variable = "D"')[1].split("[")[0]
+
+    done = cli("run", "reference_down", "--plant", "draft.toml", "--kp", "0.0017", "--ki", "15.6", "--out", "out",
+               "--no-figures", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, done.stderr
+    assert "implausible runs" in warnings[0] and "reference_down with PI: duty at a limit for" in warnings[0]
+    assert "below the reference" in warnings[0] and "a duty in percent needs scale = 100" in warnings[0]
+
+    (tmp_path / "draft.toml").write_text(draft.replace('variable = "D"', 'variable = "D"\nscale = 100.0'))
+    done = cli("run", "reference_down", "--plant", "draft.toml", "--kp", "0.0017", "--ki", "15.6", "--out", "out",
+               "--no-figures", cwd=tmp_path)
+    assert done.returncode == 0 and "warning" not in done.stderr, done.stderr
+
+
+def test_a_unit_that_contradicts_its_role_is_flagged_when_the_binding_is_read(buck_fmu, tmp_path):
+    from conftest import cli
+
+    from cosim.fmi.binding_file import write_draft_binding
+
+    toml = write_draft_binding(buck_fmu, tmp_path / "plant.toml")
+    text = toml.read_text()
+    text = text.replace('[roles.duty_cycle]   # guessed from name \'duty_cycle\', unit 1\nvariable = "duty_cycle"',
+                        '[roles.duty_cycle]\nvariable = "duty_cycle"\nscale = 100.0')
+    text = text.replace('variable = "inductor_current"', 'variable = "output_voltage"', 1) \
+        if "[roles.inductor_current]" in text else text
+    toml.write_text(text)
+    done = cli("inspect", str(toml), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    [warning] = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert "implausible binding" in warning
+    assert "duty_cycle is 'duty_cycle' in 1 with scale = 100 (a duty in 1 needs scale = 1)" in warning
+    assert "inductor_current is 'output_voltage' in V, a voltage, not a current" in warning
+    assert "duty_cycle -> duty_cycle x 100" in done.stdout
+
+
+# ------------------------------------------------------------------ 6. your own Python controller on the command line
+
+INTEGRATOR = '''
+from controllers.base import Measurement
+
+
+class Integrator:
+    """duty += gain per volt of error per sample."""
+
+    def __init__(self, sample_period, duty_limits, gain=0.005):
+        self.name, self.sample_period, self.duty_limits, self.gain = "integrator", sample_period, duty_limits, gain
+
+    def reset(self):
+        self.duty = 0.0
+
+    def step(self, m: Measurement) -> float:
+        self.duty = min(max(self.duty + self.gain * (m.reference - m.output_voltage), 0.0), 1.0)
+        return self.duty
+
+    def describe(self):
+        return {"type": "integrator", "name": self.name, "gain": self.gain}
+
+
+class Broken:
+    name = "broken"
+'''
+
+
+@pytest.mark.parametrize("form", ["path", "module"])
+def test_run_takes_a_python_controller_by_file_or_module(tmp_path, form, capsys, monkeypatch):
+    (tmp_path / "mine.py").write_text(INTEGRATOR)
+    monkeypatch.chdir(tmp_path)
+    spec = "mine.py:Integrator" if form == "path" else "mine:Integrator"
+    assert main(["--no-progress", "run", "startup", "--controller", spec, "--controller", "pi", "--kp", "0.0017",
+                 "--ki", "15.6", "--out", "out", "--no-figures"]) == 0
+    out = capsys.readouterr().out
+    assert "integrator" in out and "PI" in out
+    meta = json.loads((tmp_path / "out" / "runs" / "startup__integrator__nominal-averaged__1ms.json").read_text())
+    assert meta["controller"] == {"type": "integrator", "name": "integrator", "gain": 0.005}
+    assert meta["complete"] is True
+
+
+@pytest.mark.parametrize("spec,message", [
+    ("missing.py:Integrator", "--controller missing.py:Integrator: missing.py does not exist"),
+    ("mine.py:Integrater", "mine.py has no 'Integrater' (did you mean 'Integrator'?)"),
+    ("mine.py:Broken", "the controller lacks sample_period, duty_limits, reset, step, describe"),
+    ("nosuchmodule:Thing", "no module named 'nosuchmodule'"),
+    ("PI", "--controller PI is unknown (did you mean 'pi'?): expected one of pi, nnpc"),
+])
+def test_controller_mistakes_are_one_line_errors_with_the_valid_names(tmp_path, spec, message):
+    from conftest import cli, one_line_error
+
+    (tmp_path / "mine.py").write_text(INTEGRATOR)
+    one_line_error(cli("run", "startup", "--controller", spec, "--out", "out", cwd=tmp_path), 2, message)
+    assert not (tmp_path / "out" / "runs").exists()
+
+
+# ------------------------------------------------------------------ 7. the command line says what the docs say
+
+
+def test_export_controller_offers_only_what_it_can_export(capsys):
+    with pytest.raises(SystemExit):
+        main(["export-controller", "--help"])
+    text = capsys.readouterr().out
+    assert "nnpc-explicit" in text and "nnpc-adaptive" not in text
+
+
+def test_scenarios_lists_parameter_events_with_their_values(capsys):
+    assert main(["scenarios"]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if "capacitor_ageing" in line)
+    assert "6.75 ms: capacitance=7.7e-06, inductor_resistance=0.16875" in line and ": ," not in line
+
+
+def test_gains_for_a_controller_that_takes_none_are_refused(tmp_path):
+    from conftest import cli, one_line_error
+
+    one_line_error(cli("run", "startup", "--controller", "mpc-nominal", "--kp", "0.001", "--ki", "15", "--out", "o",
+                       cwd=tmp_path), 2, "--kp and --ki set the PI's gains, but no --controller pi is run")
+
+
+def test_binding_mistakes_suggest_the_close_name(buck_fmu, tmp_path):
+    from conftest import cli, one_line_error
+
+    from cosim.fmi.binding_file import write_draft_binding
+
+    toml = write_draft_binding(buck_fmu, tmp_path / "plant.toml")
+    toml.write_text(toml.read_text().replace('variable = "output_voltage"', 'variable = "output_volage"')
+                    .replace("# inductance = 220e-6", "inductanse = 330e-6"))
+    one_line_error(cli("run", "startup", "--plant", str(toml), "--kp", "0", "--ki", "14", cwd=tmp_path), 2,
+                   "names variable 'output_volage', which BuckConverter")
+    one_line_error(cli("run", "startup", "--plant", str(toml), "--kp", "0", "--ki", "14", cwd=tmp_path), 2,
+                   "does not have (did you mean 'output_voltage'")
+    toml.write_text(toml.read_text().replace('variable = "output_volage"', 'variable = "output_voltage"'))
+    one_line_error(cli("run", "startup", "--plant", str(toml), "--kp", "0", "--ki", "14", cwd=tmp_path), 2,
+                   "(did you mean 'inductance'?)")
+
+
+def test_a_controller_fmu_runs_under_its_documented_name_and_exports_leave_no_empty_folders(tmp_path):
+    from conftest import cli
+
+    done = cli("export-controller", "pi", "--kp", "0.0017", "--ki", "15.6", "--out", "my_pi.fmu", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert not (tmp_path / "results").exists()  # nothing designed, so no cache folder
+    done = cli("run", "startup", "--controller", "my_pi.fmu", "--out", "out", "--no-figures", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "my_pi (FMU)" in done.stdout
+    meta = json.loads((tmp_path / "out" / "runs" / "startup__my-pi-fmu__nominal-averaged__1ms.json").read_text())
+    assert meta["controller"]["name"] == "my_pi (FMU)"
+    done = cli("export-ssp", "startup", "--controller", "my_pi.fmu", "--out", "loop.ssp", cwd=tmp_path)
+    assert done.returncode == 0 and not (tmp_path / "results").exists(), done.stderr
+
+
+# ------------------------------------------------------------------ 9. exports
+
+
+def test_run_files_carry_units_descriptions_parameters_and_pandas_attrs(open_loop_switched, tmp_path):
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    from cosim.results import read_run, write_run
+
+    paths = write_run(open_loop_switched, tmp_path, "run")
+    frame = pd.read_parquet(paths["parquet"])
+    assert frame.attrs == json.loads(paths["json"].read_text())  # the run metadata, via plain pandas
+    assert frame.attrs["plant"]["parameter_values"]["switching_frequency"] == 75e3
+    assert frame.attrs["plant"]["parameter_values"]["pwm_carrier"] == 0
+    assert frame.attrs["plant"]["parameter_values"]["plant_mode"] == 1
+    assert frame.attrs["units"]["measured_output_voltage"] == "V"
+    assert frame.attrs["descriptions"]["measured_output_voltage"] == "output voltage, what the controller's sensor reads"
+    assert all(" " not in unit for unit in frame.attrs["units"].values())
+    schema = pq.read_schema(paths["parquet"])
+    assert schema.field("measured_output_voltage").metadata == {
+        b"unit": b"V", b"description": b"output voltage, what the controller's sensor reads"}
+    assert b"buck_cosim" in schema.metadata  # the workbench's own key stays
+    assert read_run(paths["parquet"]).metadata == frame.attrs
+
+
+# ------------------------------------------------------------------ plot and compare
+
+
+def test_plot_and_compare_overlay_runs_from_different_folders_and_formats(tmp_path, open_loop_switched, capsys):
+    import pandas as pd
+
+    from cosim import builtin_binding, load_scenario, simulate, write_run
+    from cosim.metrics import run_metrics
+
+    # a CSV run from one folder (run --no-figures), a Parquet run from another, a Python controller's run
+    assert main(["--no-progress", "run", "startup", "--kp", "0.0017", "--ki", "15.6", "--out", str(tmp_path / "a"),
+                 "--no-figures"]) == 0
+    assert main(["--no-progress", "run", "startup", "--kp", "0.0008", "--ki", "8", "--out", str(tmp_path / "b"),
+                 "--no-figures"]) == 0
+    own = simulate(builtin_binding("averaged"), FixedDuty(), load_scenario("startup"))
+    write_run(own, tmp_path / "mine", "startup__fixed")
+    runs = [str(tmp_path / "a" / "runs" / "startup__pi__nominal-averaged__1ms.csv"),
+            str(tmp_path / "b" / "runs" / "startup__pi__nominal-averaged__1ms.parquet"),
+            str(tmp_path / "mine" / "startup__fixed.parquet")]
+    capsys.readouterr()
+    assert main(["plot", *runs, "--out", str(tmp_path / "fig.png")]) == 0
+    assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "fig.svg").is_file()
+    assert main(["compare", *runs, "--out", str(tmp_path / "cmp")]) == 0
+    printed = capsys.readouterr().out
+    table = pd.read_csv(tmp_path / "cmp" / "compare.csv")
+    assert list(table["run"]) == ["PI (a)", "PI (b)", "D = 0.25"] and "PI (b)" in printed
+    svg = (tmp_path / "cmp" / "compare.svg").read_text()
+    assert "PI (a)" in svg and "PI (b)" in svg and "D = 0.25" in svg
+    for k, path in enumerate(runs):
+        from cosim.results import read_run
+
+        expected = run_metrics(read_run(Path(path)))
+        assert table.loc[k, "overshoot_pct"] == pytest.approx(expected["overshoot_pct"])
+        assert table.loc[k, "iae_Vs"] == pytest.approx(expected["iae_Vs"])
+    assert table.loc[0, "overshoot_pct"] != table.loc[1, "overshoot_pct"]  # two different PIs
+
+
+@pytest.mark.parametrize("make,message", [
+    (None, "run file nothere.parquet does not exist"),
+    ("csv", "has no x.json beside it"),
+    ("folder", "is a folder: expected a run's .parquet or .csv"),
+])
+def test_plot_mistakes_are_one_line_errors(tmp_path, make, message):
+    from conftest import cli, one_line_error
+
+    name = {"csv": "x.csv", "folder": "runs", None: "nothere.parquet"}[make]
+    if make == "csv":
+        (tmp_path / "x.csv").write_text("time,output_voltage\n0,1\n")
+    elif make == "folder":
+        (tmp_path / "runs").mkdir()
+    one_line_error(cli("plot", name, "--out", "fig", cwd=tmp_path), 2, message)

@@ -42,9 +42,9 @@ def did_you_mean(name: str, candidates, hint_all: int = 0) -> str:
 
     candidates = list(dict.fromkeys(str(c) for c in candidates))
     lowered = {c.lower(): c for c in candidates}
-    close = difflib.get_close_matches(str(name).lower(), list(lowered), n=2, cutoff=0.6)
+    close = difflib.get_close_matches(str(name).lower(), list(lowered), n=1, cutoff=0.6)
     if close:
-        return " (did you mean " + " or ".join(repr(lowered[c]) for c in close) + "?)"
+        return f" (did you mean {lowered[close[0]]!r}?)"
     if candidates and len(candidates) <= hint_all:
         return f" (expected one of {', '.join(candidates)})"
     return ""

@@ -303,6 +303,15 @@ def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
     return guesses
 
 
+def unitless_guesses(fmu_path: str | Path) -> list[str]:
+    """The draft's guessed roles whose variables declare no unit (``"D (duty_cycle)"``) and whose name
+    gives no hint either: their scale is a guess of 1 a user must check."""
+    md = check_fmu(fmu_path).model_description
+    variables = {v.name: v for v in md.modelVariables}
+    return [f"{name} ({role})" for role, (name, scale, _) in guess_roles(md).items()
+            if not _unit_of(variables[name]) and scale == 1.0]
+
+
 def draft_binding_text(fmu_path: Path, binding_path: Path) -> str:
     checked = check_fmu(fmu_path)
     md = checked.model_description
