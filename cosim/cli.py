@@ -326,7 +326,8 @@ def cmd_export_ssp(args) -> int:
             from cosim.fmi.controller import controller_binding
 
             if Path(args.controller).suffix.lower() != ".fmu":
-                raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(EXPORTABLE_CONTROLLERS)} or a "
+                raise ConfigError(f"--controller {args.controller} is invalid: expected "
+                                  f"{', '.join(EXPORTABLE_CONTROLLERS)} or a "
                                   "controller FMU (.fmu) with the workbench's role names")
             from cosim.fmi.archive import check_fmu
             from cosim.ssp.package import controller_sample_period
@@ -381,9 +382,9 @@ def cmd_inspect(args) -> int:
             raise ConfigError(f"--draft-binding drafts a binding for an FMU; {args.fmu} is a binding already")
         binding = load_binding(args.fmu)  # every check, and a warning line if units contradict roles
         print(describe_fmu(binding.fmu_path))
-        print(f"\nbinding {args.fmu}: " + ", ".join(f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
-                                                    + (f" + {m.offset:g}" if m.offset else "")
-                                                    for role, m in binding.roles.items()))
+        roles = [f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
+                 + (f" + {m.offset:g}" if m.offset else "") for role, m in binding.roles.items()]
+        print(f"\nbinding {args.fmu}: {', '.join(roles)}")
         return 0
     print(describe_fmu(args.fmu))
     if args.draft_binding:
@@ -929,8 +930,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "'buck-cosim run-ssp', fmpy or libcosim.")
     p.add_argument("scenario", metavar="SCENARIO", help="shipped scenario name or path to a scenario TOML file")
     p.add_argument("--controller", required=True, metavar="NAME|FMU",
-                   help=f"{', '.join(EXPORTABLE_CONTROLLERS)} (exported as with export-controller) or a controller FMU with the "
-                        "workbench's role names")
+                   help=f"{', '.join(EXPORTABLE_CONTROLLERS)} (exported as with export-controller) or a controller FMU "
+                        "with the workbench's role names")
     p.add_argument("--control-period", type=parse_period, default=None, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3; a controller FMU's own period)")
     p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",

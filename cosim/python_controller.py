@@ -116,8 +116,8 @@ def check_controller(controller, spec: str) -> None:
     try:
         check_duty_limits(tuple(controller.duty_limits), f"--controller {spec}")
     except (TypeError, ValueError) as error:
-        raise ConfigError(str(error) if isinstance(error, ValueError) else
-                          f"--controller {spec}: duty_limits = {controller.duty_limits!r}: expected (min, max)") from None
+        raise ConfigError(str(error) if isinstance(error, ValueError) else f"--controller {spec}: duty_limits = "
+                          f"{controller.duty_limits!r}: expected (min, max)") from None
     for method in ("reset", "step", "describe"):
         if not callable(getattr(controller, method)):
             raise ConfigError(f"--controller {spec}: {method} is not a method")

@@ -506,7 +506,8 @@ def test_run_files_carry_units_descriptions_parameters_and_pandas_attrs(open_loo
     assert frame.attrs["plant"]["parameter_values"]["pwm_carrier"] == 0
     assert frame.attrs["plant"]["parameter_values"]["plant_mode"] == 1
     assert frame.attrs["units"]["measured_output_voltage"] == "V"
-    assert frame.attrs["descriptions"]["measured_output_voltage"] == "output voltage, what the controller's sensor reads"
+    described = frame.attrs["descriptions"]["measured_output_voltage"]
+    assert described == "output voltage, what the controller's sensor reads"
     assert all(" " not in unit for unit in frame.attrs["units"].values())
     schema = pq.read_schema(paths["parquet"])
     assert schema.field("measured_output_voltage").metadata == {
@@ -566,3 +567,10 @@ def test_plot_mistakes_are_one_line_errors(tmp_path, make, message):
     elif make == "folder":
         (tmp_path / "runs").mkdir()
     one_line_error(cli("plot", name, "--out", "fig", cwd=tmp_path), 2, message)
+
+
+def test_the_run_figure_is_public_api(open_loop_switched, tmp_path):
+    import cosim
+
+    files = cosim.plot_scenario([open_loop_switched], tmp_path / "mine")
+    assert [f.name for f in files] == ["mine.png", "mine.svg"] and files[0].read_bytes()[:4] == b"\x89PNG"

@@ -219,8 +219,8 @@ def unit_problems(binding: PlantBinding, model_description) -> list[str]:
         if unit in UNIT_SCALES[quantity]:
             needed = UNIT_SCALES[quantity][unit]
             if not math.isclose(mapping.scale, needed, rel_tol=1e-9):
-                problems.append(f"{role} is {mapping.variable!r} in {unit} with scale = {mapping.scale:g} (a {quantity} "
-                                f"in {unit} needs scale = {needed:g})")
+                problems.append(f"{role} is {mapping.variable!r} in {unit} with scale = {mapping.scale:g} "
+                                f"(a {quantity} in {unit} needs scale = {needed:g})")
         else:
             other = next((q for q, units in UNIT_SCALES.items() if unit in units and q != quantity), None)
             if other is not None:

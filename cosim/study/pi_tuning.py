@@ -42,6 +42,9 @@ METHOD = (
     "<= 5 % and |steady-state error| <= 0.5 % (quadratic penalties); grid over a = Kp*Vs, b = Ki*Ts*Vs, "
     "then Nelder-Mead"
 )
+#: the recording step the reproduction tunes with [s] (half the resolution of a run's default: twice as fast, the
+#: same gains within the search's tolerance); part of the design key, so every reader of its tuning uses it
+REPRODUCTION_RECORD_PERIOD = 2e-5
 #: tuning runs are shortened versions of the paper scenarios: long enough to settle at either rate
 TUNING_DURATION = 0.02  # [s]
 TUNING_SETTLE = 0.015  # [s]

@@ -65,7 +65,7 @@ from cosim.study.identification import (
     network_design,
     write_identification_figure,
 )
-from cosim.study.pi_tuning import load_or_tune
+from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
 from cosim.study.timings import write_timings
@@ -223,7 +223,7 @@ def log(message: str) -> None:
 
 def _tuned(pipeline: Pipeline, out_dir: Path, profile: Profile):
     return load_or_tune(pi_file(out_dir, pipeline.plant_tag, pipeline.control_period), pipeline.binding(),
-                        pipeline.control_period, record_period=2e-5, quick=profile.quick)
+                        pipeline.control_period, record_period=REPRODUCTION_RECORD_PERIOD, quick=profile.quick)
 
 
 def _tune_job(job) -> tuple[str, float]:
@@ -240,8 +240,14 @@ def _recipe(profile: Profile) -> Recipe:
 
 
 def _model_summary(model, config) -> dict:
-    """A model's entry in ``pipelines/<key>.json``: its metadata, the design named by its key only."""
+    """A model's entry in ``pipelines/<key>.json``: its metadata, the design named by its key only, without
+    the learning curves (they are in the model file and its identification figure)."""
     meta = {k: v for k, v in model.metadata.items() if k != "design"}
+    if "training" in meta:
+        training = {k: v for k, v in meta["training"].items() if k != "history"}
+        if isinstance(training.get("multi_step"), dict):
+            training["multi_step"] = {k: v for k, v in training["multi_step"].items() if k != "history"}
+        meta["training"] = training
     return {"architecture": config.label, "multiply_accumulates": multiply_accumulates(config), **meta,
             "design_key": (model.metadata.get("design") or {}).get("key")}
 
