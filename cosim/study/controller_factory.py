@@ -15,7 +15,7 @@ from cosim.base.errors import ConfigError, ModelFileError
 from cosim.base.labels import did_you_mean, period_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.design_cache import announce, design_key, model_file, pi_file, stale_reason
+from cosim.study.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
 from cosim.study.experiments import adaptive_nnpc, collection_settings, explicit_nnpc, model_mpc, nn_configs, nnpc
 from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
 from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
@@ -26,7 +26,6 @@ from cosim.study.vocabulary import (
     NETWORKS,
     NNPC_EXPLICIT,
     NOMINAL,
-    pipeline_tag,
 )
 from plant_fmu.table_ii import TABLE_II
 
@@ -45,7 +44,7 @@ def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool
 
 def announced_tuning(binding: PlantBinding, period: float, path: Path | None, progress: bool = False) -> PITuning:
     """:func:`cosim.study.pi_tuning.tune_pi`, told on stderr: what it does and at most how many
-    simulations, an estimate of its duration after the first evaluation, and the result with the
+    simulations, an estimate of its duration after the second evaluation, and the result with the
     time it took; saved to ``path`` (if given)."""
     import time
 
@@ -121,11 +120,6 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
         f"{rmse.get('one_step_rmse_current_A', math.nan) * 1e3:.2f} mA; data {data_path}, model {path} "
         f"(identification figure {figure.name}), design key {wanted.key}")
     return model
-
-
-def data_file(out_dir: Path, plant_tag: str, period: float) -> Path:
-    """The PI data an on-demand identification collected: ``data/<tag>__<period>.parquet``."""
-    return Path(out_dir) / "data" / f"{pipeline_tag(plant_tag, period)}.parquet"
 
 
 def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, out_dir: Path, *, seed: int,

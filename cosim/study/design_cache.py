@@ -135,6 +135,11 @@ def pi_file(out_dir: Path, plant_tag: str, control_period: float) -> Path:
     return Path(out_dir) / "tuning" / f"pi__{pipeline_tag(plant_tag, control_period)}.json"
 
 
+def data_file(out_dir: Path, plant_tag: str, control_period: float) -> Path:
+    """The PI data a network of a plant tag and rate is identified from: ``data/<tag>__<period>.parquet``."""
+    return Path(out_dir) / "data" / f"{pipeline_tag(plant_tag, control_period)}.parquet"
+
+
 def model_file(out_dir: Path, plant_tag: str, control_period: float, name: str) -> Path:
     """An identified network (``name``: nnpc, nnpc-paper) or distilled policy (nnpc-explicit):
     ``models/<tag>__<period>__<name>.pt``."""

@@ -56,7 +56,7 @@ from cosim.study.experiments import (
     scenarios_for,
     small_network,
 )
-from cosim.study.design_cache import model_file, pi_file
+from cosim.study.design_cache import data_file, model_file, pi_file
 from cosim.study.identification import (
     ONE_STEP,
     Recipe,
@@ -305,7 +305,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     timings["identification_nnpc_s"] = time.perf_counter() - start
     data = identified.data
     data.attrs["metadata"]["seed"] = seed
-    save_samples(data, out_dir / "data" / f"{tag}.parquet")
+    save_samples(data, data_file(out_dir, pipeline.plant_tag, period))
     models = {"nnpc": identified.model}
     start = time.perf_counter()
     models["nnpc-paper"] = train(data, configs["nnpc-paper"], _paper_training(seed),
