@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
-from cosim.base.digests import canonical, digest  # noqa: F401  (canonical: re-exported for cosim.benchmarks)
+from cosim.base.digests import digest
 from cosim.fmi.binding import PlantBinding, RoleMap
 
 
