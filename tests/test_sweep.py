@@ -556,17 +556,56 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     no_temporary_files(out)
 
 
+def test_a_hanging_run_and_a_run_out_of_memory_are_rows_and_the_rest_complete(tmp_path, faulty_fmu, capsys):
+    """Isolated plants with limits: a doStep that never returns is stopped at the binding's step_timeout, a
+    plant process that allocates without bound at its memory_limit; each is one failed row naming the FMU,
+    the time and the limit, and the other runs (a fault time after the run's end: no fault), in the same
+    batches, complete (exit 3)."""
+    (tmp_path / "faulty.toml").write_text("step_timeout = 2.0\nmemory_limit = 600\n" + faulty_binding(faulty_fmu))
+    (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, """\
+        scenarios = ["short.toml"]
+        record_period = 1e-4
+        batch_size = 3
+        controllers = [{ kind = "pi", kp = 0.0, ki = 14.0 }]
+        [plant]
+        binding = "faulty.toml"
+        [parameters]
+        fault_kind = { values = [5, 0, 6] }
+        fault_time = { values = [0.0103, 1.0] }
+        """)
+    out = tmp_path / "out"
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--workers", "2"])
+    ends_in_one_line_error(capsys, code, 3, "2 of 6 runs failed")
+    rows = dataset.read_rows(out).set_index(["fault_kind", "fault_time"]).sort_index()
+    failed = rows[rows["status"] == "failed"]
+    assert list(failed.index) == [(5, 0.0103), (6, 0.0103)]
+    hang, hoard = failed["error"]
+    assert (f"the FMU {faulty_fmu.name} did not finish stepping from t = 0.0103 s to 0.0104 s within the step time "
+            "limit of 2 s (step_timeout); its process was stopped") in hang
+    assert f"the FMU {faulty_fmu.name}'s process used " in hoard and "above the memory limit of 600 MB" in hoard
+    complete = rows[rows["status"] == "ok"]
+    assert len(complete) == 4 and complete["steady_state_error_pct"].abs().max() < 0.5
+    no_temporary_files(out)
+
+
 def _plant_kind(recipe, queue) -> None:
+    from controllers.pi import PIController
+    from cosim.master import run
+    from cosim.scenarios import parse_scenario
     from cosim.study.sweeps.worker import _plant
 
-    plant, _ = _plant(recipe)
-    queue.put(type(plant).__name__)
+    plant, binding = _plant(recipe)
+    scenario = parse_scenario('name = "s"\nduration = 0.002\n[initial]\nreference = 12.0\n')
+    metadata = run(plant, PIController(0.0, 14.0, 1e-3), scenario).metadata
+    queue.put((type(plant).__name__, binding.isolate, metadata["plant"]["isolated"]))
     plant.close()
 
 
 def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty_fmu):
     """dask's default workers are daemonic and cannot start the isolated plant's process: there the
-    plant runs in the worker (the workbench's own LocalCluster is non-daemonic and keeps isolation)."""
+    plant runs in the worker (the workbench's own LocalCluster is non-daemonic and keeps isolation), and
+    the run's metadata says so: "isolated" states what was run, not what the binding asked for."""
     import multiprocessing
 
     from cosim.fmi.binding_file import load_binding
@@ -582,7 +621,8 @@ def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty
         process.start()
         kinds[daemon] = queue.get(timeout=60)
         process.join(timeout=60)
-    assert kinds == {True: "CoSimulationPlant", False: "IsolatedPlant"}  # in the worker process, or its own
+    assert kinds == {True: ("CoSimulationPlant", False, False),  # in the worker process, and said so
+                     False: ("IsolatedPlant", True, True)}  # in its own
 
 
 # ------------------------------------------------------------------------------------------ controller FMUs

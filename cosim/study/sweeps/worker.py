@@ -2,7 +2,7 @@
 
 The fmpy ``parameter_variation`` pattern: the FMU is instantiated once per worker thread and
 reset between runs (``cosim.master.run`` re-initialises it with the run's parameters, set by
-:meth:`~cosim.fmi.plant.FmuPlant.replace_parameters`), never reloaded per run. Plants and controllers
+:meth:`~cosim.fmi.plant_fmi2.FmuPlant.replace_parameters`), never reloaded per run. Plants and controllers
 are kept per thread across tasks, so a worker pays for extracting the FMU, loading the model and
 building the C twins once. An FMU that reported ``fmi2Fatal`` is dropped and a fresh instance
 serves the next run.
@@ -18,9 +18,7 @@ from __future__ import annotations
 import atexit
 import math
 import os
-import shutil
 import socket
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -32,6 +30,7 @@ from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, run_metrics
 from cosim.scenarios import Scenario
 from cosim.study.sweeps.designs import build
 from cosim.study.sweeps.plan import PlannedRun, at_operating_point
+from cosim.study.sweeps.process_files import process_file
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
 
 OK, FAILED = "ok", "failed"
@@ -55,34 +54,7 @@ class BatchResult:
 # ---------------------------------------------------------------------------------------------
 # per-process files and per-thread instances
 
-_files_lock = threading.Lock()
-_files: dict[str, Path] = {}
-_folder: Path | None = None
 _local = threading.local()
-
-
-def _process_folder() -> Path:
-    global _folder
-    if _folder is None or not _folder.is_dir():
-        _folder = Path(tempfile.mkdtemp(prefix=f"buck-cosim-worker-{os.getpid()}-"))
-        atexit.register(shutil.rmtree, _folder, True)
-    return _folder
-
-
-def process_file(name: str, blob: bytes, key: str) -> Path:
-    """This process's copy of a file that travelled as bytes (``key``: their SHA-256), written once
-    per digest into the process's private folder (removed at exit) under its own ``name``."""
-    with _files_lock:
-        path = _files.get(key)
-        if path is None or not path.is_file():
-            folder = _process_folder() / key[:16]
-            folder.mkdir(exist_ok=True)
-            path = folder / name
-            tmp = folder / f".{name}.tmp"
-            tmp.write_bytes(blob)
-            os.replace(tmp, path)
-            _files[key] = path
-        return path
 
 
 def fmu_file(recipe: PlantRecipe) -> Path:
@@ -121,8 +93,9 @@ def _plant(recipe: PlantRecipe):
     if entry is None or entry[0].fatal:
         if entry is not None:
             entry[0].close()  # abandoned, not freed, as FMI 2.0 demands after fmi2Fatal
-        binding = recipe.binding(fmu_file(recipe))
-        entry = cache[_plant_key(recipe)] = _OpenPlant(open_plant(binding), binding)
+        plant = open_plant(recipe.binding(fmu_file(recipe)))
+        # the plant's binding says what runs: in a daemonic worker an isolated binding is stepped in process
+        entry = cache[_plant_key(recipe)] = _OpenPlant(plant, plant.binding)
     return entry
 
 
