@@ -765,3 +765,37 @@ print(json.dumps({{'vo': float(vo), 'il': float(il)}}))
     rel, current_abs = (1e-9, 0.0) if interface == "cs" else (1e-4, 1e-10)
     assert result["vo"] == pytest.approx(expected, rel=rel)
     assert result["il"] == pytest.approx(expected / 200.0, rel=rel, abs=current_abs)
+
+
+# ------------------------------------------------------------------------------------------ start time
+
+
+@pytest.mark.parametrize("start_periods", [-75.9, -1.9, -0.9, 0.0, 0.1, 75.1])  # the phase 0.1 is inside the on-time
+def test_the_switched_plant_runs_the_same_from_any_start_time(raw_slave_factory, buck_fmu, start_periods):
+    """The PWM latches its duty for the period containing the start time, whatever its sign: the switched
+    plant is time-invariant, so a start at any phase of any period (negative, zero, positive) gives the run
+    that starts at the same phase of period 0, shifted by whole periods. (The "no period latched yet" marker
+    was once -1, also the index of the period [-Ts, 0): a start inside it ran that period at duty 0.)
+    Co-simulation to rounding, model exchange (CVode) against co-simulation to its tolerance."""
+    t0 = start_periods * TS
+    phase = start_periods - np.floor(start_periods)
+    values = {"plant_mode": SWITCHED, "duty_cycle": 0.25, "load_resistance": R}
+    reference = raw_slave_factory(values, start_time=phase * TS)
+    shifted = raw_slave_factory(values, start_time=t0)
+    assert shifted.get("applied_duty_cycle")[0] == 0.25
+    for k in range(1, 31):
+        reference.step_to((phase + k / 4) * TS)
+        shifted.step_to(t0 + k * TS / 4)
+        np.testing.assert_allclose(shifted.get("inductor_current", "output_voltage"),
+                                   reference.get("inductor_current", "output_voltage"), rtol=1e-6, atol=1e-9,
+                                   err_msg=f"{k / 4} periods after the start")
+    signals = np.array([(t0, 0.25, VS, R), (t0 + 30 * TS, 0.25, VS, R)],
+                       dtype=[("time", float), ("duty_cycle", float), ("input_voltage", float),
+                              ("load_resistance", float)])
+    me = fmpy.simulate_fmu(str(buck_fmu), fmi_type="ModelExchange", start_time=t0, stop_time=t0 + 30 * TS,
+                           output_interval=TS, relative_tolerance=1e-9, start_values={"plant_mode": SWITCHED},
+                           input=signals, output=["inductor_current", "output_voltage"], record_events=False)
+    cs = raw_slave_factory(values, start_time=t0)
+    cs.step_to(t0 + 30 * TS)
+    np.testing.assert_allclose([me["inductor_current"][-1], me["output_voltage"][-1]],
+                               cs.get("inductor_current", "output_voltage"), rtol=1e-5)

@@ -22,7 +22,7 @@ const FmuModelInfo FMU_MODEL = {
     BUCK_STATES,
     2,
     0x4255434bu, /* "BUCK" */
-    4u,          /* snapshot version: the data block of the shared glue */
+    5u,          /* snapshot version: the data block of the shared glue (5: pwm_latched) */
 };
 
 void model_set_defaults(void *data) {

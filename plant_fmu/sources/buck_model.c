@@ -42,7 +42,8 @@ void buck_set_defaults(BuckModel *m) {
     m->u.input_voltage = 48.0;
     m->u.load_resistance = 6.0;
     m->conduction = CONDUCTION_CONTINUOUS;
-    m->pwm_period = -1;
+    m->pwm_period = 0;
+    m->pwm_latched = false;
 }
 
 typedef struct {
@@ -134,7 +135,7 @@ void buck_set_load_resistance(BuckModel *m, double resistance) {
 }
 
 double buck_applied_duty(const BuckModel *m) {
-    if (m->p.plant_mode == MODE_SWITCHED && m->pwm_period >= 0) return m->pwm_duty;
+    if (m->p.plant_mode == MODE_SWITCHED && m->pwm_latched) return m->pwm_duty;
     return m->u.duty_cycle;
 }
 
@@ -673,7 +674,8 @@ static long long period_index(const BuckModel *m, double t) {
 static void latch_period(BuckModel *m, double t) {
     long long k = period_index(m, t);
     int at_period_start = fabs(t * m->p.switching_frequency - (double)k) < PHASE_TOLERANCE;
-    if (k != m->pwm_period || at_period_start) {
+    if (!m->pwm_latched || k != m->pwm_period || at_period_start) {
+        m->pwm_latched = true;
         m->pwm_period = k;
         m->pwm_duty = m->u.duty_cycle;
     }
@@ -724,7 +726,8 @@ static Topology current_topology(const BuckModel *m) {
 
 void buck_start(BuckModel *m, double t) {
     m->time = t;
-    m->pwm_period = -1;
+    m->pwm_period = 0;
+    m->pwm_latched = false;
     m->dcm_step = 0.0;
     m->period_charge = 0.0;
     m->period_flux = 0.0;

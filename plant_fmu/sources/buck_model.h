@@ -55,7 +55,8 @@ typedef struct {
     Conduction conduction;
     /* switched mode: PWM bookkeeping. The duty is latched at the start of each carrier period,
      * like the shadow register of a microcontroller PWM unit. */
-    long long pwm_period;     /* index of the period whose duty is latched, -1 before the first */
+    long long pwm_period;     /* index of the period whose duty is latched (any sign: a run may start before 0) */
+    bool pwm_latched;         /* a duty has been latched since the start (pwm_period is valid) */
     double pwm_duty;          /* duty latched for pwm_period */
     bool switch_on;           /* model exchange: switch state of the current interval */
     double dcm_step;          /* last accepted step of the DCM (v_C) integrator [s] */
