@@ -221,6 +221,20 @@ class AveragedModelPredictor:
 
 CARRIERS = ("sawtooth", "triangle")
 SENSOR_MODELS = ("period_average", "period_start")
+#: the largest condition number of the switched model's sensor map H it accepts: H^-1 rebuilds the state
+#: from a reading, so it multiplies rounding (1e-16) by up to this much. Over the operating envelope
+#: (4-100 Ohm, 36-60 V, 1 .. 75 PWM periods per control period) H stays below 1e2; at 1 ms and about
+#: 2 Ohm the natural response has decayed by e^-12 over the period, H tends to singular and K = F H^-1
+#: would be rounding noise (tests/test_predictive.py)
+MAX_SENSOR_CONDITION = 1e8
+
+
+def ill_conditioned(name: str, load: float, input_voltage: float, periods: int, condition: float) -> str:
+    """The line a switched model refuses a load with (the C twin raises the same)."""
+    return (f"{name}: at a load of {load:.6g} Ohm and {input_voltage:.6g} V the reading after {periods} PWM "
+            f"period(s) no longer tells the state the control period started from (sensor map condition number "
+            f"{condition:.3g} > {MAX_SENSOR_CONDITION:g}): this switched model cannot predict there; use a "
+            "shorter control period or the averaged model")
 
 
 def _compose(first: tuple[np.ndarray, np.ndarray], then: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -331,6 +345,9 @@ class SwitchedModelPredictor:
             seen = full
         to_y = measured_from_state(p, load)
         h_mat, h_vec = to_y @ seen[0], seen[1] @ to_y.T
+        condition = float(np.max(np.linalg.cond(h_mat)))
+        if not condition <= MAX_SENSOR_CONDITION:
+            raise ValueError(ill_conditioned(self.name, load, input_voltage, self.periods, condition))
         k_mat = full[0] @ np.linalg.inv(h_mat)
         k_vec = full[1] - np.einsum("dij,dj->di", k_mat, h_vec)
         values = np.concatenate([k_mat.reshape(size, 4), k_vec, h_mat.reshape(size, 4), h_vec], axis=1)

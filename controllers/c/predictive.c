@@ -531,6 +531,8 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         break;
     default:
         c->table = buckc_switched_cached(&config->predictor.switched, &c->switched_cache, load, input_voltage);
+        if (!(c->table->condition <= BUCKC_SWITCHED_MAX_CONDITION))
+            return BUCKC_ERR_ILL_CONDITIONED; /* SwitchedModelPredictor._table's refusal */
         break;
     }
     anchor = input_voltage > 0 ? m->reference / input_voltage : s->previous_duty;

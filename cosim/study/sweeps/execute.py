@@ -11,6 +11,10 @@
   every time is a ``failed`` row naming that cause. The sweep goes on either way.
 * Ctrl-C / SIGTERM: the pending tasks are cancelled and the caller closes the cluster; every part
   on disk is complete (atomic writes), and ``--resume`` runs exactly the runs without a row.
+* The scheduler goes away (its process ends, its machine or the network fails): dask cancels every
+  pending future ("scheduler-connection-lost"). That is no fault of the runs -- nothing is written
+  for them -- and the execution ends with :class:`~cosim.base.errors.ClusterLost` (exit 5): every
+  finished part is kept, and ``--resume`` against a new scheduler runs exactly the rest.
 
 :class:`SweepExecution` is the sweep as a set of futures, so the reproduction can run a tolerance
 study on the same client as its pipelines, mixed into one ``as_completed`` loop.
@@ -22,7 +26,7 @@ import sys
 import time
 from dataclasses import dataclass
 
-from cosim.base.errors import RunInterrupted
+from cosim.base.errors import ClusterLost, RunInterrupted
 from cosim.study.sweeps.dataset import write_part, write_timing, write_trace
 from cosim.study.sweeps.plan import BatchTask, batch_key
 from cosim.study.sweeps.worker import FAILED, BatchResult, RunSettings, run_batch, run_row, timing_row
@@ -88,9 +92,12 @@ class SweepExecution:
         return future.key in self._pending
 
     def handle(self, future) -> list:
-        """Write a finished future's part (or split a task that killed its worker); new futures to wait on."""
+        """Write a finished future's part (or split a task that killed its worker); new futures to wait on.
+        A future cancelled by dask, not by :meth:`cancel`, means the scheduler went away: :class:`SchedulerGone`."""
         from distributed.scheduler import KilledWorker
 
+        if future.status == "cancelled":  # only dask cancels a pending future: cancel() stops handling first
+            raise SchedulerGone(future.key)
         task, attempt = self._pending.pop(future.key)
         self._futures.pop(future.key, None)
         if future.status == "finished":
@@ -142,9 +149,20 @@ class SweepExecution:
             self._bar = None
 
 
-def execute(execution: SweepExecution, client, interrupted_message) -> ExecutionCounts:
+class SchedulerGone(Exception):
+    """dask cancelled a pending future: the client lost its scheduler (see the module docstring)."""
+
+
+def scheduler_lost(counts: ExecutionCounts) -> str:
+    """The default :class:`ClusterLost` message of :func:`execute`."""
+    return (f"the dask scheduler went away (the client lost its connection) after {counts.runs} run(s); what "
+            "finished is kept")
+
+
+def execute(execution: SweepExecution, client, interrupted_message, lost_message=scheduler_lost) -> ExecutionCounts:
     """Run ``execution`` to the end on ``client``. On Ctrl-C / SIGTERM: cancel, and raise
-    :class:`RunInterrupted` with ``interrupted_message(counts)``."""
+    :class:`RunInterrupted` with ``interrupted_message(counts)``; when the scheduler goes away, raise
+    :class:`ClusterLost` with ``lost_message(counts)``."""
     from distributed import as_completed
 
     futures = execution.submit(client)
@@ -156,6 +174,9 @@ def execute(execution: SweepExecution, client, interrupted_message) -> Execution
     except KeyboardInterrupt:
         execution.cancel()
         raise RunInterrupted(interrupted_message(execution.counts)) from None
+    except SchedulerGone:
+        execution.cancel()
+        raise ClusterLost(lost_message(execution.counts)) from None
     except BaseException:
         execution.cancel()
         raise
