@@ -1,8 +1,10 @@
 """The benchmark suite: speed claims measured as medians, p99 and same-run ratios.
 
-``buck-cosim bench`` writes ``results/benchmarks.md`` and ``results/benchmarks.csv``. Absolute
+``buck-cosim bench`` writes ``results/benchmarks.md`` and ``results/benchmarks.csv`` (``--out``). Absolute
 times drift on shared machines, so every comparison is a ratio measured within one run, with
 interleaved repetitions. ``--quick`` runs each benchmark once on a tiny size (the CI smoke test).
+The groups that time the reproduction's trained models read them from the ``models`` folder of the
+results folder written to (``--out``; ``--models`` names another), never from the working directory.
 """
 
 from __future__ import annotations
@@ -64,6 +66,11 @@ def machine_info() -> dict[str, str]:
             "python": platform.python_version()}
 
 
+#: where the reproduction's trained models are looked for (:func:`run_benchmarks` sets it: ``OUT/models``
+#: or ``--models``); a group finds none there and trains or distils its own
+_models_dir: Path = Path("results") / "models"
+
+
 def _p99(values) -> float:
     return float(np.percentile(values, 99))
 
@@ -120,12 +127,47 @@ def _time_do_steps(mode: int, step: float, count: int) -> np.ndarray:
     return times * 1e-9
 
 
+#: duties of the averaged DCM cost rows: from a 13 fs on-time up (d = 0: the closed-form RC discharge)
+DCM_DUTIES = (0.0, 1e-9, 1e-7, 1e-5, 1e-3, 0.1, 0.25)
+
+
+def _dcm_seconds_per_simulated_second(duty: float, steps: int) -> float:
+    """Wall seconds per simulated second of the averaged plant in DCM: 200 Ohm from vo = 47 V at ``duty``
+    (the issue-26 case: 1 ms steps at d = 1e-7 used to take minutes each), 1 ms doSteps through the C call."""
+    slave = _RawSlave({"plant_mode": 0, "duty_cycle": duty, "capacitor_voltage": 47.0, "load_resistance": 200.0})
+    do_step, component = slave.fmu.dll.fmi2DoStep, slave.fmu.component
+    try:
+        start = time.perf_counter()
+        for i in range(steps):
+            do_step(component, i * PAPER_PERIOD, PAPER_PERIOD, 1)
+        return (time.perf_counter() - start) / (steps * PAPER_PERIOD)
+    finally:
+        slave.close()
+
+
 def bench_plant(quick: bool) -> list[BenchRow]:
     n = 3 if quick else 400
     periods_per_ms = 75
     switched = _time_do_steps(1, PAPER_PERIOD, n) / periods_per_ms
     single = _time_do_steps(1, SWITCHING_PERIOD, n * 10)
     averaged = _time_do_steps(0, PAPER_PERIOD, n)
+    dcm_steps, repeats = (20, 1) if quick else (20_000, 5)  # 20 s of simulated time per repeat
+    dcm = {d: [] for d in DCM_DUTIES}
+    for _ in range(repeats):  # interleaved, so the machine's drift hits every duty alike
+        for d in DCM_DUTIES:
+            dcm[d].append(_dcm_seconds_per_simulated_second(d, dcm_steps))
+    dcm_median = {d: statistics.median(v) for d, v in dcm.items()}
+    pulsed = [dcm_median[d] for d in DCM_DUTIES if d > 0]
+    spread = max(pulsed) / min(pulsed)
+    dcm_rows = [BenchRow(f"plant doStep, averaged DCM at d = {d:g} (200 Ohm from vo = 47 V, 1 ms steps), per "
+                         "simulated second", dcm_median[d] * 1e3, max(dcm[d]) * 1e3, "ms",
+                         note="p99 column: the slowest repeat" + ("; d = 0: the diode blocks, closed-form RC "
+                                                                  "discharge" if d == 0 else ""))
+                for d in DCM_DUTIES]
+    dcm_rows.append(BenchRow("averaged DCM cost spread over d = 1e-9 .. 0.25: max / min per simulated second", spread,
+                             None, "ratio", "<= 3 (no dependence on d)", spread <= 3.0,
+                             "the DCM current is algebraic (reduced-order model): only vC is integrated, and nothing "
+                             "stiff is left; before, d = 1e-7 made one 1 ms step run for minutes"))
     return [
         BenchRow("plant doStep, switched mode, per simulated switching period (1 ms steps / 75)",
                  float(np.median(switched)) * 1e6, _p99(switched) * 1e6, "us",
@@ -135,6 +177,7 @@ def bench_plant(quick: bool) -> list[BenchRow]:
                  float(np.median(single)) * 1e6, _p99(single) * 1e6, "us"),
         BenchRow("plant doStep, averaged mode, per 1 ms step (incl. ctypes call)",
                  float(np.median(averaged)) * 1e6, _p99(averaged) * 1e6, "us"),
+        *dcm_rows,
     ]
 
 
@@ -224,7 +267,7 @@ def bench_master(quick: bool) -> list[BenchRow]:
 
 
 def _nn_model(name: str, period: float, quick: bool):
-    """The reproduction's model if results/ has it, else one trained here on fresh data."""
+    """The reproduction's model if the models folder has it (:data:`_models_dir`), else one trained here on fresh data."""
     from controllers.nn_model import TrainingSettings, load_model, train
     from cosim.base.errors import ModelFileError
     from cosim.study.data_collection import collect
@@ -232,7 +275,7 @@ def _nn_model(name: str, period: float, quick: bool):
     from cosim.study.vocabulary import pipeline_tag, plant_tag
 
     config = nn_configs(period)[name]
-    path = Path("results") / "models" / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
+    path = _models_dir / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
     if path.is_file() and not quick:
         try:
             return load_model(path, expect_period=period, expect_config=config), str(path)
@@ -554,7 +597,7 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
 
 
 def _explicit_policy(quick: bool):
-    """The reproduction's distilled policy if results/ has it, else one distilled here (small budget)."""
+    """The reproduction's distilled policy if the models folder has it, else one distilled here (small budget)."""
     from dataclasses import replace
 
     from controllers.explicit_policy import load_policy
@@ -563,7 +606,7 @@ def _explicit_policy(quick: bool):
     from cosim.study.experiments import plant_binding
     from cosim.study.vocabulary import pipeline_tag
 
-    path = Path("results") / "models" / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
+    path = _models_dir / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
     if path.is_file() and not quick:
         try:
             return load_policy(path, expect_period=SWITCHING_PERIOD), str(path)
@@ -851,6 +894,78 @@ def bench_sweep(quick: bool) -> list[BenchRow]:
     ]
 
 
+#: the soak: this many runs on 2 local workers (the issue-26 target: <= 50 MB of growth per worker and in the
+#: workbench's own process)
+SOAK_RUNS = 10_000
+#: a worker's memory is taken as settled after its first runs this many (FMU extracted, C twins loaded, caches warm)
+SOAK_WARM_RUNS = 100
+SOAK_GROWTH_TARGET_MB = 50.0
+
+
+def bench_soak(quick: bool) -> list[BenchRow]:
+    """A long sweep on 2 local workers, each worker's resident memory after each of its runs read from the
+    sweep's timing table (``worker_rss_mb``, ``worker_run``): growth from its run SOAK_WARM_RUNS to its last;
+    the workbench's own process measured before and after. PI at 1 ms, the shipped start-up on the averaged
+    plant, L +-20 % (a run costs ~20 ms; 10 000 runs take a few minutes)."""
+    import tempfile
+
+    from cosim.fmi.isolation import resident_bytes
+    from cosim.study.cluster import dask_client
+    from cosim.study.sweeps import dataset
+    from cosim.study.sweeps.execute import SweepExecution, execute
+    from cosim.study.sweeps.plan import SweepPlan
+    from cosim.study.sweeps.recipes import ControllerRecipe, canonical
+    from cosim.study.sweeps.spec import parse_sweep
+    from cosim.study.sweeps.worker import RunSettings, run_batch
+
+    runs_wanted = 2 * (SOAK_WARM_RUNS + 10) if quick else SOAK_RUNS
+    spec = parse_sweep(f'scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = {runs_wanted}\nseed = 2\n'
+                       'batch_size = 50\n[plant]\nmode = "averaged"\n[parameters]\n'
+                       'inductance = { tolerance = 0.2 }\n', None)
+    plan = SweepPlan(spec)
+    pi = _benchmark_pi(PAPER_PERIOD)
+    recipes = [ControllerRecipe("pi", PI, PAPER_PERIOD, canonical({"kp_per_V": pi.kp, "ki_per_V_s": pi.ki,
+                                                                    "tuning": {"method": "benchmark gains"}}))]
+    runs = plan.runs(recipes)
+    settings = RunSettings(1e-4, "c", False)
+    controllers = {r.name: r for r in recipes}
+    tasks = plan.batches(runs)
+    schema = dataset.row_schema([(i.axis.name, i.unit, i.integer) for i in plan.axes])
+    with tempfile.TemporaryDirectory(prefix="buck-bench-soak-") as folder, dask_client(workers=2) as client:
+        client.wait_for_workers(2, timeout=120)
+        warm = [client.submit(run_batch, plan.plant, controllers[t.controller], plan.scenarios[t.scenario],
+                              t.runs[:1], settings, workers=[address], pure=False)
+                for address in client.scheduler_info()["workers"] for t in tasks[:1]]
+        client.gather(warm)
+        own_before = resident_bytes(os.getpid())
+        execution = SweepExecution(tasks, plan.plant, controllers, plan.scenarios, settings, schema, Path(folder))
+        start = time.perf_counter()
+        execute(execution, client, lambda counts: "interrupted")
+        elapsed = time.perf_counter() - start
+        own_after = resident_bytes(os.getpid())
+        timing = dataset.read_timing(Path(folder))
+    growth, last = {}, {}
+    for worker, rows in timing.groupby("worker"):
+        rows = rows.sort_values("worker_run")
+        settled = rows[rows["worker_run"] >= SOAK_WARM_RUNS]
+        growth[worker] = float(settled["worker_rss_mb"].iloc[-1] - settled["worker_rss_mb"].iloc[0])
+        last[worker] = float(rows["worker_rss_mb"].iloc[-1])
+    worst = max(growth.values())
+    own = (own_after - own_before) / 1e6 if own_before and own_after else math.nan
+    label = f"{len(runs)}-run sweep on 2 workers (PI, start-up, averaged plant, L +-20 %)"
+    return [
+        BenchRow(f"soak: worker resident memory growth over a {label}, worst worker", worst, None, "MB",
+                 f"<= {SOAK_GROWTH_TARGET_MB:g} MB", worst <= SOAK_GROWTH_TARGET_MB,
+                 f"from each worker's run {SOAK_WARM_RUNS} to its last ({', '.join(f'{g:+.1f}' for g in growth.values())}"
+                 f" MB; resident at the end: {', '.join(f'{v:.0f}' for v in last.values())} MB), read from the "
+                 "sweep's timing table (worker_rss_mb)"),
+        BenchRow(f"soak: the workbench's own process, resident memory growth over the {label}", own, None, "MB",
+                 f"<= {SOAK_GROWTH_TARGET_MB:g} MB", own <= SOAK_GROWTH_TARGET_MB,
+                 "scheduler, futures, parts written; from after the workers' warm-up to the end"),
+        BenchRow(f"soak: throughput of the {label}", len(runs) / elapsed, None, "runs/s"),
+    ]
+
+
 BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "plant": bench_plant,
     "master": bench_master,
@@ -863,23 +978,30 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "inference": bench_inference,
     "reproduction": bench_reproduction,
     "sweep": bench_sweep,
+    "soak": bench_soak,
 }
 
 
 def run_benchmarks(out_dir: Path, quick: bool = False, only: list[str] | None = None,
-                   command: str = "buck-cosim bench") -> tuple[Path, Path]:
+                   command: str = "buck-cosim bench", models_dir: Path | None = None) -> tuple[Path, Path]:
     """Run the benchmarks (``only``: some of them) and write the table. With ``only``, the other
-    groups' rows of the existing table are kept as they were measured, each with its own command."""
+    groups' rows of the existing table are kept as they were measured, each with its own command.
+    Trained models are read from ``models_dir`` (default: ``out_dir/models``)."""
+    global _models_dir
     command += " --quick" if quick else ""
-    rows: list[BenchRow] = []
-    for name, function in BENCHMARKS.items():
-        if only and name not in only:
-            continue
-        print(f"benchmark: {name} ...", file=sys.stderr)
-        for row in function(quick):
-            row.group, row.command = name, command
-            rows.append(row)
     out_dir = Path(out_dir)
+    rows: list[BenchRow] = []
+    before, _models_dir = _models_dir, Path(models_dir) if models_dir is not None else out_dir / "models"
+    try:
+        for name, function in BENCHMARKS.items():
+            if only and name not in only:
+                continue
+            print(f"benchmark: {name} ...", file=sys.stderr)
+            for row in function(quick):
+                row.group, row.command = name, command
+                rows.append(row)
+    finally:
+        _models_dir = before
     if only:
         kept = [r for r in _read_rows(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"))
                 if r.group not in only]

@@ -281,6 +281,20 @@ def test_a_hanging_fmu_is_stopped_at_its_step_time_limit(tmp_path, faulty_fmu):
     assert 0.0099 < run.frame["time"].max() < 0.0104
 
 
+def test_the_step_time_limit_on_the_command_line_overrides_the_binding(tmp_path, faulty_fmu):
+    """--step-timeout sets the limit for one command (the binding file sets none here); it needs an isolated
+    plant, so with --no-isolate it is refused before anything runs."""
+    binding = tmp_path / "hang.toml"
+    binding.write_text(faulty_binding(faulty_fmu, 5))
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--step-timeout", "1.5", "--kp", "0", "--ki", "14",
+                       "--record-period", "1e-4", "--out", str(tmp_path / "out"), timeout=120), 3,
+                   "did not finish stepping from t = 0.0103 s to 0.0104 s within the step time limit of 1.5 s")
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--no-isolate", "--step-timeout", "2",
+                       "--out", str(tmp_path / "refused")), 2, "--step-timeout needs an isolated plant")
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--step-timeout", "0",
+                       "--out", str(tmp_path / "refused")), 2, "expected a finite number >= 0.001 s")
+
+
 def test_the_default_step_time_limit_grows_with_the_simulated_step(faulty_fmu, tmp_path):
     """Without step_timeout the limit is 30 s plus 1000 x the step's simulated length: a 1 ms step may take
     31 s, a 1 s step 1030 s (an FMU 1000 x slower than real time still runs; a stalled one does not)."""

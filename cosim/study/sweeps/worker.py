@@ -16,6 +16,7 @@ rows, so the dataset stays byte-identical when the sweep is repeated.
 from __future__ import annotations
 
 import atexit
+import itertools
 import math
 import os
 import socket
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from cosim.base.errors import WorkbenchError
+from cosim.fmi.isolation import resident_bytes
 from cosim.master import RunFailed, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, run_metrics
 from cosim.scenarios import Scenario
@@ -183,7 +185,7 @@ def run_batch(plant_recipe: PlantRecipe, controller_recipe: ControllerRecipe, sc
             _recover(plant_recipe, plant)
         elapsed = time.perf_counter() - start
         result.rows.append(run_row(run, status, error, metrics))
-        result.timings.append(timing_row(run, elapsed, metrics, name))
+        result.timings.append(timing_row(run, elapsed, metrics, name, next(_runs_here), _resident_mb()))
         if settings.keep_traces and trace is not None:
             result.traces.append((run.run_id, trace.frame.drop(columns=["controller_compute_time"], errors="ignore"),
                                   trace.metadata))
@@ -203,9 +205,19 @@ def run_row(run: PlannedRun, status: str, error: str | None, metrics: dict) -> d
     return row
 
 
-def timing_row(run: PlannedRun, elapsed: float, metrics: dict, worker: str) -> dict:
+def timing_row(run: PlannedRun, elapsed: float, metrics: dict, worker: str, worker_run: int | None = None,
+               rss_mb: float = math.nan) -> dict:
     return {"run_id": run.run_id, "wall_time_s": elapsed,
-            **{c: float(metrics.get(c, math.nan)) for c in WALLCLOCK_METRICS}, "worker": worker}
+            **{c: float(metrics.get(c, math.nan)) for c in WALLCLOCK_METRICS}, "worker": worker,
+            "worker_run": worker_run, "worker_rss_mb": rss_mb}
+
+
+_runs_here = itertools.count(1)  # this worker process's runs, in order
+
+
+def _resident_mb() -> float:
+    used = resident_bytes(os.getpid())
+    return math.nan if used is None else used / 1e6
 
 
 def worker_facts() -> dict:
