@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import sys
 import time
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 
 from cosim.base.errors import ClusterLost, RunInterrupted
@@ -96,12 +97,19 @@ class SweepExecution:
         A future cancelled by dask, not by :meth:`cancel`, means the scheduler went away: :class:`SchedulerGone`."""
         from distributed.scheduler import KilledWorker
 
+        from distributed.comm.core import CommClosedError
+
         if future.status == "cancelled":  # only dask cancels a pending future: cancel() stops handling first
             raise SchedulerGone(future.key)
+        if future.status == "finished":
+            try:
+                result = future.result()
+            except (CommClosedError, CancelledError):  # finished, but the scheduler went away before the result came
+                raise SchedulerGone(future.key) from None
         task, attempt = self._pending.pop(future.key)
         self._futures.pop(future.key, None)
         if future.status == "finished":
-            self._write(task, future.result())
+            self._write(task, result)
             return []
         try:
             error = future.exception()
@@ -165,12 +173,17 @@ def execute(execution: SweepExecution, client, interrupted_message, lost_message
     :class:`ClusterLost` with ``lost_message(counts)``."""
     from distributed import as_completed
 
+    from distributed.comm.core import CommClosedError
+
     futures = execution.submit(client)
     try:
-        queue = as_completed(futures, loop=client.loop)
-        for future in queue:
-            for new in execution.handle(future):
-                queue.add(new)
+        try:
+            queue = as_completed(futures, loop=client.loop)
+            for future in queue:
+                for new in execution.handle(future):
+                    queue.add(new)
+        except CommClosedError:  # the connection to the scheduler closed under a call of ours
+            raise SchedulerGone() from None
     except KeyboardInterrupt:
         execution.cancel()
         raise RunInterrupted(interrupted_message(execution.counts)) from None
