@@ -230,8 +230,9 @@ variable = "IL"
 def faulty_binding(fmu: Path, kind: int | None = None) -> str:
     """The text of a plant-binding file for :func:`faulty_fmu` (its names bound to the workbench's roles)
     that fails at t = 0.0103 s, just after a 1 ms control sample, in the way ``kind`` selects
-    (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV); without ``kind`` it leaves
-    fault_kind to the FMU's default or to a sweep. fault_kind is on line 9, fault_time on the last line."""
+    (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV, 5 hang, 6 memory without
+    bound); without ``kind`` it leaves fault_kind to the FMU's default or to a sweep. fault_kind is on line 9,
+    fault_time on the last line."""
     return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n")
 
 
