@@ -32,6 +32,7 @@ import pyarrow as pa
 
 from cosim.base.files import atomic_write
 from cosim.scenarios import Scenario, ScenarioEvent
+from cosim.study.claims import target_row
 from cosim.study.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSpec, Threshold
 from cosim.study.vocabulary import (
     CURRENT_MODE,
@@ -386,8 +387,8 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
     """The envelope's targets (issue 25, section 4) as rows of the targets table."""
     rows = []
 
-    def add(target, measured, met, note=""):
-        rows.append({"target": target, "measured": measured, "met": "yes" if met else "**no**", "note": note})
+    def add(target, measured, met, note="", value=None, limit=None):
+        rows.append(target_row(target, measured, met, note, value=value, limit=limit))
 
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
     ratios = nominal_ratios(metrics, tag)
@@ -396,7 +397,8 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         r = ratios[worst_seed]
         add(f"NNPC IAE <= {IAE_RATIO_TARGET:g} x current-mode (CMC) IAE, every paper scenario and seed, {tag}",
             f"{r.max():.3f} (seed {worst_seed}, {r.idxmax()})", all(bool((x <= IAE_RATIO_TARGET).all()) for x in ratios.values()),
-            "; ".join(f"seed {s}: " + ", ".join(f"{k} {v:.2f}" for k, v in x.items()) for s, x in ratios.items()))
+            "; ".join(f"seed {s}: " + ", ".join(f"{k} {v:.2f}" for k, v in x.items()) for s, x in ratios.items()),
+            value=float(r.max()), limit=IAE_RATIO_TARGET)
     steps = load_steps(out_dir) if out_dir is not None else None
     if steps is None:
         return rows
@@ -413,7 +415,7 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         "is CCM: in DCM it predicts a current the diode blocks")
     add(f"Envelope map: online NNPC share >= oracle share - {SHARE_LOSS_TARGET:g} points (seed 0's NNPC)",
         f"NNPC {online:.0f} % vs oracle {oracle:.0f} %", online >= oracle - SHARE_LOSS_TARGET,
-        "NNPC " + _failure_causes(points, NNPC))
+        "NNPC " + _failure_causes(points, NNPC), value=online, limit=oracle - SHARE_LOSS_TARGET)
     high = per_supply[(per_supply["controller"] == MPC_ORACLE) & (per_supply["share_pct"] >= ORACLE_HIGH)]
     nnpc_there = per_supply[(per_supply["controller"] == NNPC) & per_supply["input_voltage_V"].isin(high["input_voltage_V"])]
     add(f"Envelope map: online NNPC share >= {NNPC_WHERE_HIGH:g} % at every supply where the oracle reaches "
@@ -424,17 +426,20 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
             per_supply[per_supply["controller"] == MPC_ORACLE]["input_voltage_V"],
             per_supply[per_supply["controller"] == MPC_ORACLE]["share_pct"])))
     add(f"Envelope map: explicit NNPC share >= online NNPC share - {SHARE_LOSS_TARGET:g} points",
-        f"NNPC-explicit {explicit:.0f} % vs NNPC {online:.0f} %", explicit >= online - SHARE_LOSS_TARGET)
+        f"NNPC-explicit {explicit:.0f} % vs NNPC {online:.0f} %", explicit >= online - SHARE_LOSS_TARGET,
+        value=explicit, limit=online - SHARE_LOSS_TARGET)
     add(f"Envelope map: current-mode controller (CMC) share >= {CURRENT_MODE_SHARE_TARGET:g} %", f"{cmc:.0f} %",
         cmc >= CURRENT_MODE_SHARE_TARGET, "CMC " + _failure_causes(points, CURRENT_MODE) + "; the one-sample "
-        "computation delay limits its voltage loop (tuning/current-mode__*.json)")
+        "computation delay limits its voltage loop (tuning/current-mode__*.json)", value=cmc,
+        limit=CURRENT_MODE_SHARE_TARGET)
     r = iae_ratios(steps, NNPC, CURRENT_MODE)
     if len(r):
         worst_key = r.idxmax()
         add(f"Envelope map: NNPC IAE <= {IAE_RATIO_TARGET:g} x CMC IAE, median and worst point (seed 0)",
             f"median {r.median():.3f}, worst {r.max():.2f} ({worst_key[1]:g} V / {worst_key[2]:.3g} Ohm / "
             f"{worst_key[0]:g} V, {worst_key[3]})", bool(r.median() <= IAE_RATIO_TARGET and r.max() <= IAE_RATIO_TARGET),
-            f"NNPC below CMC in {100 * (r <= IAE_RATIO_TARGET).mean():.0f} % of the {len(r)} runs")
+            f"NNPC below CMC in {100 * (r <= IAE_RATIO_TARGET).mean():.0f} % of the {len(r)} runs",
+            value=float(r.max()), limit=IAE_RATIO_TARGET)
     return rows
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.study.claims import TARGET_COLUMNS
 from cosim.study.summaries import markdown_table
 from cosim.study.targets import TimingTargets
 
@@ -61,7 +62,7 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
                 f"(its last part {envelope['last_part_s']:.1f} s after its first task; tables and figures "
                 f"{envelope.get('outputs_s', 0.0):.1f} s)." if envelope else ""), "",
              "## Timing targets", ""]
-    lines += markdown_table(targets, ["target", "measured", "met", "note"])
+    lines += markdown_table(targets, TARGET_COLUMNS)
     lines += ["", "## Stages per job [s] (a pipeline, a seed job of it, or the drift study)", ""]
     lines += markdown_table(stages, list(stages.columns), digits=3) if len(stages) else []
     lines += ["", "## Controller compute time per step [us] (per run, two pipelines sharing the cores)", ""]
