@@ -13,6 +13,8 @@ import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
+from cosim.base.numeric_env import ESCAPE, NATIVE
+from cosim.base.numeric_env import describe as describe_numeric_environment
 from cosim.results import package_versions
 from cosim.study import envelope, explicit
 from cosim.study.c_cost import section as c_cost_section
@@ -170,10 +172,44 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
     if tolerance is not None:
         lines += report_section(tolerance, TOLERANCE_STUDY_DIR) + [""]
     lines += ["## Discussion", ""] + _discussion(metrics, pipelines, physics) + [""]
+    lines += ["## Numeric environment", ""] + _numeric_environment() + [""]
     lines += ["## Reproducing", "", "```", "make reproduce        # everything above, from a fresh clone",
+              "git status --short results/   # empty: the same bytes as committed (wall-clock files aside)",
               "make bench            # the benchmark table (results/benchmarks.md)", "```", "",
               "Package versions: " + ", ".join(f"{k} {v}" for k, v in package_versions().items()) + "."]
     return atomic_write_text(out_dir / "REPORT.md", "\n".join(lines) + "\n")
+
+
+def _numeric_environment() -> list[str]:
+    """What the numbers were computed with, in terms that are the same on every machine the pinned kernels
+    cover (so the report's bytes do not change between an Intel and an AMD CPU); the CPU's vendor, model and
+    flags are in timings.md, the file of machine-dependent figures."""
+    info = describe_numeric_environment()
+    settings = ", ".join(f"`{k}={v}`" for k, v in info["settings"].items() if v is not None)
+    if info["pinned"]:
+        state = ("pinned by the workbench (`cosim/base/numeric_env.py`) for the whole process tree -- the dask "
+                 "workers and the isolated plant processes inherit it, and a worker with other kernels is refused")
+    elif info["late_imports"]:
+        state = (f"**not pinned**: {', '.join(info['late_imports'])} was imported before the workbench, so the "
+                 "libraries chose their own kernels; the models may differ from the committed ones")
+    else:
+        state = (f"**native** (`{ESCAPE}={NATIVE}`): the libraries chose their own kernels; the models may differ "
+                 "from the committed ones")
+    return [
+        f"Numeric kernels: {state}. Settings: {settings}. In force: torch {info['torch']} with CPU capability "
+        f"{info['torch_cpu_capability']} and {info['torch_threads']} thread(s); numpy {info['numpy']} dispatching to "
+        f"{', '.join(info.get('numpy_dispatch_used', [])) or 'its baseline'}; scipy {info['scipy']}; Python "
+        f"{info['python']}. CPU class: {info['cpu_class']} (its vendor, model and flags: [timings.md](timings.md)).",
+        "",
+        "torch, OpenBLAS, MKL and numpy choose kernels by CPU at run time, and L-BFGS amplifies their last-bit "
+        "differences into different networks. The settings make every such CPU take the same kernels -- torch's AVX2 "
+        "ones, OpenBLAS's Haswell ones, MKL's compatible path, numpy's x86-64-v3 dispatch, one thread -- so "
+        "`make reproduce` writes the same bytes on every x86-64 CPU with AVX2 and FMA, Intel or AMD; the test "
+        "`tests/test_numeric_env.py` runs identification, distillation and a seed job under several kernel "
+        "environments of one machine and requires the same bytes. Elsewhere (no AVX2, aarch64) the networks differ in the last digits, and the "
+        "comparisons above are stated only where they hold for every seed, so a different CPU moves numbers within "
+        "the spreads shown rather than flipping a conclusion that the seeds support.",
+    ]
 
 
 def _identification(outputs, metrics) -> list[str]:
