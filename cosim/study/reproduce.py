@@ -401,6 +401,10 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, imp
     batch = Batch(binding, _scenarios(pipeline, binding, profile))
     metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
     meta = {name.lower(): _model_summary(identified.model, config)}
+    if pipeline.tag == pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD):  # the envelope map runs it too
+        from controllers.nn_model import save_model
+
+        save_model(identified.model, envelope.seed_model_path(out_dir, seed))
     if profile.ablations and pipeline.identification_ablation:
         ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
                                                    profile)
@@ -650,6 +654,9 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         def finished_pipelines():
             return (job.key for job in outputs if job.kind == "pipeline")
 
+        map_seeds = [job.seed for job in todo + list(outputs) if job.kind == "seed"
+                     and job.pipeline.tag == pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD)]
+
         def start_study():
             nonlocal study, execution
             study = tolerance_study.start(out_dir, resume, profile.tolerance_samples)
@@ -660,7 +667,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
 
         def start_map():  # the envelope map, once the nominal switched pipeline at 1/fsw has its controllers
             nonlocal envelope_map, envelope_execution
-            envelope_map = envelope.start(out_dir, quick=profile.quick, resume=resume)
+            envelope_map = envelope.start(out_dir, quick=profile.quick, resume=resume, seeds=sorted(map_seeds))
             envelope_execution = envelope_map.execution()
             log(f"  {envelope_map.describe_start('the same cluster')}")
             for future in envelope_execution.submit(client, priority=STUDY_PRIORITY):
@@ -669,7 +676,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         def maybe_start():
             if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
                 start_study()
-            if map_wanted and envelope_map is None and envelope.ready(finished_pipelines()):
+            if map_wanted and envelope_map is None and envelope.ready((job.key for job in outputs), map_seeds):
                 start_map()
 
         maybe_start()
