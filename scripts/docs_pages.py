@@ -27,7 +27,7 @@ def cli_reference() -> str:
 
     parser = build_parser()
     parser.prog = "buck-cosim"
-    lines = ["# Command line", "", "Generated from the parser of `buck-cosim` (`cosim/cli.py`): what `--help` prints.",
+    lines = ["# Command line", "", "Generated from the parser of `buck-cosim` (`cosim/cli/`): what `--help` prints.",
              "", "```text", parser.format_help().rstrip(), "```", ""]
     commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001
     for name, sub in commands.choices.items():

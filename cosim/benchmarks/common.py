@@ -1,0 +1,57 @@
+"""What every group uses to time and report: the table row, p99, the median of repeated calls, and the
+C twin timed against its Python reference on the same inputs."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class BenchRow:
+    benchmark: str
+    median: float
+    p99: float | None
+    unit: str
+    target: str = ""
+    meets_target: bool | None = None
+    note: str = ""
+    extra: dict = field(default_factory=dict)
+    group: str = ""  # the BENCHMARKS entry that measured it
+    command: str = ""  # the command line that measured it
+
+
+def _p99(values) -> float:
+    return float(np.percentile(values, 99))
+
+
+def _median_time(function, repeats: int) -> float:
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        function()
+        samples.append(time.perf_counter_ns() - start)
+    return float(np.median(samples)) * 1e-9
+
+
+def _c_and_python_step_us(controller, measurements, replayed) -> tuple[float, float, float, float]:
+    """The C step times of ``replayed`` (the harness's replay of ``measurements``) and the Python controller's
+    on the same inputs, timed here one step at a time: (C p50, C p99, Python p50, Python p99) in us. First
+    checks that the in-process C twin gives the harness's duties, so both time the same computation."""
+    from controllers.base import Measurement
+    from cosim.study.experiments import implemented
+
+    twin = implemented(controller)
+    twin.reset()
+    assert all(twin.step(Measurement(*row)) == duty for row, duty in zip(measurements, replayed.duty)), \
+        "the harness and the in-process twin disagree"
+    python = []
+    controller.reset()
+    for row in measurements:
+        start = time.perf_counter_ns()
+        controller.step(Measurement(*row))
+        python.append(time.perf_counter_ns() - start)
+    return (float(np.median(replayed.ns)) * 1e-3, _p99(replayed.ns) * 1e-3, float(np.median(python)) * 1e-3,
+            _p99(python) * 1e-3)

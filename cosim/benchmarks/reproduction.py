@@ -1,0 +1,62 @@
+"""Group reproduction: end to end, and the quality ratios of that very run."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from cosim.benchmarks.common import BenchRow
+from cosim.study.vocabulary import MPC_ORACLE, NNPC, PAPER_PERIOD, PI
+
+
+def bench_reproduction(quick: bool) -> list[BenchRow]:
+    import tempfile
+    from dataclasses import replace
+
+    from cosim.base.labels import period_label
+    from cosim.study.reproduce import FULL, QUICK, reproduce
+
+    # --quick is the suite's smoke test: one 1 ms pipeline of the quick profile, no seed jobs,
+    # ablations or drift study (the rows exist and are computed; the numbers mean nothing)
+    profile = replace(QUICK, pipelines=("nominal-averaged__1ms",), seeds=(0,), drift=False,
+                      ablations=False) if quick else FULL
+    times = {}
+    for implementation in ("python", "c"):  # the same reproduction, controllers in Python and in C
+        with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
+            start = time.perf_counter()
+            reproduce(Path(tmp), workers=2, profile=profile, implementation=implementation)
+            times[implementation] = time.perf_counter() - start
+            if implementation == "c":
+                metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv")
+    elapsed = times["c"]
+    ratio = times["c"] / times["python"]
+    command = "buck-cosim reproduce"
+    scope = ", smoke profile: one 1 ms pipeline of --quick" if quick else ""
+    rows = [BenchRow(f"end-to-end reproduction ({command}{scope}), 2 workers, controllers as their C twins (the "
+                     "default)", elapsed, None, "s", "<= 120 s on 2 cores", elapsed <= 120.0),
+            BenchRow(f"end-to-end reproduction ({command} --implementation python{scope}), 2 workers",
+                     times["python"], None, "s"),
+            BenchRow("reproduction time with the C controllers / with the Python controllers (same run)", ratio, None,
+                     "ratio", "<= 0.4", ratio <= 0.4,
+                     "the NN predictive controllers at one switching period dominate both: ~1 ms per step in C, "
+                     "~1.8 ms in Python (tanh calls: about 7 per network evaluation, thousands per step)")]
+    for pipeline in sorted(set(metrics["pipeline"]), key=lambda p: (("13p33us" in p), p)):
+        if not pipeline.startswith("nominal"):
+            continue
+        m = metrics[metrics["pipeline"] == pipeline]
+        for scenario in dict.fromkeys(m["scenario"]):
+            iae = m[m["scenario"] == scenario].set_index("controller")["iae_Vs"]
+            if {NNPC, MPC_ORACLE, PI} <= set(iae.index):
+                rate = pipeline.split("__")[1]
+                slow = rate == period_label(PAPER_PERIOD)
+                target = "<= 1.10" if slow else ""
+                ratio = iae[NNPC] / iae[MPC_ORACLE]
+                rows.append(BenchRow(f"NNPC IAE / oracle-MPC IAE, {scenario}, {pipeline}", ratio, None, "ratio",
+                                     target, ratio <= 1.10 if target else None))
+                ratio = iae[NNPC] / iae[PI]
+                target = "<= 0.6" if not slow else ""
+                rows.append(BenchRow(f"NNPC IAE / PI IAE, {scenario}, {pipeline}", ratio, None, "ratio", target,
+                                     ratio <= 0.6 if target else None))
+    return rows

@@ -1,0 +1,103 @@
+"""What several groups time: the built-in FMU through fmpy alone, the benchmark PI, the NN plant model and
+the distilled policy (the reproduction's if results/ has them, else made here) and the mixed scenario."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from cosim.study.vocabulary import SWITCHING_PERIOD, transient_within_sample
+from plant_fmu.table_ii import TABLE_II
+
+
+class _RawSlave:
+    """The built-in FMU through fmpy's public API only: the floor the master is compared with."""
+
+    def __init__(self, start_values: dict):
+        import fmpy
+        from fmpy.fmi2 import FMU2Slave
+
+        from plant_fmu import fmu_path
+
+        path = str(fmu_path())
+        self.md = fmpy.read_model_description(path)
+        self.vr = {v.name: v.valueReference for v in self.md.modelVariables}
+        self.unzipdir = fmpy.extract(path)
+        self.fmu = FMU2Slave(guid=self.md.guid, unzipDirectory=self.unzipdir,
+                             modelIdentifier=self.md.coSimulation.modelIdentifier)
+        self.fmu.instantiate()
+        self.fmu.setupExperiment(startTime=0.0)
+        for name, value in start_values.items():
+            if name == "plant_mode":
+                self.fmu.setInteger([self.vr[name]], [value])
+            else:
+                self.fmu.setReal([self.vr[name]], [value])
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+
+    def close(self):
+        self.fmu.terminate()
+        self.fmu.freeInstance()
+        shutil.rmtree(self.unzipdir, ignore_errors=True)
+
+
+def _benchmark_pi(period: float):
+    """A PI with gains near the tuned ones at this rate, in the normalised gains a = Kp Vs and
+    b = Ki Ts Vs of :mod:`cosim.study.pi_tuning` (the benchmarks time it; they do not tune it)."""
+    from controllers.pi import PIController
+
+    a, b = (0.072, 0.75) if transient_within_sample(period) else (0.336, 0.111)
+    vs = TABLE_II.input_voltage
+    return PIController(a / vs, b / (period * vs), period)
+
+
+def _mixed_scenario(period: float, samples: int):
+    """Random references and loads held for random intervals: transients and steady state mixed."""
+    from cosim.study.data_collection import random_scenario
+    from cosim.study.experiments import collection_settings
+
+    return random_scenario(collection_settings(period, samples, seed=11), period)
+
+
+def _nn_model(name: str, period: float, quick: bool):
+    """The reproduction's model if results/ has it, else one trained here on fresh data."""
+    from controllers.nn_model import TrainingSettings, load_model, train
+    from cosim.base.errors import ModelFileError
+    from cosim.study.data_collection import collect
+    from cosim.study.experiments import collection_settings, nn_configs, plant_binding
+    from cosim.study.vocabulary import pipeline_tag, plant_tag
+
+    config = nn_configs(period)[name]
+    path = Path("results") / "models" / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
+    if path.is_file() and not quick:
+        try:
+            return load_model(path, expect_period=period, expect_config=config), str(path)
+        except ModelFileError:
+            pass
+
+    pi = _benchmark_pi(period)
+    data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000))
+    return (train(data, config, TrainingSettings(max_iterations=100 if quick else 3000),
+                  metadata={"control_period_s": period}), "trained for the benchmark")
+
+
+def _explicit_policy(quick: bool):
+    """The reproduction's distilled policy if results/ has it, else one distilled here (small budget)."""
+    from dataclasses import replace
+
+    from controllers.explicit_policy import load_policy
+    from cosim.base.errors import ModelFileError
+    from cosim.study.distillation import SMALL_DISTILLATION, distill
+    from cosim.study.experiments import plant_binding
+    from cosim.study.vocabulary import pipeline_tag
+
+    path = Path("results") / "models" / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
+    if path.is_file() and not quick:
+        try:
+            return load_policy(path, expect_period=SWITCHING_PERIOD), str(path)
+        except ModelFileError:
+            pass
+    model, _ = _nn_model("nnpc", SWITCHING_PERIOD, quick)
+    budget = replace(SMALL_DISTILLATION, rounds=1, episodes=1, samples=100) if quick else SMALL_DISTILLATION
+    return distill(model, plant_binding("nominal", "switched"), SWITCHING_PERIOD, budget, log=None), \
+        "distilled for the benchmark (small budget)"

@@ -1,0 +1,71 @@
+"""``buck-cosim``: the workbench's command line.
+
+Every user mistake ends in one line ``error: ...`` on stderr and a non-zero exit code:
+2 bad input or configuration, 3 a plant or controller fault during a run, 4 the FMU build
+failed, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in every case.
+
+One module per command group (run, export, design, studies, bench), each with its commands and
+their parsers; the options several commands share are in :mod:`cosim.cli.options`. The parser
+and the dispatch (signals, one-line errors, exit codes) are here, in one place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+from cosim.base.errors import WorkbenchError
+from cosim.cli import bench, design, export, run, studies
+from cosim.cli.options import OneLineParser
+
+#: every command's parser, in the order ``buck-cosim --help`` lists them
+PARSERS = (run.add_scenarios_parser, run.add_run_parser, design.add_collect_data_parser, design.add_train_parser,
+           design.add_distill_parser, export.add_export_controller_parser, export.add_export_ssp_parser,
+           export.add_run_ssp_parser, run.add_inspect_parser, run.add_export_parser, export.add_build_fmu_parser,
+           design.add_tune_pi_parser, studies.add_reproduce_parser, studies.add_sweep_parser,
+           studies.add_frequency_response_parser, bench.add_bench_parser)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog="buck-cosim",
+        description="FMU co-simulation workbench for a 48 V -> 12 V buck converter: PI, NNPC and MPC controllers "
+                    "driving an FMI 2.0 plant through fmpy. Units: seconds, volts, amperes, ohms.")
+    parser.add_argument("--no-progress", dest="progress", action="store_false",
+                        help="hide progress bars (shown by default on long runs)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add_parser in PARSERS:
+        add_parser(sub)
+    return parser
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        return args.func(args) or 0
+    except WorkbenchError as error:
+        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
+        return error.exit_code
+    except KeyboardInterrupt:
+        print("error: interrupted; files already complete were kept and none is half-written", file=sys.stderr)
+        return 130
+    except OSError as error:  # a file system refusal (disk full, permissions): one line, not a traceback
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
+    except Exception as error:
+        from plant_fmu import PlantBuildError
+
+        if isinstance(error, PlantBuildError):
+            print(f"error: {str(error).splitlines()[0]}", file=sys.stderr)
+            return 4
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -1,0 +1,197 @@
+"""What several commands share: argument types that refuse bad input at once (folders, files, periods,
+seeds, bounded numbers), the parser that ends a usage mistake in one line, and the option groups (plant,
+implementation, PI gains and duty limits, controller design, FMI version) with the helpers that read them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+from cosim.base.errors import ConfigError
+from cosim.fmi.binding import PLANT_MODE_CODES
+from cosim.study.data_collection import MIN_SAMPLES
+from cosim.study.vocabulary import PLANT_VARIANTS, SENSORS
+
+DEFAULT_RESULTS = Path("results")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """Usage mistakes end in one line on stderr (exit code 2), like every other user error."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def output_dir(text: str | None) -> Path | None:
+    """A folder results go to: refused at once if it cannot be one (not after hours of work)."""
+    if text is None:
+        return None
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create output folder {path}: {error.strerror}") from None
+    if not os.access(path, os.W_OK):
+        raise ConfigError(f"output folder {path} is not writable")
+    return path
+
+
+def input_file(text: str, what: str, hint: str = "") -> Path:
+    """A file to read: refused at once, in one line, if it is missing or a folder."""
+    path = Path(text)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder: expected a file")
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} does not exist" + (f" ({hint})" if hint else ""))
+    return path
+
+
+def output_file(text: str | None) -> Path | None:
+    """A file a result goes to: its folder must be creatable and writable, and it must not be a folder."""
+    if text is None:
+        return None
+    path = Path(text)
+    if path.is_dir():
+        raise ConfigError(f"output file {path} is a folder: expected a file name")
+    output_dir(str(path.parent))
+    return path
+
+
+def parse_period(text: str) -> float:
+    """A period in seconds: ``1e-3``, ``0.001`` or a fraction such as ``1/75e3``."""
+    try:
+        if "/" in text:
+            numerator, denominator = text.split("/", 1)
+            value = float(numerator) / float(denominator)
+        else:
+            value = float(text)
+    except (ValueError, ZeroDivisionError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a period in seconds (e.g. 1e-3 or 1/75e3)") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"period {text} s is invalid: expected a finite value > 0")
+    return value
+
+
+#: seeds are 32-bit: numpy's and torch's generators take them, and so does any tool a user repeats a run with
+SEED_MAX = 2**32 - 1
+
+
+def seed_value(text: str) -> int:
+    """A random seed: a whole number 0 .. 2**32 - 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: expected a whole number 0 .. {SEED_MAX}") from None
+    if not 0 <= value <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"seed {text} is out of range: expected a whole number 0 .. {SEED_MAX}")
+    return value
+
+
+def bounded(kind=float, low: float | None = None, high: float | None = None, *, below_high: bool = False,
+            unit: str = ""):
+    """An argparse type: a finite number (``kind`` int or float) with ``low <= value`` and
+    ``value <= high`` (``value < high`` with ``below_high``); NaN and infinities are refused."""
+    name = "whole number" if kind is int else "finite number"
+    limits = [f">= {low:g}" if low is not None else "", (f"< {high:g}" if below_high else f"<= {high:g}")
+              if high is not None else ""]
+    expected = f"a {name} {' and '.join(x for x in limits if x)}".strip() + (f" {unit}" if unit else "")
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is invalid: expected {expected}") from None
+        ok = math.isfinite(value) and (low is None or value >= low) and \
+            (high is None or (value < high if below_high else value <= high))
+        if not ok:
+            raise argparse.ArgumentTypeError(f"{text} is invalid: expected {expected}")
+        return value
+
+    return parse
+
+
+def _plant_binding(args):
+    from dataclasses import replace
+
+    if getattr(args, "plant", None):
+        from cosim.fmi.binding_file import load_binding
+
+        binding = load_binding(args.plant)
+    else:
+        from cosim.study.experiments import plant_binding
+
+        binding = plant_binding(args.variant, args.mode, args.sensor)
+    isolate = getattr(args, "isolate", None)
+    return binding if isolate is None else replace(binding, isolate=isolate)
+
+
+def _check_duty_limits(args) -> None:
+    """Refuse --duty-min/--duty-max unless 0 <= min < max <= 1, before any other work."""
+    if not (0.0 <= args.duty_min < args.duty_max <= 1.0):
+        raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
+
+
+def _add_plant_options(parser) -> None:
+    parser.add_argument("--mode", choices=list(PLANT_MODE_CODES), default="averaged",
+                        help="built-in plant: averaged model (eq. 3, with DCM) or switched (PWM, ideal switch and "
+                             "diode) (default: averaged)")
+    parser.add_argument("--variant", choices=list(PLANT_VARIANTS), default="nominal",
+                        help="built-in plant parameters: Table II, or L +20 %%, C -20 %% with parasitics "
+                             "(default: nominal)")
+    parser.add_argument("--sensor", choices=list(SENSORS), default="average",
+                        help="what controllers measure: the mean over the last PWM period (default), or a point "
+                             "sample at mid off-time with centre-aligned PWM")
+    parser.add_argument("--plant", metavar="BINDING.toml",
+                        help="drive an external FMU through a plant-binding file instead of the built-in plant "
+                             "(--mode/--variant/--sensor then do not apply; see README)")
+    isolation = parser.add_mutually_exclusive_group()
+    isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
+                           help="step the plant FMU in a child process: a crash inside it ends the run with an error "
+                                "(exit 3, rows kept) instead of the workbench (default for binding-file plants; costs "
+                                "one pipe round trip per step, see benchmarks.md)")
+    isolation.add_argument("--no-isolate", dest="isolate", action="store_false",
+                           help="step the plant FMU in this process (default for the built-in plant)")
+    parser.add_argument("--interface", choices=["cs", "me"], default=None,
+                        help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
+                             "(default: the binding's choice, else co-simulation)")
+
+
+def _add_implementation_option(parser) -> None:
+    parser.add_argument("--implementation", choices=["c", "python"], default="c",
+                        help="run the PI and predictive controllers as their C twins (controllers/c: the same duty "
+                             "at every sample, several times faster) or as the Python references (default: c)")
+
+
+def _add_pi_and_duty_options(parser, gains_default: str) -> None:
+    """--kp/--ki (the PI's gains; ``gains_default`` says what happens without them) and --duty-min/--duty-max (every
+    built-in controller's duty limits), checked together by :func:`_check_duty_limits`."""
+    parser.add_argument("--kp", type=bounded(float, 0.0),
+                        help=f"PI proportional gain [1/V] (default: {gains_default})")
+    parser.add_argument("--ki", type=bounded(float, 0.0),
+                        help=f"PI integral gain [1/(V s)] (default: {gains_default})")
+    parser.add_argument("--duty-min", type=bounded(float, 0.0, 1.0), default=0.0,
+                        help="lower duty limit [1] (default: 0)")
+    parser.add_argument("--duty-max", type=bounded(float, 0.0, 1.0), default=1.0,
+                        help="upper duty limit [1] (default: 1)")
+
+
+def _add_controller_design_options(parser) -> None:
+    """What export-controller and export-ssp need to design a built-in controller on the plant (read by
+    :func:`_design_controller`): the PI's gains and the duty limits, the samples and seed of an NN plant model
+    trained on demand, and the folder the tuned gains and trained networks are cached in."""
+    _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
+    parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
+                        help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
+    parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
+                        help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+
+
+def _add_fmi_version_option(p, whose: str) -> None:
+    p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help=f"{whose} FMI version: 2 (FMI 2.0, the default) or 3 (FMI 3.0)")
