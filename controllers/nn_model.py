@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from controllers.lbfgs import LBFGS
 from cosim.base.errors import ModelFileError
 
 FORMAT = "buck-cosim NN plant model"
@@ -382,9 +383,8 @@ def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: Trai
     """Full-batch L-BFGS with early stopping on ``validation_of``; ``evaluate()`` returns the loss
     with the gradients of ``network``'s parameters set. Returns (best validation loss, iteration
     of the best, iterations run) and leaves the best weights in ``network``."""
-    optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
-                                  history_size=20, line_search_fn="strong_wolfe",
-                                  tolerance_grad=1e-12, tolerance_change=1e-15)
+    optimizer = LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
+                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
     with torch.no_grad():
         start = float(validation_of())
     best = (start, {k: v.clone() for k, v in network.state_dict().items()}, 0)
