@@ -9,9 +9,9 @@ written from the same ctypes mirrors :mod:`controllers.native` hands to the in-p
 written with 17 significant digits (``repr``), which a C compiler reads back to the same double.
 
 ``precision="float32"`` writes the data of the float32 build (``buckc_real`` = float, see
-``controllers/c/buckc.h``): the PI's or the explicit policy's configuration from the float32
-mirrors, every number the shortest literal that reads back to the same float, with an ``f``
-suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
+``controllers/c/buckc.h``): the PI's, the explicit policy's, the current-mode controller's or the
+compensator's configuration from the float32 mirrors, every number the shortest literal that reads
+back to the same float, with an ``f`` suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
 controller has no float32 build (its optimizer computes in double): a ValueError says so.
 """
 
@@ -28,8 +28,6 @@ from controllers.compensator import CompensatorController
 from controllers.current_mode import CurrentModeController
 from controllers.explicit_policy import ExplicitPolicyController
 from controllers.native import (
-    CompensatorConfigC,
-    CurrentModeConfigC,
     PredictiveConfig,
     check_precision,
     compensator_config,
@@ -103,7 +101,7 @@ def config_header(controller, name: str | None = None, precision: str = "float64
     mirrors = real_mirrors(precision)
     pi, policy = mirrors.PiConfig(), mirrors.PolicyConfigC()
     predictive = PredictiveConfig()
-    current_mode, compensator = CurrentModeConfigC(), CompensatorConfigC()
+    current_mode, compensator = mirrors.CurrentModeConfigC(), mirrors.CompensatorConfigC()
     if kind == KIND_PI:
         pi = mirrors.PiConfig(twin.kp, twin.ki, twin.sample_period, *twin.duty_limits)
     elif kind == KIND_PREDICTIVE:
@@ -111,9 +109,9 @@ def config_header(controller, name: str | None = None, precision: str = "float64
     elif kind == KIND_EXPLICIT:
         policy = twin.config
     elif kind == KIND_CURRENT_MODE:
-        current_mode = current_mode_config(controller)
+        current_mode = current_mode_config(controller, precision)
     else:
-        compensator = compensator_config(controller)
+        compensator = compensator_config(controller, precision)
     name = name or controller.name
     body = [f"static const int CONTROLLER_KIND = {kind};",
             f"static const BuckcPiConfig PI_CONFIG = {initializer(pi, precision)};"]

@@ -3,7 +3,8 @@
 The float32 build (``-DBUCKC_FLOAT32``, ``controllers/c/buckc.h``) runs the same operations as the
 double build in IEEE binary32. Each operation then rounds with relative error at most
 ``u = 2**-24`` (round to nearest), each input and state value is rounded to float on the way
-in, and libm's ``tanhf`` is within :data:`TANH_ULPS` units in the last place. Forward error
+in, and its tanh (``buckc_tanhf``, ``controllers/c/buckc_tanhf.h``: not libm's ``tanhf``, a clamped
+exp-based form, 63 cycles a call on a Cortex-M4F against 210) is within :data:`TANH_ERROR` of tanh. Forward error
 analysis (Higham, *Accuracy and Stability of Numerical Algorithms*, 2nd ed., ch. 3) turns that
 into a bound on the step's output, evaluated at the step's own numbers:
 
@@ -11,7 +12,7 @@ into a bound on the step's output, evaluated at the step's own numbers:
   gamma(k) = k u / (1 - k u) and e_i the bound of input i; weights and biases rounded to float
   add u |w_i x_i| and u |b|;
 * tanh: error <= sech^2(max(0, |s| - e_s)) e_s (tanh's slope on the interval the argument may lie
-  in) + 2 TANH_ULPS u |tanh s| (one ulp of a float y is at most 2 u |y|);
+  in) + TANH_ERROR (buckc_tanhf's, absolute) + 2 ulp of the double build's libm tanh;
 * a subtraction, a product, a division: the operands' bounds propagated to first order, plus u of
   the result;
 * clipping to the duty limits is 1-Lipschitz (the limits, rounded to float, add u |limit|).
@@ -30,6 +31,8 @@ integral, the previous duty); that is what the closed-loop test measures on the 
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 
@@ -37,10 +40,18 @@ from controllers.load_estimate import MIN_CURRENT, MIN_VOLTAGE
 
 #: unit roundoff of binary32 plus that of binary64 (the double build is not exact either)
 U = 2.0 ** -24 + 2.0 ** -53
-#: tanhf's error bound assumed for a target's libm [ulp]: glibc documents 2 ulp for tanhf on x86-64
-#: (its libm-test-ulps; tests/test_float32.py measures the host's); newlib's is taken to be as good
-#: -- the Cortex-M4F replay checks its duties against the host float32 build
-TANH_ULPS = 4.0
+
+
+def _tanhf_error() -> float:
+    """BUCKC_TANHF_ERROR of controllers/c/buckc_tanhf.h (the one definition)."""
+    header = (Path(__file__).parent / "c" / "buckc_tanhf.h").read_text()
+    match = re.search(r"^#define\s+BUCKC_TANHF_ERROR\s+([0-9.eE+-]+)", header, flags=re.M)
+    return float(match.group(1))
+
+
+#: |buckc_tanhf(x) - tanh(x)| for every float x, absolute (the float32 build's tanh; tests/test_float32.py
+#: checks it on every float from 2**-7 to 9.5 and samples the rest)
+TANH_ERROR = _tanhf_error()
 
 
 def gamma(n: int) -> float:
@@ -62,10 +73,11 @@ def dense_bound(weights: np.ndarray, bias: np.ndarray, x: np.ndarray, ex: np.nda
 
 
 def tanh_bound(s: np.ndarray, es: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``tanh(s)`` and the bound of ``tanhf`` evaluated at an argument within ``es`` of ``s``."""
+    """``tanh(s)`` and the bound of the float32 build's tanh (``buckc_tanhf``) evaluated at an argument within
+    ``es`` of ``s``, against the double build's (libm's ``tanh``, 2 ulp of binary64 at most)."""
     t = np.tanh(s)
     slope = 1.0 / np.cosh(np.maximum(0.0, np.abs(s) - es)) ** 2
-    return t, slope * es + 2.0 * TANH_ULPS * U * np.abs(t)
+    return t, slope * es + TANH_ERROR + 2.0 * 2.0 ** -53 * np.abs(t)
 
 
 def _activation_bound(activation: str, z: np.ndarray, ez: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,3 +186,82 @@ def pi_step_bound(kp: float, ki: float, sample_period: float, duty_limits, integ
     e_proportional = abs(kp) * e_error + 2.0 * U * abs(proportional)
     unclamped = proportional + updated
     return e_proportional + e_updated + U * abs(unclamped) + U * max(abs(duty_limits[0]), abs(duty_limits[1]))
+
+
+def _takes_input(input_voltage: float) -> bool:
+    return math.isfinite(input_voltage) and input_voltage > 0
+
+
+def _divided_clipped(numerator: float, e_numerator: float, input_voltage: float, nominal_input_voltage: float,
+                     duty_limits) -> float:
+    """The bound of ``clip(numerator / supply, low, high)`` given the numerator's bound, the supply being the
+    measured input voltage if finite and > 0, else the nominal: the division rounds (u), the supply is an
+    input or a configuration value rounded to float (u), the clip is 1-Lipschitz and its limits are rounded
+    to float (u |limit|). Which supply each build takes is decided on the input as each build has it, so
+    it is known exactly: a voltage that underflows or overflows in float takes the nominal in the float32
+    build only, and the bound adds the jump between the two quotients."""
+    with np.errstate(over="ignore"):
+        single = float(np.float32(input_voltage))
+    supply = input_voltage if _takes_input(input_voltage) else nominal_input_voltage
+    unclamped = numerator / supply
+    bound = e_numerator / abs(supply) + 2.0 * U * abs(unclamped)
+    if _takes_input(input_voltage) and not _takes_input(single):  # (the other way round cannot happen)
+        bound += abs(unclamped - numerator / nominal_input_voltage)
+    low, high = duty_limits
+    return bound + U * max(abs(low), abs(high))
+
+
+def _pi_terms(kp: float, ki: float, sample_period: float, integral: float, error: float, e_error: float):
+    """``kp e + (I + (ki Ts) e)`` as the classical twins compute it, and its bound (``integral`` the double
+    state, rounded to float by the float32 build; ``e_error`` the error's bound)."""
+    gain = ki * sample_period
+    e_gain = 3.0 * U * abs(gain)  # ki and Ts rounded, one product
+    increment = gain * error
+    e_increment = abs(gain) * e_error + abs(error) * e_gain + U * abs(increment)
+    updated = integral + increment
+    e_updated = U * abs(integral) + e_increment + U * abs(updated)
+    proportional = kp * error
+    e_proportional = abs(kp) * e_error + 2.0 * U * abs(proportional)
+    total = proportional + updated
+    return total, e_proportional + e_updated + U * abs(total)
+
+
+def current_mode_step_bound(controller, measurement, state) -> float:
+    """The bound on |d_float32 - d_double| of the duty one ``buckc_current_mode_step``
+    (``controllers/c/current_mode.c``) computes -- the one it returns without a computation delay, the one
+    it holds for the next sample with it: ``controller`` the
+    :class:`controllers.current_mode.CurrentModeController`, ``measurement`` the step's
+    :class:`controllers.base.Measurement`, ``state`` the double build's state before the step
+    (``voltage_integral``, ``current_integral``), which the float32 build starts from rounded to float.
+    The anti-windup decisions change only the state kept for the next step, not this step's duty; the
+    current reference's clip to [0, I_max] is 1-Lipschitz."""
+    g, m = controller.gains, measurement
+    r, vo, il = m.reference, m.output_voltage, m.inductor_current
+    error_v = r - vo
+    e_error_v = U * (abs(r) + abs(vo)) + U * abs(error_v)
+    reference, e_reference = _pi_terms(g.kp_voltage, g.ki_voltage, controller.sample_period, state.voltage_integral,
+                                       error_v, e_error_v)
+    reference = min(max(reference, 0.0), g.current_limit)
+    e_reference += U * g.current_limit
+    error_i = reference - il
+    e_error_i = e_reference + U * abs(il) + U * abs(error_i)
+    node, e_node = _pi_terms(g.kp_current, g.ki_current, controller.sample_period, state.current_integral, error_i,
+                             e_error_i)
+    return _divided_clipped(node, e_node, m.input_voltage, controller.nominal_input_voltage, controller.duty_limits)
+
+
+def compensator_step_bound(controller, measurement, state) -> float:
+    """The bound on |d_float32 - d_double| of the duty one ``buckc_compensator_step``
+    (``controllers/c/compensator.c``) computes (returned, or held for the next sample with a computation
+    delay): ``y = b0 e + s_1``, then ``clip(y / Vs)``; ``state`` the double build's state before the step
+    (``state[0]`` = s_1, rounded to float by the float32 build), ``b0`` rounded to float. The states'
+    update and its anti-windup decision affect the next step only."""
+    m = measurement
+    r, vo = m.reference, m.output_voltage
+    error = r - vo
+    e_error = U * (abs(r) + abs(vo)) + U * abs(error)
+    b0, s1 = controller.coefficients.numerator[0], state.state[0]
+    product = b0 * error
+    y = product + s1
+    e_y = abs(b0) * e_error + 2.0 * U * abs(product) + U * abs(s1) + U * abs(y)
+    return _divided_clipped(y, e_y, m.input_voltage, controller.nominal_input_voltage, controller.duty_limits)

@@ -154,7 +154,7 @@ def build_c(name: str, sources: list[Path], headers: list[Path], flags: tuple[st
 PRECISIONS = ("float64", "float32")
 #: the files with a float32 build (buckc.h): predictive.c and predictors.c compute in double only
 FLOAT32_SOURCES = ("buckc.c", "pi.c", "load_estimate.c", "nn_model.c", "explicit_policy.c", "current_mode.c",
-                   "compensator.c")
+                   "compensator.c", "box_qp.c")
 #: what a float32 build adds to FLAGS: buckc_real = float, and no expression silently computed in double
 FLOAT32_FLAGS = ("-DBUCKC_FLOAT32", "-Wdouble-promotion")
 
@@ -216,6 +216,8 @@ MAX_HORIZON = LIMITS["BUCKC_MAX_HORIZON"]
 MAX_BLOCKS = LIMITS["BUCKC_MAX_BLOCKS"]
 MAX_LEVELS = LIMITS["BUCKC_MAX_LEVELS"]
 MAX_LATTICE = LIMITS["BUCKC_MAX_LATTICE"]
+QP_MAX_VARIABLES = LIMITS["BUCKC_QP_MAX_VARIABLES"]
+NN_MAX_DIRECTIONS = LIMITS["BUCKC_NN_MAX_DIRECTIONS"]
 NEAR_OFFSETS = LIMITS["BUCKC_NEAR_OFFSETS"]
 POLICY_MAX_HIDDEN_LAYERS = LIMITS["BUCKC_POLICY_MAX_HIDDEN_LAYERS"]
 POLICY_MAX_WIDTH = LIMITS["BUCKC_POLICY_MAX_WIDTH"]
@@ -225,6 +227,9 @@ assert LIMITS["BUCKC_POLICY_INPUTS"] == N_FEATURES, "explicit_policy.h and expli
 
 OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT = 0, -1, -2, -3, -4
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
+SOLVERS = ("search", "rti")  # BUCKC_SOLVER_...: the names PredictiveController.last_solver uses
+#: BUCKC_FALLBACK_...: the reasons PredictiveController.fallback_reason gives ("" for none)
+FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error")
 
 c_double, c_int = ctypes.c_double, ctypes.c_int
 
@@ -276,11 +281,35 @@ class RealMirrors:
                         ("previous_voltage", real), ("previous_duty", real), ("conductance", real),
                         ("integral", real), ("last_output", real)]
 
+        class CurrentModeConfigC(ctypes.Structure):
+            _fields_ = [("sample_period", real), ("duty_min", real), ("duty_max", real),
+                        ("nominal_input_voltage", real), ("kp_voltage", real), ("ki_voltage", real),
+                        ("kp_current", real), ("ki_current", real), ("current_limit", real),
+                        ("computation_delay", c_int)]
+
+        class CurrentModeC(ctypes.Structure):
+            _fields_ = [("config", CurrentModeConfigC), ("voltage_integral", real), ("current_integral", real),
+                        ("pending_duty", real)]
+
+        class CompensatorConfigC(ctypes.Structure):
+            _fields_ = [("sample_period", real), ("duty_min", real), ("duty_max", real),
+                        ("nominal_input_voltage", real), ("order", c_int),
+                        ("numerator", _array(real, COMPENSATOR_MAX_ORDER + 1)),
+                        ("denominator", _array(real, COMPENSATOR_MAX_ORDER + 1)), ("computation_delay", c_int)]
+
+        class CompensatorC(ctypes.Structure):
+            _fields_ = [("config", CompensatorConfigC), ("state", _array(real, COMPENSATOR_MAX_ORDER)),
+                        ("pending_duty", real)]
+
         self.PiConfig, self.Pi, self.NnConfig, self.NnShared = PiConfig, Pi, NnConfig, NnShared
+        self.CurrentModeConfigC, self.CurrentModeC = CurrentModeConfigC, CurrentModeC
+        self.CompensatorConfigC, self.CompensatorC = CompensatorConfigC, CompensatorC
         self.MeasurementC, self.PolicyConfigC, self.PolicyC = MeasurementC, PolicyConfigC, PolicyC
         #: mirror -> C type name, checked against sizeof() in the library when it is loaded
         self.names = {PiConfig: "BuckcPiConfig", Pi: "BuckcPi", NnConfig: "BuckcNnConfig", NnShared: "BuckcNnShared",
-                      MeasurementC: "BuckcMeasurement", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy"}
+                      MeasurementC: "BuckcMeasurement", PolicyConfigC: "BuckcPolicyConfig", PolicyC: "BuckcPolicy",
+                      CurrentModeConfigC: "BuckcCurrentModeConfig", CurrentModeC: "BuckcCurrentMode",
+                      CompensatorConfigC: "BuckcCompensatorConfig", CompensatorC: "BuckcCompensator"}
 
     def signatures(self) -> dict:
         """restype, argtypes of the functions written in buckc_real (both builds have them)."""
@@ -298,10 +327,18 @@ class RealMirrors:
             "buckc_nn_rollout": (None, [P(self.NnConfig), rp, rp, rp, c_int, rp, rp]),
             "buckc_nn_shared_prepare": (None, [P(self.NnConfig), rp, rp, rp, P(self.NnShared)]),
             "buckc_nn_shared_rollout": (None, [P(self.NnConfig), P(self.NnShared), rp, c_int, rp]),
+            "buckc_nn_sensitivities": (c_int, [P(self.NnConfig), rp, rp, rp, rp, c_int, P(c_int), c_int, rp, rp]),
+            "buckc_box_qp": (c_int, [c_int, rp, c_int, rp, rp, rp, c_int, rp, P(c_int)]),
             "buckc_policy_init": (c_int, [P(self.PolicyC), P(self.PolicyConfigC), P(ctypes.c_char_p)]),
             "buckc_policy_reset": (None, [P(self.PolicyC)]),
             "buckc_policy_forward": (real, [P(self.PolicyConfigC), rp]),
             "buckc_policy_step": (c_int, [P(self.PolicyC), P(self.MeasurementC), rp]),
+            "buckc_current_mode_init": (c_int, [P(self.CurrentModeC), P(self.CurrentModeConfigC), P(ctypes.c_char_p)]),
+            "buckc_current_mode_reset": (None, [P(self.CurrentModeC)]),
+            "buckc_current_mode_step": (c_int, [P(self.CurrentModeC), P(self.MeasurementC), rp]),
+            "buckc_compensator_init": (c_int, [P(self.CompensatorC), P(self.CompensatorConfigC), P(ctypes.c_char_p)]),
+            "buckc_compensator_reset": (None, [P(self.CompensatorC)]),
+            "buckc_compensator_step": (c_int, [P(self.CompensatorC), P(self.MeasurementC), rp]),
         }
 
     @property
@@ -321,6 +358,8 @@ def real_mirrors(precision: str = "float64") -> RealMirrors:
 _DOUBLE = REAL_MIRRORS["float64"]
 PiConfig, Pi, NnConfig, NnShared = _DOUBLE.PiConfig, _DOUBLE.Pi, _DOUBLE.NnConfig, _DOUBLE.NnShared
 MeasurementC, PolicyConfigC, PolicyC = _DOUBLE.MeasurementC, _DOUBLE.PolicyConfigC, _DOUBLE.PolicyC
+CurrentModeConfigC, CurrentModeC = _DOUBLE.CurrentModeConfigC, _DOUBLE.CurrentModeC
+CompensatorConfigC, CompensatorC = _DOUBLE.CompensatorConfigC, _DOUBLE.CompensatorC
 
 
 class CircuitParametersC(ctypes.Structure):
@@ -387,54 +426,35 @@ class PredictorConfig(ctypes.Structure):
     _fields_ = [("kind", c_int), ("nn", NnConfig), ("averaged", AveragedConfig), ("switched", SwitchedConfig)]
 
 
+class RtiSettingsC(ctypes.Structure):
+    _fields_ = [("enabled", c_int), ("iterations", c_int), ("smoothing", c_double), ("step_limit", c_double),
+                ("regularization", c_double), ("qp_iterations", c_int), ("reference_step", c_double),
+                ("load_step", c_double), ("innovation", c_double)]
+
+
 class PredictiveConfig(ctypes.Structure):
     _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
                 ("nominal_load", c_double), ("nominal_input_voltage", c_double), ("horizon", HorizonSettingsC),
-                ("predictor", PredictorConfig)]
+                ("predictor", PredictorConfig), ("rti", RtiSettingsC)]
 
 
 class PredictiveState(ctypes.Structure):
     _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
-                ("conductance", c_double), ("best_cost", c_double), ("evaluations", c_int), ("passes", c_int),
-                ("best_call", c_int), ("best_row", c_int)]
-
-
-class CurrentModeConfigC(ctypes.Structure):
-    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_input_voltage", c_double), ("kp_voltage", c_double), ("ki_voltage", c_double),
-                ("kp_current", c_double), ("ki_current", c_double), ("current_limit", c_double),
-                ("computation_delay", c_int)]
-
-
-class CurrentModeC(ctypes.Structure):
-    _fields_ = [("config", CurrentModeConfigC), ("voltage_integral", c_double), ("current_integral", c_double),
-                ("pending_duty", c_double)]
-
-
-class CompensatorConfigC(ctypes.Structure):
-    _fields_ = [("sample_period", c_double), ("duty_min", c_double), ("duty_max", c_double),
-                ("nominal_input_voltage", c_double), ("order", c_int),
-                ("numerator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)),
-                ("denominator", _array(c_double, COMPENSATOR_MAX_ORDER + 1)), ("computation_delay", c_int)]
-
-
-class CompensatorC(ctypes.Structure):
-    _fields_ = [("config", CompensatorConfigC), ("state", _array(c_double, COMPENSATOR_MAX_ORDER)),
-                ("pending_duty", c_double)]
+                ("conductance", c_double), ("previous_reference", c_double), ("best_cost", c_double),
+                ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
+                ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
+                ("warm_before_valid", c_int), ("warm_before", _array(c_double, MAX_HORIZON)), ("anchor", c_double)]
 
 
 #: ctypes mirror -> C type name of the double-only structs (predictors.h, predictive.h), checked like RealMirrors'
 PREDICTIVE_MIRRORS = {CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
                       AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig",
                       SwitchedTable: "BuckcSwitchedTable", HorizonSettingsC: "BuckcHorizonSettings",
-                      Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig",
+                      Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig", RtiSettingsC: "BuckcRtiSettings",
                       PredictiveConfig: "BuckcPredictiveConfig", PredictiveState: "BuckcPredictiveState"}
-#: the classical controllers' structs (current_mode.h, compensator.h): in buckc_real, bound in the double build only
-CLASSICAL_MIRRORS = {CurrentModeConfigC: "BuckcCurrentModeConfig", CurrentModeC: "BuckcCurrentMode",
-                     CompensatorConfigC: "BuckcCompensatorConfig", CompensatorC: "BuckcCompensator"}
-MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS, **CLASSICAL_MIRRORS}
+MIRRORS = {**_DOUBLE.names, **PREDICTIVE_MIRRORS}
 
 COST_FUNCTION = ctypes.CFUNCTYPE(c_double, ctypes.c_void_p, ctypes.POINTER(c_double), c_int, ctypes.POINTER(c_double))
 
@@ -452,11 +472,13 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
     "buckc_averaged_prepare": (None, [_P(AveragedConfig), _P(AveragedCache), c_double, c_double, c_double, _D, _D,
                                       _P(AveragedStep)]),
     "buckc_averaged_rollout": (None, [_P(AveragedStep), _D, c_int, _D]),
+    "buckc_averaged_linearize": (None, [_P(AveragedStep), _D, c_int, _P(c_int), c_int, _D, _D]),
     "buckc_switched_check": (c_int, [_P(SwitchedConfig), _P(c_int), _P(ctypes.c_char_p)]),
     "buckc_switched_table": (None, [_P(SwitchedConfig), c_double, c_double, _P(SwitchedTable)]),
     "buckc_switched_cached": (_P(SwitchedTable), [_P(SwitchedConfig), _P(SwitchedCache), c_double, c_double]),
     "buckc_switched_lookup": (None, [_P(SwitchedTable), c_double, _D]),
     "buckc_switched_rollout": (None, [_P(SwitchedTable), _D, c_double, _D, c_int, _D, _D]),
+    "buckc_switched_linearize": (None, [_P(SwitchedTable), _D, c_double, _D, c_int, _D, _P(c_int), c_int, _D, _D]),
     "buckc_optimizer_init": (c_int, [_P(Optimizer), _P(HorizonSettingsC), c_double, c_double, _P(ctypes.c_char_p)]),
     "buckc_optimizer_solve": (c_double, [_P(Optimizer), COST_FUNCTION, ctypes.c_void_p, _D, c_double, _D, _D]),
     "buckc_predictive_size": (ctypes.c_size_t, []),
@@ -466,12 +488,8 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
     "buckc_predictive_clear_caches": (None, [ctypes.c_void_p]),
     "buckc_predictive_state": (_P(PredictiveState), [ctypes.c_void_p]),
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
-    "buckc_current_mode_init": (c_int, [_P(CurrentModeC), _P(CurrentModeConfigC), _P(ctypes.c_char_p)]),
-    "buckc_current_mode_reset": (None, [_P(CurrentModeC)]),
-    "buckc_current_mode_step": (c_int, [_P(CurrentModeC), _P(MeasurementC), _D]),
-    "buckc_compensator_init": (c_int, [_P(CompensatorC), _P(CompensatorConfigC), _P(ctypes.c_char_p)]),
-    "buckc_compensator_reset": (None, [_P(CompensatorC)]),
-    "buckc_compensator_step": (c_int, [_P(CompensatorC), _P(MeasurementC), _D]),
+    "buckc_predictive_search_last": (c_double, [ctypes.c_void_p, _D]),
+    "buckc_predictive_linearize": (c_int, [ctypes.c_void_p, _D, _D, _D]),
 }
 
 
@@ -580,6 +598,23 @@ def horizon_config(settings, owner: str) -> HorizonSettingsC:
     c.refine_iterations = settings.refine_iterations
     c.duty_tolerance = settings.duty_tolerance
     c.bias_filter = settings.bias_filter
+    return c
+
+
+def rti_config(settings, owner: str) -> RtiSettingsC:
+    """:class:`~controllers.predictive.RtiSettings` (or None: the search alone) as the C settings."""
+    c = RtiSettingsC()
+    if settings is None:
+        return c
+    c.enabled = 1
+    c.iterations = settings.iterations
+    c.smoothing = settings.smoothing
+    c.step_limit = settings.step_limit
+    c.regularization = settings.regularization
+    c.qp_iterations = settings.qp_iterations
+    c.reference_step = settings.reference_step
+    c.load_step = settings.load_step
+    c.innovation = settings.innovation
     return c
 
 
@@ -728,6 +763,7 @@ class NativePredictiveController(_MeasurementStepper):
         config.nominal_input_voltage = controller.nominal_input_voltage
         config.horizon = horizon_config(controller.settings, controller.name)
         config.predictor = predictor_config(controller.predictor)
+        config.rti = rti_config(controller.rti, controller.name)
         return cls(config, controller.name, controller.describe())
 
     @property
@@ -751,6 +787,40 @@ class NativePredictiveController(_MeasurementStepper):
         first = np.empty(2)
         value = self._lib.buckc_predictive_cost(self._handle, _pointer(duties), _pointer(first))
         return value, first
+
+    @property
+    def rti(self):
+        """Whether the real-time iteration plans (as :attr:`PredictiveController.rti`, truthy or None)."""
+        return self._config.rti if self._config.rti.enabled else None
+
+    @property
+    def last_solver(self) -> str:
+        return SOLVERS[self._state.last_solver]
+
+    @property
+    def last_fallback(self) -> str:
+        return FALLBACKS[self._state.last_fallback]
+
+    @property
+    def best_cost(self) -> float:
+        return self._state.best_cost
+
+    def search_last_sample(self) -> tuple[np.ndarray, float]:
+        """:meth:`PredictiveController.search_last_sample` in C: the search on the last step's problem."""
+        sequence = np.empty(self._config.horizon.horizon)
+        best = self._lib.buckc_predictive_search_last(self._handle, _pointer(sequence))
+        return sequence, best
+
+    def linearize(self, duties) -> tuple[np.ndarray, np.ndarray]:
+        """The predictor's linearisation (states, Jacobian to the blocks) at the last step's context."""
+        duties = np.ascontiguousarray(duties, dtype=float)
+        n, nb = self._config.horizon.horizon, self._config.horizon.n_blocks
+        out, jacobian = np.empty((n, 2)), np.empty((n, 2, nb))
+        status = self._lib.buckc_predictive_linearize(self._handle, _pointer(duties), _pointer(out),
+                                                      _pointer(jacobian))
+        if status != OK:
+            raise ValueError(f"{self.name}: {status_text(status)}")
+        return out, jacobian
 
     def describe(self) -> dict:
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
@@ -839,19 +909,22 @@ class NativeExplicitPolicyController(_MeasurementStepper):
                 "implementation": "C twin (controllers/c/explicit_policy.c)" + _build_note(self.precision)}
 
 
-def current_mode_config(controller: CurrentModeController) -> CurrentModeConfigC:
+def current_mode_config(controller: CurrentModeController, precision: str = "float64"):
+    """The C configuration of a current-mode controller (``precision``'s mirror: float32 rounds each value)."""
     g = controller.gains
     low, high = controller.duty_limits
-    return CurrentModeConfigC(controller.sample_period, low, high, controller.nominal_input_voltage, g.kp_voltage,
-                              g.ki_voltage, g.kp_current, g.ki_current, g.current_limit, g.computation_delay)
+    return real_mirrors(precision).CurrentModeConfigC(
+        controller.sample_period, low, high, controller.nominal_input_voltage, g.kp_voltage, g.ki_voltage, g.kp_current,
+        g.ki_current, g.current_limit, g.computation_delay)
 
 
-def compensator_config(controller: CompensatorController) -> CompensatorConfigC:
+def compensator_config(controller: CompensatorController, precision: str = "float64"):
+    """The C configuration of a compensator (``precision``'s mirror: float32 rounds each coefficient)."""
     k = controller.coefficients
     if k.order > COMPENSATOR_MAX_ORDER:
         raise ValueError(f"compensator of order {k.order} has no C twin: > BUCKC_COMPENSATOR_MAX_ORDER "
                          f"({COMPENSATOR_MAX_ORDER})")
-    c = CompensatorConfigC()
+    c = real_mirrors(precision).CompensatorConfigC()
     c.sample_period = controller.sample_period
     c.duty_min, c.duty_max = controller.duty_limits
     c.nominal_input_voltage = controller.nominal_input_voltage
@@ -863,14 +936,17 @@ def compensator_config(controller: CompensatorController) -> CompensatorConfigC:
 
 
 class _LinearTwin(_MeasurementStepper):
-    """A classical controller's C twin: its configuration copied into the C state, one step per sample."""
+    """A classical controller's C twin: its configuration copied into the C state, one step per sample
+    (``precision``: the build of the twins it runs in)."""
 
-    def __init__(self, state, config, init, reset, step, name: str, description: dict):
-        self._lib = library()
-        self.name = name
-        self.sample_period = check_sample_period(config.sample_period, name)
-        self.duty_limits = check_duty_limits((config.duty_min, config.duty_max), name)
-        self._description = description
+    def __init__(self, controller, state, config, init, reset, step, precision: str):
+        self.precision = check_precision(precision)
+        self.name = controller.name
+        # the Python controller's (double) period and limits: a float32 config's period rounded to float would
+        # drift off the master's sample instants
+        self.sample_period, self.duty_limits = controller.sample_period, controller.duty_limits
+        self._description = controller.describe()
+        name = self.name
         self._state = state
         self._reset = reset
         what = ctypes.c_char_p()
@@ -887,46 +963,52 @@ class _LinearTwin(_MeasurementStepper):
 
 
 class NativeCurrentModeController(_LinearTwin):
-    """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``)."""
+    """:class:`controllers.current_mode.CurrentModeController` in C (``controllers/c/current_mode.c``;
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.current_mode_step_bound`)."""
 
-    def __init__(self, controller: CurrentModeController):
-        lib = library()
+    def __init__(self, controller: CurrentModeController, precision: str = "float64"):
+        lib = library(precision)
         self.python = controller
         self.gains, self.nominal_input_voltage = controller.gains, controller.nominal_input_voltage
-        super().__init__(CurrentModeC(), current_mode_config(controller), lib.buckc_current_mode_init,
-                         lib.buckc_current_mode_reset, lib.buckc_current_mode_step, controller.name,
-                         controller.describe())
+        super().__init__(controller, real_mirrors(precision).CurrentModeC(), current_mode_config(controller, precision),
+                         lib.buckc_current_mode_init, lib.buckc_current_mode_reset, lib.buckc_current_mode_step,
+                         precision)
 
     def linear_model(self, input_voltage: float | None = None):
         return self.python.linear_model(input_voltage)
 
     def describe(self) -> dict:
-        return {**self._description, "implementation": "C twin (controllers/c/current_mode.c)"}
+        return {**self._description,
+                "implementation": "C twin (controllers/c/current_mode.c)" + _build_note(self.precision)}
 
 
 class NativeCompensatorController(_LinearTwin):
-    """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``)."""
+    """:class:`controllers.compensator.CompensatorController` in C (``controllers/c/compensator.c``;
+    ``precision="float32"``: the float32 build, its duties within
+    :func:`controllers.float32.compensator_step_bound`)."""
 
-    def __init__(self, controller: CompensatorController):
-        lib = library()
+    def __init__(self, controller: CompensatorController, precision: str = "float64"):
+        lib = library(precision)
         self.python = controller
         self.coefficients, self.nominal_input_voltage = controller.coefficients, controller.nominal_input_voltage
-        super().__init__(CompensatorC(), compensator_config(controller), lib.buckc_compensator_init,
-                         lib.buckc_compensator_reset, lib.buckc_compensator_step, controller.name,
-                         controller.describe())
+        super().__init__(controller, real_mirrors(precision).CompensatorC(), compensator_config(controller, precision),
+                         lib.buckc_compensator_init, lib.buckc_compensator_reset, lib.buckc_compensator_step,
+                         precision)
 
     def linear_model(self, input_voltage: float | None = None):
         return self.python.linear_model(input_voltage)
 
     def describe(self) -> dict:
-        return {**self._description, "implementation": "C twin (controllers/c/compensator.c)"}
+        return {**self._description,
+                "implementation": "C twin (controllers/c/compensator.c)" + _build_note(self.precision)}
 
 
 def native_twin(controller, precision: str = "float64"):
     """The C twin of a Python PI, predictive or explicit-policy controller (an adaptive NNPC: the
     same adaptation around the twin of its NNPC); any other controller is returned as it is.
-    ``precision="float32"``: the float32 build, which the PI and the explicit NNPC have (a predictive
-    controller is a ValueError saying so)."""
+    ``precision="float32"``: the float32 build, which the PI, the explicit NNPC, the current-mode controller
+    and the compensator have (a predictive controller is a ValueError saying so)."""
     from controllers.adaptation import AdaptiveNNPC
 
     check_precision(precision)
@@ -938,14 +1020,15 @@ def native_twin(controller, precision: str = "float64"):
     if isinstance(controller, PredictiveController):
         if precision != "float64":
             raise ValueError(f"{controller.name} has no {precision} build: the predictive controller's C files "
-                             "(predictive.c, predictors.c) compute in double; float32: the PI and the explicit NNPC")
+                             "(predictive.c, predictors.c) compute in double; float32: the PI, the explicit NNPC, "
+                             "the current-mode controller and the compensator")
         return NativePredictiveController.from_python(controller)
     if isinstance(controller, ExplicitPolicyController):
         return NativeExplicitPolicyController.from_python(controller, precision)
     if isinstance(controller, CurrentModeController):
-        return NativeCurrentModeController(controller)
+        return NativeCurrentModeController(controller, precision)
     if isinstance(controller, CompensatorController):
-        return NativeCompensatorController(controller)
+        return NativeCompensatorController(controller, precision)
     return controller
 
 
@@ -998,6 +1081,38 @@ class NativePredictor:
                 lib.buckc_switched_rollout(table, _pointer(y0), context.previous_duty, _pointer(duties[i]), n,
                                            _pointer(dist), _pointer(out[i]))
         return out
+
+    def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
+                  block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """The C linearisations (``buckc_nn_sensitivities``, ``buckc_averaged_linearize``,
+        ``buckc_switched_linearize``) behind :meth:`~controllers.predictors.Predictor.linearize`."""
+        duties = np.ascontiguousarray(duties, dtype=float)
+        n = len(duties)
+        out, jacobian = np.empty((n, 2)), np.empty((n, 2, n_blocks))
+        dist = np.ascontiguousarray(disturbance, dtype=float)
+        history = np.ascontiguousarray(context.history, dtype=float)
+        blocks = np.ascontiguousarray(block_of_step, dtype=np.intc)
+        block_pointer = blocks.ctypes.data_as(ctypes.POINTER(c_int))
+        lib, kind = self._lib, self.config.kind
+        if kind == PREDICTOR_NN:
+            signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
+                       "load_conductance": context.load_conductance}
+            extras = np.array([signals[s] for s in self._extras]) if self._extras else None
+            return nn_sensitivities(self.config.nn, history, duties, extras, dist, blocks, n_blocks)
+        y0 = np.ascontiguousarray(history[0, :2])
+        if kind == PREDICTOR_AVERAGED:
+            step = AveragedStep()
+            lib.buckc_averaged_prepare(ctypes.byref(self.config.averaged), ctypes.byref(self.averaged_cache),
+                                       context.load_resistance, context.previous_duty, context.input_voltage,
+                                       _pointer(y0), _pointer(dist), ctypes.byref(step))
+            lib.buckc_averaged_linearize(ctypes.byref(step), _pointer(duties), n, block_pointer, n_blocks,
+                                         _pointer(out), _pointer(jacobian))
+        else:
+            table = lib.buckc_switched_cached(ctypes.byref(self.config.switched), ctypes.byref(self.switched_cache),
+                                              context.load_resistance, context.input_voltage)
+            lib.buckc_switched_linearize(table, _pointer(y0), context.previous_duty, _pointer(duties), n,
+                                         _pointer(dist), block_pointer, n_blocks, _pointer(out), _pointer(jacobian))
+        return out, jacobian
 
     def describe(self) -> dict:
         return {"type": "C twin", "name": self.name}
@@ -1123,6 +1238,42 @@ def nn_rollout_shared(config, history: np.ndarray, duties: np.ndarray, extras: n
         lib.buckc_nn_shared_rollout(ctypes.byref(config), ctypes.byref(shared), _pointer(duties[i], precision), n,
                                     _pointer(out[i], precision))
     return out.astype(float)
+
+
+def box_qp(h, g, lower, upper, max_iterations: int, precision: str = "float64") -> tuple[np.ndarray, int, bool]:
+    """:func:`controllers.box_qp.solve_box_qp` in C (``controllers/c/box_qp.c``), in ``precision``."""
+    dtype = REAL_MIRRORS[check_precision(precision)].dtype
+    n = len(g)
+    arrays = [np.ascontiguousarray(a, dtype=dtype) for a in (h, g, lower, upper)]
+    x = np.empty(n, dtype=dtype)
+    converged = c_int()
+    used = library(precision).buckc_box_qp(n, *(_pointer(a, precision) for a in arrays[:1]), n,
+                                           *(_pointer(a, precision) for a in arrays[1:]), max_iterations,
+                                           _pointer(x, precision), ctypes.byref(converged))
+    if used < 0:
+        raise ValueError(f"box QP with {n} variables: {status_text(used)}")
+    return x.astype(float), used, bool(converged.value)
+
+
+def nn_sensitivities(config, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None,
+                     disturbance: np.ndarray | None, block_of_step: np.ndarray,
+                     n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """``NNPlantModel.rollout_sensitivities`` in C, in the precision of ``config``'s mirror."""
+    precision = _precision_of(config)
+    dtype = REAL_MIRRORS[precision].dtype
+    n = len(duties)
+    history, duties = (np.ascontiguousarray(a, dtype=dtype) for a in (history, duties))
+    ex = None if extras is None or not len(extras) else np.ascontiguousarray(extras, dtype=dtype)
+    dist = None if disturbance is None else np.ascontiguousarray(disturbance, dtype=dtype)
+    blocks = np.ascontiguousarray(block_of_step, dtype=np.intc)
+    out, jacobian = np.empty((n, 2), dtype=dtype), np.empty((n, 2, n_blocks), dtype=dtype)
+    status = library(precision).buckc_nn_sensitivities(
+        ctypes.byref(config), _pointer(history, precision), None if ex is None else _pointer(ex, precision),
+        None if dist is None else _pointer(dist, precision), _pointer(duties, precision), n,
+        blocks.ctypes.data_as(ctypes.POINTER(c_int)), n_blocks, _pointer(out, precision), _pointer(jacobian, precision))
+    if status != OK:
+        raise ValueError(f"nn sensitivities for {n_blocks} blocks: {status_text(status)}")
+    return out.astype(float), jacobian.astype(float)
 
 
 def switched_table(predictor: SwitchedModelPredictor, load: float, input_voltage: float) -> np.ndarray:

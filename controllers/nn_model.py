@@ -280,6 +280,72 @@ class NNPlantModel:
             out[:, j] = new
         return out
 
+    def rollout_sensitivities(self, history: np.ndarray, duties: np.ndarray, extras: np.ndarray | None,
+                              disturbance: np.ndarray | None, block_of_step: np.ndarray,
+                              n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """One duty sequence rolled out with its forward sensitivities to the blocked moves (the
+        real-time-iteration optimizer's linearisation, :mod:`controllers.predictive`).
+
+        ``history`` (delays, 3) as in :meth:`rollout_shared`; ``duties`` (N,) per step, step j holding
+        the value of block ``block_of_step[j]``; ``extras`` (n_extra,) held (no sensitivity). Returns
+        the states (N, 2) -- :meth:`rollout_shared`'s for this sequence -- and their Jacobian (N, 2,
+        n_blocks) with respect to the block values.
+
+        Forward mode through the network, analytic: a dense layer maps a sensitivity s to W' s, an
+        activation multiplies it by its derivative (tanh: 1 - tanh^2, computed from the activation
+        itself; sigmoid: a (1 - a); relu: 1 where z > 0); the predicted state and its sensitivity
+        are fed back through the window like the state. A block's column is zero until its first
+        step, so only the columns up to the current step's block are propagated.
+        """
+        n = len(duties)
+        delays = self.config.delays
+        window = np.array(history, dtype=float, copy=True).reshape(delays, 3)
+        sensitivity = np.zeros((delays, 3, n_blocks))  # d window / d block values
+        constant = extras if extras is not None and len(extras) else np.zeros(0)
+        n_extra = len(constant)
+        last = len(self._weights) - 1
+        activation = self.config.activation
+        out = np.empty((n, 2))
+        jacobian = np.zeros((n, 2, n_blocks))
+        for j in range(n):
+            active = int(block_of_step[j]) + 1  # columns beyond are still zero
+            window[0, 2] = duties[j]
+            sensitivity[0, 2, :] = 0.0
+            sensitivity[0, 2, block_of_step[j]] = 1.0
+            x = np.concatenate([window.ravel(), constant])
+            dx = np.zeros((3 * delays + n_extra, active))
+            dx[:3 * delays] = sensitivity[:, :, :active].reshape(3 * delays, active)
+            h, dh = x, dx
+            for i, (w, b) in enumerate(zip(self._weights, self._biases)):
+                z = h @ w + b
+                dz = w.T @ dh
+                if i < last:
+                    if activation == "tanh":
+                        a = np.tanh(z)
+                        slope = 1.0 - a * a
+                    elif activation == "sigmoid":
+                        a = 0.5 * (1.0 + np.tanh(0.5 * z))
+                        slope = a * (1.0 - a)
+                    else:
+                        a = np.maximum(z, 0.0)
+                        slope = (z > 0.0).astype(float)
+                    h, dh = a, dz * slope[:, None]
+                else:
+                    h, dh = z, dz
+            if self.config.residual:
+                h = h + x[:2]
+                dh = dh + dx[:2]
+            if disturbance is not None:
+                h = h + disturbance
+            out[j] = h
+            jacobian[j, :, :active] = dh
+            if delays > 1:
+                window[1:] = window[:-1].copy()
+                sensitivity[1:] = sensitivity[:-1].copy()
+            window[0, :2] = h
+            sensitivity[0, :2, :] = jacobian[j]
+        return out, jacobian
+
     def rmse_report(self, frame, horizon: int) -> dict[str, float]:
         """One-step and multi-step (open loop over ``horizon`` samples) RMSE on a sample table.
 

@@ -103,6 +103,12 @@ class Predictor(Protocol):
     def describe(self) -> dict:
         """JSON-ready description for run metadata."""
 
+    def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
+                  block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """One sequence ``duties`` (N,) rolled out as :meth:`rollout` does, with the Jacobian of the
+        states with respect to the blocked moves: (N, 2) and (N, 2, n_blocks), step j's duty being
+        block ``block_of_step[j]``'s value (the real-time-iteration optimizer's linearisation)."""
+
 
 class NNPredictor:
     """The NNPC's plant model: the trained network, evaluated in plain numpy."""
@@ -114,12 +120,20 @@ class NNPredictor:
         self._extras = model.config.extra_signals
 
     def rollout(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray) -> np.ndarray:
-        extras = None
-        if self._extras:
-            signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
-                       "load_conductance": context.load_conductance}
-            extras = np.array([signals[s] for s in self._extras], dtype=float)
-        return self.model.rollout_shared(context.history, duties, extras, disturbance)
+        return self.model.rollout_shared(context.history, duties, self._extra_values(context), disturbance)
+
+    def _extra_values(self, context: PredictionContext) -> np.ndarray | None:
+        if not self._extras:
+            return None
+        signals = {"load_current": context.load_current, "input_voltage": context.input_voltage,
+                   "load_conductance": context.load_conductance}
+        return np.array([signals[s] for s in self._extras], dtype=float)
+
+    def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
+                  block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Analytic forward sensitivities of the network (:meth:`NNPlantModel.rollout_sensitivities`)."""
+        return self.model.rollout_sensitivities(context.history, duties, self._extra_values(context), disturbance,
+                                                block_of_step, n_blocks)
 
     def describe(self) -> dict:
         meta = self.model.metadata
@@ -192,20 +206,24 @@ class AveragedModelPredictor:
         self._cache[key] = result
         return result
 
-    def rollout(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray) -> np.ndarray:
+    def _measured_step(self, context: PredictionContext) -> tuple[np.ndarray, np.ndarray, float]:
+        """(T Phi T^-1, T gamma, Vs + V_F) in measured coordinates y = (iL, vo) = T x, x = (iL, vC):
+        y+ = T Phi T^-1 y + T gamma (d (Vs + V_F) - V_F)."""
         p = self.parameters
         load = context.load_resistance
         phi, gamma = self._discrete(load, context.previous_duty * p.switch_on_resistance)
-        m, n = duties.shape
-        # work in measured coordinates y = (iL, vo) = T x, x = (iL, vC): y+ = T Phi T^-1 y + T gamma u
         to_y = measured_from_state(p, load)
         to_x = np.linalg.inv(to_y)
-        phi_y_t = (to_y @ phi @ to_x).T
-        gamma_y = to_y @ gamma
+        return to_y @ phi @ to_x, to_y @ gamma, context.input_voltage + p.diode_forward_voltage
+
+    def rollout(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray) -> np.ndarray:
+        p = self.parameters
+        phi_y, gamma_y, drive = self._measured_step(context)
+        phi_y_t = phi_y.T
+        m, n = duties.shape
         y = np.empty((m, 2))
         y[:] = context.history[0, :2]
         out = np.empty((m, n, 2))
-        drive = context.input_voltage + p.diode_forward_voltage
         for j in range(n):
             node = duties[:, j] * drive - p.diode_forward_voltage
             y = y @ phi_y_t + node[:, None] * gamma_y[None, :]
@@ -213,6 +231,33 @@ class AveragedModelPredictor:
             y += disturbance  # so prediction - disturbance is the model alone, as for the NN
             out[:, j] = y
         return out
+
+    def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
+                  block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Analytic and exact: the model is linear, y+ = Phi_y y + gamma_y (d drive - V_F), so a block's
+        move enters each step it holds through gamma_y drive and propagates through Phi_y; where the
+        diode clips the predicted current, its sensitivity is zero (the clip's slope there)."""
+        p = self.parameters
+        phi_y, gamma_y, drive = self._measured_step(context)
+        n = len(duties)
+        i_l, v_o = float(context.history[0, 0]), float(context.history[0, 1])
+        out = np.empty((n, 2))
+        jacobian = np.zeros((n, 2, n_blocks))
+        sensitivity = np.zeros((2, n_blocks))
+        forward = p.diode_forward_voltage
+        for j in range(n):
+            node = duties[j] * drive - forward
+            i_next = (i_l * phi_y[0, 0] + v_o * phi_y[0, 1]) + node * gamma_y[0]
+            v_next = (i_l * phi_y[1, 0] + v_o * phi_y[1, 1]) + node * gamma_y[1]
+            sensitivity = phi_y @ sensitivity
+            sensitivity[:, block_of_step[j]] += gamma_y * drive
+            if i_next < 0.0:
+                i_next = 0.0
+                sensitivity[0] = 0.0
+            i_l, v_o = i_next + disturbance[0], v_next + disturbance[1]
+            out[j] = (i_l, v_o)
+            jacobian[j] = sensitivity
+        return out, jacobian
 
     def describe(self) -> dict:
         return {"type": "averaged model (matrix exponential)", "parameters": asdict(self.parameters),
@@ -382,6 +427,58 @@ class SwitchedModelPredictor:
             v_next += disturbance[1]
             i_l, v_o = i_next, v_next
         return np.stack([current.T, voltage.T], axis=2)
+
+    def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
+                  block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Analytic: step j's map y(j+1) = H(d(j)) (K(d(j-1)) y(j) + kappa(d(j-1))) + h(d(j)) depends on
+        two duties, through the tabulated maps, whose linear interpolation has the slope
+        (table difference) x (grid points - 1) in d -- exact for the interpolated model the rollout
+        uses (its derivative jumps at the 1/256-wide grid nodes, where the left interval's is taken,
+        as the lookup does). A block's move thus enters at the step it is applied (through H, h) and
+        at the next (through K, kappa); the clipped current's sensitivity is zero, as in the averaged model."""
+        table = self._table(context.load_resistance, context.input_voltage)
+        n = len(duties)
+        applied = np.empty(n + 1)
+        applied[0] = context.previous_duty
+        applied[1:] = duties
+        values = self._lookup(table, applied)  # (n + 1, 12)
+        last = len(table) - 1
+        position = np.clip(applied, 0.0, 1.0) * last
+        index = np.minimum(position.astype(np.intp), last - 1)
+        slopes = table[index][:, 12:] * last  # d values / d duty on the interval the lookup used
+        out = np.empty((n, 2))
+        jacobian = np.zeros((n, 2, n_blocks))
+        sensitivity = np.zeros((2, n_blocks))
+        i_l, v_o = float(context.history[0, 0]), float(context.history[0, 1])
+        for j in range(n):
+            k, h = values[j], values[j + 1]  # K, kappa at d(j-1); H, h at d(j)
+            dk, dh = slopes[j], slopes[j + 1]
+            s = np.array([[h[6] * k[0] + h[7] * k[2], h[6] * k[1] + h[7] * k[3]],
+                          [h[8] * k[0] + h[9] * k[2], h[8] * k[1] + h[9] * k[3]]])
+            c0 = h[6] * k[4] + h[7] * k[5] + h[10]
+            c1 = h[8] * k[4] + h[9] * k[5] + h[11]
+            i_next = s[0, 0] * i_l + s[0, 1] * v_o + c0
+            v_next = s[1, 0] * i_l + s[1, 1] * v_o + c1
+            # the step's map differentiated in d(j) (through H, h) and in d(j-1) (through K, kappa)
+            now = np.array([(dh[6] * k[0] + dh[7] * k[2]) * i_l + (dh[6] * k[1] + dh[7] * k[3]) * v_o
+                            + dh[6] * k[4] + dh[7] * k[5] + dh[10],
+                            (dh[8] * k[0] + dh[9] * k[2]) * i_l + (dh[8] * k[1] + dh[9] * k[3]) * v_o
+                            + dh[8] * k[4] + dh[9] * k[5] + dh[11]])
+            sensitivity = s @ sensitivity
+            sensitivity[:, block_of_step[j]] += now
+            if j:
+                before = np.array([(h[6] * dk[0] + h[7] * dk[2]) * i_l + (h[6] * dk[1] + h[7] * dk[3]) * v_o
+                                   + h[6] * dk[4] + h[7] * dk[5],
+                                   (h[8] * dk[0] + h[9] * dk[2]) * i_l + (h[8] * dk[1] + h[9] * dk[3]) * v_o
+                                   + h[8] * dk[4] + h[9] * dk[5]])
+                sensitivity[:, block_of_step[j - 1]] += before
+            if i_next < 0.0:
+                i_next = 0.0
+                sensitivity[0] = 0.0
+            i_l, v_o = i_next + disturbance[0], v_next + disturbance[1]
+            out[j] = (i_l, v_o)
+            jacobian[j] = sensitivity
+        return out, jacobian
 
     def describe(self) -> dict:
         return {"type": f"switched model (exact per PWM period, {self.carrier} carrier, sensor {self.sensor})",

@@ -39,5 +39,5 @@ echo "bootstrap: installing dependencies (torch==2.13.0 CPU, fmpy, pandas, ...)"
 .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24"
 # torch first and alone, pinned: pip takes the local CPU build of exactly this version.
 .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt "torch==2.13.0"
-.venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test,docs]"
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test,docs,bench]"
 echo "$want" > "$stamp"

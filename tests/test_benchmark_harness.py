@@ -89,6 +89,29 @@ def test_cycle_estimate_is_the_cost_model_applied_to_the_counts():
                                                          + 2 * CORTEX_M4F.candidate + CORTEX_M4F.interrupt)
 
 
+def test_the_calibration_takes_the_measured_tanh_and_what_the_forward_pass_leaves_per_mac():
+    from controllers.cost_model import calibrated
+
+    model = calibrated(CORTEX_M4F, tanh_cycles=60.0, forward_cycles=1500.0, layer_macs=112, tanh_calls=14)
+    assert model.tanh == 60.0 and model.mac == pytest.approx((1500 - 14 * 60) / 112)
+    assert (model.sqrt, model.candidate, model.interrupt, model.division) == (
+        CORTEX_M4F.sqrt, CORTEX_M4F.candidate, CORTEX_M4F.interrupt, CORTEX_M4F.division)
+    with pytest.raises(ValueError, match="calibrates nothing"):
+        calibrated(CORTEX_M4F, tanh_cycles=200.0, forward_cycles=1500.0, layer_macs=112, tanh_calls=14)
+
+
+def test_the_classical_controllers_operation_counts_follow_their_c_steps():
+    """Current mode: (ki Ts) e and kp e in two loops; a Type-III of order 3: b0 e and two products per state."""
+    from controllers.cost_model import compensator_operation_counts, current_mode_operation_counts
+
+    assert current_mode_operation_counts() == {"macs": 6.0, "tanh": 0.0, "sqrt": 0.0, "division": 1.0,
+                                               "candidates": 1.0}
+    assert compensator_operation_counts(3)["macs"] == 7.0 and compensator_operation_counts(1)["macs"] == 3.0
+    counts = compensator_operation_counts(3)
+    assert cortex_m4f_cycles(counts) == pytest.approx(7 * CORTEX_M4F.mac + CORTEX_M4F.division
+                                                      + CORTEX_M4F.candidate + CORTEX_M4F.interrupt)
+
+
 def test_operation_counts_refuse_a_circuit_model_predictor():
     from cosim.study.experiments import model_mpc
     from cosim.study.vocabulary import NOMINAL

@@ -22,7 +22,10 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per step: tanh calls",
-                "C step, NNPC-explicit, 13.33 us", "NNPC-explicit 13.33 us per step: multiply-accumulates (counted)",
+                "C step, NNPC-explicit, 13.33 us", "C step, NNPC (rti), 1 ms", "C step, NNPC (rti), 13.33 us",
+                "NNPC (rti) 13.33 us per step: box-QP iterations (counted)", "C RTI NNPC step, startup",
+                "do-mpc (IPOPT) step on the same problem, load_change", "do-mpc step / C RTI step, startup",
+                "closed-loop IAE, C RTI / do-mpc, load_change", "NNPC-explicit 13.33 us per step: multiply-accumulates (counted)",
                 "NNPC-explicit 13.33 us per step on a 170 MHz Cortex-M4F",
                 "sweep throughput on a LocalCluster of 2 workers", "sweep overhead per run",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else

@@ -28,7 +28,7 @@ from controllers import native
 from controllers.base import Controller, Measurement
 from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, TrainingSettings, load_model, train
 from controllers.pi import PIController
-from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController
+from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, RtiSettings
 from controllers.predictors import (
     AveragedModelPredictor,
     CircuitParameters,
@@ -364,6 +364,113 @@ def test_optimizer_twin_evaluates_the_same_candidates_in_the_same_order(settings
                                                                        python.best_location)
 
 
+# ------------------------------------------------------------------------------------------ real-time iteration
+
+
+def test_box_qp_twin_gives_pythons_iterates_bit_for_bit():
+    """The same active-set path and the same arithmetic (plain loops in both): identical x and iteration
+    counts, also where the iteration cap stops the method; the float32 build within float precision."""
+    from controllers.box_qp import solve_box_qp
+
+    rng = np.random.default_rng(24)
+    for n in range(1, native.QP_MAX_VARIABLES + 1):
+        for trial in range(25):
+            a = rng.normal(size=(n, n))
+            h = a @ a.T + 10.0 ** rng.uniform(-2, 1) * np.eye(n)
+            g = rng.normal(scale=10.0, size=n)
+            lower, upper = -rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+            cap = 50 if trial % 5 else 2
+            x, used, converged = solve_box_qp(h, g, lower, upper, cap)
+            x_c, used_c, converged_c = native.box_qp(h, g, lower, upper, cap)
+            assert np.array_equal(x_c, x) and (used_c, converged_c) == (used, converged)
+            if converged:
+                x32, _, _ = native.box_qp(h, g, lower, upper, cap, precision="float32")
+                assert np.max(np.abs(x32 - x)) <= 1e-3 * max(1.0, np.max(np.abs(x)))
+    with pytest.raises(ValueError, match="above a compile-time maximum"):
+        native.box_qp(np.eye(9), np.ones(9), -np.ones(9), np.ones(9), 5)
+
+
+@pytest.mark.parametrize("config", NN_CONFIGS, ids=lambda c: c.label)
+def test_nn_sensitivities_match_numpy(config):
+    from controllers.predictive import doubling_blocks
+
+    rng = np.random.default_rng(config.n_inputs + 3 * config.delays)
+    model = random_model(config, seed=config.delays + len(config.hidden))
+    blocks = doubling_blocks(23)
+    of_step = np.repeat(np.arange(len(blocks)), blocks)
+    c_config = native.nn_config(model)
+    for trial in range(4):
+        history = np.column_stack([rng.uniform(0, 3, config.delays), rng.uniform(0, 15, config.delays),
+                                   rng.uniform(0, 1, config.delays)])
+        duties = rng.uniform(0, 1, len(blocks))[of_step]
+        extras = rng.uniform(0, 2, len(config.extra_signals)) if config.extra_signals else None
+        disturbance = None if trial == 0 else rng.normal(0, 0.1, 2)
+        expected = model.rollout_sensitivities(history, duties, extras, disturbance, of_step, len(blocks))
+        actual = native.nn_sensitivities(c_config, history, duties, extras, disturbance, of_step, len(blocks))
+        assert relative_error(actual[0], expected[0]) <= 1e-12
+        assert relative_error(actual[1], expected[1]) <= 1e-12
+    with pytest.raises(ValueError, match="above a compile-time maximum"):
+        native.nn_sensitivities(c_config, history, duties[:9], extras, None, np.arange(9), 9)
+
+
+@pytest.mark.parametrize("predictor", [AveragedModelPredictor(PARASITICS, TS), AveragedModelPredictor(NOMINAL, 1e-3),
+                                       SwitchedModelPredictor(PARASITICS, TS, FSW),
+                                       SwitchedModelPredictor(NOMINAL, TS, FSW, carrier="triangle",
+                                                              sensor="period_start")],
+                         ids=["averaged-13us", "averaged-1ms", "switched-sawtooth", "switched-triangle"])
+def test_circuit_linearizations_match(predictor):
+    from controllers.predictive import doubling_blocks
+
+    rng = np.random.default_rng(11)
+    twin = native.NativePredictor(predictor)
+    blocks = doubling_blocks(23)
+    of_step = np.repeat(np.arange(len(blocks)), blocks)
+    for ctx in contexts(rng, (6.0, 2.0, 40.0)):
+        moves = rng.uniform(0, 1, len(blocks))
+        moves[0] = 0.0  # the diode's clip and the grid's end
+        disturbance = rng.normal(0, 0.05, 2)
+        expected = predictor.linearize(ctx, moves[of_step], disturbance, of_step, len(blocks))
+        actual = twin.linearize(ctx, moves[of_step], disturbance, of_step, len(blocks))
+        assert relative_error(actual[0], expected[0]) <= 1e-10
+        assert relative_error(actual[1], expected[1]) <= 1e-10
+
+
+def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
+    controller = with_rti(PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=23),
+                                               **OPERATING_POINT), RtiSettings(iterations=3, smoothing=0.02))
+    twin = native.NativePredictiveController.from_python(controller)
+    rti = twin.config.rti
+    assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit) == (1, 3, 0.02, RtiSettings().step_limit)
+    assert native.NativePredictiveController.from_python(with_rti(controller, search=True)).rti is None
+    config = native.PredictiveConfig()
+    ctypes.pointer(config)[0] = twin.config
+    config.rti.iterations = 4
+    with pytest.raises(ValueError, match="rti iterations: expected 1, 2 or 3"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.iterations, config.horizon.n_blocks = 2, 9
+    config.horizon.blocks[:9] = [1, 1, 1, 1, 1, 1, 1, 1, 15]
+    with pytest.raises(ValueError, match="rti: more move blocks than BUCKC_QP_MAX_VARIABLES"):
+        native.NativePredictiveController(config, "bad")
+
+
+def test_the_c_audit_searches_the_last_problem_like_python_without_changing_the_state():
+    """search_last_sample (the optimizer ablation's reference) in both twins after RTI steps."""
+    controller = with_rti(PredictiveController(AveragedModelPredictor(PARASITICS, TS), TS, HorizonSettings(horizon=23),
+                                               **OPERATING_POINT))
+    twin = native.NativePredictiveController.from_python(controller)
+    for k in range(30):
+        m = Measurement(k * TS, 12.0, 0.4 * k, 0.1 * k, 0.06 * k, 48.0)
+        assert abs(twin.step(m) - controller.step(m)) <= DUTY_TOLERANCE
+        state = bytes(twin.state)
+        sequence_c, cost_c = twin.search_last_sample()
+        sequence, cost = controller.search_last_sample()
+        assert bytes(twin.state) == state  # the C controller's state is untouched
+        # the warm start is the RTI's plan, equal to ~1e-14: so are the search's lattices around it
+        assert np.max(np.abs(sequence_c - sequence)) <= DUTY_TOLERANCE and cost_c == pytest.approx(cost, rel=1e-9)
+        assert cost <= controller.best_cost * 1.5 or twin.last_solver == "search"
+    assert twin.last_solver == controller.last_solver == "rti"
+
+
 def test_horizon_settings_above_the_c_maxima_are_refused_by_name():
     from controllers.predictors import AveragedModelPredictor
 
@@ -384,6 +491,23 @@ def test_horizon_settings_above_the_c_maxima_are_refused_by_name():
 # ------------------------------------------------------------------------------------------ the controller step
 
 
+def python_path(controller: PredictiveController) -> tuple:
+    """Which optimizer planned the last step and how: the search's evaluations, passes and winning
+    candidate, or the RTI's box-QP iterations and accepted steps (with the fallback reason)."""
+    if controller.rti is not None and controller.last_solver == "rti":
+        o = controller.rti_optimizer
+        return ("rti", controller.last_fallback, o.qp_iterations, o.accepted)
+    o = controller.optimizer
+    return ("search", controller.last_fallback, o.evaluations, o.passes, o.best_location)
+
+
+def c_path(twin) -> tuple:
+    s = twin.state
+    if twin.last_solver == "rti":
+        return ("rti", twin.last_fallback, s.qp_iterations, s.accepted)
+    return ("search", twin.last_fallback, s.evaluations, s.passes, (s.best_call, s.best_row))
+
+
 class Recorder:
     """Wraps a Python controller: records each Measurement, its duty and the optimizer's path."""
 
@@ -397,8 +521,7 @@ class Recorder:
 
     def step(self, m: Measurement) -> float:
         duty = self.inner.step(m)
-        o = self.inner.optimizer
-        self.log.append((m, duty, (o.evaluations, o.passes, o.best_location), self.inner._bias.copy()))
+        self.log.append((m, duty, python_path(self.inner), self.inner._bias.copy()))
         return duty
 
     def describe(self) -> dict:
@@ -437,6 +560,16 @@ def replay_case(name: str, model_1ms):
     from cosim.study.experiments import model_mpc, nnpc, plant_binding
     from cosim.study.vocabulary import MISMATCH
 
+    rti = name.endswith("-rti")  # the same case with the real-time iteration (and the search as its fallback)
+    binding, controller, scenarios = _replay_case(name.removesuffix("-rti"), model_1ms)
+    return binding, with_rti(controller, search=not rti), scenarios
+
+
+def _replay_case(name: str, model_1ms):
+    from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+    from cosim.study.experiments import model_mpc, nnpc, plant_binding
+    from cosim.study.vocabulary import MISMATCH
+
     if name == "nnpc-1ms":  # the paper's scenarios and random references and loads (dead-beat moves repeat)
         from cosim.study.data_collection import random_scenario
         from cosim.study.experiments import collection_settings
@@ -459,7 +592,17 @@ def replay_case(name: str, model_1ms):
     raise KeyError(name)
 
 
-REPLAYS = ["nnpc-1ms", "nnpc-13us", "mpc-averaged-13us", "mpc-switched-13us", "mpc-switched-nominal-13us"]
+def with_rti(controller: PredictiveController, settings: RtiSettings = RtiSettings(),
+             search: bool = False) -> PredictiveController:
+    """``controller`` with the real-time iteration (``search=True``: without it)."""
+    return PredictiveController(controller.predictor, controller.sample_period, controller.settings,
+                                controller.duty_limits, controller.name, nominal_load=controller.nominal_load,
+                                nominal_input_voltage=controller.nominal_input_voltage,
+                                rti=None if search else settings)
+
+
+SEARCH_REPLAYS = ["nnpc-1ms", "nnpc-13us", "mpc-averaged-13us", "mpc-switched-13us", "mpc-switched-nominal-13us"]
+REPLAYS = SEARCH_REPLAYS + [f"{name}-rti" for name in SEARCH_REPLAYS]
 PREDICTOR_TYPES = {"nnpc-1ms": "NNPredictor", "nnpc-13us": "NNPredictor", "mpc-averaged-13us": "AveragedModelPredictor",
                    "mpc-switched-13us": "SwitchedModelPredictor", "mpc-switched-nominal-13us": "SwitchedModelPredictor"}
 
@@ -478,7 +621,8 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
     from cosim.master import run
 
     binding, controller, scenarios = replay_case(case, model_1ms)
-    assert type(controller.predictor).__name__ == PREDICTOR_TYPES[case]
+    assert type(controller.predictor).__name__ == PREDICTOR_TYPES[case.removesuffix("-rti")]
+    assert (controller.rti is not None) == case.endswith("-rti")
     twin = native.NativePredictiveController.from_python(controller)
     assert isinstance(twin, Controller) and json.dumps(twin.describe())
     recorder = Recorder(controller)
@@ -486,6 +630,7 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
     worst = 0.0
     path_differences = 0
     all_duties = []
+    solvers = set()
     with open_plant(binding) as plant:
         for scenario in scenarios:
             recorder.log.clear()
@@ -496,7 +641,8 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
             for k, (m, _, path, bias) in enumerate(recorder.log):
                 duties_c[k] = twin.step(m)
                 s = twin.state
-                path_differences += (s.evaluations, s.passes, (s.best_call, s.best_row)) != path
+                path_differences += c_path(twin) != path
+                solvers.add(path[0])
                 if abs(duties_c[k] - duties_py[k]) <= DUTY_TOLERANCE:
                     assert np.allclose(np.ctypeslib.as_array(s.bias), bias, rtol=1e-6, atol=1e-9)
             difference = np.abs(duties_c - duties_py)
@@ -513,10 +659,12 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
           f"optimizer-path differences {path_differences}")
     assert flips <= 0.01 * samples
     assert path_differences <= flips
+    assert solvers == ({"search", "rti"} if case.endswith("-rti") else {"search"})  # both paths were replayed
 
 
+@pytest.mark.parametrize("optimizer", ["search", "rti"])
 @pytest.mark.parametrize("rate", ["1ms", "13us"])
-def test_native_nnpc_drives_the_plant_like_the_python_one(rate, model_1ms, request):
+def test_native_nnpc_drives_the_plant_like_the_python_one(rate, optimizer, model_1ms, request):
     """Closed loop: each NNPC drives its own run of the plant FMU on the start-up scenario; the
     duty traces agree to 1e-9 at every control sample (so the output traces are the same run)."""
     from cosim.master import simulate
@@ -525,11 +673,13 @@ def test_native_nnpc_drives_the_plant_like_the_python_one(rate, model_1ms, reque
     from cosim.study.experiments import nnpc, plant_binding
 
     if rate == "1ms":
-        binding, controller, scenario = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3), load_scenario("startup")
+        binding, controller = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3, optimizer=optimizer)
+        scenario = load_scenario("startup")
     else:
         model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
-        binding, controller = plant_binding("mismatch", "switched"), nnpc(model, TS)
+        binding, controller = plant_binding("mismatch", "switched"), nnpc(model, TS, optimizer=optimizer)
         scenario = replace(load_scenario("startup"), duration=0.0015)
+    assert (controller.rti is not None) == (optimizer == "rti")
     twin = native.NativePredictiveController.from_python(controller)
     period = controller.sample_period
     results = [simulate(binding, c, scenario, record_period=period) for c in (controller, twin)]
@@ -575,7 +725,8 @@ def test_the_load_estimate_twin_follows_the_python_rule():
         assert lib.buckc_estimate_conductance(vo, io, il, 0.125) == load_estimate.estimate_conductance(vo, io, il, 0.125)
 
 
-def test_adaptive_nnpc_on_the_c_twin_drives_the_plant_like_on_the_python_one():
+@pytest.mark.parametrize("optimizer", ["search", "rti"])
+def test_adaptive_nnpc_on_the_c_twin_drives_the_plant_like_on_the_python_one(optimizer):
     """The adaptation rewrites the output layer of whichever NNPC it wraps (numpy arrays or the C
     config); with a parameter event in the run, both learn the same weights and give the same duties."""
     from cosim.master import simulate
@@ -602,8 +753,9 @@ load_resistance = 5.0
 time = 0.0018
 reference = 12.0
 """)
-    python = adaptive_nnpc(model, TS)
-    twin = native.native_twin(adaptive_nnpc(model, TS))
+    python = adaptive_nnpc(model, TS, optimizer=optimizer)
+    twin = native.native_twin(adaptive_nnpc(model, TS, optimizer=optimizer))
+    assert (twin.inner.rti is None) == (optimizer == "search")
     assert isinstance(twin.inner, native.NativePredictiveController) and native.native_twin(twin) is twin
     binding = plant_binding("mismatch", "switched")
     runs = [simulate(binding, c, scenario, record_period=TS) for c in (python, twin)]

@@ -121,6 +121,11 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     assert "median (min-max) over 2 seeds" in summary  # spreads beside the headline ratios
     assert "adapted / not adapted" in summary
     assert "**Identification** (nominal switched plant" in report
+    ablation = report.split("Old vs new optimizer on the same models")[1].split("\n\n")[1].splitlines()[2:]
+    pipelines = {line.split(" | ")[0].lstrip("| ") for line in ablation}
+    assert pipelines == set(QUICK.pipelines)  # every built-in pipeline: the NNPC and the oracle MPC, each scenario
+    assert {"NNPC", "MPC-oracle"} == {line.split(" | ")[1] for line in ablation}
+    assert len(ablation) == len(QUICK.pipelines) * 2 * len(QUICK.scenarios)
     cost = report.split("## What the NNPC costs in C")[1].split("\n## ")[0]
     rows = [line for line in cost.splitlines() if line.startswith(("| 1 ms |", "| 13.33 µs |"))]
     assert len(rows) == 2 and rows[0].endswith("| yes |")  # the 1 ms NNPC fits a Cortex-M4F, counted

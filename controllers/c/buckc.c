@@ -52,6 +52,7 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcHorizonSettings);
     SIZE(BuckcOptimizer);
     SIZE(BuckcPredictorConfig);
+    SIZE(BuckcRtiSettings);
     SIZE(BuckcPredictiveConfig);
     SIZE(BuckcPredictiveState);
     SIZE(BuckcPredictive);

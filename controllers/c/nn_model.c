@@ -5,6 +5,7 @@
  *   buckc_nn_shared_*       NNPlantModel.rollout_shared: the fast path for one delay and one
  *                           hidden layer (the history's part of layer 0 computed once), else
  *                           rollout() on the broadcast history -- chosen by the same rule.
+ *   buckc_nn_sensitivities  NNPlantModel.rollout_sensitivities (forward mode, analytic)
  * Weight layout and conventions: nn_model.h. Training and files stay in Python. One source for the
  * double and float32 builds (buckc_real, buckc.h).
  */
@@ -214,4 +215,121 @@ void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *s
             out[2 * j + i] = acc;
         }
     }
+}
+
+/* activation and its slope at z (the slope from the activation itself where that is exact) */
+static buckc_real activate_with_slope(int activation, buckc_real z, buckc_real *slope)
+{
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), one = BUCKC_REAL_LITERAL(1.0);
+    buckc_real a;
+    switch (activation) {
+    case BUCKC_ACTIVATION_RELU:
+        a = z < zero ? zero : z;
+        *slope = z > zero ? one : zero;
+        return a;
+    case BUCKC_ACTIVATION_SIGMOID:
+        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_TANH(BUCKC_REAL_LITERAL(0.5) * z));
+        *slope = a * (one - a);
+        return a;
+    default:
+        a = BUCKC_TANH(z);
+        *slope = one - a * a;
+        return a;
+    }
+}
+
+int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                           const buckc_real *disturbance, const buckc_real *duties, int n, const int *block_of_step,
+                           int n_blocks, buckc_real *out, buckc_real *jacobian)
+{
+    enum { D = BUCKC_NN_MAX_DIRECTIONS };
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0);
+    buckc_real x[W];                            /* the window [iL, vc, d] x delays, then the extras */
+    buckc_real state_sens[BUCKC_NN_MAX_DELAYS][2][D]; /* d [iL, vc] of each window row / d block values */
+    int duty_block[BUCKC_NN_MAX_DELAYS];        /* the block whose value a window row's duty is (-1: none) */
+    int delays = config->delays, e = config->n_extras, n_in = buckc_nn_inputs(config), last = config->n_hidden;
+    int j, r, c, h, l, o;
+    if (n_blocks < 1 || n_blocks > D)
+        return BUCKC_ERR_LIMIT;
+    memcpy(x, history, sizeof(buckc_real) * 3 * (size_t)delays);
+    for (r = 0; r < e; ++r)
+        x[3 * delays + r] = extras != NULL ? extras[r] : (buckc_real)NAN;
+    memset(state_sens, 0, sizeof(state_sens));
+    for (r = 0; r < delays; ++r)
+        duty_block[r] = -1;
+    for (j = 0; j < n; ++j) {
+        buckc_real h_val[W], h_sens[W][D], z_val[W], z_sens[W][D], y[2], y_sens[2][D];
+        int active = block_of_step[j] + 1, width;
+        x[2] = duties[j];
+        duty_block[0] = block_of_step[j];
+        /* layer 0: z = x @ W0 + b0; its sensitivity from the window's states (dense) and duties (unit) */
+        dense(config->weights[0], config->biases[0], x, n_in, config->hidden[0], z_val);
+        for (h = 0; h < config->hidden[0]; ++h) {
+            for (c = 0; c < active; ++c) {
+                buckc_real acc = zero;
+                for (r = 0; r < delays; ++r)
+                    acc += config->weights[0][3 * r][h] * state_sens[r][0][c]
+                           + config->weights[0][3 * r + 1][h] * state_sens[r][1][c];
+                z_sens[h][c] = acc;
+            }
+            for (r = 0; r < delays; ++r)
+                if (duty_block[r] >= 0)
+                    z_sens[h][duty_block[r]] += config->weights[0][3 * r + 2][h];
+        }
+        width = config->hidden[0];
+        for (l = 0;; ++l) { /* activation of layer l, then layer l + 1 */
+            for (h = 0; h < width; ++h) {
+                buckc_real slope;
+                h_val[h] = activate_with_slope(config->activation, z_val[h], &slope);
+                for (c = 0; c < active; ++c)
+                    h_sens[h][c] = z_sens[h][c] * slope;
+            }
+            if (l + 1 == last)
+                break;
+            dense(config->weights[l + 1], config->biases[l + 1], h_val, width, config->hidden[l + 1], z_val);
+            for (o = 0; o < config->hidden[l + 1]; ++o)
+                for (c = 0; c < active; ++c) {
+                    buckc_real acc = zero;
+                    for (h = 0; h < width; ++h)
+                        acc += config->weights[l + 1][h][o] * h_sens[h][c];
+                    z_sens[o][c] = acc;
+                }
+            width = config->hidden[l + 1];
+        }
+        dense(config->weights[last], config->biases[last], h_val, width, BUCKC_NN_OUTPUTS, y);
+        for (o = 0; o < 2; ++o)
+            for (c = 0; c < active; ++c) {
+                buckc_real acc = zero;
+                for (h = 0; h < width; ++h)
+                    acc += config->weights[last][h][o] * h_sens[h][c];
+                y_sens[o][c] = acc;
+            }
+        if (config->residual) { /* + x[:2] and its sensitivity */
+            for (o = 0; o < 2; ++o) {
+                y[o] = y[o] + x[o];
+                for (c = 0; c < active; ++c)
+                    y_sens[o][c] = y_sens[o][c] + state_sens[0][o][c];
+            }
+        }
+        if (disturbance != NULL) {
+            y[0] = y[0] + disturbance[0];
+            y[1] = y[1] + disturbance[1];
+        }
+        out[2 * j] = y[0];
+        out[2 * j + 1] = y[1];
+        for (o = 0; o < 2; ++o)
+            for (c = 0; c < n_blocks; ++c)
+                jacobian[(2 * j + o) * n_blocks + c] = c < active ? y_sens[o][c] : zero;
+        if (delays > 1) { /* window[1:] = window[:-1] */
+            memmove(x + 3, x, sizeof(buckc_real) * 3 * (size_t)(delays - 1));
+            memmove(state_sens[1], state_sens[0], sizeof(state_sens[0]) * (size_t)(delays - 1));
+            memmove(duty_block + 1, duty_block, sizeof(int) * (size_t)(delays - 1));
+        }
+        x[0] = y[0];
+        x[1] = y[1];
+        for (o = 0; o < 2; ++o)
+            for (c = 0; c < D; ++c)
+                state_sens[0][o][c] = c < active ? y_sens[o][c] : zero;
+    }
+    return BUCKC_OK;
 }

@@ -37,6 +37,7 @@
 #define BUCKC_NN_OUTPUTS 2
 #define BUCKC_NN_MAX_LAYERS (BUCKC_NN_MAX_HIDDEN_LAYERS + 1)
 #define BUCKC_NN_MAX_INPUTS (3 * BUCKC_NN_MAX_DELAYS + BUCKC_NN_MAX_EXTRAS)
+#define BUCKC_NN_MAX_DIRECTIONS 8 /* blocked moves a sensitivity pass propagates (the RTI's box QP size) */
 
 /* NNConfig.activation */
 enum { BUCKC_ACTIVATION_TANH = 0, BUCKC_ACTIVATION_RELU = 1, BUCKC_ACTIVATION_SIGMOID = 2 };
@@ -88,5 +89,16 @@ void buckc_nn_shared_prepare(const BuckcNnConfig *config, const buckc_real *hist
                              const buckc_real *disturbance, BuckcNnShared *shared);
 void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *shared,
                              const buckc_real *duties, int n, buckc_real *out);
+
+/* NNPlantModel.rollout_sensitivities: one duty sequence duties[n] rolled out from history[delays][3]
+ * (extras[n_extras], may be NULL without extras; disturbance[2], NULL = none) with the forward
+ * sensitivities of the states to the blocked moves -- step j's duty being block block_of_step[j]'s
+ * value, blocks numbered in time order, n_blocks <= BUCKC_NN_MAX_DIRECTIONS: out[n][2] and
+ * jacobian[n][2][n_blocks] (row-major). Only a block's columns from its first step on are
+ * propagated (before it they are zero); a duty of the window is a unit direction, not a dense
+ * product. Returns BUCKC_OK or BUCKC_ERR_LIMIT (n_blocks out of range). */
+int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *history, const buckc_real *extras,
+                           const buckc_real *disturbance, const buckc_real *duties, int n, const int *block_of_step,
+                           int n_blocks, buckc_real *out, buckc_real *jacobian);
 
 #endif

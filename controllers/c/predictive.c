@@ -3,8 +3,10 @@
  *   buckc_doubling_blocks    doubling_blocks
  *   buckc_optimizer_init     HorizonSettings.__post_init__ (validation) + HorizonOptimizer.__init__
  *   buckc_optimizer_solve    HorizonOptimizer.solve with first_stage and _openings
- *   buckc_predictive_*       PredictiveController.__init__ / reset / step (the load estimate: load_estimate.c), and the
- *                            NNPredictor.rollout glue (its extra signals from the context)
+ *   buckc_predictive_*       PredictiveController.__init__ / reset / step / fallback_reason / search_last_sample
+ *                            (the load estimate: load_estimate.c), and the NNPredictor.rollout / linearize glue
+ *                            (its extra signals from the context)
+ *   rti_solve                RealTimeIteration.solve (shifted, costs, model; the box QP: box_qp.c)
  * Candidates are generated and costed one at a time in Python's stage order (so ties go where
  * numpy's argmin sends them); see predictive.h.
  */
@@ -15,6 +17,10 @@
 #include "load_estimate.h"
 
 #define FAIL(code, text) do { if (what) *what = (text); return (code); } while (0)
+
+/* the linearisations propagate at least as many directions as the box QP has variables */
+typedef char buckc_directions_fit[(BUCKC_QP_MAX_VARIABLES <= BUCKC_NN_MAX_DIRECTIONS &&
+                                   BUCKC_QP_MAX_VARIABLES <= BUCKC_SENSITIVITY_DIRECTIONS) ? 1 : -1];
 
 /* ------------------------------------------------------------------ settings */
 
@@ -396,10 +402,28 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
     }
     if (status != BUCKC_OK)
         return status;
+    if (config->rti.enabled) { /* RtiSettings.__post_init__ */
+        const BuckcRtiSettings *r = &config->rti;
+        if (r->iterations < 1 || r->iterations > 3)
+            FAIL(BUCKC_ERR_INVALID, "rti iterations: expected 1, 2 or 3");
+        if (!(r->smoothing > 0.0 && isfinite(r->smoothing)))
+            FAIL(BUCKC_ERR_INVALID, "rti smoothing: expected eps > 0");
+        if (!(r->step_limit > 0.0 && r->step_limit <= 1.0))
+            FAIL(BUCKC_ERR_INVALID, "rti step_limit: expected 0 < limit <= 1");
+        if (!(r->regularization >= 0.0 && r->regularization < 1.0))
+            FAIL(BUCKC_ERR_INVALID, "rti regularization: expected 0 <= mu < 1");
+        if (r->qp_iterations < 1)
+            FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
+        if (!(r->reference_step >= 0.0 && isfinite(r->reference_step)) || !(r->load_step >= 0.0 && isfinite(r->load_step))
+            || !(r->innovation >= 0.0 && isfinite(r->innovation)))
+            FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
+    }
     memset(c, 0, sizeof(*c));
     status = buckc_optimizer_init(&c->optimizer, &config->horizon, config->duty_min, config->duty_max, what);
     if (status != BUCKC_OK)
         return status;
+    if (config->rti.enabled && c->optimizer.n_blocks > BUCKC_QP_MAX_VARIABLES)
+        FAIL(BUCKC_ERR_LIMIT, "rti: more move blocks than BUCKC_QP_MAX_VARIABLES");
     c->config = config;
     for (j = 0; j < config->horizon.horizon; ++j) /* discount ** np.arange(horizon) */
         c->weights[j] = pow(config->horizon.discount, (double)j);
@@ -415,6 +439,7 @@ void buckc_predictive_reset(BuckcPredictive *c)
     s->delays = predictor_delays(c->config);
     s->previous_duty = 0.0;
     s->conductance = 1.0 / c->config->nominal_load;
+    s->previous_reference = NAN;
     s->best_cost = NAN;
 }
 
@@ -430,25 +455,60 @@ const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *c)
     return &c->state;
 }
 
+/* the predictor's rollout of one sequence at the sample's context (Predictor.rollout) */
+static void predict(BuckcPredictive *c, const double *duties, int horizon, double *predicted)
+{
+    const BuckcPredictorConfig *predictor = &c->config->predictor;
+    switch (predictor->kind) {
+    case BUCKC_PREDICTOR_NN:
+        buckc_nn_shared_rollout(&predictor->nn, &c->nn, duties, horizon, predicted);
+        break;
+    case BUCKC_PREDICTOR_AVERAGED:
+        buckc_averaged_rollout(&c->averaged, duties, horizon, predicted);
+        break;
+    default:
+        buckc_switched_rollout(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
+                               c->context_disturbance, predicted);
+        break;
+    }
+}
+
+/* Predictor.linearize at the sample's context, the blocks of the horizon settings */
+static void linearize(BuckcPredictive *c, const double *duties, double *out, double *jacobian)
+{
+    const BuckcPredictorConfig *predictor = &c->config->predictor;
+    const BuckcOptimizer *o = &c->optimizer;
+    int horizon = o->settings.horizon;
+    switch (predictor->kind) {
+    case BUCKC_PREDICTOR_NN:
+        buckc_nn_sensitivities(&predictor->nn, &c->nn.history[0][0], predictor->nn.n_extras ? c->nn.extras : NULL,
+                               c->nn.disturbance, duties, horizon, o->block_of_step, o->n_blocks, out, jacobian);
+        break;
+    case BUCKC_PREDICTOR_AVERAGED:
+        buckc_averaged_linearize(&c->averaged, duties, horizon, o->block_of_step, o->n_blocks, out, jacobian);
+        break;
+    default:
+        buckc_switched_linearize(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
+                                 c->context_disturbance, o->block_of_step, o->n_blocks, out, jacobian);
+        break;
+    }
+}
+
+int buckc_predictive_linearize(BuckcPredictive *c, const double *duties, double *out, double *jacobian)
+{
+    if (c->optimizer.n_blocks > BUCKC_QP_MAX_VARIABLES)
+        return BUCKC_ERR_LIMIT;
+    linearize(c, duties, out, jacobian);
+    return BUCKC_OK;
+}
+
 /* eq. 23: sum_j gamma^j sqrt((iL - iref)^2 + (vo - vref)^2) over the predicted states */
 static double sequence_cost(void *user, const double *duties, int horizon, double *first_prediction)
 {
     BuckcPredictive *c = (BuckcPredictive *)user;
-    const BuckcPredictorConfig *predictor = &c->config->predictor;
     double predicted[BUCKC_MAX_HORIZON][2], total = 0.0;
     int j;
-    switch (predictor->kind) {
-    case BUCKC_PREDICTOR_NN:
-        buckc_nn_shared_rollout(&predictor->nn, &c->nn, duties, horizon, &predicted[0][0]);
-        break;
-    case BUCKC_PREDICTOR_AVERAGED:
-        buckc_averaged_rollout(&c->averaged, duties, horizon, &predicted[0][0]);
-        break;
-    default:
-        buckc_switched_rollout(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
-                               c->context_disturbance, &predicted[0][0]);
-        break;
-    }
+    predict(c, duties, horizon, &predicted[0][0]);
     for (j = 0; j < horizon; ++j) {
         double e0 = predicted[j][0] - c->target[0], e1 = predicted[j][1] - c->target[1];
         e0 *= e0;
@@ -462,6 +522,148 @@ static double sequence_cost(void *user, const double *duties, int horizon, doubl
     return total;
 }
 
+/* ------------------------------------------------------------------ the real-time iteration */
+
+/* RealTimeIteration.costs: (smoothed, exact eq. 16) of one predicted trajectory */
+static void rti_costs(const BuckcPredictive *c, const double *predicted, double *smoothed, double *exact)
+{
+    double eps = c->config->rti.smoothing, sum_smoothed = 0.0, sum_exact = 0.0;
+    int j, horizon = c->optimizer.settings.horizon;
+    for (j = 0; j < horizon; ++j) {
+        double e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
+        double squared = e0 * e0 + e1 * e1;
+        sum_smoothed += sqrt(squared + eps * eps) * c->weights[j];
+        sum_exact += sqrt(squared) * c->weights[j];
+    }
+    *smoothed = sum_smoothed;
+    *exact = sum_exact;
+}
+
+/* RealTimeIteration.model: the gradient and the reweighted (IRLS) Hessian + mu I of the smoothed cost */
+static void rti_model(const BuckcPredictive *c, const double *predicted, const double *jacobian, double *gradient,
+                      double hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES])
+{
+    int nb = c->optimizer.n_blocks, horizon = c->optimizer.settings.horizon, j, a, b;
+    double eps = c->config->rti.smoothing, trace = 0.0, mu;
+    for (a = 0; a < nb; ++a) {
+        gradient[a] = 0.0;
+        for (b = 0; b < nb; ++b)
+            hessian[a][b] = 0.0;
+    }
+    for (j = 0; j < horizon; ++j) {
+        double e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
+        double s = sqrt(e0 * e0 + e1 * e1 + eps * eps), weight = c->weights[j] / s;
+        const double *j0 = jacobian + (2 * j) * nb, *j1 = jacobian + (2 * j + 1) * nb;
+        for (a = 0; a < nb; ++a) {
+            gradient[a] += (j0[a] * e0 + j1[a] * e1) * weight;
+            for (b = 0; b < nb; ++b)
+                hessian[a][b] += weight * (j0[a] * j0[b] + j1[a] * j1[b]);
+        }
+    }
+    for (a = 0; a < nb; ++a)
+        trace += hessian[a][a];
+    mu = c->config->rti.regularization * trace / nb + 1e-12;
+    for (a = 0; a < nb; ++a)
+        hessian[a][a] += mu;
+}
+
+static void expand(const BuckcOptimizer *o, const double *moves, double *duties)
+{
+    int t;
+    for (t = 0; t < o->settings.horizon; ++t)
+        duties[t] = moves[o->block_of_step[t]];
+}
+
+/* RealTimeIteration.solve: the plan sequence[horizon] from the warm start; returns its exact cost */
+static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence, double first[2])
+{
+    const BuckcRtiSettings *st = &c->config->rti;
+    const BuckcOptimizer *o = &c->optimizer;
+    BuckcPredictiveState *state = &c->state;
+    int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration;
+    double u[BUCKC_QP_MAX_VARIABLES], trial[BUCKC_QP_MAX_VARIABLES], delta[BUCKC_QP_MAX_VARIABLES];
+    double lower[BUCKC_QP_MAX_VARIABLES], upper[BUCKC_QP_MAX_VARIABLES], gradient[BUCKC_QP_MAX_VARIABLES];
+    double hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES];
+    double duties[BUCKC_MAX_HORIZON], predicted[BUCKC_MAX_HORIZON * 2], trial_predicted[BUCKC_MAX_HORIZON * 2];
+    double jacobian[BUCKC_MAX_HORIZON * 2 * BUCKC_QP_MAX_VARIABLES];
+    double smoothed, exact, radius = st->step_limit;
+    for (b = 0; b < nb; ++b) { /* the previous solution shifted by one sample, at the block starts */
+        int k = o->block_starts[b] + 1;
+        double v = warm[k < horizon ? k : horizon - 1];
+        if (v < o->low) v = o->low; /* np.minimum(np.maximum(center, low), high) */
+        if (v > o->high) v = o->high;
+        u[b] = v;
+    }
+    expand(o, u, duties);
+    linearize(c, duties, predicted, jacobian);
+    rti_costs(c, predicted, &smoothed, &exact);
+    rti_model(c, predicted, jacobian, gradient, hessian);
+    state->qp_iterations = state->accepted = 0;
+    for (iteration = 0; iteration < st->iterations; ++iteration) {
+        double trial_smoothed, trial_exact;
+        int final = iteration + 1 == st->iterations;
+        for (b = 0; b < nb; ++b) {
+            double lo = o->low - u[b], hi = o->high - u[b];
+            lower[b] = lo > -radius ? lo : -radius;
+            upper[b] = hi < radius ? hi : radius;
+        }
+        state->qp_iterations += buckc_box_qp(nb, &hessian[0][0], BUCKC_QP_MAX_VARIABLES, gradient, lower, upper,
+                                             st->qp_iterations, delta, NULL);
+        for (b = 0; b < nb; ++b) {
+            double v = u[b] + delta[b];
+            if (v < o->low) v = o->low;
+            if (v > o->high) v = o->high;
+            trial[b] = v;
+        }
+        expand(o, trial, duties);
+        if (final)
+            predict(c, duties, horizon, trial_predicted);
+        else
+            linearize(c, duties, trial_predicted, jacobian);
+        rti_costs(c, trial_predicted, &trial_smoothed, &trial_exact);
+        if (trial_smoothed <= smoothed * BUCKC_RTI_ACCEPT_TOLERANCE) {
+            memcpy(u, trial, sizeof(double) * (size_t)nb);
+            memcpy(predicted, trial_predicted, sizeof(double) * 2 * (size_t)horizon);
+            smoothed = trial_smoothed;
+            exact = trial_exact;
+            state->accepted += 1;
+            if (!final)
+                rti_model(c, predicted, jacobian, gradient, hessian);
+        } else {
+            radius *= 0.25;
+        }
+    }
+    expand(o, u, sequence);
+    first[0] = predicted[0];
+    first[1] = predicted[1];
+    return exact;
+}
+
+/* PredictiveController.fallback_reason */
+static int fallback_reason(const BuckcPredictive *c, double reference, double conductance,
+                           double previous_conductance, double surprise)
+{
+    const BuckcRtiSettings *st = &c->config->rti;
+    const BuckcPredictiveState *s = &c->state;
+    if (!s->have_warm)
+        return BUCKC_FALLBACK_COLD_START;
+    if (st->reference_step != 0.0 && fabs(reference - s->previous_reference) > st->reference_step)
+        return BUCKC_FALLBACK_REFERENCE_STEP;
+    if (st->load_step != 0.0 && fabs(conductance - previous_conductance) > st->load_step * previous_conductance)
+        return BUCKC_FALLBACK_LOAD_STEP;
+    if (st->innovation != 0.0 && surprise > st->innovation)
+        return BUCKC_FALLBACK_PREDICTION_ERROR;
+    return BUCKC_FALLBACK_NONE;
+}
+
+double buckc_predictive_search_last(BuckcPredictive *c, double *sequence)
+{
+    BuckcOptimizer optimizer = c->optimizer; /* a copy: the controller's diagnostics stay as they are */
+    const BuckcPredictiveState *s = &c->state;
+    return buckc_optimizer_solve(&optimizer, sequence_cost, c, s->warm_before_valid ? s->warm_before : NULL,
+                                 s->anchor, sequence, NULL);
+}
+
 double buckc_predictive_cost(BuckcPredictive *c, const double *duties, double *first_prediction)
 {
     return sequence_cost(c, duties, c->config->horizon.horizon, first_prediction);
@@ -472,7 +674,8 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
     const BuckcPredictiveConfig *config = c->config;
     BuckcPredictiveState *s = &c->state;
     double current, voltage, load, input_voltage, anchor, first[2], sequence[BUCKC_MAX_HORIZON];
-    int delays = s->delays, d;
+    double surprise, previous_conductance;
+    int delays = s->delays, d, fallback;
     if (m == NULL || duty == NULL)
         return BUCKC_ERR_NULL;
     if (!isfinite(m->inductor_current))
@@ -496,12 +699,15 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         s->history[0][1] = voltage;
         s->history[0][2] = 0.0;
     }
+    surprise = 0.0;
     if (s->have_predicted) { /* the filtered one-step prediction error */
         double alpha = config->horizon.bias_filter;
         double b0 = s->bias[0], b1 = s->bias[1];
+        surprise = fabs(voltage - (s->predicted[1] + b1));
         s->bias[0] = (1 - alpha) * b0 + alpha * (current - s->predicted[0]);
         s->bias[1] = (1 - alpha) * b1 + alpha * (voltage - s->predicted[1]);
     }
+    previous_conductance = s->conductance;
     s->conductance = buckc_estimate_conductance(voltage, m->load_current, m->inductor_current, s->conductance);
     load = 1.0 / s->conductance;
     c->target[0] = m->reference * s->conductance;
@@ -534,12 +740,27 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         break;
     }
     anchor = input_voltage > 0 ? m->reference / input_voltage : s->previous_duty;
-    s->best_cost = buckc_optimizer_solve(&c->optimizer, sequence_cost, c, s->have_warm ? s->warm : NULL, anchor,
-                                         sequence, first);
-    s->evaluations = c->optimizer.evaluations;
-    s->passes = c->optimizer.passes;
-    s->best_call = c->optimizer.best_call;
-    s->best_row = c->optimizer.best_row;
+    s->anchor = anchor; /* the problem, for buckc_predictive_search_last */
+    s->warm_before_valid = s->have_warm;
+    memcpy(s->warm_before, s->warm, sizeof(s->warm));
+    fallback = config->rti.enabled ? fallback_reason(c, m->reference, s->conductance, previous_conductance, surprise)
+                                   : BUCKC_FALLBACK_NONE;
+    s->previous_reference = m->reference;
+    if (config->rti.enabled && fallback == BUCKC_FALLBACK_NONE) {
+        s->best_cost = rti_solve(c, s->warm, sequence, first);
+        s->last_solver = BUCKC_SOLVER_RTI;
+        s->evaluations = s->passes = 0;
+    } else {
+        s->best_cost = buckc_optimizer_solve(&c->optimizer, sequence_cost, c, s->have_warm ? s->warm : NULL, anchor,
+                                             sequence, first);
+        s->last_solver = BUCKC_SOLVER_SEARCH;
+        s->evaluations = c->optimizer.evaluations;
+        s->passes = c->optimizer.passes;
+        s->best_call = c->optimizer.best_call;
+        s->best_row = c->optimizer.best_row;
+        s->qp_iterations = s->accepted = 0;
+    }
+    s->last_fallback = fallback;
     /* the model's own one-step prediction (the disturbance is added after each step) */
     s->predicted[0] = first[0] - s->bias[0];
     s->predicted[1] = first[1] - s->bias[1];

@@ -7,10 +7,16 @@
  * The optimizer streams its candidates (generated in Python's order, each costed as it is
  * made), so no candidate array is stored; numpy's argmin (the first minimum, or the first NaN)
  * is reproduced by strict '<' scanning.
+ *
+ * The real-time-iteration optimizer (RealTimeIteration, predictive.py; settings BuckcRtiSettings):
+ * a fixed number of Gauss-Newton steps from the shifted plan, each a linearisation of the predictor
+ * (nn_model.c, predictors.c) and a box QP (box_qp.c), the search above as the fallback the
+ * controller's rule (PredictiveController.fallback_reason) picks. No allocation, fixed work.
  */
 #ifndef BUCKC_PREDICTIVE_H
 #define BUCKC_PREDICTIVE_H
 
+#include "box_qp.h"
 #include "buckc.h"
 #include "nn_model.h"
 #include "predictors.h"
@@ -73,6 +79,31 @@ int buckc_optimizer_init(BuckcOptimizer *optimizer, const BuckcHorizonSettings *
 double buckc_optimizer_solve(BuckcOptimizer *optimizer, BuckcCostFunction cost, void *user, const double *warm,
                              double anchor, double *sequence, double *first_prediction);
 
+#define BUCKC_RTI_ACCEPT_TOLERANCE (1.0 + 1e-12) /* predictive.ACCEPT_TOLERANCE */
+
+/* predictive.RtiSettings; enabled = 0: the search at every sample (rti=None in Python) */
+typedef struct {
+    int enabled;
+    int iterations;            /* Gauss-Newton steps per sample, 1..3 */
+    double smoothing;          /* eps [V] of sqrt(|e|^2 + eps^2) */
+    double step_limit;         /* trust region [duty], 0 < r <= 1 */
+    double regularization;     /* mu = this x mean(diag H) + 1e-12 */
+    int qp_iterations;         /* the box QP's active-set iterations, at most */
+    double reference_step;     /* [V] fallback when the reference moves more than this, */
+    double load_step;          /* the load-conductance estimate more than this fraction, */
+    double innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
+} BuckcRtiSettings;
+
+/* PredictiveController.last_solver and last_fallback */
+enum { BUCKC_SOLVER_SEARCH = 0, BUCKC_SOLVER_RTI = 1 };
+enum {
+    BUCKC_FALLBACK_NONE = 0,
+    BUCKC_FALLBACK_COLD_START = 1,
+    BUCKC_FALLBACK_REFERENCE_STEP = 2,
+    BUCKC_FALLBACK_LOAD_STEP = 3,
+    BUCKC_FALLBACK_PREDICTION_ERROR = 4
+};
+
 /* ------------------------------------------------------------------ the controller */
 
 enum { BUCKC_PREDICTOR_NN = 0, BUCKC_PREDICTOR_AVERAGED = 1, BUCKC_PREDICTOR_SWITCHED = 2 };
@@ -91,6 +122,7 @@ typedef struct {
     double nominal_input_voltage;   /* [V] stands in for a supply voltage the measurement lacks */
     BuckcHorizonSettings horizon;
     BuckcPredictorConfig predictor;
+    BuckcRtiSettings rti;
 } BuckcPredictiveConfig;
 
 /* BuckcMeasurement (controllers.base.Measurement) is defined in buckc.h. */
@@ -107,9 +139,17 @@ typedef struct {
     double predicted[2];                    /* the model's one-step prediction made at the last sample */
     double previous_duty;
     double conductance;                     /* [S] the last load estimate (load_estimate.h) */
+    double previous_reference;              /* [V] the reference of the last sample (NaN before the first) */
     /* diagnostics of the last step */
-    double best_cost;
-    int evaluations, passes, best_call, best_row;
+    double best_cost;                       /* eq. 16 cost of the plan (exact, not smoothed) */
+    int evaluations, passes, best_call, best_row; /* the search's, when it planned */
+    int last_solver;                        /* BUCKC_SOLVER_... */
+    int last_fallback;                      /* BUCKC_FALLBACK_... (with the RTI enabled) */
+    int qp_iterations, accepted;            /* the RTI's box-QP iterations and accepted steps */
+    /* the last step's problem, for buckc_predictive_search_last (the context stays in BuckcPredictive) */
+    int warm_before_valid;
+    double warm_before[BUCKC_MAX_HORIZON];
+    double anchor;
 } BuckcPredictiveState;
 
 typedef struct {
@@ -141,5 +181,11 @@ void buckc_predictive_clear_caches(BuckcPredictive *controller);
 const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *controller);
 /* The eq. 23 cost of one duty sequence at the last step's context (for tests and tools). */
 double buckc_predictive_cost(BuckcPredictive *controller, const double *duties, double *first_prediction);
+/* PredictiveController.search_last_sample: the search's plan (sequence[horizon]) and exact cost for the last
+ * step's problem, the controller's state left as it is. */
+double buckc_predictive_search_last(BuckcPredictive *controller, double *sequence);
+/* The RTI's linearisation at the last step's context (for tests): states out[horizon][2] and their
+ * Jacobian jacobian[horizon][2][n_blocks] for one per-step sequence (the blocks of the horizon settings). */
+int buckc_predictive_linearize(BuckcPredictive *controller, const double *duties, double *out, double *jacobian);
 
 #endif

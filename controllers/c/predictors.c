@@ -3,9 +3,9 @@
  *   buckc_expm2                 expm2 (and expm2_many, the same formula per duration)
  *   buckc_circuit_matrix        circuit_matrix
  *   buckc_measured_from_state   measured_from_state
- *   buckc_averaged_*            AveragedModelPredictor._discrete (with its cache) and .rollout
+ *   buckc_averaged_*            AveragedModelPredictor._discrete (with its cache), .rollout and .linearize
  *   buckc_switched_*            SwitchedModelPredictor._interval, _table (with its cache),
- *                               _lookup and .rollout, and _compose / _affine_power inside them
+ *                               _lookup, .rollout and .linearize, and _compose / _affine_power inside them
  * Cache semantics and conventions: predictors.h and buckc.h.
  */
 #include <math.h>
@@ -225,6 +225,43 @@ void buckc_averaged_rollout(const BuckcAveragedStep *step, const double *duties,
         out[2 * j + 1] = v_next;
         i_l = i_next;
         v_o = v_next;
+    }
+}
+
+void buckc_averaged_linearize(const BuckcAveragedStep *step, const double *duties, int n, const int *block_of_step,
+                              int n_blocks, double *out, double *jacobian)
+{
+    const double *py = step->phi_y, *gy = step->gamma_y;
+    double i_l = step->y0[0], v_o = step->y0[1], sens[2][BUCKC_SENSITIVITY_DIRECTIONS];
+    int j, c;
+    for (c = 0; c < n_blocks; ++c)
+        sens[0][c] = sens[1][c] = 0.0;
+    for (j = 0; j < n; ++j) {
+        double node = duties[j] * step->drive - step->forward;
+        double i_next = (i_l * py[0] + v_o * py[1]) + node * gy[0];
+        double v_next = (i_l * py[2] + v_o * py[3]) + node * gy[1];
+        int b = block_of_step[j];
+        for (c = 0; c < n_blocks; ++c) { /* phi_y @ sensitivity */
+            double s0 = py[0] * sens[0][c] + py[1] * sens[1][c];
+            double s1 = py[2] * sens[0][c] + py[3] * sens[1][c];
+            sens[0][c] = s0;
+            sens[1][c] = s1;
+        }
+        sens[0][b] += gy[0] * step->drive;
+        sens[1][b] += gy[1] * step->drive;
+        if (i_next < 0.0) { /* the diode: the clipped current has no sensitivity */
+            i_next = 0.0;
+            for (c = 0; c < n_blocks; ++c)
+                sens[0][c] = 0.0;
+        }
+        i_l = i_next + step->disturbance[0];
+        v_o = v_next + step->disturbance[1];
+        out[2 * j] = i_l;
+        out[2 * j + 1] = v_o;
+        for (c = 0; c < n_blocks; ++c) {
+            jacobian[(2 * j) * n_blocks + c] = sens[0][c];
+            jacobian[(2 * j + 1) * n_blocks + c] = sens[1][c];
+        }
     }
 }
 
@@ -503,5 +540,87 @@ void buckc_switched_rollout(const BuckcSwitchedTable *table, const double y0[2],
         i_l = i_next;
         v_o = v_next;
         memcpy(k, h, sizeof(k));
+    }
+}
+
+void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, double values[12], double slopes[12])
+{
+    int last = table->points - 1, index, k;
+    double position = duty;
+    const double *row;
+    buckc_switched_lookup(table, duty, values);
+    if (position < 0.0) position = 0.0;
+    if (position > 1.0) position = 1.0;
+    position = position * last;
+    if (!(position >= 0.0)) {
+        for (k = 0; k < 12; ++k)
+            slopes[k] = NAN;
+        return;
+    }
+    index = (int)position;
+    if (index > last - 1)
+        index = last - 1;
+    row = table->rows[index];
+    for (k = 0; k < 12; ++k) /* table[index][12:] * last */
+        slopes[k] = row[12 + k] * (double)last;
+}
+
+void buckc_switched_linearize(const BuckcSwitchedTable *table, const double y0[2], double previous_duty,
+                              const double *duties, int n, const double disturbance[2], const int *block_of_step,
+                              int n_blocks, double *out, double *jacobian)
+{
+    double k[12], h[12], dk[12], dh[12], sens[2][BUCKC_SENSITIVITY_DIRECTIONS];
+    double i_l = y0[0], v_o = y0[1];
+    int j, c;
+    for (c = 0; c < n_blocks; ++c)
+        sens[0][c] = sens[1][c] = 0.0;
+    buckc_switched_lookup_slope(table, previous_duty, k, dk);
+    for (j = 0; j < n; ++j) {
+        double s00, s01, s10, s11, c0, c1, i_next, v_next, now0, now1;
+        buckc_switched_lookup_slope(table, duties[j], h, dh); /* K, kappa at d(j-1); H, h at d(j) */
+        s00 = h[6] * k[0] + h[7] * k[2];
+        s01 = h[6] * k[1] + h[7] * k[3];
+        s10 = h[8] * k[0] + h[9] * k[2];
+        s11 = h[8] * k[1] + h[9] * k[3];
+        c0 = h[6] * k[4] + h[7] * k[5] + h[10];
+        c1 = h[8] * k[4] + h[9] * k[5] + h[11];
+        i_next = s00 * i_l + s01 * v_o + c0;
+        v_next = s10 * i_l + s11 * v_o + c1;
+        /* the step's map differentiated in d(j) (through H, h) and in d(j-1) (through K, kappa) */
+        now0 = (dh[6] * k[0] + dh[7] * k[2]) * i_l + (dh[6] * k[1] + dh[7] * k[3]) * v_o
+               + dh[6] * k[4] + dh[7] * k[5] + dh[10];
+        now1 = (dh[8] * k[0] + dh[9] * k[2]) * i_l + (dh[8] * k[1] + dh[9] * k[3]) * v_o
+               + dh[8] * k[4] + dh[9] * k[5] + dh[11];
+        for (c = 0; c < n_blocks; ++c) { /* S @ sensitivity */
+            double t0 = s00 * sens[0][c] + s01 * sens[1][c];
+            double t1 = s10 * sens[0][c] + s11 * sens[1][c];
+            sens[0][c] = t0;
+            sens[1][c] = t1;
+        }
+        sens[0][block_of_step[j]] += now0;
+        sens[1][block_of_step[j]] += now1;
+        if (j) {
+            double before0 = (h[6] * dk[0] + h[7] * dk[2]) * i_l + (h[6] * dk[1] + h[7] * dk[3]) * v_o
+                             + h[6] * dk[4] + h[7] * dk[5];
+            double before1 = (h[8] * dk[0] + h[9] * dk[2]) * i_l + (h[8] * dk[1] + h[9] * dk[3]) * v_o
+                             + h[8] * dk[4] + h[9] * dk[5];
+            sens[0][block_of_step[j - 1]] += before0;
+            sens[1][block_of_step[j - 1]] += before1;
+        }
+        if (i_next < 0.0) {
+            i_next = 0.0;
+            for (c = 0; c < n_blocks; ++c)
+                sens[0][c] = 0.0;
+        }
+        i_l = i_next + disturbance[0];
+        v_o = v_next + disturbance[1];
+        out[2 * j] = i_l;
+        out[2 * j + 1] = v_o;
+        for (c = 0; c < n_blocks; ++c) {
+            jacobian[(2 * j) * n_blocks + c] = sens[0][c];
+            jacobian[(2 * j + 1) * n_blocks + c] = sens[1][c];
+        }
+        memcpy(k, h, sizeof(k));
+        memcpy(dk, dh, sizeof(dk));
     }
 }

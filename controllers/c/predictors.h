@@ -23,6 +23,7 @@
 #define BUCKC_SWITCHED_MAX_GRID 257  /* SwitchedModelPredictor grid_points */
 #define BUCKC_SWITCHED_TABLES 2      /* switched-model tables kept at once */
 #define BUCKC_SWITCHED_COLUMNS 24    /* K(4) kappa(2) H(4) h(2), then their slopes to the next row */
+#define BUCKC_SENSITIVITY_DIRECTIONS 8 /* blocked moves the linearisations propagate (the RTI's box QP size) */
 
 /* predictors.CARRIERS and SENSOR_MODELS */
 enum { BUCKC_CARRIER_SAWTOOTH = 0, BUCKC_CARRIER_TRIANGLE = 1 };
@@ -91,6 +92,10 @@ void buckc_averaged_prepare(const BuckcAveragedConfig *config, BuckcAveragedCach
                             double previous_duty, double input_voltage, const double y0[2],
                             const double disturbance[2], BuckcAveragedStep *step);
 void buckc_averaged_rollout(const BuckcAveragedStep *step, const double *duties, int n, double *out);
+/* AveragedModelPredictor.linearize: one sequence with the Jacobian of its states to the blocked moves,
+ * out[n][2] and jacobian[n][2][n_blocks] (step j's duty is block block_of_step[j]'s value). */
+void buckc_averaged_linearize(const BuckcAveragedStep *step, const double *duties, int n, const int *block_of_step,
+                              int n_blocks, double *out, double *jacobian);
 
 /* ---------------------------------------------------------------- switched model */
 
@@ -132,8 +137,14 @@ const BuckcSwitchedTable *buckc_switched_cached(const BuckcSwitchedConfig *confi
 void buckc_switched_cache_clear(BuckcSwitchedCache *cache);
 /* SwitchedModelPredictor._lookup at one duty: the 12 interpolated map entries */
 void buckc_switched_lookup(const BuckcSwitchedTable *table, double duty, double values[12]);
+/* ... and its slope in the duty on the interval the lookup uses (zero outside 0..1) */
+void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, double values[12], double slopes[12]);
 /* SwitchedModelPredictor.rollout for one candidate, from y0 = history[0, :2] */
 void buckc_switched_rollout(const BuckcSwitchedTable *table, const double y0[2], double previous_duty,
                             const double *duties, int n, const double disturbance[2], double *out);
+/* SwitchedModelPredictor.linearize: as buckc_averaged_linearize */
+void buckc_switched_linearize(const BuckcSwitchedTable *table, const double y0[2], double previous_duty,
+                              const double *duties, int n, const double disturbance[2], const int *block_of_step,
+                              int n_blocks, double *out, double *jacobian);
 
 #endif

@@ -9,7 +9,8 @@ and a cycle estimate for a 170 MHz Cortex-M4F.
 * :func:`~controllers.cost_model.operation_counts` (re-exported here) turns candidate evaluations
   into multiply-accumulates, activations (tanh) and square roots per step -- exact for the code
   paths of ``controllers/c`` -- and :func:`~controllers.cost_model.cortex_m4f_cycles` into cycles
-  with the cost model of :data:`~controllers.cost_model.CORTEX_M4F`.
+  with the cost model of :data:`~controllers.cost_model.CORTEX_M4F` (calibrated on the float32 builds
+  measured on an emulated Cortex-M4F: :mod:`cosim.benchmark_harness.cortex_m4`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from controllers.cost_model import (  # noqa: F401  (re-exported)
     cortex_m4f_cycles,
     operation_counts,
     policy_operation_counts,
+    rti_operation_counts,
 )
 from controllers.native import FLAGS, SOURCE_DIR, NativeBuildError, build_c
 
@@ -80,8 +82,10 @@ def harness(controller) -> Path:
 class Replay:
     ns: np.ndarray  # per step, every pass
     duty: np.ndarray  # of the last pass
-    evaluations: np.ndarray  # candidate evaluations per step (0 for the PI), last pass
+    evaluations: np.ndarray  # candidate evaluations per step (0 for the PI and RTI steps), last pass
     passes: np.ndarray
+    rti: np.ndarray  # True where the real-time iteration planned the step, last pass
+    qp_iterations: np.ndarray  # the RTI's box-QP iterations per step, last pass
 
 
 def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:
@@ -97,4 +101,4 @@ def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:
     table = np.loadtxt(done.stdout.splitlines(), ndmin=2)
     last = table[-len(measurements):]
     return Replay(ns=table[:, 0], duty=last[:, 1], evaluations=last[:, 2].astype(int),
-                  passes=last[:, 3].astype(int))
+                  passes=last[:, 3].astype(int), rti=last[:, 4] == 1, qp_iterations=last[:, 5].astype(int))

@@ -6,7 +6,9 @@
  * cosim/benchmark_harness writes them -- replays them through the controller's step `repeats`
  * times (reset before each pass) and prints, after all passes, one line per step of every pass:
  *
- *     <ns of the step> <duty> <candidate evaluations> <refinement passes>
+ *     <ns of the step> <duty> <candidate evaluations> <refinement passes> <solver> <box-QP iterations>
+ *
+ * (solver: 0 the search, 1 the real-time iteration; both 0 for the PI and the explicit policy)
  *
  * (the caller computes p50 / p99). Timer: clock_gettime(CLOCK_MONOTONIC), read around the step
  * only; results are kept in memory allocated before the first step and printed at the end. */
@@ -51,7 +53,9 @@ int main(int argc, char **argv) {
     long long *ns = (long long *)malloc((total + 1) * sizeof(long long));
     double *duties = (double *)malloc((total + 1) * sizeof(double));
     int *evaluations = (int *)malloc((total + 1) * sizeof(int)), *passes = (int *)malloc((total + 1) * sizeof(int));
-    if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL) return 2;
+    int *solvers = (int *)malloc((total + 1) * sizeof(int)), *qp = (int *)malloc((total + 1) * sizeof(int));
+    if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL || solvers == NULL || qp == NULL)
+        return 2;
     static BuckcPredictive predictive; /* big: not on the stack */
     BuckcPi pi;
     BuckcPolicy policy;
@@ -87,13 +91,18 @@ int main(int argc, char **argv) {
             duties[i] = duty;
             evaluations[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->evaluations : 0;
             passes[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->passes : 0;
+            solvers[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->last_solver : 0;
+            qp[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->qp_iterations : 0;
         }
     }
-    for (size_t i = 0; i < total; ++i) printf("%lld %.17g %d %d\n", ns[i], duties[i], evaluations[i], passes[i]);
+    for (size_t i = 0; i < total; ++i)
+        printf("%lld %.17g %d %d %d %d\n", ns[i], duties[i], evaluations[i], passes[i], solvers[i], qp[i]);
     free(m);
     free(ns);
     free(duties);
     free(evaluations);
     free(passes);
+    free(solvers);
+    free(qp);
     return 0;
 }

@@ -11,12 +11,15 @@ machine (``qemu-system-arm -M mps2-an386``) executes:
 * the same run with QEMU's execution trace (``-d exec,nochain,in_asm``: every translated block's
   instructions and every block executed) gives the **instructions executed per step** and, from the
   executed instruction mix, the **cycles** per step by the Cortex-M4 TRM's cycle tables
-  (:data:`CYCLE_TABLE`, assumptions in its docstring); the Debian QEMU ships no TCG plugins, and
-  ``-icount`` with the board's 25 MHz timers resolves only 40 instructions, so the trace it is;
+  (:data:`CYCLE_TABLE`: each entry, its source and the assumptions in its docstring); the Debian QEMU
+  ships no TCG plugins, and ``-icount`` with the board's 25 MHz timers resolves only 40 instructions,
+  so the trace it is;
 * :func:`footprint` links the controller object once with a minimal main and once without it: the
   difference in text, data and bss is the controller's flash and RAM, its library functions
   included; the replay measures the stack the steps use (a painted stack) and ``-fstack-usage``
-  gives each function's frame.
+  gives each function's frame;
+* :func:`measure_tanh` runs the tanh probe (``cortex_m4/tanh_probe.c``): what the float32 build's
+  tanh costs a call, the cost model's calibration (:mod:`controllers.cost_model`).
 
 **Adding a controller** is a row of :data:`EMBEDDED_CONTROLLERS`: the ``controllers/codegen.py`` kind
 whose float32 configuration it reads, its C files (which must have a float32 build), the C type of its
@@ -39,7 +42,14 @@ from typing import Callable
 
 import numpy as np
 
-from controllers.codegen import KIND_EXPLICIT, KIND_PI, config_header, controller_kind
+from controllers.codegen import (
+    KIND_COMPENSATOR,
+    KIND_CURRENT_MODE,
+    KIND_EXPLICIT,
+    KIND_PI,
+    config_header,
+    controller_kind,
+)
 from controllers.native import FLOAT32_SOURCES, SOURCE_DIR, cache_dir
 
 HERE = Path(__file__).parent / "cortex_m4"
@@ -104,6 +114,12 @@ EMBEDDED_CONTROLLERS = (
     EmbeddedController("explicit NNPC", KIND_EXPLICIT, ("explicit_policy.c", "load_estimate.c"), "BuckcPolicy",
                        "buckc_policy_init(state, &POLICY_CONFIG, what)", "buckc_policy_reset(state)",
                        "buckc_policy_step(state, m, duty)", _policy_limits),
+    EmbeddedController("current-mode", KIND_CURRENT_MODE, ("current_mode.c",), "BuckcCurrentMode",
+                       "buckc_current_mode_init(state, &CURRENT_MODE_CONFIG, what)", "buckc_current_mode_reset(state)",
+                       "buckc_current_mode_step(state, m, duty)"),
+    EmbeddedController("Type-III", KIND_COMPENSATOR, ("compensator.c",), "BuckcCompensator",
+                       "buckc_compensator_init(state, &COMPENSATOR_CONFIG, what)", "buckc_compensator_reset(state)",
+                       "buckc_compensator_step(state, m, duty)"),
 )
 
 
@@ -222,7 +238,8 @@ def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _C
 def export_object(controller, folder: Path) -> Path:
     """The controller as a firmware links it: ``folder``/controller.o (the float32 build for a Cortex-M4F:
     code, configuration, state; see the README's *On a microcontroller*) beside the headers a firmware's
-    source includes (buckc_controller.h, buckc.h; compile it with -DBUCKC_FLOAT32). Returns controller.o."""
+    source includes (buckc_controller.h, buckc.h and the buckc_tanhf.h it includes; compile it with
+    -DBUCKC_FLOAT32). Returns controller.o."""
     problem = toolchain_problem()
     if problem:
         raise EmbeddedError(problem)
@@ -230,7 +247,8 @@ def export_object(controller, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
         _, _, built = _controller_object(controller, Path(tmp))
-        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h"):
+        for path in (built, Path(tmp) / "controller_config.h", HERE / "buckc_controller.h", SOURCE_DIR / "buckc.h",
+                     SOURCE_DIR / "buckc_tanhf.h"):
             staged = folder / f".{path.name}.tmp"
             shutil.copyfile(path, staged)
             staged.replace(folder / path.name)
@@ -325,29 +343,39 @@ class CortexM4Replay:
     functions: Counter | None = None  # cycles (upper table) per function over all steps
 
 
-def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
-    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
-    argv = [*QEMU, "-kernel", str(result.replay)]
-    log = result.folder / "trace.log"
-    if trace:
+def _execute(image: Path, steps: int, what: str, log: Path | None) -> list[str]:
+    """Run ``image`` in ``qemu-system-arm -M mps2-an386`` (with ``log``: QEMU's execution trace written there)
+    and return its semihosting console's lines, the last of which must be ``done <steps>``."""
+    argv = [*QEMU, "-kernel", str(image)]
+    if log is not None:
         argv += ["-d", "exec,nochain,in_asm", "-D", str(log)]
     try:  # QEMU writes the semihosting console to stderr
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=result.folder)
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=image.parent)
     except (OSError, subprocess.TimeoutExpired) as error:
-        raise EmbeddedError(f"the Cortex-M4F replay image did not finish in QEMU: {error}") from None
+        raise EmbeddedError(f"the Cortex-M4F {what} image did not finish in QEMU: {error}") from None
     lines = (done.stdout + done.stderr).splitlines()
-    if done.returncode != 0 or not lines or lines[-1] != f"done {samples}":
+    if done.returncode != 0 or not lines or lines[-1] != f"done {steps}":
         problem = next((line for line in lines if line.startswith(("error:", "fault:"))), "\n".join(lines[-5:]))
-        raise EmbeddedError(f"the Cortex-M4F replay image failed in QEMU (exit {done.returncode}): {problem}")
-    bits = np.zeros(samples, dtype=np.uint32)
-    stack = -1
+        raise EmbeddedError(f"the Cortex-M4F {what} image failed in QEMU (exit {done.returncode}): {problem}")
+    return lines
+
+
+def _printed_floats(lines: list[str], key: str, count: int) -> np.ndarray:
+    """The floats an image printed as ``<key> <k> <8 hex digits>`` lines, in the order of k."""
+    bits = np.zeros(count, dtype=np.uint32)
     for line in lines:
-        if line.startswith("duty "):
+        if line.startswith(key + " "):
             _, k, value = line.split()
             bits[int(k)] = int(value, 16)
-        elif line.startswith("stack "):
-            stack = int(line.split()[1])
-    out = CortexM4Replay(bits.view(np.float32).astype(float), stack)
+    return bits.view(np.float32).astype(float)
+
+
+def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
+    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
+    log = result.folder / "trace.log" if trace else None
+    lines = _execute(result.replay, samples, "replay", log)
+    stack = next((int(line.split()[1]) for line in lines if line.startswith("stack ")), -1)
+    out = CortexM4Replay(_printed_floats(lines, "duty", samples), stack)
     if trace:
         counts = count_steps(log, _symbols(result.replay), samples)
         out.instructions, out.cycles, out.cycles_low, out.mix, out.functions = counts
@@ -355,77 +383,186 @@ def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> Cor
     return out
 
 
+#: cortex_m4/tanh_probe.c's batch and steps
+PROBE_BATCH, PROBE_STEPS = 16, 16
+
+
+@dataclass
+class TanhProbe:
+    """buckc_tanhf on the Cortex-M4F (``cortex_m4/tanh_probe.c``): its values and its cycles per call."""
+
+    arguments: np.ndarray  # the floats it was given, [-4.5, 4.5)
+    values: np.ndarray  # what it returned on the target
+    cycles: np.ndarray  # per call (a step over its batch), upper reading of the TRM table
+    cycles_low: np.ndarray  # the same, lower reading
+
+
+def probe_arguments() -> np.ndarray:
+    """x_k = -4.5 + 9 k / 256 as tanh_probe.c computes them in float (every operation exact)."""
+    k = np.arange(PROBE_BATCH * PROBE_STEPS, dtype=np.float32)
+    return (np.float32(-4.5) + np.float32(9.0) * k / np.float32(PROBE_BATCH * PROBE_STEPS)).astype(float)
+
+
+def measure_tanh() -> TanhProbe:
+    """Cross-compile the tanh probe with the controllers' flags and run it in QEMU, traced: what buckc_tanhf
+    costs a call inlined in a loop (the cost model's tanh, :mod:`controllers.cost_model`)."""
+    problem = toolchain_problem()
+    if problem:
+        raise EmbeddedError(problem)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
+        folder = Path(tmp)
+        image = folder / "tanh_probe.elf"
+        sources = [HERE / "startup.c", HERE / "semihosting.c", HERE / "tanh_probe.c"]
+        _run(["arm-none-eabi-gcc", *ARM_FLAGS, *C_FLAGS, f"-I{SOURCE_DIR}", f"-I{HERE}", *LINK_FLAGS, "-T",
+              str(LINKER_SCRIPT), *map(str, sources), *LIBRARIES, "-o", str(image)], "building the tanh probe",
+             folder)
+        log = folder / "trace.log"
+        lines = _execute(image, PROBE_STEPS, "tanh probe", log)
+        _, high, low, _, _ = count_steps(log, _symbols(image), PROBE_STEPS)
+        return TanhProbe(probe_arguments(), _printed_floats(lines, "tanh", PROBE_BATCH * PROBE_STEPS),
+                         high / PROBE_BATCH, low / PROBE_BATCH)
+
+
 # ------------------------------------------------------------------------------------------ cycles
 
 
 @dataclass(frozen=True)
 class CycleTable:
-    """Cycles of the Cortex-M4's instructions (ARM Cortex-M4 Technical Reference Manual r0p1, Table 3-1
-    "Cortex-M4 instruction set summary" and Table 7-1 "FPU instruction set" cycle counts).
+    """Cycles of the Cortex-M4's instructions, from the ARM Cortex-M4 Processor Technical Reference Manual
+    (r0p1; ARM DDI 0439, reissued as ARM 100166_0001_00): section 3.3.1, Table 3-1 "Processor instruction set
+    summary" (the integer core), section 3.3.2 "Load/store timings", and the FPU chapter's instruction-set
+    table ("Table 7-1" in DDI 0439). Every entry, and where it comes from:
 
-    Assumptions: zero-wait-state memory for code and data (the mps2-an386's SSRAM; on an STM32G4, code in
-    CCM SRAM, or flash behind the ART accelerator hitting), no cache, no interrupt during the step, each
-    instruction takes its table count (no further interlocks). ``P``, the pipeline refill after a taken
-    branch, is 1 to 3 cycles (TRM 3.3.1); a load or store is 2 cycles, 1 when it pipelines behind another
-    load or store (TRM 3.3.2): the *upper* table takes P = 3 and never pipelines, the *lower* P = 1 and
-    pipelines every load/store that follows another. A conditional instruction in an IT block costs its
-    count whether or not it executes (the trace cannot tell). SDIV/UDIV: 12 (upper) / 2 (lower), VDIV and
-    VSQRT 14, VMLA/VMLS/VFMA 3, other FPU arithmetic, VMOV, VCMP, VCVT, VMRS 1, VLDR/VSTR 2, VLDM/VSTM/
-    VPUSH/VPOP 1 + N, LDM/STM/PUSH/POP 1 + N (+P when POP or LDM loads PC), 32-bit multiplies and
-    multiply-accumulates (MUL, MLA, MLS, SMULL, UMULL, SMLAL, UMLAL) 1."""
+    ====================================================  ========================  =========================
+    instructions                                          cycles                    source
+    ====================================================  ========================  =========================
+    data processing (MOV, ADD, SUB, CMP, logic, shifts,   1                         Table 3-1
+    bit fields, extend, saturate, IT, ...)
+    MOV PC / ADD PC (writes PC)                           1 + P                     Table 3-1
+    MUL, MLA, MLS, SMULL, UMULL, SMLAL, UMLAL             1                         Table 3-1
+    SDIV, UDIV                                            2 ... 12 (early           Table 3-1 and its note
+                                                          termination): upper 12,
+                                                          lower 2
+    LDR, LDRB, LDRH, LDRSB, LDRSH (single load)           2                         Table 3-1
+    ... pipelined behind a single load (LDR [any]) whose  1                         3.3.2 (lower reading
+    destination does not form this address                                          only, see below)
+    LDR Rx, [PC, #imm] (literal; VLDR [PC] alike)         + 1 in the upper reading  3.3.2 ("might add a
+                                                                                    cycle": fetch contention)
+    LDR PC, [...]                                         2 + P, never pipelined    3.3.2 ("at least five")
+    STR, STRB, STRH with an immediate offset (incl.       1                         3.3.2 ("always one
+    pre-/post-indexed)                                                              cycle")
+    STR, STRB, STRH with a register offset                2 (1 behind a single      Table 3-1, 3.3.2
+                                                          load, lower reading)
+    LDRD, STRD                                            1 + N = 3, never          Table 3-1, 3.3.2
+                                                          pipelined
+    LDM, STM, PUSH, POP (N registers)                     1 + N, never pipelined    Table 3-1, 3.3.2
+    POP / LDM with PC                                     1 + N + P                 Table 3-1
+    B<cc> not taken / taken                               1 / 1 + P                 Table 3-1
+    B, BL, BX, BLX                                        1 + P                     Table 3-1
+    CBZ, CBNZ not taken / taken                           1 / 1 + P                 Table 3-1
+    TBB, TBH                                              2 + P (lower), 3 + P      Table 3-1; 3.3.2 ("at
+                                                          (upper)                   least six cycles")
+    any load or store whose address register the          + 1                       3.3.2 ("no forwarding
+    immediately preceding data-processing instruction                               path")
+    wrote
+    VADD, VSUB, VMUL, VNMUL, VNEG, VABS, VCMP(E), VCVT,   1                         FPU table
+    VMOV immediate or S <- S, VMOV half of D <-> core
+    VMOV one S <-> one core register, two S / one D <->   2                         FPU table
+    two core registers
+    VMRS, VMSR                                            1                         FPU table
+    VMLA, VMLS, VNMLA, VNMLS, VFMA, VFMS, VFNMA, VFNMS    3                         FPU table
+    VDIV, VSQRT                                           14                        FPU table
+    VLDR / VSTR of a single, of a double                  2, 3 (1 less behind a     FPU table; the pipelining
+                                                          single load, lower        is assumed like LDR's
+                                                          reading)                  (the TRM states it for
+                                                                                    LDR/STR)
+    VLDM, VSTM, VPUSH, VPOP (N singles / N doubles)       1 + N / 1 + 2 N           FPU table
+    ====================================================  ========================  =========================
 
-    refill: float
-    divide: float
-    pipelined_memory: bool
+    ``P``, the pipeline refill after a taken branch, is 1 to 3 cycles "depending on the alignment and width
+    of the target instruction, and whether the processor manages to speculate the address early" (Table 3-1's
+    legend); a single load or store pipelines behind a single load (LDR [any]) when the load's destination
+    does not form the next address (3.3.2), but the TRM's note says 32-bit opcodes at odd halfword addresses
+    "might not pipeline optimally". Hence two readings: the *upper* (:data:`CYCLE_TABLE`: P = 3, SDIV 12,
+    nothing pipelines, the literal load's extra cycle) and the *lower* (:data:`CYCLE_TABLE_LOW`: P = 1, SDIV 2,
+    every pipelining the rule allows). Assumptions of both: zero-wait-state memory for code and data (the
+    mps2-an386's SSRAM; on an STM32G4, code in CCM SRAM, or flash behind the ART accelerator hitting), no
+    cache, the write buffer never full, no interrupt during the step; a conditional instruction in an IT
+    block costs its count whether or not it executes (the trace cannot tell); the FPU's result latencies
+    (GCC's cortex-m4-fpu.md models 2 cycles for VADD/VMUL results) and VDIV's out-of-order completion are
+    not modelled -- the table's counts are issue cycles."""
 
-    def cycles(self, mnemonic: str, operands: str, taken: bool, after_memory: bool) -> float:
+    refill: float  # P
+    divide: float  # SDIV/UDIV
+    pipelines: bool  # a single load or store behind a single load costs one cycle less (3.3.2)
+    literal_penalty: float  # LDR Rx, [PC, #imm]: fetch contention
+    table_branch: float  # TBB/TBH, before P
+
+    def cycles(self, mnemonic: str, operands: str, taken: bool, previous: tuple[str, str] | None = None) -> float:
+        """Cycles of one executed instruction; ``taken``: a branch that was taken; ``previous``: the mnemonic
+        and operands of the instruction executed just before it in the step (None at its start)."""
         base, _ = _base(mnemonic)
-        registers = _register_count(operands)
-        memory = 1.0 if (self.pipelined_memory and after_memory) else 2.0
+        stall = 1.0 if _address_stall(base, operands, previous) else 0.0
+        return self._cycles(base, mnemonic, operands, taken, previous) + stall
+
+    def _cycles(self, base: str, mnemonic: str, operands: str, taken: bool, previous) -> float:
         writes_pc = bool(re.match(r"pc\b", operands))
         if base in ("b", "bl", "bx", "blx"):
             return 1.0 + self.refill if (taken or base != "b") else 1.0
         if base in ("cbz", "cbnz"):
             return 1.0 + self.refill if taken else 1.0
         if base in ("tbb", "tbh"):
-            return 2.0 + self.refill
-        if base in ("ldm", "ldmia", "ldmdb", "pop"):
-            return 1.0 + registers + (self.refill if "pc" in operands else 0.0)
-        if base in ("stm", "stmia", "stmdb", "push"):
-            return 1.0 + registers
+            return self.table_branch + self.refill
+        if base in _MULTIPLE_LOADS:
+            return 1.0 + _register_count(operands) + (self.refill if re.search(r"\bpc\b", operands) else 0.0)
+        if base in _MULTIPLE_STORES:
+            return 1.0 + _register_count(operands)
         if base in ("ldrd", "strd"):
-            return 1.0 + 2.0
-        if base.startswith("ldr"):
-            return memory + (self.refill if writes_pc else 0.0)
-        if base.startswith("str"):
-            return memory
+            return 3.0
+        if base in ("vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop"):
+            return 1.0 + _single_count(operands)
+        if base in _SINGLE_LOADS or base in _SINGLE_STORES or base in ("vldr", "vstr"):
+            if base in _SINGLE_LOADS and writes_pc:
+                return 2.0 + self.refill
+            if base in _SINGLE_STORES:
+                cost = 2.0 if _register_offset(operands) else 1.0
+            else:
+                cost = 3.0 if (base == "vldr" or base == "vstr") and re.match(r"d\d", operands) else 2.0
+                cost += self.literal_penalty if re.search(r"\[pc\b", operands) else 0.0
+            if self.pipelines and _pipelines_behind(operands, previous):
+                cost = max(1.0, cost - 1.0)
+            return cost
         if base in ("sdiv", "udiv"):
             return self.divide
         if base in ("vdiv", "vsqrt"):
             return 14.0
         if base in ("vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms"):
             return 3.0
-        if base in ("vldr", "vstr"):
-            return memory
-        if base in ("vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop"):
-            return 1.0 + _single_count(operands)
-        if base == "vmov" and operands.count(",") >= 2:  # two core registers <-> two singles or a double
-            return 2.0
+        if base == "vmov":
+            return 2.0 if _core_registers(operands) and not re.search(r"d\d+\[", operands) \
+                and any(re.fullmatch(r"[sd]\d+", r) for r in _operand_list(operands)) else 1.0
         if writes_pc:  # mov pc, ..., add pc, ...
             return 1.0 + self.refill
         return 1.0
 
 
-CYCLE_TABLE = CycleTable(refill=3.0, divide=12.0, pipelined_memory=False)
-CYCLE_TABLE_LOW = CycleTable(refill=1.0, divide=2.0, pipelined_memory=True)
+CYCLE_TABLE = CycleTable(refill=3.0, divide=12.0, pipelines=False, literal_penalty=1.0, table_branch=3.0)
+CYCLE_TABLE_LOW = CycleTable(refill=1.0, divide=2.0, pipelines=True, literal_penalty=0.0, table_branch=2.0)
 
 _CONDITIONS = ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt", "le", "al")
+_SINGLE_LOADS = ("ldr", "ldrb", "ldrh", "ldrsb", "ldrsh", "ldrex", "ldrexb", "ldrexh", "ldrt", "ldrbt", "ldrht")
+_SINGLE_STORES = ("str", "strb", "strh", "strt", "strbt", "strht")
+_MULTIPLE_LOADS = ("ldm", "ldmia", "ldmdb", "ldmfd", "pop")
+_MULTIPLE_STORES = ("stm", "stmia", "stmdb", "stmfd", "push")
+#: instructions that compare or control and write no core register
+_NO_DESTINATION = ("cmp", "cmn", "tst", "teq", "it", "nop", "bkpt", "dsb", "dmb", "isb", "cpsie", "cpsid", "svc")
+_CORE_REGISTER = re.compile(r"(r\d+|sb|sl|fp|ip|sp|lr|pc)")
 #: the mnemonics the table prices differently from 1 cycle (and the FPU moves of the mix)
-_PRICED = {"b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh", "ldr", "ldrb", "ldrh", "ldrsb", "ldrsh", "ldrd",
-           "ldrex", "str", "strb", "strh", "strd", "strex", "ldm", "ldmia", "ldmdb", "stm", "stmia", "stmdb", "push",
-           "pop", "sdiv", "udiv", "mul", "mla", "mls", "smull", "umull", "smlal", "umlal", "vdiv", "vsqrt", "vmla",
-           "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms", "vldr", "vstr", "vldm", "vldmia", "vldmdb",
-           "vstm", "vstmia", "vstmdb", "vpush", "vpop", "vmov", "vmrs", "vmsr", "vcvt", "vcvtr", "mov", "add"}
+_PRICED = {"b", "bl", "bx", "blx", "cbz", "cbnz", "tbb", "tbh", "ldrd", "strd", "sdiv", "udiv", "mul", "mla", "mls",
+           "smull", "umull", "smlal", "umlal", "vdiv", "vsqrt", "vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms",
+           "vfnma", "vfnms", "vldr", "vstr", "vldm", "vldmia", "vldmdb", "vstm", "vstmia", "vstmdb", "vpush", "vpop",
+           "vmov", "vmrs", "vmsr", "vcvt", "vcvtr", "mov", "add", *_SINGLE_LOADS, *_SINGLE_STORES, *_MULTIPLE_LOADS,
+           *_MULTIPLE_STORES}
 
 
 def _base(mnemonic: str) -> tuple[str, bool]:
@@ -439,6 +576,65 @@ def _base(mnemonic: str) -> tuple[str, bool]:
     if name.endswith("s") and name[:-1] in _PRICED:
         return name[:-1], False
     return name, False
+
+
+def _operand_list(operands: str) -> list[str]:
+    return [part.strip().rstrip("!") for part in re.split(r"[,\[\]{}]", operands) if part.strip()]
+
+
+def _core_registers(operands: str) -> list[str]:
+    return [r for r in _operand_list(operands) if _CORE_REGISTER.fullmatch(r)]
+
+
+def _address_registers(base: str, operands: str) -> set[str]:
+    """The core registers that form a load's or store's address: those inside [...] of a single transfer,
+    the base register of LDM/STM/VLDM/VSTM, SP of PUSH/POP/VPUSH/VPOP; empty for other instructions."""
+    if base in ("push", "pop", "vpush", "vpop"):
+        return {"sp"}
+    if base in _MULTIPLE_LOADS or base in _MULTIPLE_STORES or base.startswith(("vldm", "vstm")):
+        return {operands.split(",")[0].strip().rstrip("!")}
+    if base in _SINGLE_LOADS or base in _SINGLE_STORES or base in ("ldrd", "strd", "vldr", "vstr"):
+        inside = re.search(r"\[([^\]]*)\]", operands)
+        return set(_core_registers(inside.group(1))) if inside else set()
+    return set()
+
+
+def _written_by_data_processing(previous: tuple[str, str] | None) -> set[str]:
+    """The core registers the previous instruction wrote, if it was an integer data-processing instruction
+    (not a load, store, branch or FPU instruction): its destination (two for the long multiplies)."""
+    if previous is None:
+        return set()
+    base, _ = _base(previous[0])
+    if (base.startswith(("v", "ld", "st", "it")) or base in _BRANCHES or base in _NO_DESTINATION
+            or base in _MULTIPLE_LOADS or base in _MULTIPLE_STORES):
+        return set()
+    registers = _operand_list(previous[1])
+    count = 2 if base in ("smull", "umull", "smlal", "umlal") else 1
+    return {r for r in registers[:count] if _CORE_REGISTER.fullmatch(r)}
+
+
+def _address_stall(base: str, operands: str, previous) -> bool:
+    """TRM 3.3.2: a load or store whose address depends on the result of the preceding data-processing
+    operation stalls one cycle (no forwarding path)."""
+    return bool(_address_registers(base, operands) & _written_by_data_processing(previous))
+
+
+def _register_offset(operands: str) -> bool:
+    """A single store's address has a register offset ([Rn, Rm{, LSL #n}]) rather than an immediate."""
+    inside = re.search(r"\[([^\]]*)\]", operands)
+    return bool(inside) and len(_core_registers(inside.group(1))) > 1
+
+
+def _pipelines_behind(operands: str, previous) -> bool:
+    """TRM 3.3.2: a single load or store pipelines behind a single load (LDR [any]; VLDR assumed alike) whose
+    destination is not used to compute its address -- not behind a store, LDRD, LDM, or a load of PC."""
+    if previous is None:
+        return False
+    base, _ = _base(previous[0])
+    if not (base in _SINGLE_LOADS or base == "vldr") or re.match(r"pc\b", previous[1]):
+        return False
+    destination = _operand_list(previous[1])[0]
+    return destination not in _address_registers("ldr", operands)
 
 
 def _register_count(operands: str) -> int:
@@ -497,7 +693,7 @@ _INSN = re.compile(r"^0x([0-9a-f]+):\s+((?:[0-9a-f]{4}\s?)+)\s+(\S+)\s*(.*)$")
 
 def _is_control(mnemonic: str, operands: str) -> bool:
     base, _ = _base(mnemonic)
-    return base in _BRANCHES or (base in ("pop", "ldm", "ldmia") and "pc" in operands) or bool(
+    return base in _BRANCHES or (base in _MULTIPLE_LOADS and re.search(r"\bpc\b", operands) is not None) or bool(
         re.match(r"pc\b", operands))
 
 
@@ -527,26 +723,24 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
     inside = False
     pending: list | None = None  # the last executed block of the step (its final branch awaits the successor)
     insn = high = low = 0.0
-    after_memory = False
+    previous: tuple[str, str] | None = None  # the instruction executed before, for the TRM's pairing rules
 
     def account(block, successor: int | None):
-        nonlocal insn, high, low, after_memory
+        nonlocal insn, high, low, previous
         for i, (address, size, mnemonic, operands) in enumerate(block):
             if any(a <= address < b for a, b in excluded):
-                after_memory = False
+                previous = None
                 continue
             last = i == len(block) - 1
             taken = last and successor is not None and successor != address + size and _is_control(mnemonic,
                                                                                                   operands)
-            base, _ = _base(mnemonic)
-            memory_op = base.startswith(("ldr", "str", "vldr", "vstr"))
             insn += 1
-            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, after_memory)
+            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, previous)
             high += cycles
-            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, after_memory)
+            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, previous)
             mix[instruction_class(mnemonic)] += 1
             functions[owner(address)] += cycles
-            after_memory = memory_op
+            previous = (mnemonic, operands)
 
     with open(log, encoding="utf-8", errors="replace") as lines:
         for line in lines:
@@ -570,7 +764,7 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
                 account(pending, pc)
                 pending = None
             if pc == begin:
-                inside, insn, high, low, after_memory = True, 0.0, 0.0, 0.0, False
+                inside, insn, high, low, previous = True, 0.0, 0.0, 0.0, None
             elif pc == end and inside:
                 steps_insn.append(insn)
                 steps_high.append(high)

@@ -57,6 +57,10 @@ def bench_adaptation(quick: bool) -> list[BenchRow]:
     if len(updated):
         rows.append(BenchRow("online adaptation per RLS update (samples that passed the guards)",
                              float(np.median(updated)), _p99(updated), "us"))
-    rows.append(BenchRow("NNPC step the adaptation wraps (C twin), same run", float(np.median(inner_times)) * 1e-3,
-                         _p99(np.array(inner_times) * 1e-3), "us"))
+    optimizer = "real-time iteration" if adaptive.inner.rti is not None else "search"
+    rows.append(BenchRow(f"NNPC step the adaptation wraps (C twin, {optimizer}), same run",
+                         float(np.median(inner_times)) * 1e-3, _p99(np.array(inner_times) * 1e-3), "us",
+                         note="issue 24's target, the adaptive NNPC's C step including the RLS update p99 <= 13.3 us, "
+                              "cannot be measured: the adaptation (controllers/adaptation.py) has no C twin, it "
+                              "runs in Python around the C NNPC (rows above)"))
     return rows

@@ -50,8 +50,8 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
         BenchRow(f"{NNPC_EXPLICIT} {label} per step: tanh calls (counted)", counts["tanh"], None, "count"),
         BenchRow(f"{NNPC_EXPLICIT} {label} per step on a 170 MHz Cortex-M4F: the cost model's prediction (superseded by "
                  "the measurement of the embedded group)", cycles, None, "cycles",
-                 note=f"{cycles / budget:.3g} x the period; cost model: {CORTEX_M4F.mac} cycles/MAC, "
-                      f"{CORTEX_M4F.tanh}/tanh, {CORTEX_M4F.division}/division, {CORTEX_M4F.candidate} for the features, "
-                      f"clip and integral, {CORTEX_M4F.interrupt} per sample for ADC/PWM/ISR (cosim/benchmark_harness); "
-                      "measured on the emulated Cortex-M4F: group embedded"),
+                 note=f"{cycles / budget:.3g} x the period; cost model: {CORTEX_M4F.mac:g} cycles/MAC, "
+                      f"{CORTEX_M4F.tanh:g}/tanh, {CORTEX_M4F.division:g}/division, {CORTEX_M4F.candidate:g} for the "
+                      f"features, clip and integral, {CORTEX_M4F.interrupt:g} per sample for ADC/PWM/ISR "
+                      "(controllers/cost_model.py); measured on the emulated Cortex-M4F: group embedded"),
     ]

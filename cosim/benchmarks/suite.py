@@ -17,6 +17,7 @@ from cosim.benchmarks.adaptation import bench_adaptation
 from cosim.benchmarks.c_controllers import bench_c_controllers
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.controller_compute import bench_controllers
+from cosim.benchmarks.dompc import bench_dompc
 from cosim.benchmarks.embedded import bench_embedded
 from cosim.benchmarks.explicit import bench_explicit
 from cosim.benchmarks.inference import bench_inference
@@ -33,6 +34,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "controllers": bench_controllers,
     "c-controllers": bench_c_controllers,
     "adaptation": bench_adaptation,
+    "do-mpc": bench_dompc,
     "explicit": bench_explicit,
     "embedded": bench_embedded,
     "training": bench_training,

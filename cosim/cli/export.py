@@ -75,8 +75,8 @@ def cmd_export_controller(args) -> int:
             target = export_object(controller, output_dir(args.cortex_m4))
         except EmbeddedError as error:
             raise BuildError(f"--cortex-m4 {args.cortex_m4}: {str(error).splitlines()[0]}") from None
-        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (link it with newlib's "
-              "libm: see the README's 'On a microcontroller')")
+        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (how to link it: 'On a "
+              "microcontroller' in the documentation)")
     return 0
 
 
@@ -196,7 +196,7 @@ def add_export_controller_parser(sub) -> None:
                         "variables stay fmi2Real; a float32 FMU rounds its inputs to float at each sample")
     p.add_argument("--cortex-m4", metavar="DIR",
                    help="with --precision float32: also cross-compile the controller for a Cortex-M4F into "
-                        "DIR/controller.o (+ buckc_controller.h, buckc.h), the object a firmware links "
+                        "DIR/controller.o (+ buckc_controller.h, buckc.h, buckc_tanhf.h), the object a firmware links "
                         "(needs gcc-arm-none-eabi and libnewlib-arm-none-eabi)")
     _add_fmi_version_option(p, "the controller FMU's")
     _add_controller_design_options(p)

@@ -13,10 +13,11 @@ The variables carry the workbench's role names: inputs ``reference``, ``measured
 before initialisation; a predictive controller's are fixed by its generation).
 
 ``precision="float32"`` builds the FMU from the float32 build of the twins (``buckc_real`` =
-float, ``controllers/c/buckc.h``; the PI and the explicit NNPC have one): the generated header
-holds float data, and every compiled file is a two-line wrapper ``f32_NAME.c`` that defines
-``BUCKC_FLOAT32`` and includes ``NAME.c`` (FMI 2.0 source FMUs have no place for compiler
-flags, so the definition travels in a source file that any FMI tool compiles as it is).
+float, ``controllers/c/buckc.h``; the PI, the explicit NNPC, the current-mode controller and the
+compensator have one): the generated header holds float data, and every compiled file is a two-line
+wrapper ``f32_NAME.c`` that defines ``BUCKC_FLOAT32`` and includes ``NAME.c`` (FMI 2.0 source FMUs
+have no place for compiler flags, so the definition travels in a source file that any FMI tool
+compiles as it is).
 """
 
 from __future__ import annotations
@@ -53,18 +54,20 @@ MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
                    "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
-                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h")
+                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h",
+                   "box_qp.c", "box_qp.h")
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
 #: modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
-            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c", "current_mode.c", "compensator.c")
-#: the float32 FMU: the files with a float32 build that the PI and the explicit NNPC need, each through a
+            "predictors.c", "predictive.c", "load_estimate.c", "explicit_policy.c", "current_mode.c", "compensator.c",
+            "box_qp.c")
+#: the float32 FMU: the files with a float32 build that its controllers need, each through a
 #: wrapper that defines BUCKC_FLOAT32 (the glue does not include buckc.h: compiled as it is)
 FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c",
                                        "current_mode.c", "compensator.c")
                            if f in FLOAT32_SOURCES)
-FLOAT32_HEADERS = ("buckc.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h", "current_mode.h",
-                   "compensator.h")
+FLOAT32_HEADERS = ("buckc.h", "buckc_tanhf.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h",
+                   "current_mode.h", "compensator.h")
 FLOAT32_COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "f32_controller_fmu.c",
                     *(f"f32_{f}" for f in FLOAT32_ALGORITHMS))
 

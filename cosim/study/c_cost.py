@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_counts
+from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_counts, rti_operation_counts
 from controllers.nn_model import load_model
 from cosim.base.labels import period_text
 from cosim.master import simulate
@@ -29,13 +29,18 @@ class _CountingTwin:
         self.twin = twin
         self.name, self.sample_period, self.duty_limits = twin.name, twin.sample_period, twin.duty_limits
         self.evaluations: list[int] = []
+        self.rti: list[bool] = []
+        self.qp_iterations: list[int] = []
 
     def reset(self):
         self.twin.reset()
 
     def step(self, measurement):
         duty = self.twin.step(measurement)
-        self.evaluations.append(int(self.twin.state.evaluations))
+        state = self.twin.state
+        self.evaluations.append(int(state.evaluations))
+        self.rti.append(self.twin.last_solver == "rti")
+        self.qp_iterations.append(int(state.qp_iterations))
         return duty
 
     def describe(self):
@@ -43,15 +48,19 @@ class _CountingTwin:
 
 
 def count_nnpc_operations(model_path: Path, period: float, scenario_names) -> dict[str, np.ndarray]:
-    """Per control sample of the NNPC (``model_path``, at ``period`` [s]) over ``scenario_names`` on
-    the nominal switched plant: candidate evaluations, MACs, tanh calls, square roots and
-    Cortex-M4F cycles."""
+    """Per control sample of the NNPC (``model_path``, at ``period`` [s], with its default optimizer: the RTI at
+    one switching period, the search at 1 ms) over ``scenario_names`` on the nominal switched plant: rollouts
+    (candidate evaluations), MACs, tanh calls, square roots and Cortex-M4F cycles."""
     controller = nnpc(load_model(model_path, expect_period=period), period, NNPC)
     counting = _CountingTwin(implemented(controller, "c"))
     binding = plant_binding("nominal", "switched")
     for scenario in scenarios_for(period, scenario_names):
         simulate(binding, counting, scenario, record_period=period)
-    counts = operation_counts(controller, np.array(counting.evaluations))
+    if controller.rti is not None:
+        counts = rti_operation_counts(controller, np.array(counting.rti), np.array(counting.qp_iterations),
+                                      np.array(counting.evaluations))
+    else:
+        counts = operation_counts(controller, np.array(counting.evaluations))
     counts["cycles"] = cortex_m4f_cycles(counts)
     return counts
 
@@ -83,15 +92,19 @@ def section(out_dir: Path, periods, scenario_names) -> list[str]:
         "The NNPC's step as the controller FMU runs it (the C twins of `controllers/c`), on the paper's "
         "scenarios and the nominal switched plant: operations counted per control sample from the "
         "optimizer's candidate evaluations (exact for the C code paths; `controllers/cost_model.py`), and "
-        f"cycles on a {m.clock_hz / 1e6:.0f} MHz Cortex-M4F for a float32 port under a stated cost model: "
-        f"{m.mac:g} cycles per multiply-accumulate (published figures for small MLPs compiled to C on Cortex-M4), "
-        f"{m.tanh:g} per tanh (one expf and one VDIV.F32), {m.sqrt:g} per square root (VSQRT.F32), {m.candidate:g} per "
-        f"candidate (lattice, clipping, compare) and {m.interrupt:g} per sample for ADC, PWM and the interrupt. "
+        f"cycles on a {m.clock_hz / 1e6:.0f} MHz Cortex-M4F for a float32 port under a cost model: "
+        f"{m.mac:g} cycles per multiply-accumulate and {m.tanh:g} per tanh (the float32 build's buckc_tanhf), "
+        "calibrated on the explicit NNPC's forward pass measured on an emulated Cortex-M4F, "
+        f"{m.sqrt:g} per square root (VSQRT.F32), {m.candidate:g} per "
+        f"candidate (lattice, clipping, compare: assumed) and {m.interrupt:g} per sample for ADC, PWM and the "
+        "interrupt. "
         "Nanoseconds per step on this machine (C harness vs Python) are wall-clock figures: "
         "[benchmarks.md](benchmarks.md), group `c-controllers`. These cycles are the cost model's estimate: the "
-        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC) it is measured on an "
-        "emulated Cortex-M4F, with the model's prediction against the measurement: [benchmarks.md](benchmarks.md), "
-        "group `embedded` (the model under-predicts there: read these figures as a lower bound).",
+        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC, the current-mode "
+        "controller, the Type-III) it is measured on an emulated Cortex-M4F, with the model's prediction against "
+        "the measurement: [benchmarks.md](benchmarks.md), group `embedded` (the explicit NNPC's 0.91, the small "
+        "controllers' 0.5-0.7: the model's 30 cycles of a step's or a candidate's bookkeeping are about half what "
+        "was measured -- read these figures as a lower bound).",
         "",
         "| rate | samples | candidates p50 / max | MACs p50 / max | tanh p50 / max | M4F cycles p99 / max "
         "| cycles in a period | fraction of the period p99 / max | fits |",

@@ -14,8 +14,9 @@ and asking the expert what it would have done there:
   prediction (hence its disturbance estimate) corrected to the duty actually applied;
 * after each round the policy is retrained on all labels so far (the aggregate).
 
-The expert is the online NNPC's C twin (about 1 ms per label at 13.33 us, equal to the Python
-reference at every sample), so the budget is counted in labels: rounds x episodes x samples.
+The expert is the online NNPC's C twin with the search as its optimizer (about 1 ms per label at 13.33 us,
+equal to the Python reference at every sample; why not the RTI: :func:`distill`), so the budget is counted in
+labels: rounds x episodes x samples.
 Everything is seeded (episodes, mixing, training) and torch runs on one thread, so the same
 inputs give the same policy file byte for byte.
 """
@@ -173,7 +174,12 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     plant at ``control_period`` [s]. ``log`` gets one line per round (None: silent); ``progress``
     shows a bar over the episodes."""
     settings.check()  # torch trains on one thread (train_policy), and nothing else here uses it
-    online = nnpc(model, control_period)
+    # the labels come from the search, even where the RTI plans the online NNPC: labels are made
+    # offline (no real-time budget), and on episodes like these (references 3-20 V, loads 4-100 Ohm, a step every
+    # 20-100 samples) the RTI's plans cost > 1 % more than the search's at 3-7.5 % of the samples, worst 3-16 x,
+    # right at the steps the policy must learn (its median plan is cheaper: issue 24's measurement, 3 episodes of
+    # 600 samples per nominal plant at 13.33 us)
+    online = nnpc(model, control_period, optimizer="search")
     expert = ShadowExpert(implemented(online, "c"))
     nominal_load = NOMINAL_OPERATING_POINT["nominal_load"]
     features = np.empty((0, 7))

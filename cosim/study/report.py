@@ -16,7 +16,7 @@ from cosim.base.labels import period_label, period_text
 from cosim.base.numeric_env import ESCAPE, NATIVE
 from cosim.base.numeric_env import describe as describe_numeric_environment
 from cosim.results import package_versions
-from cosim.study import envelope, explicit
+from cosim.study import envelope, explicit, optimizer_ablation
 from cosim.study.c_cost import section as c_cost_section
 from cosim.study.claims import (
     ABOVE,
@@ -357,6 +357,8 @@ def _ablations(metrics: pd.DataFrame, models: dict) -> list[str]:
         {"scenario": "scenario", "controller": "controller", "iae_Vs": "IAE [V s]", "overshoot_pct": "overshoot [%]",
          "steady_state_error_pct": "SS error [%]"})
     lines += _identification_ablation(metrics, models)
+    ablation = [{**row, "pipeline": tag} for tag, meta in models.items() for row in meta.get("optimizer_ablation", [])]
+    lines += optimizer_ablation.report_lines(ablation)
     return lines
 
 

@@ -43,10 +43,11 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import classical_design, envelope, explicit, frequency_response, tolerance_study
+from cosim.study import classical_design, envelope, explicit, frequency_response, optimizer_ablation, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import save_samples
 from cosim.study.experiments import (
+    PAPER_NNPC_OPTIMIZER,
     adaptive_nnpc,
     implemented,
     model_mpc,
@@ -294,7 +295,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
             f"10 steps {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV")
 
-    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC), nnpc(models["nnpc-paper"], period, NNPC_PAPER)]
+    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC),
+                   nnpc(models["nnpc-paper"], period, NNPC_PAPER, optimizer=PAPER_NNPC_OPTIMIZER)]
     true_parameters = None
     if pipeline.binding_file:  # an external plant: only the Table II model is known
         controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, binding=binding))
@@ -324,6 +326,14 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     output = run_batch(batch, controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
                        extra_metadata={"pipeline": asdict(pipeline)})
     metrics = [output.metrics]
+    if profile.ablations and true_parameters is not None:  # old vs new optimizer on the same models
+        start_ablation = time.perf_counter()
+        makers = {NNPC: lambda optimizer: nnpc(models["nnpc"], period, NNPC, optimizer=optimizer),
+                  MPC_ORACLE: lambda optimizer: model_mpc(true_parameters, period, MPC_ORACLE, binding=binding,
+                                                          optimizer=optimizer)}
+        model_meta["optimizer_ablation"] = [optimizer_ablation.summary(row) for make in makers.values()
+                                            for row in optimizer_ablation.compare(binding, make, scenarios)]
+        timings["optimizer_ablation_s"] = time.perf_counter() - start_ablation
     if profile.ablations and pipeline.variant == "nominal" and pipeline.mode == "switched":
         if transient_within_sample(period):  # does a longer horizon change anything at 1 ms?
             metrics.append(run_batch(batch, [nnpc(models["nnpc"], period, horizon_variant(NNPC, 3), horizon=3)],

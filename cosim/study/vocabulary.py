@@ -115,7 +115,7 @@ CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-adaptive": f"{NNPC}-adaptive", "nnp
                "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT,
                "current-mode": CURRENT_MODE, "type-iii": TYPE_III, "pi-envelope": PI_ENVELOPE}
 #: the command-line keys whose C twin has a float32 build (export-controller --precision float32; the Cortex-M4F)
-FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit")
+FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit", "current-mode", "type-iii")
 #: the NN plant models per rate, by command-line key
 NETWORKS = ("nnpc", "nnpc-paper")
 #: ablation variants (reproduction only)

@@ -1,0 +1,106 @@
+"""Group do-mpc: the same NNPC problem solved by do-mpc (CasADi + IPOPT) next to the workbench's C RTI."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cosim.benchmarks.common import BenchRow, _p99
+from cosim.benchmarks.subjects import _nn_model
+from cosim.study.vocabulary import NNPC, SWITCHING_PERIOD
+
+
+def bench_dompc(quick: bool) -> list[BenchRow]:
+    """The workbench's C RTI NNPC and do-mpc on the same problem (network, cost, horizon, blocks, bounds,
+    estimation: cosim/study/dompc_peer.py), each in closed loop on the nominal switched plant FMU through the
+    paper's start-up and load change at 13.33 us: time per step (the C RTI's by the C harness replaying its
+    own closed loop's measurements; do-mpc's solve timed in-process), IAE and the eq. 16 cost of the plans."""
+    from cosim.benchmark_harness import record_measurements, replay
+    from cosim.master import simulate
+    from cosim.metrics import run_metrics
+    from cosim.study.dompc_peer import DoMpcNnpc
+    from cosim.study.experiments import (
+        NOMINAL_OPERATING_POINT,
+        horizon_settings,
+        implemented,
+        nnpc,
+        plant_binding,
+        scenarios_for,
+    )
+
+    period = SWITCHING_PERIOD
+    binding = plant_binding("nominal", "switched")
+    model, origin = _nn_model("nnpc", period, quick)
+    rows = []
+    for scenario in scenarios_for(period, ("startup", "load_change")):
+        if quick:
+            scenario = replace_scenario(scenario, 0.0003)
+        rti = nnpc(model, period, NNPC, optimizer="rti")
+        costs: list[float] = []
+
+        class Costed:  # the C RTI, keeping each plan's eq. 16 cost
+            name, sample_period, duty_limits = rti.name, rti.sample_period, rti.duty_limits
+
+            def __init__(self):
+                self.twin = implemented(rti)
+
+            def reset(self):
+                self.twin.reset()
+
+            def step(self, m):
+                duty = self.twin.step(m)
+                costs.append(self.twin.best_cost)
+                return duty
+
+            def describe(self):
+                return self.twin.describe()
+
+        result_rti = simulate(binding, Costed(), scenario, record_period=period)
+        measurements = record_measurements(binding, implemented(rti), scenario)
+        timed = replay(rti, measurements, repeats=1 if quick else 3)
+        peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
+        peer_costs: list[float] = []
+
+        class CostedPeer:
+            name, sample_period, duty_limits = peer.name, peer.sample_period, peer.duty_limits
+
+            def reset(self):
+                peer.reset()
+
+            def step(self, m):
+                duty = peer.step(m)
+                peer_costs.append(peer.best_cost)
+                return duty
+
+            def describe(self):
+                return peer.describe()
+
+        result_peer = simulate(binding, CostedPeer(), scenario, record_period=period)
+        solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
+        c_ns = timed.ns * 1e-3
+        iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
+        label = f"{scenario.name}, 13.33 us, nominal switched plant"
+        rows += [
+            BenchRow(f"C RTI NNPC step, {label} ({len(measurements)} samples)", float(np.median(c_ns)),
+                     _p99(c_ns), "us", note=f"NN: {origin}"),
+            BenchRow(f"do-mpc (IPOPT) step on the same problem, {label} ({len(solve)} solves after the first)",
+                     float(np.median(solve)), _p99(solve), "us",
+                     note=f"the first solve (IPOPT's set-up included) took {peer.solve_times[0] * 1e3:.4g} ms"),
+            BenchRow(f"do-mpc step / C RTI step, {label} (p50)", float(np.median(solve)) / float(np.median(c_ns)),
+                     None, "ratio", ">= 1000", float(np.median(solve)) / float(np.median(c_ns)) >= 1000),
+            BenchRow(f"closed-loop IAE, C RTI / do-mpc, {label}", iae_rti / iae_peer, None, "ratio", "<= 1.02",
+                     iae_rti / iae_peer <= 1.02, f"IAE {iae_rti:.4g} V s (RTI), {iae_peer:.4g} V s (do-mpc)"),
+            BenchRow(f"eq. 16 cost of the plan per step, C RTI, {label}", float(np.mean(costs)),
+                     float(np.percentile(costs, 99)), "V (discounted sum)", note="mean in the median column"),
+            BenchRow(f"eq. 16 cost of the plan per step, do-mpc, {label}", float(np.mean(peer_costs)),
+                     float(np.percentile(peer_costs, 99)), "V (discounted sum)",
+                     note="mean in the median column; do-mpc minimises the smoothed norm (eps = "
+                          f"{peer.smoothing} V), the cost is the exact eq. 16 of its plan"),
+        ]
+    return rows
+
+
+def replace_scenario(scenario, duration: float):
+    """``scenario`` cut to ``duration`` [s] (its events that fall inside kept): the quick profile."""
+    from dataclasses import replace
+
+    return replace(scenario, duration=duration, events=tuple(e for e in scenario.events if e.time < duration))

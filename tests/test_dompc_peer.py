@@ -1,0 +1,75 @@
+"""The do-mpc peer of the benchmark suite (cosim/study/dompc_peer.py): the CasADi export of the network
+against the workbench's forward pass, and a short closed loop on the plant FMU."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, load_model
+from cosim.study.vocabulary import SWITCHING_PERIOD
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def random_model(config: NNConfig, seed: int) -> NNPlantModel:
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    n = config.n_inputs
+    return NNPlantModel(config, PlantNetwork(config), rng.normal(0, 3, n), rng.uniform(0.5, 5, n),
+                        rng.normal(0, 5, 2), rng.uniform(0.5, 5, 2))
+
+
+@pytest.mark.parametrize("config", [NNConfig(delays=2, hidden=(10,), extra_signals=("load_conductance",)),
+                                    NNConfig(hidden=(5, 6), activation="sigmoid", residual=True),
+                                    NNConfig(hidden=(9,), activation="relu", delays=3)], ids=lambda c: c.label)
+def test_casadi_export_of_the_network_matches_the_workbench_forward_pass(config):
+    from cosim.study.dompc_peer import casadi_network
+
+    model = random_model(config, 7)
+    network = casadi_network(model)
+    x = np.random.default_rng(1).normal(size=(200, config.n_inputs)) * model.input_std + model.input_mean
+    exported = np.array(network(x.T)).T  # casadi maps the columns
+    expected = model.predict(x)
+    assert np.max(np.abs(exported - expected)) <= 1e-12 * max(1.0, float(np.max(np.abs(expected))))
+
+
+def test_the_export_reads_the_model_file():
+    from cosim.study.dompc_peer import casadi_network_from_file
+
+    path = FIXTURES / "nnpc_mismatch_switched_13p33us.pt"
+    model = load_model(path, expect_period=SWITCHING_PERIOD)
+    network = casadi_network_from_file(path, expect_period=SWITCHING_PERIOD)
+    x = np.random.default_rng(2).normal(size=(100, model.config.n_inputs)) * model.input_std + model.input_mean
+    assert np.max(np.abs(np.array(network(x.T)).T - model.predict(x))) <= 1e-12 * 20
+
+
+def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
+    """A short start-up at 13.33 us: do-mpc's plans hold the move blocks and the duty bounds, their eq. 16
+    cost is what the workbench's rollout gives, and the closed loop lands within 10 % of the RTI NNPC's IAE."""
+    from cosim.master import simulate
+    from cosim.metrics import run_metrics
+    from cosim.scenarios import load_scenario
+    from cosim.study.dompc_peer import DoMpcNnpc
+    from cosim.study.experiments import NOMINAL_OPERATING_POINT, horizon_settings, nnpc, plant_binding
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
+    peer = DoMpcNnpc(model, SWITCHING_PERIOD, horizon_settings(SWITCHING_PERIOD), **NOMINAL_OPERATING_POINT)
+    scenario = replace(load_scenario("startup"), duration=0.0004)
+    binding = plant_binding("mismatch", "switched")
+    runs = [simulate(binding, c, scenario, record_period=SWITCHING_PERIOD) for c in (peer, nnpc(model, SWITCHING_PERIOD, optimizer="rti"))]
+    plan = peer._warm
+    blocks = np.repeat(np.arange(len(peer.settings.blocks)), peer.settings.blocks)
+    for b in range(len(peer.settings.blocks)):
+        assert np.ptp(plan[blocks == b]) <= 1e-6  # held over each block
+    assert np.all((plan >= 0.0) & (plan <= 1.0)) and peer.last_solver == "do-mpc"
+    _, _, first, _ = peer.plan(*peer._problem[:4], "")
+    assert len(peer.solve_times) == len(runs[0].frame[runs[0].frame["control_sample"]]) + 1
+    iae = [run_metrics(r)["iae_Vs"] for r in runs]
+    assert iae[0] == pytest.approx(iae[1], rel=0.1)
+    assert peer.describe()["optimizer"].startswith("do-mpc")

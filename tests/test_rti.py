@@ -1,0 +1,298 @@
+"""The real-time-iteration optimizer: its box QP against the KKT conditions, the predictors'
+sensitivities against finite differences, its steps against the search, its fallback rule, and the
+optimizer ablation of the study."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers.base import Measurement
+from controllers.box_qp import MAX_VARIABLES, solve_box_qp
+from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, load_model
+from controllers.predictive import (
+    HorizonOptimizer,
+    HorizonSettings,
+    PredictiveController,
+    RealTimeIteration,
+    RtiSettings,
+    doubling_blocks,
+)
+from controllers.predictors import (
+    AveragedModelPredictor,
+    CircuitParameters,
+    NNPredictor,
+    PredictionContext,
+    SwitchedModelPredictor,
+)
+from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.study.vocabulary import NOMINAL, SWITCHING_PERIOD
+from plant_fmu.table_ii import TABLE_II
+
+TS = SWITCHING_PERIOD
+FIXTURES = Path(__file__).parent / "fixtures"
+PARASITICS = CircuitParameters(inductance=264e-6, capacitance=8e-6, inductor_resistance=0.15,
+                               switch_on_resistance=0.1, diode_forward_voltage=0.7, capacitor_esr=0.05)
+
+
+# ------------------------------------------------------------------------------------------ box QP
+
+
+def kkt_violation(h, g, lower, upper, x) -> float:
+    """The largest violation of the box QP's optimality conditions at x (feasibility and multiplier signs)."""
+    gradient = h @ x + g
+    worst = max(0.0, float(np.max(lower - x)), float(np.max(x - upper)))
+    for i in range(len(x)):
+        at_lower, at_upper = x[i] <= lower[i] + 1e-12, x[i] >= upper[i] - 1e-12
+        if at_lower and at_upper:
+            continue
+        if at_lower:
+            worst = max(worst, -gradient[i])  # the gradient must push against the bound
+        elif at_upper:
+            worst = max(worst, gradient[i])
+        else:
+            worst = max(worst, abs(gradient[i]))
+    return worst
+
+
+@pytest.mark.parametrize("n", range(1, MAX_VARIABLES + 1))
+def test_box_qp_solves_random_problems_to_their_kkt_point(n):
+    rng = np.random.default_rng(n)
+    for trial in range(40):
+        a = rng.normal(size=(n, n))
+        h = a @ a.T + 10.0 ** rng.uniform(-3, 1) * np.eye(n)  # condition numbers up to ~1e4
+        g = rng.normal(scale=10.0 ** rng.uniform(-1, 2), size=n)
+        lower = -rng.uniform(0, 1, n)
+        upper = rng.uniform(0, 1, n)
+        lower[rng.uniform(size=n) < 0.2] = 0.0  # the current plan on a duty limit
+        x, iterations, converged = solve_box_qp(h, g, lower, upper, 50)
+        x = np.array(x)
+        assert converged and iterations <= 3 * n + 1
+        scale = float(np.abs(h).max() + np.abs(g).max())
+        assert kkt_violation(h, g, lower, upper, x) <= 1e-9 * scale
+        # no feasible point on a fine random cloud does better
+        cloud = rng.uniform(lower, upper, (2000, n))
+        values = 0.5 * np.einsum("ki,ij,kj->k", cloud, h, cloud) + cloud @ g
+        assert 0.5 * x @ h @ x + g @ x <= values.min() + 1e-12 * scale
+
+
+def test_box_qp_stops_at_its_iteration_cap_with_a_feasible_improving_point():
+    h = np.diag([1.0, 2.0, 3.0, 4.0])
+    g = np.array([-5.0, 5.0, -5.0, 5.0])  # the unconstrained optimum lies outside on every axis
+    lower, upper = -np.ones(4), np.ones(4)
+    x, iterations, converged = solve_box_qp(h, g, lower, upper, 2)
+    assert not converged and iterations == 2
+    x = np.array(x)
+    assert np.all(x >= lower) and np.all(x <= upper)
+    assert 0.5 * x @ h @ x + g @ x < 0.0  # better than the start (x = 0)
+    full, _, done = solve_box_qp(h, g, lower, upper, 20)
+    assert done and np.allclose(full, [1.0, -1.0, 1.0, -1.0])
+
+
+def test_box_qp_refuses_more_variables_than_its_c_twin_holds():
+    with pytest.raises(ValueError, match="at most 8"):
+        solve_box_qp(np.eye(9), np.ones(9), -np.ones(9), np.ones(9), 10)
+
+
+# ------------------------------------------------------------------------------------------ sensitivities
+
+
+def random_model(config: NNConfig, seed: int) -> NNPlantModel:
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    n = config.n_inputs
+    return NNPlantModel(config, PlantNetwork(config), rng.normal(0, 3, n), rng.uniform(0.5, 5, n),
+                        rng.normal(0, 5, 2), rng.uniform(0.5, 5, 2))
+
+
+NN_CONFIGS = [NNConfig(), NNConfig(extra_signals=("load_conductance",)),
+              NNConfig(delays=2, hidden=(10,), extra_signals=("load_conductance",)),
+              NNConfig(hidden=(5, 6), activation="sigmoid", residual=True),
+              NNConfig(hidden=(9,), activation="relu", delays=3, extra_signals=("load_current", "input_voltage"))]
+
+
+def predictors():
+    for config in NN_CONFIGS:
+        yield pytest.param(NNPredictor(random_model(config, config.delays + len(config.hidden))), id=config.label)
+    yield pytest.param(NNPredictor(load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)),
+                       id="fixture-13us")
+    for period in (TS, 1e-3):
+        yield pytest.param(AveragedModelPredictor(PARASITICS, period), id=f"averaged-{period:.3g}")
+    yield pytest.param(SwitchedModelPredictor(PARASITICS, TS, TABLE_II.switching_frequency), id="switched-sawtooth")
+    yield pytest.param(SwitchedModelPredictor(NOMINAL, TS, TABLE_II.switching_frequency, carrier="triangle",
+                                              sensor="period_start"), id="switched-triangle")
+
+
+@pytest.mark.parametrize("predictor", list(predictors()))
+def test_linearize_rolls_out_like_rollout_and_its_jacobian_matches_finite_differences(predictor):
+    rng = np.random.default_rng(5)
+    blocks = doubling_blocks(23)
+    of_step = np.repeat(np.arange(len(blocks)), blocks)
+    for trial in range(3):
+        history = np.column_stack([rng.uniform(0.5, 3, predictor.delays), rng.uniform(5, 14, predictor.delays),
+                                   rng.uniform(0.1, 0.6, predictor.delays)])
+        ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0,
+                                load_current=1.8, previous_duty=float(history[0, 2]))
+        moves = rng.uniform(0.05, 0.95, len(blocks))
+        moves[rng.integers(len(blocks))] = 0.0  # a block at the duty limit
+        disturbance = rng.normal(0, 0.05, 2)
+        states, jacobian = predictor.linearize(ctx, moves[of_step], disturbance, of_step, len(blocks))
+        np.testing.assert_allclose(states, predictor.rollout(ctx, moves[of_step][None], disturbance)[0],
+                                   rtol=1e-12, atol=1e-12)
+        step = 1e-6
+        for b in range(len(blocks)):
+            up, down = moves.copy(), moves.copy()
+            up[b] += step
+            down[b] -= step
+            if down[b] < 0:  # one-sided at the limit
+                down[b] = moves[b]
+            difference = (predictor.rollout(ctx, up[of_step][None], disturbance)[0]
+                          - predictor.rollout(ctx, down[of_step][None], disturbance)[0]) / (up[b] - down[b])
+            scale = max(1.0, float(np.abs(jacobian).max()))
+            assert np.abs(difference - jacobian[:, :, b]).max() <= 1e-5 * scale, b
+            assert np.all(jacobian[:of_step.tolist().index(b), :, b] == 0.0)  # no effect before the block starts
+
+
+# ------------------------------------------------------------------------------------------ the optimizer and the controller
+
+
+def rti_controller(predictor, settings: RtiSettings = RtiSettings(), horizon: int = 23) -> PredictiveController:
+    return PredictiveController(predictor, TS, HorizonSettings(horizon=horizon), name="RTI", **OPERATING_POINT,
+                                rti=settings)
+
+
+def test_rti_settings_are_validated_by_name():
+    for field, value, message in (("iterations", 4, "RTI iterations = 4 is invalid: expected 1, 2 or 3"),
+                                  ("smoothing", 0.0, "RTI smoothing = 0.0 is invalid"),
+                                  ("step_limit", 1.5, "RTI step_limit = 1.5 is invalid"),
+                                  ("reference_step", -1.0, r"RTI reference_step = -1.0 is invalid: expected >= 0")):
+        with pytest.raises(ValueError, match=message):
+            RtiSettings(**{field: value})
+    with pytest.raises(ValueError, match="at most 8 move blocks"):
+        rti_controller(AveragedModelPredictor(NOMINAL, TS), horizon=30).settings  # noqa: B018
+        PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=9, blocks=(1,) * 9),
+                             **OPERATING_POINT, rti=RtiSettings())
+
+
+def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits():
+    """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a
+    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout."""
+    settings = HorizonSettings(horizon=6, blocks=(1, 2, 3))
+    predictor = AveragedModelPredictor(NOMINAL, TS)
+    ctx = PredictionContext(history=np.array([[1.0, 9.0, 0.0]]), input_voltage=48.0, load_resistance=6.0,
+                            load_conductance=1 / 6.0, load_current=1.5, previous_duty=0.2)
+    weights = settings.discount ** np.arange(6)
+    target = np.array([2.0, 12.0])
+    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3), settings, (0.1, 0.6), weights)
+
+    def cost(duties):
+        e = predictor.rollout(ctx, duties, np.zeros(2)) - target
+        return np.sqrt((e * e).sum(axis=2)) @ weights
+
+    def linearize(duties):
+        return predictor.linearize(ctx, duties, np.zeros(2), optimizer.block_of_step, 3)
+
+    def evaluate(duties):
+        return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+    plan = np.full(6, 0.1)
+    previous = cost(plan[None])[0]
+    for sample in range(12):  # the same problem: the shift only moves the plan within its own blocks
+        plan, exact, first = optimizer.solve(linearize, evaluate, target, plan)
+        assert np.all((plan >= 0.1) & (plan <= 0.6))
+        assert exact == pytest.approx(cost(plan[None])[0], rel=1e-12)
+        np.testing.assert_allclose(first, evaluate(plan)[0], rtol=1e-12)
+    _, searched = HorizonOptimizer(settings, (0.1, 0.6)).solve(cost, anchor=0.25)
+    assert exact <= searched * 1.001 and exact < previous
+
+
+def test_an_rti_step_never_plans_worse_than_the_shifted_warm_start():
+    """The accept test: whatever the quadratic model says, the plan applied is predicted no worse
+    (smoothed cost) than the previous plan shifted -- here from plans far off on the NN model."""
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    predictor = NNPredictor(model)
+    settings = HorizonSettings(horizon=23)
+    rng = np.random.default_rng(3)
+    optimizer = RealTimeIteration(RtiSettings(iterations=2), settings, (0.0, 1.0), settings.discount ** np.arange(23))
+    target = np.array([2.0, 12.0])
+    for trial in range(20):
+        history = np.array([[rng.uniform(0, 4), rng.uniform(0, 16), 0.0], [rng.uniform(0, 4), rng.uniform(0, 16),
+                                                                          rng.uniform(0, 1)]])
+        ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0,
+                                load_current=2.0, previous_duty=float(history[1, 2]))
+        disturbance = rng.normal(0, 0.05, 2)
+        warm = rng.uniform(0, 1, 23)
+
+        def linearize(duties):
+            return predictor.linearize(ctx, duties, disturbance, optimizer.block_of_step, optimizer.n_blocks)
+
+        def evaluate(duties):
+            return predictor.rollout(ctx, duties[None], disturbance)[0]
+
+        shifted = optimizer.expand(optimizer.shifted(warm))
+        before = optimizer.costs(evaluate(shifted), target)[0]
+        plan, exact, _ = optimizer.solve(linearize, evaluate, target, warm)
+        assert optimizer.smoothed_cost <= before * (1 + 1e-12)
+        assert 0 <= optimizer.accepted <= 2 and optimizer.qp_iterations >= 2
+
+
+def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_only_where_enabled():
+    predictor = AveragedModelPredictor(PARASITICS, TS)
+    ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(20)]
+    step = [Measurement((20 + k) * TS, 15.0, 6.0, 2.0, 1.0, 48.0) for k in range(3)]
+    plain = rti_controller(predictor)
+    for triggered, settings in ((False, RtiSettings(reference_step=0.0)), (True, RtiSettings())):
+        controller = rti_controller(predictor, settings)
+        solvers = []
+        for m in ramp + step:
+            controller.step(m)
+            solvers.append((controller.last_solver, controller.last_fallback))
+        assert solvers[0] == ("search", "cold start")
+        assert set(solvers[1:20]) == {("rti", "")}
+        assert solvers[20] == (("search", "reference step") if triggered else ("rti", ""))
+        assert set(solvers[21:]) == {("rti", "")}
+        controller.reset()
+        assert controller.step(ramp[0]) == rti_controller(predictor).step(ramp[0])  # reset forgets the plan
+        assert controller.last_fallback == "cold start"
+    description = plain.describe()["optimizer"]
+    assert description["type"].startswith("real-time iteration") and description["iterations"] == 2
+
+
+def test_search_last_sample_leaves_the_controller_as_it_was():
+    controller = rti_controller(AveragedModelPredictor(PARASITICS, TS))
+    ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(6)]
+    twin = rti_controller(AveragedModelPredictor(PARASITICS, TS))
+    for m in ramp:
+        duty = controller.step(m)
+        sequence, cost = controller.search_last_sample()
+        assert twin.step(m) == duty and len(sequence) == 23 and cost > 0
+    assert np.array_equal(controller._warm, twin._warm) and np.array_equal(controller._bias, twin._bias)
+
+
+def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
+    """The study's comparison on a short start-up and load change at 13.33 us (the fixture's NNPC on the
+    mismatch switched plant): both runs exist, the audit compared every RTI sample with the search."""
+    from cosim.scenarios import load_scenario
+    from cosim.study.experiments import nnpc, plant_binding
+    from cosim.study.optimizer_ablation import compare, verdict
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    scenarios = [replace(load_scenario("startup"), duration=0.0008)]
+    rows = compare(plant_binding("mismatch", "switched"), lambda optimizer: nnpc(model, TS, optimizer=optimizer),
+                   scenarios)
+    (row,) = rows
+    assert row["samples"] == 61 and row["search_samples"] == 1 and row["fallbacks"] == {"cold start": 1}
+    assert len(row["cost_excess"]) == 60 and row["closed_loop_cost_rti_Vs"] > 0
+    assert row["iae_ratio"] == pytest.approx(row["iae_rti_Vs"] / row["iae_search_Vs"])
+    assert row["overshoot_difference_points"] == pytest.approx(row["overshoot_rti_pct"] - row["overshoot_search_pct"])
+    assert row["cost_excess_median"] == pytest.approx(float(np.median(row["cost_excess"])))
+    assert 0.8 < row["iae_ratio"] < 1.2  # the same model, the same plant: close, whichever wins
+    targets = verdict(rows)
+    assert targets["iae_ratio_worst"] == (row["iae_ratio"], row["iae_ratio"] <= 1.02)
+    assert targets["startup_overshoot_increase_points_worst"] == (row["overshoot_difference_points"],
+                                                                  row["overshoot_difference_points"] <= 0.5)
