@@ -24,6 +24,10 @@ warning line naming them, and :func:`late_imports` lets a caller refuse.
 
 On CPUs without AVX2 (or not x86-64: aarch64) the libraries fall back to what the CPU has and the
 numbers differ in the last digits; :func:`describe` records what was in force, for the report.
+
+Pinning does not reach every CPU-dependent kernel: ``torch.sqrt`` and ``torch.log`` give other last bits
+on AVX-512 CPUs than on AVX2-only ones whatever these settings say (measured with QEMU-emulated CPUs,
+cosim/benchmark_harness/cpu_emulation.py); the training avoids them (controllers/lbfgs.py).
 """
 
 from __future__ import annotations
