@@ -63,7 +63,10 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
         assert design["loops"]["duty"]["closed_loop_stable"]
     # the envelope map on the sweep engine: every point, step and controller; its shares from its table
     steps = pd.read_csv(reproduction / "envelope" / "map.csv")
-    assert len(steps) == 4 * 2 * 7 and set(steps["controller"]) >= {"NNPC", "MPC-oracle", "CMC", "PI-envelope"}
+    # seven controllers and the online NNPC of every other identification seed (QUICK: seed 1)
+    assert len(steps) == 4 * 2 * (7 + 1) and set(steps["controller"]) >= {"NNPC", "NNPC (seed 1)", "MPC-oracle", "CMC",
+                                                                        "PI-envelope"}
+    assert (reproduction / "models" / "nominal-switched__13p33us__nnpc__seed1.pt").is_file()
     shares = pd.read_csv(reproduction / "envelope" / "shares.csv")
     overall = shares[shares["input_voltage_V"] == "all"].set_index("controller")["share_pct"]
     points = pd.read_csv(reproduction / "envelope" / "points.csv")
@@ -73,7 +76,7 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     loop = pd.read_csv(reproduction / "frequency-response" / "loop_gain.csv")
     assert set(loop["controller"]) == {"PI", "CMC", "Type-III"} and loop["phase_error_deg"].abs().max() <= 5
     seed_study = metrics[metrics["controller"] == "NNPC (seed 1)"]
-    assert set(seed_study["pipeline"]) == set(QUICK.pipelines)  # nominal and mismatch plants alike
+    assert set(seed_study["pipeline"]) == {*QUICK.pipelines, "drift"}  # nominal and mismatch plants, the drift study
     assert (reproduction / "runs" / "startup__nnpc-seed-1__nominal-switched__13p33us.parquet").is_file()
     drift = metrics[metrics["pipeline"] == "drift"]
     assert set(drift["scenario"]) == {"capacitor_ageing"} and len(drift) == 2 * 3  # every study seed (QUICK: 0, 1)

@@ -145,7 +145,7 @@ def controllers_of(out_dir: Path, settings: MapSettings = FULL_MAP, seeds=()) ->
         ControllerEntry("pi-envelope", PI_ENVELOPE, kp=envelope["kp_per_V"], ki=envelope["ki_per_V_s"],
                         origin=f"tuned over the envelope by the reproduction (tuning/{files['pi-envelope'].name})"),
         ControllerEntry("pi", PI, kp=pi["kp"], ki=pi["ki"], origin=f"tuned by the reproduction ({pi['method']})"),
-        *(ControllerEntry(f"nnpc-seed-{s}", seed_variant(NNPC, s), model=seed_model_path(out_dir, s), settle=fast,
+        *(ControllerEntry("nnpc", seed_variant(NNPC, s), model=seed_model_path(out_dir, s), settle=fast,
                           origin=f"identified by the reproduction's seed job {s} (models/{seed_model_path(out_dir, s).name})")
           for s in seeds),
     )

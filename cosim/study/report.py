@@ -33,6 +33,7 @@ from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_c
 from cosim.study.identification import training_settings
 from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import (
+    TRANSIENT_WINDOW,
     drift_spreads,
     markdown_table,
     model_key,
@@ -444,10 +445,18 @@ def _drift(rows: pd.DataFrame, drifts) -> list[str]:
         error = {name: prediction.get(name, {}).get("one_step_rmse_voltage_V", math.nan) * 1e3
                  for name in (frozen, adapted, offline)}
         counters = output.study.get("adaptation", {})
+        windows = output.study.get("iae_windows_Vs", {})
+        part = {name: windows.get(name, {}) for name in (frozen, adapted, offline)}
         table.append({"seed": str(output.study.get("seed", 0)),
                       "IAE / offline, not adapted": iae[frozen] / iae[offline],
                       "IAE / offline, adapted": iae[adapted] / iae[offline],
                       "adapted / not adapted": iae[adapted] / iae[frozen],
+                      "transient IAE, adapted / not adapted": part[adapted].get("transient", math.nan)
+                      / part[frozen].get("transient", math.nan),
+                      "steady share of the IAE": _share_range([part[n].get("steady", math.nan)
+                                                               / (part[n].get("steady", math.nan)
+                                                                  + part[n].get("transient", math.nan))
+                                                               for n in part]),
                       "1-step vo error [mV]: not adapted": error[frozen], "adapted": error[adapted],
                       "offline": error[offline],
                       "RLS updates / samples": f"{counters.get('updates', 0)} / {counters.get('samples', 0)}",
@@ -473,7 +482,9 @@ def _drift(rows: pd.DataFrame, drifts) -> list[str]:
         *markdown_table(pd.DataFrame(table), list(table[0]), digits=3),
         "",
         f"Over the seeds: adapted / offline {d['adapted'].long_text('.3f')}; not adapted / offline "
-        f"{d['frozen'].long_text('.3f')}; {drift_conclusion(d)}.",
+        f"{d['frozen'].long_text('.3f')}; {drift_conclusion(d)}. *Transient IAE*: within "
+        f"{TRANSIENT_WINDOW * 1e3:g} ms after each reference or load step; the rest, the *steady* part, is the "
+        "output's ripple about the reference, which no controller removes.",
         "",
         f"![{DRIFT_SCENARIO}]({figure})",
     ]
@@ -581,6 +592,12 @@ def _summary(metrics, pipelines, models, physics, targets, drift_rows, drift) ->
     lines.append(f"- **Targets**: {len(targets.rows) - len(missed)} of {len(targets.rows)} met"
                  + (" (not met: " + "; ".join(missed) + ")." if missed else "."))
     return lines
+
+
+def _share_range(shares: list[float]) -> str:
+    """``45-47 %``: the range of a few shares (fractions), in per cent."""
+    values = [100 * v for v in shares if not math.isnan(v)]
+    return f"{min(values):.0f}-{max(values):.0f} %" if values else "n/a"
 
 
 def drift_conclusion(d: dict[str, Spread]) -> str:

@@ -62,6 +62,7 @@ from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, iden
 from cosim.study.pi_tuning import load_or_tune
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
+from cosim.study.summaries import transient_and_steady_iae
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
@@ -519,7 +520,8 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
         prediction[name] = {"one_step_rmse_current_A": float(np.sqrt(np.mean(error[:, 0] ** 2))),
                             "one_step_rmse_voltage_V": float(np.sqrt(np.mean(error[:, 1] ** 2)))}
     metrics = _job_table([output.metrics], pipeline, DRIFT_KEY)
-    study = {"seed": seed, "controllers": [frozen_name, adaptive_name, drifted_name],
+    windows = {r.info.controller: transient_and_steady_iae(r.frame, scenario.metrics_start) for r in output.results}
+    study = {"seed": seed, "controllers": [frozen_name, adaptive_name, drifted_name], "iae_windows_Vs": windows,
              "scenario": scenario.name, "analysis_start_s": scenario.metrics_start,
              "drifted_parameters": {k: after_binding.parameters[k] for k in final},
              "prediction_after_drift": prediction, "adaptation": dict(adaptive.counters),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pandas as pd
 
 from cosim.study.claims import Spread, spread
@@ -105,3 +106,22 @@ def drift_spreads(rows: pd.DataFrame) -> dict[str, Spread]:
     return {"adapted": spread({s: adapted[s] / offline[s] for s in seeds}),
             "frozen": spread({s: frozen[s] / offline[s] for s in seeds}),
             "adapted_over_frozen": spread({s: adapted[s] / frozen[s] for s in seeds})}
+
+
+#: [s] after each reference or load step, the *transient* part of the drift study's IAE; the rest is the steady
+#: part (the output's ripple about the reference, which no controller removes)
+TRANSIENT_WINDOW = 0.3e-3
+
+
+def transient_and_steady_iae(frame: pd.DataFrame, start: float) -> dict[str, float]:
+    """A run's IAE [V s] from ``start`` on, split into the :data:`TRANSIENT_WINDOW` after each reference or
+    load step and the rest (the drift study's analysis of what adaptation can change)."""
+    part = frame[frame["time"] >= start]
+    t = part["time"].to_numpy()
+    dt = np.diff(t, append=t[-1]) if len(t) else t
+    error = np.abs(part["output_voltage"] - part["reference"]).to_numpy() * dt
+    steps = t[((part["reference"].diff().abs() > 0) | (part["load_resistance"].diff().abs() > 0)).to_numpy()]
+    transient = np.zeros(len(t), bool)
+    for step in steps:
+        transient |= (t >= step) & (t < step + TRANSIENT_WINDOW)
+    return {"transient": float(error[transient].sum()), "steady": float(error[~transient].sum())}
