@@ -81,7 +81,7 @@ class PolicyConfig:
 
     hidden: tuple[int, ...] = (14,)  # tanh units per hidden layer (7-14-1: 114 MACs, 14 tanh per step; 7-12-1 from
     # 18 000 labels missed the IAE target on the switched mismatch plant's load change by 2 %, from 33 600 it met it
-    # with less margin; two layers of 12 do not fit the Cortex-M4F budget: README, "The explicit NNPC")
+    # with less margin; two layers of 12 do not fit the Cortex-M4F budget: docs/guide/explicit-nnpc.md)
     activation: str = "tanh"
     integral_gain: float | None = None  # K_i [1/(V s)]: duty per volt-second of error near the reference;
     # None: default_integral_gain(T_s) when trained (200 at 13.33 us; ten times more destabilises a policy
@@ -245,7 +245,8 @@ class ExplicitPolicyController:
                 "network": self.policy.config.label, "macs_per_step": self.policy.config.macs(),
                 "integral_gain_per_V_s": self.policy.config.integral_gain,
                 "integral_band": self.policy.config.integral_band,
-                "distillation": meta.get("distillation"), "expert": meta.get("expert")}
+                "distillation": meta.get("distillation"), "expert": meta.get("expert"),
+                "design_key": (meta.get("design") or {}).get("key")}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -139,7 +139,7 @@ class NNPredictor:
         meta = self.model.metadata
         return {"type": "neural network", "architecture": self.model.config.label,
                 "trained_on": meta.get("plant"), "data_file": meta.get("data_file"),
-                "held_out_rmse": meta.get("held_out_rmse")}
+                "held_out_rmse": meta.get("held_out_rmse"), "design_key": (meta.get("design") or {}).get("key")}
 
 
 @dataclass(frozen=True)

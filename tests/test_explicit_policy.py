@@ -303,3 +303,12 @@ def test_nnpc_explicit_on_demand_is_distilled_once_and_then_read_from_the_cache(
     assert (tmp_path / "models" / "nominal-averaged__13p33us__nnpc-explicit.pt").is_file()
     x = [0.1, -0.2, 0.3, 0.0, 0.25, 12.0, 1 / 6]
     assert made[0].policy.forward(x) == made[1].policy.forward(x)
+    assert made[0].describe()["design_key"] and made[0].describe()["design_key"] == made[1].describe()["design_key"]
+    # another plant under the same tag (issue 23): distilled again, and said so in one line
+    plant = plant_binding("nominal", "averaged")
+    other = replace(plant, parameters={**plant.parameters, "capacitance": 12e-6})
+    [again] = make_controllers(["nnpc-explicit"], other, SWITCHING_PERIOD, tmp_path, duty_limits=(0.0, 1.0),
+                               model_path=str(EXPERT))
+    err = capsys.readouterr().err
+    assert err.count("does not fit: plant parameters changed") == 1 and "distilling again" in err
+    assert again.describe()["design_key"] != made[0].describe()["design_key"]

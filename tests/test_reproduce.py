@@ -32,7 +32,11 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
         assert (reproduction / "data" / f"{tag}.parquet").is_file()
         for name in ("nnpc", "nnpc-paper"):
             assert (reproduction / "models" / f"{tag}__{name}.pt").is_file()
+            assert (reproduction / "models" / f"{tag}__{name}.identification.png").read_bytes()[:4] == b"\x89PNG"
         summary = json.loads((reproduction / "pipelines" / f"{tag}.json").read_text())
+        tuning = json.loads((reproduction / "tuning" / f"pi__{tag}.json").read_text())
+        assert summary["pi"]["design"]["key"] == tuning["design"]["key"]  # the gains name what they were tuned for
+        assert summary["models"]["nnpc"]["design_key"] and "design" not in summary["models"]["nnpc"]
         assert summary["pi"]["kp"] >= 0 and "held_out_rmse" in summary["models"]["nnpc"]
         plant, rate = tag.split("__")
         for scenario in QUICK.scenarios:

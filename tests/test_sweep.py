@@ -377,14 +377,18 @@ def test_one_and_two_workers_give_the_same_rows_and_summary(tmp_path, nn_model, 
     for figure in ("yield", "distributions__startup", "influence__load_change"):
         assert (one / "figures" / f"{figure}.png").read_bytes()[:4] == b"\x89PNG"
 
-    # the folder holds this sweep: a second start is refused, a changed spec cannot resume it,
-    # and resuming the same sweep runs nothing again
-    code = main(["--no-progress", "sweep", str(path), "--out", str(one), "--workers", "1"])
-    one_line_error(capsys, code, 2, f"{one} already holds a sweep (id ")
+    # the folder holds this sweep, complete: a second start is a no-op (no cluster, no run, the same summary);
+    # another sweep is refused there, a changed spec cannot resume it, and resuming the same sweep runs nothing again
+    before = {p: p.stat().st_mtime_ns for p in (one / "dataset").rglob("*.parquet")}
+    summary = (one / "SWEEP.md").read_bytes()
+    assert main(["--no-progress", "sweep", str(path), "--out", str(one), "--workers", "1"]) == 0
+    assert "all 30 runs are in" in capsys.readouterr().err and (one / "SWEEP.md").read_bytes() == summary
+    assert {p: p.stat().st_mtime_ns for p in (one / "dataset").rglob("*.parquet")} == before
     changed = tolerance_study(tmp_path, nn_model, samples=6, extra="keep_traces = true", name="changed.toml")
+    code = main(["--no-progress", "sweep", str(changed), "--out", str(one)])
+    one_line_error(capsys, code, 2, f"{one} already holds another sweep (id ")
     code = main(["--no-progress", "sweep", str(changed), "--out", str(one), "--resume"])
     one_line_error(capsys, code, 2, "(changed: samples): resume with the original file, or choose another --out")
-    before = {p: p.stat().st_mtime_ns for p in (one / "dataset").rglob("*.parquet")}
     assert main(["--no-progress", "sweep", str(path), "--out", str(one), "--resume", "--scheduler",
                  local.scheduler_address]) == 0
     assert "30 done earlier, kept (--resume); running 0 in 0 task(s)" in capsys.readouterr().err

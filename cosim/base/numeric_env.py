@@ -1,5 +1,5 @@
 """The numeric kernels every workbench process uses, pinned so the same inputs give the same bytes on any
-x86-64 CPU with AVX2 (README, *Same bytes on every machine*).
+x86-64 CPU with AVX2 (docs/guide/errors.md, *The same command gives the same bytes*).
 
 torch, OpenBLAS, MKL and numpy choose their kernels by CPU at run time (AVX-512 on one machine, AVX2 on
 another) and by thread count; their last-bit differences are amplified by L-BFGS into different

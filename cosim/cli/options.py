@@ -41,6 +41,18 @@ def output_dir(text: str | None) -> Path | None:
     return path
 
 
+def cache_dir(text: str) -> Path:
+    """A folder designs are cached in: refused at once if it cannot be one, but created only when
+    something is written there (an export with given gains leaves no empty folder behind)."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    existing = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise ConfigError(f"output folder {path} cannot be created: {existing} is not a writable folder")
+    return path
+
+
 def input_file(text: str, what: str, hint: str = "") -> Path:
     """A file to read: refused at once, in one line, if it is missing or a folder."""
     path = Path(text)
@@ -148,7 +160,7 @@ def _add_plant_options(parser) -> None:
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
-                             "(--mode/--variant/--sensor then do not apply; see README)")
+                             "(--mode/--variant/--sensor then do not apply; docs/guide/external-plants.md)")
     isolation = parser.add_mutually_exclusive_group()
     isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                            help="step the plant FMU in a child process: a crash inside it ends the run with an error "
@@ -189,7 +201,8 @@ def _add_controller_design_options(parser) -> None:
                         help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
     parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                        help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+                        help="where tuned gains and trained networks are cached, created only when one is "
+                             "(default: results/runs-cli, relative to the current folder)")
 
 
 def _add_fmi_version_option(p, whose: str) -> None:

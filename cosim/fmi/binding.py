@@ -15,7 +15,7 @@ from types import MappingProxyType
 from typing import Mapping
 
 from cosim.base.errors import ConfigError
-from cosim.base.labels import slug
+from cosim.base.labels import did_you_mean, slug
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
 OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
@@ -254,8 +254,10 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
     for role, mapping in binding.roles.items():
         variable = variables.get(mapping.variable)
         if variable is None:
+            fitting = [v.name for v in model_description.modelVariables if is_float(v) and v.causality in
+                       (("input", "parameter") if role in input_roles else ("output", "local"))]
             raise BindingMismatch(f"role {role!r} names variable {mapping.variable!r}, which {fmu_name} does not "
-                                  "have", "role", role)
+                                  f"have{did_you_mean(mapping.variable, fitting, hint_all=8)}", "role", role)
         if not is_float(variable):
             wanted_type = "Real" if variable.type in ("Integer", "Boolean", "String", "Enumeration") else "Float64"
             why = ": the workbench exchanges signals as 64-bit floats" if variable.type == "Float32" else ""
@@ -275,6 +277,27 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
     return resolved
 
 
+def parameter_values(parameters: Mapping[str, object], model_description) -> dict[str, float | int | bool | str]:
+    """Every scalar parameter of the FMU with the value a run starts from: the binding's override, else
+    the FMU's start value, typed (a number, true/false or text). What run metadata records, so a run
+    names its switching frequency, PWM carrier or component values whether or not a binding set them."""
+    values = {}
+    for v in model_description.modelVariables:
+        if v.causality != "parameter" or array_shape(v) or v.type in ("Binary", "Clock"):
+            continue
+        if v.name in parameters:
+            values[v.name] = parameters[v.name]
+        elif v.start is not None:
+            text = str(v.start)
+            try:
+                values[v.name] = (float(text) if v.type in _FLOAT_LIMITS else
+                                  int(float(text)) if v.type in INTEGER_RANGES else
+                                  text.lower() in ("true", "1") if v.type == "Boolean" else text)
+            except ValueError:
+                values[v.name] = text
+    return values
+
+
 def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_name: str) -> list[ResolvedParameter]:
     """Each parameter names a scalar variable of the FMU and has a value of its type (Real, Float64, Float32:
     a finite number; Integer, Enumeration and FMI 3.0's Int8 ... UInt64: a whole number the type holds;
@@ -285,7 +308,9 @@ def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_
     for name, value in parameters.items():
         variable = variables.get(name)
         if variable is None:
-            raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}", "parameter", name)
+            settable = [v.name for v in model_description.modelVariables if v.causality in ("parameter", "input")]
+            raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}"
+                                  f"{did_you_mean(name, settable, hint_all=12)}", "parameter", name)
         kind = variable.type
         if array_shape(variable):
             raise BindingMismatch(f"parameter {name!r} is an FMI 3.0 array in {fmu_name} (shape "

@@ -40,7 +40,7 @@ from cosim.base.numeric_env import check_worker_environment, kernel_environment
 #: many small numpy arrays: no statistical profiler (it samples every thread's stack every 10 ms
 #: under the GIL; measured at 15-40 % of a 1 ms sweep's run time), and glibc's own heap trimming
 #: instead of the nanny's MALLOC_TRIM_THRESHOLD_=65536 (measured: a 13.33 us pipeline ran 20-30 %
-#: slower with it). For one's own ``dask worker`` processes the README gives the same as dask YAML.
+#: slower with it). For one's own ``dask worker`` processes docs/guide/sweeps.md gives the same as dask YAML.
 #: ``daemon`` off: a worker steps a binding file's plant FMU in a child process of its own
 #: (:mod:`cosim.fmi.isolation`), which a daemonic process may not start; the nanny still ends its
 #: worker, and the plant process ends when its pipe closes

@@ -58,8 +58,16 @@ from cosim.study.experiments import (
     scenarios_for,
     small_network,
 )
-from cosim.study.identification import ONE_STEP, Recipe, closed_loop_round, identify
-from cosim.study.pi_tuning import load_or_tune
+from cosim.study.design_cache import data_file, model_file, pi_file
+from cosim.study.identification import (
+    ONE_STEP,
+    Recipe,
+    closed_loop_round,
+    identify,
+    network_design,
+    write_identification_figure,
+)
+from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
 from cosim.study.summaries import transient_and_steady_iae
@@ -220,8 +228,8 @@ def log(message: str) -> None:
 
 
 def _tuned(pipeline: Pipeline, out_dir: Path, profile: Profile):
-    return load_or_tune(out_dir / "tuning" / f"pi__{pipeline.tag}.json", pipeline.binding(), pipeline.control_period,
-                        record_period=2e-5, quick=profile.quick)
+    return load_or_tune(pi_file(out_dir, pipeline.plant_tag, pipeline.control_period), pipeline.binding(),
+                        pipeline.control_period, record_period=REPRODUCTION_RECORD_PERIOD, quick=profile.quick)
 
 
 def _tune_job(job) -> tuple[str, float]:
@@ -238,7 +246,28 @@ def _recipe(profile: Profile) -> Recipe:
 
 
 def _model_summary(model, config) -> dict:
-    return {"architecture": config.label, "multiply_accumulates": multiply_accumulates(config), **model.metadata}
+    """A model's entry in ``pipelines/<key>.json``: its metadata, the design named by its key only, without
+    the learning curves (they are in the model file and its identification figure)."""
+    meta = {k: v for k, v in model.metadata.items() if k != "design"}
+    if "training" in meta:
+        training = {k: v for k, v in meta["training"].items() if k != "history"}
+        if isinstance(training.get("multi_step"), dict):
+            training["multi_step"] = {k: v for k, v in training["multi_step"].items() if k != "history"}
+        meta["training"] = training
+    return {"architecture": config.label, "multiply_accumulates": multiply_accumulates(config), **meta,
+            "design_key": (model.metadata.get("design") or {}).get("key")}
+
+
+def _network_design(name: str, binding, period: float, seed: int, profile: Profile, pi) -> dict:
+    """The design (key and inputs) of the pipeline's network ``name``, stored in its model file."""
+    config = nn_configs(period)[name]
+    if name == "nnpc":
+        design = network_design(name, binding, period, config, seed, profile.samples, recipe=_recipe(profile),
+                                pi_key=pi.design_key)
+    else:
+        design = network_design(name, binding, period, config, seed, profile.samples, training=_paper_training(seed),
+                                pi_key=pi.design_key)
+    return design.describe()
 
 
 def _runner(implementation: str):
@@ -277,20 +306,24 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     start = time.perf_counter()
     configs = nn_configs(period)
     identified = identify(binding, pi.controller(), period, configs["nnpc"], seed, _recipe(profile),
-                          metadata={"data_file": f"data/{tag}.parquet"})
+                          metadata={"data_file": f"data/{tag}.parquet",
+                                    "design": _network_design("nnpc", binding, period, seed, profile, pi)})
     timings["identification_nnpc_s"] = time.perf_counter() - start
     data = identified.data
     data.attrs["metadata"]["seed"] = seed
-    save_samples(data, out_dir / "data" / f"{tag}.parquet")
+    save_samples(data, data_file(out_dir, pipeline.plant_tag, period))
     models = {"nnpc": identified.model}
     start = time.perf_counter()
     models["nnpc-paper"] = train(data, configs["nnpc-paper"], _paper_training(seed),
                                  metadata={"control_period_s": period, "plant": binding.label,
-                                           "data_file": f"data/{tag}.parquet", "seed": seed})
+                                           "data_file": f"data/{tag}.parquet", "seed": seed,
+                                           "design": _network_design("nnpc-paper", binding, period, seed, profile,
+                                                                     pi)})
     timings["training_nnpc-paper_s"] = time.perf_counter() - start
     model_meta = {}
     for name, model in models.items():
-        save_model(model, out_dir / "models" / f"{tag}__{name}.pt")
+        save_model(model, model_file(out_dir, pipeline.plant_tag, period, name))
+        write_identification_figure(model, data, model_file(out_dir, pipeline.plant_tag, period, name))
         model_meta[name] = _model_summary(model, configs[name])
         rmse = model.metadata["held_out_rmse"]
         log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
@@ -478,13 +511,18 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     pi = _tuned(pipeline, out_dir, profile)
     config = nn_configs(period)["nnpc"]
     start = time.perf_counter()
-    model_file = out_dir / "models" / f"{pipeline.tag}__nnpc.pt"
-    if reuse and model_file.is_file():
+    design = _network_design("nnpc", binding, period, seed, profile, pi)
+    before_model = None
+    if reuse and model_file(out_dir, pipeline.plant_tag, period, "nnpc").is_file():
         from controllers.nn_model import load_model
 
-        before_model = load_model(model_file, expect_period=period, expect_config=config)
-    else:
-        before_model = identify(binding, pi.controller(), period, config, seed, _recipe(profile)).model
+        before_model = load_model(model_file(out_dir, pipeline.plant_tag, period, "nnpc"), expect_period=period,
+                                  expect_config=config)
+        if (before_model.metadata.get("design") or {}).get("key") != design["key"]:
+            before_model = None  # identified for another plant or recipe: not the drift study's NNPC
+    if before_model is None:
+        before_model = identify(binding, pi.controller(), period, config, seed, _recipe(profile),
+                                metadata={"design": design}).model
     after_binding = drifted_binding(binding)
     after = identify(after_binding, pi.controller(), period, config, seed, _recipe(profile))
     timings["identification_nnpc_s"] = time.perf_counter() - start

@@ -39,7 +39,8 @@ MANIFEST = "sweep.json"
 PARTITIONS = pa.schema([("controller", pa.string()), ("scenario", pa.string())])
 METRIC_UNITS = {"rise_time_ms": "ms", "overshoot_pct": "%", "undershoot_pct": "%", "settling_time_ms": "ms",
                 "steady_state_error_V": "V", "steady_state_error_pct": "%", "iae_Vs": "V s", "ise_V2s": "V^2 s",
-                "itae_Vs2": "V s^2", "peak_inductor_current_A": "A", "duty_saturation_ms": "ms",
+                "itae_Vs2": "V s^2", "peak_inductor_current_A": "A", "output_voltage_ripple_mV": "mV",
+                "inductor_current_ripple_A": "A", "duty_saturation_ms": "ms",
                 "controller_p50_us": "us", "controller_p99_us": "us"}
 
 

@@ -17,28 +17,13 @@ run id.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+from cosim.base.digests import digest
 from cosim.fmi.binding import PlantBinding, RoleMap
-
-
-def digest(*parts: bytes | str) -> str:
-    """SHA-256 (hex) of the parts; of one part, the plain SHA-256 of its bytes (what ``sha256sum`` prints)."""
-    h = hashlib.sha256()
-    for i, part in enumerate(parts):
-        if i:
-            h.update(b"\0")  # a separator, so ("ab", "c") and ("a", "bc") differ
-        h.update(part.encode() if isinstance(part, str) else part)
-    return h.hexdigest()
-
-
-def canonical(value) -> str:
-    """JSON text with sorted keys: the same data always hashes the same (floats as Python's repr)."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
 
 
 @dataclass(frozen=True)
