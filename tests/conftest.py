@@ -156,22 +156,27 @@ def raw_slave_factory(buck_fmu):
 # ------------------------------------------------------------------ the Cortex-M4F tests (marker: embedded)
 
 
-def pytest_collection_modifyitems(config, items):
-    """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
-    marked ``embedded`` and say why in one line."""
-    embedded = [item for item in items if item.get_closest_marker("embedded")]
-    if not embedded:
+def _deselect(config, items, marker: str, problem: str | None, what: str) -> None:
+    """Deselect the tests marked ``marker`` when ``problem`` says why they cannot run here, in one line."""
+    marked = [item for item in items if item.get_closest_marker(marker)]
+    if not marked or problem is None:
         return
-    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
-
-    problem = toolchain_problem()
-    if problem is None:
-        return
-    items[:] = [item for item in items if not item.get_closest_marker("embedded")]
-    config.hook.pytest_deselected(items=embedded)
+    items[:] = [item for item in items if not item.get_closest_marker(marker)]
+    config.hook.pytest_deselected(items=marked)
     reporter = config.pluginmanager.get_plugin("terminalreporter")
     if reporter is not None:
-        reporter.write_line(f"{len(embedded)} embedded tests deselected: {problem}")
+        reporter.write_line(f"{len(marked)} {what} deselected: {problem}")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
+    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``; each in one line."""
+    from cosim.benchmark_harness import cpu_emulation
+    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+    if any(item.get_closest_marker("embedded") for item in items):
+        _deselect(config, items, "embedded", toolchain_problem(), "embedded tests")
+    _deselect(config, items, "emulated", cpu_emulation.problem(), "emulated-CPU tests")
 
 
 CORPUS = Path(__file__).parent / "corpus"

@@ -22,6 +22,7 @@ from cosim.benchmarks.embedded import bench_embedded
 from cosim.benchmarks.explicit import bench_explicit
 from cosim.benchmarks.inference import bench_inference
 from cosim.benchmarks.master import bench_master
+from cosim.benchmarks.numeric_env import bench_numeric_env
 from cosim.benchmarks.plant import bench_plant
 from cosim.benchmarks.reproduction import bench_reproduction
 from cosim.benchmarks.soak import bench_soak
@@ -40,6 +41,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "explicit": bench_explicit,
     "embedded": bench_embedded,
     "training": bench_training,
+    "numeric-env": bench_numeric_env,
     "inference": bench_inference,
     "reproduction": bench_reproduction,
     "sweep": bench_sweep,
