@@ -81,7 +81,7 @@ class PolicyConfig:
 
     hidden: tuple[int, ...] = (14,)  # tanh units per hidden layer (7-14-1: 114 MACs, 14 tanh per step; 7-12-1 from
     # 18 000 labels missed the IAE target on the switched mismatch plant's load change by 2 %, from 33 600 it met it
-    # with less margin; two layers of 12 do not fit the Cortex-M4F budget: README, "The explicit NNPC")
+    # with less margin; two layers of 12 do not fit the Cortex-M4F budget: docs/guide/explicit-nnpc.md)
     activation: str = "tanh"
     integral_gain: float | None = None  # K_i [1/(V s)]: duty per volt-second of error near the reference;
     # None: default_integral_gain(T_s) when trained (200 at 13.33 us; ten times more destabilises a policy
@@ -245,7 +245,8 @@ class ExplicitPolicyController:
                 "network": self.policy.config.label, "macs_per_step": self.policy.config.macs(),
                 "integral_gain_per_V_s": self.policy.config.integral_gain,
                 "integral_band": self.policy.config.integral_band,
-                "distillation": meta.get("distillation"), "expert": meta.get("expert")}
+                "distillation": meta.get("distillation"), "expert": meta.get("expert"),
+                "design_key": (meta.get("design") or {}).get("key")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -318,8 +319,10 @@ def train_policy(features: np.ndarray, labels: np.ndarray, sample_period: float,
         def predict(inputs):
             return network(inputs)[:, 0] * out_std + out_mean
 
-        optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
-                                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
+        from controllers.lbfgs import LBFGS  # the same trial steps on every CPU
+
+        optimizer = LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
+                          line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
         fit_x, fit_y, val_x, val_y = xn[fit_idx], yt[fit_idx], xn[val_idx], yt[val_idx]
 
         def closure():

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from controllers.lbfgs import LBFGS
 from cosim.base.errors import ModelFileError
 
 FORMAT = "buck-cosim NN plant model"
@@ -450,15 +451,22 @@ def _torch_rollout(network: PlantNetwork, config: NNConfig, norm: tuple, windows
     return torch.stack(outputs, dim=1)
 
 
-def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: TrainingSettings, bar=None):
+def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: TrainingSettings, bar=None,
+           training_of=None):
     """Full-batch L-BFGS with early stopping on ``validation_of``; ``evaluate()`` returns the loss
     with the gradients of ``network``'s parameters set. Returns (best validation loss, iteration
-    of the best, iterations run) and leaves the best weights in ``network``."""
-    optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
-                                  history_size=20, line_search_fn="strong_wolfe",
-                                  tolerance_grad=1e-12, tolerance_change=1e-15)
-    with torch.no_grad():
-        start = float(validation_of())
+    of the best, iterations run, history) and leaves the best weights in ``network``. ``history``:
+    ``[iteration, training loss, validation loss]`` at the start and at every check (the training
+    loss from ``training_of``, NaN without it) -- the learning curves of the identification figure."""
+    optimizer = LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
+                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
+
+    def losses() -> tuple[float, float]:
+        with torch.no_grad():
+            return (float(training_of()) if training_of is not None else math.nan), float(validation_of())
+
+    fit, start = losses()
+    history = [[0, fit, start]]
     best = (start, {k: v.clone() for k, v in network.state_dict().items()}, 0)
     checks_without_gain = 0
     iterations = 0
@@ -467,8 +475,8 @@ def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: Trai
         iterations += settings.check_every
         if bar is not None:
             bar.update(settings.check_every)
-        with torch.no_grad():
-            val = float(validation_of())
+        fit, val = losses()
+        history.append([iterations, fit, val])
         if val < best[0] * (1 - 1e-4):
             best = (val, {k: v.clone() for k, v in network.state_dict().items()}, iterations)
             checks_without_gain = 0
@@ -477,7 +485,7 @@ def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: Trai
             if checks_without_gain >= settings.patience:
                 break
     network.load_state_dict(best[1])
-    return best[0], best[2], iterations
+    return best[0], best[2], iterations, history
 
 
 def _autograd(network, loss_of):
@@ -553,11 +561,13 @@ def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = Tra
             total = (0 if initial is not None else settings.max_iterations) + \
                 (settings.multi_step_iterations if settings.multi_step_horizon > 1 else 0)
             bar = tqdm(total=total, desc=f"training {config.label}", unit="it", leave=False, delay=1.0)
-        one_step = {"iterations": 0, "best_iteration": 0, "validation_loss_standardised": None}
+        one_step = {"iterations": 0, "best_iteration": 0, "validation_loss_standardised": None, "history": []}
         if initial is None:
-            val, best_it, its = _lbfgs(network, _autograd(network, lambda: loss_fn(network(fit_x), fit_y)),
-                                       lambda: loss_fn(network(val_x), val_y), settings.max_iterations, settings, bar)
-            one_step = {"iterations": its, "best_iteration": best_it, "validation_loss_standardised": val}
+            val, best_it, its, history = _lbfgs(network, _autograd(network, lambda: loss_fn(network(fit_x), fit_y)),
+                                                lambda: loss_fn(network(val_x), val_y), settings.max_iterations,
+                                                settings, bar, training_of=lambda: loss_fn(network(fit_x), fit_y))
+            one_step = {"iterations": its, "best_iteration": best_it, "validation_loss_standardised": val,
+                        "history": history}
         multi = None
         if settings.multi_step_horizon > 1 and settings.multi_step_iterations > 0:
             multi = _fit_simulation_error(network, config, segments, (in_mean, in_std, out_mean, out_std),
@@ -577,6 +587,8 @@ def train(frame, config: NNConfig = NNConfig(), settings: TrainingSettings = Tra
         "config": asdict(config),
         "training": {**asdict(settings), "iterations": one_step["iterations"],
                      "best_iteration": one_step["best_iteration"],
+                     # [iteration, training loss, validation loss] (standardised) at every check: learning curves
+                     "history": one_step["history"],
                      "fit_loss_standardised": fit_loss, "validation_loss_standardised": val_loss,
                      "multi_step": multi, "refined_from_initial": initial is not None,
                      "samples": n, "extra_samples": int(sum(len(f) for f in extra_frames)),
@@ -611,9 +623,10 @@ def _fit_simulation_error(network: PlantNetwork, config: NNConfig, segments, nor
     evaluate = _autograd(network, lambda: loss(fit))
     with torch.no_grad():
         before = float(loss(val))
-    best, best_it, its = _lbfgs(network, evaluate, lambda: loss(val), settings.multi_step_iterations, settings, bar)
+    best, best_it, its, history = _lbfgs(network, evaluate, lambda: loss(val), settings.multi_step_iterations,
+                                         settings, bar, training_of=lambda: loss(fit))
     return {"horizon": horizon, "windows": int(count), "iterations": its, "best_iteration": best_it,
-            "validation_loss_before": before, "validation_loss": best}
+            "validation_loss_before": before, "validation_loss": best, "history": history}
 
 
 # ---------------------------------------------------------------------------------------------

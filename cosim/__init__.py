@@ -1,6 +1,6 @@
 """buck-cosim: an FMU co-simulation workbench for buck-converter control.
 
-The public names, importable from here (README, "Bring your own Python controller"):
+The public names, importable from here (docs/guide/python-controller.md):
 
 * ``Measurement``, ``Controller`` -- what a controller sees at a sample, and the protocol it
   implements (``name``, ``sample_period`` [s], ``duty_limits``, ``reset()``, ``step(m)``,
@@ -13,6 +13,7 @@ The public names, importable from here (README, "Bring your own Python controlle
   the pandas table, ``.metadata``, ``.complete``);
 * ``run_metrics(result)`` -- rise time, overshoot, settling, IAE, ... of a run;
   ``write_run`` / ``read_run`` -- CSV and Parquet with metadata;
+* ``plot_scenario(results, stem)`` -- the run figure of one or more runs (PNG + SVG);
 * ``open_controller(path)`` -- a controller FMU (or controller-binding file) as a controller.
 
 They are looked up on first use, so ``import cosim`` stays cheap (no torch, no FMU build). Importing
@@ -27,7 +28,7 @@ from cosim.base.numeric_env import pin as _pin_numeric_kernels
 _pin_numeric_kernels()  # before torch or numpy is imported (cosim/base/numeric_env.py)
 
 __all__ = ["Controller", "Measurement", "PIController", "RunResult", "builtin_binding", "load_binding",
-           "load_scenario", "open_controller", "read_run", "run_metrics", "simulate", "write_run"]
+           "load_scenario", "open_controller", "plot_scenario", "read_run", "run_metrics", "simulate", "write_run"]
 
 
 def __getattr__(name: str):
@@ -63,6 +64,10 @@ def __getattr__(name: str):
         from cosim.metrics import run_metrics
 
         return run_metrics
+    if name == "plot_scenario":
+        from cosim.plots import plot_scenario
+
+        return plot_scenario
     if name in ("RunResult", "read_run", "write_run"):
         from cosim.results import RunResult, read_run, write_run
 

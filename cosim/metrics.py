@@ -20,6 +20,12 @@ supply disturbances at constant reference).
 * ``iae_Vs``, ``ise_V2s``, ``itae_Vs2`` -- integrals of |e|, e^2 and (t - t0)|e| over the window
   (trapezoidal rule on the recording grid).
 * ``peak_inductor_current_A`` -- largest inductor current in the window.
+* ``output_voltage_ripple_mV`` / ``inductor_current_ripple_A`` -- peak to peak of the instantaneous
+  vo and iL (``output_voltage``, ``inductor_current``) over the steady-state window of the
+  steady-state error, every recorded row: the switching ripple plus what is left of the transient.
+  As the recording grid resolves it: record at 1/20 of a PWM period or finer
+  (``--record-period 6.67e-7`` at 75 kHz) for the true ripple; the default 10 us grid lands on four
+  phases of a 13.33 us period only. 0 on an averaged plant in steady state.
 * ``duty_saturation_ms`` -- time in the window with the duty at either controller limit.
 * ``controller_p50_us`` / ``controller_p99_us`` -- median and 99th percentile of the controller's
   wall-clock compute time per sample over the recorded run.
@@ -49,6 +55,8 @@ METRIC_COLUMNS = (
     "ise_V2s",
     "itae_Vs2",
     "peak_inductor_current_A",
+    "output_voltage_ripple_mV",
+    "inductor_current_ripple_A",
     "duty_saturation_ms",
     "controller_p50_us",
     "controller_p99_us",
@@ -136,6 +144,13 @@ def run_metrics(result: RunResult) -> dict[str, float]:
     window = t >= t0 - 1e-12
     current = frame["inductor_current"].to_numpy()[window]
     out["peak_inductor_current_A"] = float(np.nanmax(current)) if np.isfinite(current).any() else math.nan
+    end = float(t[-1]) if len(t) else t0
+    tail = t >= end - min(STEADY_STATE_WINDOW, 0.25 * (end - t0)) - 1e-12  # the steady-state error's window
+    for column, name, factor in (("output_voltage", "output_voltage_ripple_mV", 1e3),
+                                 ("inductor_current", "inductor_current_ripple_A", 1.0)):
+        values = frame[column].to_numpy()[tail]
+        values = values[np.isfinite(values)]
+        out[name] = float(np.ptp(values)) * factor if len(values) else math.nan
     low, high = info.duty_limits
     duty = frame["duty_cycle"].to_numpy()[window]
     tw = t[window]
@@ -147,6 +162,36 @@ def run_metrics(result: RunResult) -> dict[str, float]:
     out["controller_p50_us"] = float(np.percentile(compute, 50)) * 1e6 if len(compute) else math.nan
     out["controller_p99_us"] = float(np.percentile(compute, 99)) * 1e6 if len(compute) else math.nan
     return {name: out[name] for name in METRIC_COLUMNS}
+
+
+#: a run looks implausible -- a binding with wrong units or signs, a controller far off -- when its
+#: duty sits at a limit for this share of the metrics window or more ...
+IMPLAUSIBLE_SATURATION = 0.5
+#: ... or its steady state is this far from the reference [% of the final reference] or more
+IMPLAUSIBLE_ERROR_PCT = 10.0
+
+
+def implausible_runs(results: list[RunResult], table: pd.DataFrame) -> list[str]:
+    """What looks wrong in each complete run of ``results`` (``table``: their :func:`metrics_table`,
+    same order): the duty at a limit for at least :data:`IMPLAUSIBLE_SATURATION` of the metrics
+    window, a steady-state error of at least :data:`IMPLAUSIBLE_ERROR_PCT` % -- a duty in percent
+    bound without ``scale = 100`` shows both. One phrase per run, e.g. ``"startup with PI: duty at a
+    limit for 83 % of the window, steady state 96 % below the reference"``."""
+    found = []
+    for result, (_, row) in zip(results, table.iterrows()):
+        if not result.complete or result.streamed or not len(result.frame):
+            continue
+        window_ms = (float(result.frame["time"].iloc[-1]) - result.info.metrics_start) * 1e3
+        share = row["duty_saturation_ms"] / window_ms if window_ms > 0 else 0.0
+        error = row["steady_state_error_pct"]
+        signs = []
+        if share >= IMPLAUSIBLE_SATURATION:
+            signs.append(f"duty at a limit for {share * 100:.0f} % of the window")
+        if math.isfinite(error) and abs(error) >= IMPLAUSIBLE_ERROR_PCT:
+            signs.append(f"steady state {abs(error):.0f} % {'below' if error > 0 else 'above'} the reference")
+        if signs:
+            found.append(f"{result.info.scenario} with {result.info.controller}: {', '.join(signs)}")
+    return found
 
 
 def run_label(result: RunResult) -> dict[str, object]:

@@ -1,4 +1,5 @@
-"""Figures like the paper's Figures 8-10: output voltage and inductor current, controllers overlaid.
+"""Figures like the paper's Figures 8-10: output voltage, inductor current and duty cycle, controllers
+overlaid, the whole run beside the transient with its overshoot, settling band and settling time marked.
 
 PNG for reports and SVG for papers; the SVG is written without a date and with a fixed hash salt
 so the same results give the same file.
@@ -13,6 +14,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 
 from cosim.base.files import atomic_write  # noqa: E402
 from cosim.base.labels import period_text  # noqa: E402
@@ -28,56 +30,145 @@ ZOOM_BEFORE, ZOOM_AFTER = 1e-3, 10e-3  # [s] the zoom window around a long run's
 
 
 
+#: the transient column spans this multiple of the slowest run's settling time ...
+ZOOM_SETTLING_FACTOR = 1.5
+#: ... and at least this many control periods (a run that settles within a sample still shows a few)
+ZOOM_MIN_SAMPLES = 5
+#: shown before the event, as a share of the transient column's span (the level the step starts from)
+ZOOM_LEAD = 0.1
+MEAN_NOTE = ("bold: PWM-period mean (what the controller reads); faint: instantaneous -- the metrics' signal "
+             "(overshoot, settling, peak current, ripple)")
+
+
+def transient_window(results: list[RunResult], metrics: list[dict]) -> tuple[float, float]:
+    """Where the transient happens [s]: from shortly before the metrics window starts (the event)
+    to :data:`ZOOM_SETTLING_FACTOR` x the slowest settling time after it, of the runs that settle (at
+    least :data:`ZOOM_MIN_SAMPLES` control periods; a fifth of the window if none settles)."""
+    info = results[0].info
+    t0 = info.metrics_start
+    end = max(float(r.frame["time"].iloc[-1]) for r in results if len(r.frame))
+    finite = [m["settling_time_ms"] * 1e-3 for m in metrics if np.isfinite(m["settling_time_ms"])]
+    span = ZOOM_SETTLING_FACTOR * max(finite) if finite else 0.2 * (end - t0)  # runs that never settle: not here
+    span = min(max(span, ZOOM_MIN_SAMPLES * info.control_period), end - t0)
+    return max(0.0, t0 - ZOOM_LEAD * span), t0 + span
+
+
 def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, float] | None = None,
                     period_means: bool = False, styles: Styles | None = None):
-    """Two stacked panels (output voltage, inductor current) against time in ms.
+    """The run figure: output voltage, inductor current and duty cycle against time in ms, the
+    controllers overlaid; the left column shows the run (or ``zoom``), the right one the transient
+    (:func:`transient_window`) with the 2 % settling band, each run's overshoot peak and settling
+    time marked (the legend gives their values, from :func:`cosim.metrics.run_metrics`).
 
-    ``period_means``: draw the PWM-period means (the ``measured_*`` columns) instead of the
-    instantaneous switched waveforms, whose ripple would hide the controllers behind each other.
+    ``period_means``: draw the PWM-period means (the ``measured_*`` columns) bold and the
+    instantaneous switched waveforms faint behind them -- the metrics are computed on the
+    instantaneous ones, and the figure says so.
     """
-    v_column, i_column = ("measured_output_voltage", "measured_inductor_current") if period_means \
-        else ("output_voltage", "inductor_current")
-    fig, (ax_v, ax_i) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True, constrained_layout=True)
-    reference_drawn = False
-    limits_v, limits_i, clipped = [], [], []
-    for result in results:
-        frame = result.frame
-        if zoom is not None:
-            frame = frame[(frame["time"] >= zoom[0]) & (frame["time"] <= zoom[1])]
-        t_ms = frame["time"].to_numpy() * 1e3
-        name = result.info.controller
-        color, style = (styles or {}).get(name, (None, "-"))
-        if not reference_drawn:
-            ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
-            reference_drawn = True
-        lines = [ax_v.plot(t_ms, frame[v_column], color=color, linestyle=style, linewidth=1.2, label=name)[0],
-                 ax_i.plot(t_ms, frame[i_column], color=color, linestyle=style, linewidth=1.2, label=name)[0]]
-        final_error = abs(frame[v_column].iloc[-1] - frame["reference"].iloc[-1])
-        if final_error <= DIVERGED * max(abs(frame["reference"].iloc[-1]), 1.0):
-            limits_v.append((frame[v_column].min(), frame[v_column].max()))
-            limits_i.append((frame[i_column].min(), frame[i_column].max()))
-        else:  # a run that never settles: faint, so it does not hide the others
-            clipped.append(name)
-            for line in lines:
-                line.set_alpha(0.35)
-                line.set_linewidth(0.8)
-    # a diverging controller must not squash the others into a line: scale to the settled runs
-    for ax, limits in ((ax_v, limits_v), (ax_i, limits_i)):
-        if limits and clipped:
-            low, high = min(l for l, _ in limits), max(h for _, h in limits)
-            margin = 0.08 * (high - low or 1.0)
-            ax.set_ylim(low - margin, high + margin)
+    from cosim.metrics import SETTLING_BAND, run_metrics
+
+    metrics = [run_metrics(r) for r in results]
+    window = transient_window(results, metrics)
+    fig, axes = plt.subplots(3, 2, figsize=(12, 8.5), sharex="col", constrained_layout=True,
+                             gridspec_kw={"width_ratios": [1.6, 1.0], "height_ratios": [1.25, 1.0, 0.7]})
+    columns = (("full", zoom), ("transient", window))
+    signals = (("output_voltage", "measured_output_voltage"), ("inductor_current", "measured_inductor_current"))
+    v_column = "measured_output_voltage" if period_means else "output_voltage"
+    clipped = [r.info.controller for r in results if len(r.frame) and  # runs ending off the reference
+               abs(r.frame[v_column].iloc[-1] - r.frame["reference"].iloc[-1])
+               > DIVERGED * max(abs(r.frame["reference"].iloc[-1]), 1.0)]
+    for col, (kind, view) in enumerate(columns):
+        ax_v, ax_i, ax_d = axes[:, col]
+        limits_v, limits_i = [], []
+        for k, (result, m) in enumerate(zip(results, metrics)):
+            frame = result.frame
+            if view is not None:
+                frame = frame[(frame["time"] >= view[0]) & (frame["time"] <= view[1])]
+            if not len(frame):
+                continue
+            t_ms = frame["time"].to_numpy() * 1e3
+            name = result.info.controller
+            color, style = (styles or {}).get(name, (f"C{k % 10}", "-"))
+            if k == 0:
+                ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
+                r_final = float(result.frame["reference"].iloc[-1])
+                band = SETTLING_BAND * abs(r_final)
+                ax_v.axhspan(r_final - band, r_final + band, color="0.85", alpha=0.6, linewidth=0,
+                             label=f"{SETTLING_BAND * 100:g} % settling band")
+            label = name
+            if col == 1:
+                settles = f"{m['settling_time_ms']:.3g} ms" if np.isfinite(m["settling_time_ms"]) else "never"
+                label = f"{name}: overshoot {m['overshoot_pct']:.3g} %, settling {settles}"
+            lines = []
+            for ax, (instant, mean) in zip((ax_v, ax_i), signals):
+                if period_means:
+                    lines.append(ax.plot(t_ms, frame[instant], color=color, linestyle="-", linewidth=0.6,
+                                         alpha=0.3)[0])
+                    lines.append(ax.plot(t_ms, frame[mean], color=color, linestyle=style, linewidth=1.4,
+                                         label=label)[0])
+                else:
+                    lines.append(ax.plot(t_ms, frame[instant], color=color, linestyle=style, linewidth=1.3,
+                                         label=label)[0])
+            lines.append(ax_d.plot(t_ms, frame["duty_cycle"], color=color, linestyle=style, linewidth=1.1,
+                                   drawstyle="steps-post", label=name)[0])
+            if name not in clipped:
+                limits_v.append((frame[signals[0][period_means]].min(), frame["output_voltage"].max()))
+                limits_i.append((frame[signals[1][period_means]].min(), frame["inductor_current"].max()))
+            else:  # a run that never settles: faint, so it does not hide the others
+                for line in lines:
+                    line.set_alpha(0.35)
+                    line.set_linewidth(0.8)
+            if col == 1:
+                _mark_transient(ax_v, ax_i, result, m, color)
+        for ax, limits in ((ax_v, limits_v), (ax_i, limits_i)):
+            if limits and clipped:  # scale to the settled runs: a diverging one must not squash them
+                low, high = min(l for l, _ in limits), max(h for _, h in limits)
+                margin = 0.08 * (high - low or 1.0)
+                ax.set_ylim(low - margin, high + margin)
+        ax_d.set_ylim(-0.03, 1.03)
+        ax_d.set_xlabel("time [ms]")
+        for ax in (ax_v, ax_i, ax_d):
+            ax.grid(True, alpha=0.3)
+        ax_v.legend(loc="best", fontsize=7)
+        if col == 0:
+            ax_v.set_ylabel("output voltage $v_o$ [V]")
+            ax_i.set_ylabel("inductor current $i_L$ [A]")
+            ax_d.set_ylabel("duty cycle [1]")
+            ax_d.legend(loc="best", fontsize=7)
+        else:
+            ax_v.set_title(f"transient: {window[0] * 1e3:.3g} - {window[1] * 1e3:.3g} ms", fontsize=9)
     if clipped:
-        title += f"\n(axes scaled to the settled runs; {', '.join(clipped)} {'leaves' if len(clipped) == 1 else 'leave'} the plot)"
-    mean = "\n(PWM-period mean)" if period_means else ""  # two short lines: the panels' labels must not overlap
-    ax_v.set_ylabel(f"output voltage $v_o$ [V]{mean}")
-    ax_i.set_ylabel(f"inductor current $i_L$ [A]{mean}")
-    ax_i.set_xlabel("time [ms]")
-    ax_v.set_title(title, fontsize=10)
-    for ax in (ax_v, ax_i):
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
+        title += f"\n(axes scaled to the settled runs; {', '.join(clipped)} " \
+                 f"{'leaves' if len(clipped) == 1 else 'leave'} the plot)"
+    if period_means:
+        title += f"\n{MEAN_NOTE}"
+    fig.suptitle(title, fontsize=10)
     return fig
+
+
+def _mark_transient(ax_v, ax_i, result: RunResult, m: dict, color) -> None:
+    """The metrics on the transient column: the overshoot peak (on the instantaneous output voltage, as
+    :func:`cosim.metrics.signal_metrics` measures it), the settling instant, the peak inductor current."""
+    frame = result.frame
+    t0 = result.info.metrics_start
+    after = frame[frame["time"] >= t0 - 1e-12]
+    if not len(after):
+        return
+    y = after["output_voltage"].to_numpy()
+    r_final = float(after["reference"].iloc[-1])
+    direction = 1.0 if r_final >= y[0] else -1.0
+    if np.isfinite(m["overshoot_pct"]) and m["overshoot_pct"] > 0:
+        k = int(np.argmax(direction * (y - r_final)))
+        ax_v.plot(after["time"].iloc[k] * 1e3, y[k], marker="v" if direction > 0 else "^", color=color,
+                  markersize=7, markeredgecolor="k", markeredgewidth=0.5, linestyle="none")
+    if np.isfinite(m["settling_time_ms"]) and m["settling_time_ms"] > 0:
+        ax_v.axvline(t0 * 1e3 + m["settling_time_ms"], color=color, linestyle=":", linewidth=1.2)
+    current = after["inductor_current"].to_numpy()
+    if np.isfinite(current).any():
+        k = int(np.nanargmax(current))
+        ax_i.plot(after["time"].iloc[k] * 1e3, current[k], marker="v", color=color, markersize=6,
+                  markeredgecolor="k", markeredgewidth=0.5, linestyle="none",
+                  label=f"peak {m['peak_inductor_current_A']:.3g} A")
+        ax_i.legend(loc="best", fontsize=7)
 
 
 def save_figure(fig, stem: Path) -> list[Path]:
@@ -108,7 +199,9 @@ def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None
     """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths.
 
     Switched plants are drawn as PWM-period means (the ripple is 0.55 A / 91 mV peak to peak and
-    would hide the controllers behind one another); long runs are zoomed on their event.
+    would hide the controllers behind one another) over the faint instantaneous waveforms the
+    metrics use; long runs are zoomed on their event in the left column, the right column shows
+    the transient with its metrics marked (:func:`scenario_figure`).
     """
     if not results:
         raise ValueError("plot_scenario needs at least one run")

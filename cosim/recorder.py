@@ -9,7 +9,7 @@ each value comes from --
   used when the first is not bound (what a sensor reads defaults to the plain output), and a
   role bound by neither records NaN.
 
-:data:`COLUMNS`, :data:`UNITS` and :data:`WALLCLOCK_COLUMNS` are derived from it. The master
+:data:`COLUMNS`, :data:`UNITS`, :data:`DESCRIPTIONS` and :data:`WALLCLOCK_COLUMNS` are derived from it. The master
 hands the recorder one tuple per row: its values in the order of :data:`MASTER_FIELDS`, then the
 plant's outputs in the order of the plant's output roles (one append of a tuple of floats per row:
 the cheapest thing the hot loop can do, and invisible to the garbage collector); the recorder
@@ -26,8 +26,9 @@ import numpy as np
 @dataclass(frozen=True)
 class Column:
     name: str
-    unit: str
+    unit: str  # SI unit ("1": dimensionless, "": none, e.g. a flag)
     source: str  # "master:<field>" or "plant:<role>[|<fallback role>]"
+    description: str  # what the column holds, in words
     wallclock: bool = False  # a wall-clock quantity: kept out of the byte-comparable tables
 
     @property
@@ -40,25 +41,28 @@ class Column:
         return tuple(self.source.split(":", 1)[1].split("|"))
 
 
-SENSOR = "(what the controller's sensor reads)"
+SENSOR = "what the controller's sensor reads"
 SCHEMA: tuple[Column, ...] = (
-    Column("time", "s", "master:time"),
-    Column("reference", "V", "master:reference"),
-    Column("output_voltage", "V", "plant:output_voltage"),
-    Column("inductor_current", "A", "plant:inductor_current"),
-    Column("measured_output_voltage", f"V {SENSOR}", "plant:measured_output_voltage|output_voltage"),
-    Column("measured_inductor_current", f"A {SENSOR}", "plant:measured_inductor_current|inductor_current"),
-    Column("load_current", "A", "plant:load_current"),
-    Column("measured_load_current", f"A {SENSOR}", "plant:measured_load_current|load_current"),
-    Column("duty_cycle", "1", "master:duty_cycle"),
-    Column("load_resistance", "Ohm", "master:load_resistance"),
-    Column("input_voltage", "V", "master:input_voltage"),
-    Column("control_sample", "bool (a controller sample at this instant)", "master:control_sample"),
-    Column("controller_compute_time", "s (wall clock, NaN between samples)", "master:controller_compute_time",
-           wallclock=True),
+    Column("time", "s", "master:time", "scenario time (0 at the end of the settle interval)"),
+    Column("reference", "V", "master:reference", "output-voltage reference in effect"),
+    Column("output_voltage", "V", "plant:output_voltage", "output voltage vo (the plant's output_voltage role)"),
+    Column("inductor_current", "A", "plant:inductor_current", "inductor current iL"),
+    Column("measured_output_voltage", "V", "plant:measured_output_voltage|output_voltage",
+           f"output voltage, {SENSOR}"),
+    Column("measured_inductor_current", "A", "plant:measured_inductor_current|inductor_current",
+           f"inductor current, {SENSOR}"),
+    Column("load_current", "A", "plant:load_current", "load current io"),
+    Column("measured_load_current", "A", "plant:measured_load_current|load_current", f"load current, {SENSOR}"),
+    Column("duty_cycle", "1", "master:duty_cycle", "duty cycle applied to the plant, held between controller samples"),
+    Column("load_resistance", "Ohm", "master:load_resistance", "load resistance R the scenario sets"),
+    Column("input_voltage", "V", "master:input_voltage", "supply voltage Vs the scenario sets"),
+    Column("control_sample", "", "master:control_sample", "true where a controller sample falls on this instant"),
+    Column("controller_compute_time", "s", "master:controller_compute_time",
+           "controller compute time of the sample, wall clock (NaN between samples)", wallclock=True),
 )
 COLUMNS = tuple(c.name for c in SCHEMA)
 UNITS = {c.name: c.unit for c in SCHEMA}
+DESCRIPTIONS = {c.name: c.description for c in SCHEMA}
 WALLCLOCK_COLUMNS = tuple(c.name for c in SCHEMA if c.wallclock)
 #: the order in which the master passes its values for a row
 MASTER_FIELDS = tuple(c.keys[0] for c in SCHEMA if c.kind == "master")

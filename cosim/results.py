@@ -11,7 +11,8 @@ Files written for a run ``<stem>`` (each written to a temporary name and renamed
 leaves a half-written file behind):
 
 * ``<stem>.parquet`` -- the table; run metadata (JSON) in the schema metadata under ``buck_cosim``
-  and each column's unit in its field metadata under ``unit``;
+  and ``PANDAS_ATTRS`` (so ``pandas.read_parquet`` returns it as ``DataFrame.attrs``), each
+  column's unit and description in its field metadata under ``unit`` and ``description``;
 * ``<stem>.csv`` + ``<stem>.json`` -- the same table as text, metadata in the JSON sidecar;
 * ``<stem>.timing.csv`` -- wall-clock columns (controller compute time), kept apart so the two
   tables above are byte-identical when the same command runs twice.
@@ -37,10 +38,13 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cosim.base.digests import file_sha256
 from cosim.base.files import atomic_write, atomic_write_json, json_text, temporary_name
-from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, UNITS, WALLCLOCK_COLUMNS
+from cosim.fmi.binding import parameter_values
+from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, DESCRIPTIONS, UNITS, WALLCLOCK_COLUMNS
 
 METADATA_KEY = b"buck_cosim"
+PANDAS_ATTRS_KEY = b"PANDAS_ATTRS"  # where pandas.read_parquet looks for DataFrame.attrs
 RUN_FORMAT = "buck-cosim run 1"
 PACKAGES = ("buck-cosim", "fmpy", "numpy", "scipy", "pandas", "pyarrow", "torch", "matplotlib")
 
@@ -163,12 +167,15 @@ def run_details(*, scenario, controller, plant, control_period: float, record_pe
             "model_name": md.modelName,
             "guid": md.guid,
             "fmu_file": Path(plant.binding.fmu_path).name,
+            "fmu_sha256": file_sha256(plant.binding.fmu_path),  # which FMU, whatever its name (design keys use it)
+            "parameter_values": parameter_values(plant.binding.parameters, md),  # e.g. switching_frequency, pwm_carrier
         },
         "rates": {"control_period_s": control_period, "record_period_s": record_period},
         "seed": seed,
         "versions": package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system()},
         "units": dict(UNITS),
+        "descriptions": dict(DESCRIPTIONS),
     }
     if extra:
         meta.update(extra)
@@ -189,13 +196,22 @@ def _deterministic_part(frame: pd.DataFrame) -> pd.DataFrame:
     return frame.drop(columns=[c for c in WALLCLOCK_COLUMNS if c in frame.columns])
 
 
-def write_parquet(frame: pd.DataFrame, metadata: dict, path: Path, units: dict | None = None) -> Path:
-    """Write a frame with metadata (schema) and units (per field) inside one Parquet file."""
-    units = units or metadata.get("units", {})
+def write_parquet(frame: pd.DataFrame, metadata: dict, path: Path, units: dict | None = None,
+                  descriptions: dict | None = None) -> Path:
+    """Write a frame with metadata and units (and descriptions) per field inside one Parquet file.
+
+    The metadata is stored twice in the schema: as JSON under ``buck_cosim`` (what
+    :func:`read_parquet` and other Arrow readers read) and under ``PANDAS_ATTRS``, where
+    ``pandas.read_parquet`` finds it and returns it as ``DataFrame.attrs``."""
+    units = units if units is not None else metadata.get("units", {})
+    descriptions = descriptions if descriptions is not None else metadata.get("descriptions", {})
     table = pa.Table.from_pandas(frame, preserve_index=False)
-    fields = [f.with_metadata({"unit": units[f.name]}) if f.name in units else f for f in table.schema]
-    schema = pa.schema(fields, metadata={**(table.schema.metadata or {}),
-                                         METADATA_KEY: json_text(metadata, indent=None).encode()})
+    fields = []
+    for f in table.schema:
+        about = {key: text[f.name] for key, text in (("unit", units), ("description", descriptions)) if f.name in text}
+        fields.append(f.with_metadata(about) if about else f)
+    text = json_text(metadata, indent=None).encode()
+    schema = pa.schema(fields, metadata={**(table.schema.metadata or {}), METADATA_KEY: text, PANDAS_ATTRS_KEY: text})
     table = table.cast(schema)
     return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
 

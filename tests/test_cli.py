@@ -119,7 +119,7 @@ def test_collect_train_and_run_an_nnpc(tmp_path):
                  "--work-dir", str(tmp_path)]) == 0
     assert main(["--no-progress", "train", str(data), "--extra", "load_conductance", "--out", str(model)]) == 0
     assert main(["--no-progress", "run", "reference_up", "--controller", "nnpc", "--model", str(model),
-                 "--kp", "0", "--ki", "14", "--out", str(tmp_path / "runs")]) == 0
+                 "--out", str(tmp_path / "runs")]) == 0
     run = read_run(tmp_path / "runs" / "runs" / "reference_up__nnpc__nominal-averaged__1ms.parquet")
     assert run.metadata["controller"]["predictor"]["architecture"].startswith("4-7-2 tanh")
     assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=2e-3)
@@ -147,8 +147,8 @@ def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_p
 
 
 def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):
-    args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--kp", "0", "--ki", "14",
-            "--out", str(tmp_path), "--no-figures"]
+    args = ["--no-progress", "run", "startup", "--controller", "nnpc", "--samples", "500", "--out", str(tmp_path),
+            "--no-figures"]  # the PI that collects the data is tuned (--kp/--ki set the gains of a pi run only)
     assert main(args) == 0
     model = next((tmp_path / "models").glob("*__nnpc.pt"))
     mtime = model.stat().st_mtime_ns

@@ -378,9 +378,10 @@ def test_export_then_run_from_the_command_line(tmp_path, fmus):
     from cosim.results import read_run
 
     runs = {p.stem.split("__")[1]: read_run(p) for p in (tmp_path / "runs" / "runs").glob("*.parquet")}
-    assert set(runs) == {"pi", "mine"}
-    np.testing.assert_array_equal(_duties(runs["pi"]), _duties(runs["mine"]))
-    assert runs["mine"].metadata["controller"]["type"] == "controller FMU"
+    assert set(runs) == {"pi", "mine-fmu"}  # the FMU runs as "mine (FMU)", the docs' NAME (FMU)
+    np.testing.assert_array_equal(_duties(runs["pi"]), _duties(runs["mine-fmu"]))
+    assert runs["mine-fmu"].metadata["controller"]["type"] == "controller FMU"
+    assert runs["mine-fmu"].metadata["controller"]["name"] == "mine (FMU)"
 
 
 def test_controller_fmu_faults_end_in_one_line(tmp_path, fmus):

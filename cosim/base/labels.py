@@ -32,3 +32,19 @@ def period_text(period: float) -> str:
 def slug(text: str) -> str:
     """``"MPC-oracle (sync. sample)"`` -> ``"mpc-oracle-sync-sample"``."""
     return re.sub(r"[^A-Za-z0-9]+", "-", text).strip("-").lower()
+
+
+def did_you_mean(name: str, candidates, hint_all: int = 0) -> str:
+    """A hint for a mistyped ``name``: `` (did you mean 'x'?)`` naming the closest of ``candidates``
+    (difflib, case-insensitive), else -- with ``hint_all`` > 0 and at most that many candidates --
+    `` (expected one of a, b, c)``, else ``""``."""
+    import difflib
+
+    candidates = list(dict.fromkeys(str(c) for c in candidates))
+    lowered = {c.lower(): c for c in candidates}
+    close = difflib.get_close_matches(str(name).lower(), list(lowered), n=1, cutoff=0.6)
+    if close:
+        return f" (did you mean {lowered[close[0]]!r}?)"
+    if candidates and len(candidates) <= hint_all:
+        return f" (expected one of {', '.join(candidates)})"
+    return ""

@@ -237,7 +237,7 @@ def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _C
 
 def export_object(controller, folder: Path) -> Path:
     """The controller as a firmware links it: ``folder``/controller.o (the float32 build for a Cortex-M4F:
-    code, configuration, state; see the README's *On a microcontroller*) beside the headers a firmware's
+    code, configuration, state; see docs/guide/embedded.md) beside the headers a firmware's
     source includes (buckc_controller.h, buckc.h and the buckc_tanhf.h it includes; compile it with
     -DBUCKC_FLOAT32). Returns controller.o."""
     problem = toolchain_problem()

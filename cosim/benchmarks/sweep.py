@@ -20,7 +20,8 @@ def _sweep_setup(quick: bool):
 
     from controllers.nn_model import save_model
     from cosim.study.sweeps.plan import SweepPlan
-    from cosim.study.sweeps.recipes import ControllerRecipe, canonical
+    from cosim.base.digests import canonical
+    from cosim.study.sweeps.recipes import ControllerRecipe
     from cosim.study.sweeps.spec import parse_sweep
 
     samples = 4 if quick else SWEEP_SAMPLES

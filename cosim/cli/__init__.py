@@ -22,7 +22,8 @@ from cosim.cli.options import OneLineParser
 #: every command's parser, in the order ``buck-cosim --help`` lists them
 PARSERS = (run.add_scenarios_parser, run.add_run_parser, design.add_collect_data_parser, design.add_train_parser,
            design.add_distill_parser, export.add_export_controller_parser, export.add_export_ssp_parser,
-           export.add_run_ssp_parser, run.add_inspect_parser, run.add_export_parser, export.add_build_fmu_parser,
+           export.add_run_ssp_parser, run.add_inspect_parser, run.add_export_parser, run.add_plot_parser,
+           run.add_compare_parser, export.add_build_fmu_parser,
            design.add_tune_pi_parser, studies.add_reproduce_parser, studies.add_sweep_parser,
            studies.add_frequency_response_parser, bench.add_bench_parser)
 

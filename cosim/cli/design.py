@@ -14,8 +14,8 @@ from cosim.cli.options import (
     _add_plant_options,
     _plant_binding,
     bounded,
+    cache_dir,
     input_file,
-    output_dir,
     output_file,
     parse_period,
     seed_value,
@@ -46,7 +46,7 @@ def cmd_collect(args) -> int:
     from cosim.study.experiments import collection_settings
 
     output_file(args.out)
-    work_dir = output_dir(args.work_dir)
+    work_dir = cache_dir(args.work_dir)
     settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
@@ -114,7 +114,10 @@ def cmd_train(args) -> int:
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
           f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step (recorded duties and load) "
           f"{rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
-    print(f"wrote {args.out}")
+    from cosim.study.identification import write_identification_figure
+
+    figure = write_identification_figure(model, frame, Path(args.out))
+    print(f"wrote {args.out} and {figure} (learning curves, held-out predictions)")
     return 0
 
 
@@ -177,7 +180,8 @@ def add_collect_data_parser(sub) -> None:
                         f"periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, {DITHER_FAST} faster; 0 = plain PI)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="where tuned PI gains are cached (default: results/runs-cli)")
+                   help="where tuned PI gains are cached, created only when they are (default: results/runs-cli, "
+                        "relative to the current folder)")
     p.add_argument("--out", required=True, metavar="DATA.parquet", help="output file")
     p.set_defaults(func=cmd_collect)
 

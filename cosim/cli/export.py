@@ -12,12 +12,13 @@ from cosim.cli.options import (
     _add_plant_options,
     _check_duty_limits,
     _plant_binding,
+    cache_dir,
     input_file,
     output_dir,
     output_file,
     parse_period,
 )
-from cosim.study.vocabulary import CONTROLLERS, FLOAT32_CONTROLLERS, PAPER_PERIOD
+from cosim.study.vocabulary import EXPORTABLE_CONTROLLERS, FLOAT32_CONTROLLERS, PAPER_PERIOD
 
 
 def _design_controller(args, binding, period: float, work_dir: Path, policy_path: str | None = None):
@@ -60,7 +61,7 @@ def cmd_export_controller(args) -> int:
         raise ConfigError(f"--precision float32: {args.controller} has no float32 build (the predictive "
                           "controller's optimizer, controllers/c/predictive.c, computes in double); expected one of "
                           f"{', '.join(FLOAT32_CONTROLLERS)}")
-    work_dir = output_dir(args.work_dir)
+    work_dir = cache_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)
     binary, source = _export_controller_fmu(controller, out, args.precision, args.fmi_version)
     version = f"FMI {args.fmi_version}.0"
@@ -75,8 +76,8 @@ def cmd_export_controller(args) -> int:
             target = export_object(controller, output_dir(args.cortex_m4))
         except EmbeddedError as error:
             raise BuildError(f"--cortex-m4 {args.cortex_m4}: {str(error).splitlines()[0]}") from None
-        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (how to link it: 'On a "
-              "microcontroller' in the documentation)")
+        print(f"the same controller for a Cortex-M4F (float32, -O2, hard float): {target} (how to link it: "
+              "docs/guide/embedded.md)")
     return 0
 
 
@@ -103,10 +104,10 @@ def cmd_export_ssp(args) -> int:
         binding = replace(binding, fmu_path=fmu_path(fmi_version=3))
     check_plant_supports(binding, scenario)  # before any tuning or training
     with tempfile.TemporaryDirectory(prefix="buck-cosim-export-ssp-") as tmp:
-        if args.controller in CONTROLLERS:
+        if args.controller in EXPORTABLE_CONTROLLERS:
             period = args.control_period or PAPER_PERIOD
             plan_timeline(scenario, period, period)
-            controller = _design_controller(args, binding, period, output_dir(args.work_dir))
+            controller = _design_controller(args, binding, period, cache_dir(args.work_dir))
             fmu, _ = _export_controller_fmu(controller,
                                             Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu",
                                             args.fmi_version)
@@ -114,8 +115,9 @@ def cmd_export_ssp(args) -> int:
             from cosim.fmi.controller import controller_binding
 
             if Path(args.controller).suffix.lower() != ".fmu":
-                raise ConfigError(f"--controller {args.controller} is invalid: expected {', '.join(CONTROLLERS)} or a "
-                                  "controller FMU (.fmu) with the workbench's role names")
+                raise ConfigError(f"--controller {args.controller} is invalid: expected "
+                                  f"{', '.join(EXPORTABLE_CONTROLLERS)} or a controller FMU (.fmu) with the "
+                                  "workbench's role names")
             from cosim.fmi.archive import check_fmu
             from cosim.ssp.package import controller_sample_period
 
@@ -181,7 +183,7 @@ def add_export_controller_parser(sub) -> None:
                                    "carry the workbench's role names (reference, measured_output_voltage, measured_inductor_current, "
                                    "measured_load_current, input_voltage -> duty_cycle; parameter sample_period "
                                    "[s]); run it with 'buck-cosim run --controller NAME.fmu'.")
-    p.add_argument("controller", choices=list(CONTROLLERS), help="which controller")
+    p.add_argument("controller", choices=list(EXPORTABLE_CONTROLLERS), help="which controller")
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="sample period in s, e.g. 1e-3 or 1/75e3 (default: 1e-3); the predictive settings are the "
                         "workbench's at that rate")
@@ -214,8 +216,8 @@ def add_export_ssp_parser(sub) -> None:
                                    "'buck-cosim run-ssp', fmpy or libcosim.")
     p.add_argument("scenario", metavar="SCENARIO", help="shipped scenario name or path to a scenario TOML file")
     p.add_argument("--controller", required=True, metavar="NAME|FMU",
-                   help=f"{', '.join(CONTROLLERS)} (exported as with export-controller) or a controller FMU with the "
-                        "workbench's role names")
+                   help=f"{', '.join(EXPORTABLE_CONTROLLERS)} (exported as with export-controller) or a controller FMU "
+                        "with the workbench's role names")
     p.add_argument("--control-period", type=parse_period, default=None, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3; a controller FMU's own period)")
     p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",

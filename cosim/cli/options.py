@@ -41,6 +41,18 @@ def output_dir(text: str | None) -> Path | None:
     return path
 
 
+def cache_dir(text: str) -> Path:
+    """A folder designs are cached in: refused at once if it cannot be one, but created only when
+    something is written there (an export with given gains leaves no empty folder behind)."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    existing = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise ConfigError(f"output folder {path} cannot be created: {existing} is not a writable folder")
+    return path
+
+
 def input_file(text: str, what: str, hint: str = "") -> Path:
     """A file to read: refused at once, in one line, if it is missing or a folder."""
     path = Path(text)
@@ -127,7 +139,14 @@ def _plant_binding(args):
 
         binding = plant_binding(args.variant, args.mode, args.sensor)
     isolate = getattr(args, "isolate", None)
-    return binding if isolate is None else replace(binding, isolate=isolate)
+    binding = binding if isolate is None else replace(binding, isolate=isolate)
+    limits = {key: value for key, value in (("step_timeout", getattr(args, "step_timeout", None)),
+                                            ("memory_limit", getattr(args, "memory_limit", None))) if value is not None}
+    if limits and not binding.isolate:
+        option = "--" + next(iter(limits)).replace("_", "-")
+        raise ConfigError(f"{option} needs an isolated plant (--isolate, or a binding file's default): the workbench "
+                          "cannot stop an FMU running in its own process")
+    return replace(binding, **limits) if limits else binding
 
 
 def _check_duty_limits(args) -> None:
@@ -148,7 +167,7 @@ def _add_plant_options(parser) -> None:
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
-                             "(--mode/--variant/--sensor then do not apply; see README)")
+                             "(--mode/--variant/--sensor then do not apply; docs/guide/external-plants.md)")
     isolation = parser.add_mutually_exclusive_group()
     isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                            help="step the plant FMU in a child process: a crash inside it ends the run with an error "
@@ -156,6 +175,13 @@ def _add_plant_options(parser) -> None:
                                 "one pipe round trip per step, see benchmarks.md)")
     isolation.add_argument("--no-isolate", dest="isolate", action="store_false",
                            help="step the plant FMU in this process (default for the built-in plant)")
+    parser.add_argument("--step-timeout", type=bounded(float, 1e-3, unit="s"), default=None, metavar="SECONDS",
+                        help="isolated plant: a step that takes longer (wall time) is stopped and the run fails "
+                             "(exit 3) (default: the binding file's step_timeout, else 30 s + 1000 x the step's "
+                             "simulated length)")
+    parser.add_argument("--memory-limit", type=bounded(float, 1.0, unit="MB"), default=None, metavar="MB",
+                        help="isolated plant: its process is stopped (the run fails, exit 3) above this resident "
+                             "memory (default: the binding file's memory_limit, else half the machine's)")
     parser.add_argument("--interface", choices=["cs", "me"], default=None,
                         help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
                              "(default: the binding's choice, else co-simulation)")
@@ -189,7 +215,8 @@ def _add_controller_design_options(parser) -> None:
                         help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
     parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                        help="where tuned gains and trained networks are cached (default: results/runs-cli)")
+                        help="where tuned gains and trained networks are cached, created only when one is "
+                             "(default: results/runs-cli, relative to the current folder)")
 
 
 def _add_fmi_version_option(p, whose: str) -> None:

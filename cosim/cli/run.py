@@ -1,6 +1,10 @@
-"""Commands that run the loop and handle its files: ``scenarios``, ``run``, ``inspect``, ``export``."""
+"""Commands that run the loop and handle its files: ``scenarios``, ``run``, ``inspect``, ``export``,
+``plot``, ``compare``."""
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 from cosim.base.errors import ConfigError
 from cosim.cli.options import (
@@ -27,8 +31,9 @@ def cmd_scenarios(args) -> int:
 
     print(f"Shipped scenarios ({SHIPPED_DIR}):")
     for s in shipped_scenarios():
-        events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(f"{k}={v:g}" for k, v in e.changes.items())
-                           for e in s.events) or "none"
+        events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(
+            [f"{k}={v:g}" for k, v in e.changes.items()] + [f"{k}={v:g}" for k, v in e.parameters.items()])
+            for e in s.events) or "none"
         print(f"  {s.name:<16} {s.description}  [duration {s.duration * 1e3:g} ms, settle {s.settle * 1e3:g} ms; "
               f"events: {events}]")
     return 0
@@ -64,19 +69,49 @@ def cmd_run(args) -> int:
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
     print(output.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
     print(f"wrote {len(output.files) + len(files)} files under {out_dir}/")
+    _warn_implausible(output, batch.binding)
     return 0
+
+
+def _warn_implausible(output, binding) -> None:
+    """One warning line on stderr if runs look implausible (:func:`cosim.metrics.implausible_runs`)."""
+    from cosim.metrics import implausible_runs
+
+    found = implausible_runs(output.results, output.metrics)
+    if not found:
+        return
+    hint = ("check the binding's roles and scales (fmu_value = scale * workbench_value + offset; a duty in percent "
+            f"needs scale = 100) in {binding.source}" if binding.source is not None else
+            "check the controller's gains and limits")
+    print(f"warning: implausible runs on {binding.label}: {'; '.join(found)} -- {hint}", file=sys.stderr)
 
 
 def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
     output_file(args.draft_binding)  # a folder or an unwritable place is refused before anything is read
+    if Path(args.fmu).suffix.lower() == ".toml":  # a binding file: its FMU, and the binding checked against it
+        from cosim.fmi.binding_file import load_binding
+
+        if args.draft_binding:
+            raise ConfigError(f"--draft-binding drafts a binding for an FMU; {args.fmu} is a binding already")
+        binding = load_binding(args.fmu)  # every check, and a warning line if units contradict roles
+        print(describe_fmu(binding.fmu_path))
+        roles = [f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
+                 + (f" + {m.offset:g}" if m.offset else "") for role, m in binding.roles.items()]
+        print(f"\nbinding {args.fmu}: {', '.join(roles)}")
+        return 0
     print(describe_fmu(args.fmu))
     if args.draft_binding:
-        from cosim.fmi.binding_file import write_draft_binding
+        from cosim.fmi.binding_file import unitless_guesses, write_draft_binding
 
         path = write_draft_binding(args.fmu, args.draft_binding)
         print(f"wrote a draft binding to {path}: the roles are guesses, check every one before use")
+        unitless = unitless_guesses(args.fmu)
+        if unitless:
+            print(f"warning: {path}: the FMU declares no unit for {', '.join(unitless)}: the draft assumes a duty "
+                  "0..1, volts, amperes and ohms -- a duty in percent needs scale = 100, a current in mA "
+                  "scale = 1000", file=sys.stderr)
     return 0
 
 
@@ -101,6 +136,34 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_plot(args) -> int:
+    from cosim.compare import overlay
+    from cosim.study.vocabulary import CONTROLLER_STYLES
+
+    out = output_file(args.out)
+    files = overlay(args.runs, out, title=args.title, styles=CONTROLLER_STYLES)
+    print(f"wrote {' and '.join(str(f) for f in files)}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from cosim.base.files import atomic_write
+    from cosim.compare import comparison_table, overlay
+    from cosim.metrics import WALLCLOCK_METRICS
+    from cosim.study.vocabulary import CONTROLLER_STYLES
+
+    out_dir = output_dir(args.out)
+    table = comparison_table(args.runs)  # every file read and checked before anything is written
+    files = overlay(args.runs, out_dir / "compare", title=args.title, styles=CONTROLLER_STYLES)
+    deterministic = table.drop(columns=[c for c in WALLCLOCK_METRICS if c in table.columns])
+    files.append(atomic_write(out_dir / "compare.csv", lambda tmp: deterministic.to_csv(tmp, index=False)))
+    columns = ["run", "scenario", "rise_time_ms", "overshoot_pct", "settling_time_ms", "steady_state_error_pct",
+               "iae_Vs", "peak_inductor_current_A", "output_voltage_ripple_mV", "inductor_current_ripple_A"]
+    print(table[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    print(f"wrote {', '.join(str(f) for f in files)}")
+    return 0
+
+
 def add_scenarios_parser(sub) -> None:
     p = sub.add_parser("scenarios", help="list the shipped scenarios",
                        description="List the shipped scenario files (TOML) with their events.")
@@ -114,11 +177,13 @@ def add_run_parser(sub) -> None:
                                    "figure per scenario (PNG + SVG) under OUT/figures.")
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
                    help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
-    p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml",
+    p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml|MODULE:CLASS",
                    help=f"controller(s) to run; repeat to overlay several (default: pi): {', '.join(CONTROLLERS)}, "
-                        "a controller FMU with the workbench's role names (buck-cosim export-controller), or a "
-                        "controller-binding file for any other controller FMU (it runs at its own sample period). "
-                        "nnpc trains its network on demand (data collected with the tuned PI) unless --model")
+                        "a controller FMU with the workbench's role names (buck-cosim export-controller; named "
+                        "'<file stem> (FMU)'), a controller-binding file for any other controller FMU, or your own "
+                        "Python controller as module:Class or path/to/file.py:Class (docs/guide/python-controller.md); "
+                        "FMUs and Python controllers run at their own sample period. nnpc trains its network on "
+                        "demand (data collected with the tuned PI) unless --model")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
@@ -135,7 +200,7 @@ def add_run_parser(sub) -> None:
     p.add_argument("--seed", type=seed_value, default=0,
                    help=f"random seed for data collection and training, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
-                   help="output folder (default: results/runs-cli)")
+                   help="output folder (default: results/runs-cli, relative to the current folder)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
     _add_implementation_option(p)
     p.add_argument("--stream", action="store_true",
@@ -147,8 +212,10 @@ def add_run_parser(sub) -> None:
 def add_inspect_parser(sub) -> None:
     p = sub.add_parser("inspect", help="describe any FMU (and draft a binding file for it)",
                        description="Check an FMU archive and print its FMI version, interfaces, platforms and "
-                                   "variables (causality, variability, unit, start value).")
-    p.add_argument("fmu", help="path to a .fmu file")
+                                   "variables (causality, variability, unit, start value). Given a plant-binding "
+                                   "file, describe its FMU and check the binding against it (a warning line if a "
+                                   "unit the FMU declares contradicts a role or its scale).")
+    p.add_argument("fmu", metavar="FMU|BINDING.toml", help="path to a .fmu file, or a plant-binding file")
     p.add_argument("--draft-binding", metavar="OUT.toml",
                    help="also write a draft plant-binding file, roles guessed from names and units")
     p.set_defaults(func=cmd_inspect)
@@ -162,3 +229,27 @@ def add_export_parser(sub) -> None:
     p.add_argument("--to", choices=["csv", "parquet"], required=True, help="target format")
     p.add_argument("--out", metavar="DIR", help="output folder (default: beside the input)")
     p.set_defaults(func=cmd_export)
+
+
+def add_plot_parser(sub) -> None:
+    p = sub.add_parser("plot", help="overlay runs from any folders in one figure (CSV or Parquet runs)",
+                       description="Draw runs written by run, reproduce, a sweep's traces or a Python controller's "
+                                   "write_run (each a .parquet, or a .csv with its .json) overlaid in the run figure: "
+                                   "output voltage, inductor current and duty cycle, the whole run beside the "
+                                   "transient with overshoot, settling band and settling time marked. Runs that share "
+                                   "a controller name are labelled with their folder. Writes FIG.png and FIG.svg.")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
+    p.add_argument("--out", required=True, metavar="FIG", help="the figure to write (FIG.png and FIG.svg)")
+    p.add_argument("--title", help="figure title (default: the scenarios and plants)")
+    p.set_defaults(func=cmd_plot)
+
+
+def add_compare_parser(sub) -> None:
+    p = sub.add_parser("compare", help="overlay runs from any folders and compare their metrics",
+                       description="Like plot, and the runs' metrics side by side: printed, and written with the "
+                                   "figure to DIR (compare.png, compare.svg, compare.csv: one row per run, its label "
+                                   "and file, every metric of cosim/metrics.py but the wall-clock ones).")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--title", help="figure title (default: the scenarios and plants)")
+    p.set_defaults(func=cmd_compare)

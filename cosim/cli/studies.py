@@ -133,8 +133,8 @@ def add_sweep_parser(sub) -> None:
                                    "dataset (one row per run: values, status, metrics) under DIR/dataset, the "
                                    "summary DIR/SWEEP.md (yield against the file's [spec], distributions, most "
                                    "influential parameter, worst case) with figures, and DIR/timings.json (wall "
-                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz (README, "
-                                   "'Sweeps and Monte Carlo'). Exit 2 on a mistake, before any work; 3 if some "
+                                   "clock). Values in the sweep file are SI: s, V, A, Ohm, H, F, Hz "
+                                   "(docs/guide/sweeps.md). Exit 2 on a mistake, before any work; 3 if some "
                                    "runs failed (each is a row saying why); 130 if interrupted (--resume finishes).")
     p.add_argument("spec", metavar="SPEC.toml", help="sweep file, or the name of a shipped study (e.g. tolerance)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder for the dataset and the summary")

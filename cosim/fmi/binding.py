@@ -15,7 +15,7 @@ from types import MappingProxyType
 from typing import Mapping
 
 from cosim.base.errors import ConfigError
-from cosim.base.labels import slug
+from cosim.base.labels import did_you_mean, slug
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
 OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
@@ -64,6 +64,12 @@ class PlantBinding:
     label: str = "BuckConverter (built-in)"
     tag_override: str | None = None  # short name for file names (see :attr:`tag`)
     isolate: bool = False  # step the FMU in a child process (cosim.fmi.isolation): a crash ends only the run
+    #: isolated only: the wall-time limit [s] for one step of the plant process, None: derived from the
+    #: step's simulated length (cosim.fmi.isolation.step_time_limit); a step over it is a fault
+    step_timeout: float | None = None
+    #: isolated only: the plant process's resident memory limit [MB], None: half the machine's memory
+    #: (cosim.fmi.isolation.memory_limit_bytes); a plant process above it is stopped, a fault
+    memory_limit: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
@@ -71,7 +77,8 @@ class PlantBinding:
 
     def __reduce__(self):  # read-only mappings do not pickle: rebuild from plain dicts (worker processes)
         return (PlantBinding, (self.fmu_path, dict(self.roles), self.interface, dict(self.parameters), self.max_step,
-                               self.source, self.label, self.tag_override, self.isolate))
+                               self.source, self.label, self.tag_override, self.isolate, self.step_timeout,
+                               self.memory_limit))
 
     def has(self, role: str) -> bool:
         return role in self.roles
@@ -102,6 +109,8 @@ class PlantBinding:
             "parameters": dict(self.parameters),
             "max_step_s": self.max_step,
             "isolated": self.isolate,
+            "step_timeout_s": self.step_timeout,
+            "memory_limit_mb": self.memory_limit,
         }
 
 
@@ -254,8 +263,10 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
     for role, mapping in binding.roles.items():
         variable = variables.get(mapping.variable)
         if variable is None:
+            fitting = [v.name for v in model_description.modelVariables if is_float(v) and v.causality in
+                       (("input", "parameter") if role in input_roles else ("output", "local"))]
             raise BindingMismatch(f"role {role!r} names variable {mapping.variable!r}, which {fmu_name} does not "
-                                  "have", "role", role)
+                                  f"have{did_you_mean(mapping.variable, fitting, hint_all=8)}", "role", role)
         if not is_float(variable):
             wanted_type = "Real" if variable.type in ("Integer", "Boolean", "String", "Enumeration") else "Float64"
             why = ": the workbench exchanges signals as 64-bit floats" if variable.type == "Float32" else ""
@@ -275,6 +286,27 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
     return resolved
 
 
+def parameter_values(parameters: Mapping[str, object], model_description) -> dict[str, float | int | bool | str]:
+    """Every scalar parameter of the FMU with the value a run starts from: the binding's override, else
+    the FMU's start value, typed (a number, true/false or text). What run metadata records, so a run
+    names its switching frequency, PWM carrier or component values whether or not a binding set them."""
+    values = {}
+    for v in model_description.modelVariables:
+        if v.causality != "parameter" or array_shape(v) or v.type in ("Binary", "Clock"):
+            continue
+        if v.name in parameters:
+            values[v.name] = parameters[v.name]
+        elif v.start is not None:
+            text = str(v.start)
+            try:
+                values[v.name] = (float(text) if v.type in _FLOAT_LIMITS else
+                                  int(float(text)) if v.type in INTEGER_RANGES else
+                                  text.lower() in ("true", "1") if v.type == "Boolean" else text)
+            except ValueError:
+                values[v.name] = text
+    return values
+
+
 def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_name: str) -> list[ResolvedParameter]:
     """Each parameter names a scalar variable of the FMU and has a value of its type (Real, Float64, Float32:
     a finite number; Integer, Enumeration and FMI 3.0's Int8 ... UInt64: a whole number the type holds;
@@ -285,7 +317,9 @@ def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_
     for name, value in parameters.items():
         variable = variables.get(name)
         if variable is None:
-            raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}", "parameter", name)
+            settable = [v.name for v in model_description.modelVariables if v.causality in ("parameter", "input")]
+            raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}"
+                                  f"{did_you_mean(name, settable, hint_all=12)}", "parameter", name)
         kind = variable.type
         if array_shape(variable):
             raise BindingMismatch(f"parameter {name!r} is an FMI 3.0 array in {fmu_name} (shape "

@@ -8,6 +8,11 @@ A binding is a small TOML file next to (or pointing at) the FMU::
     label = "My buck (Modelica)"    # optional: how runs and figures name this plant
     isolate = true                  # optional (default true): step the FMU in a child process, so a crash
                                     # in it ends the run with an error instead of the workbench
+    step_timeout = 30.0             # [s] optional, isolated only: a step of the FMU that takes longer
+                                    # (wall time) is stopped and the run fails; default 30 s + 1000 x
+                                    # the step's simulated length
+    memory_limit = 2000             # [MB] optional, isolated only: the FMU's process is stopped (the run
+                                    # fails) above this resident memory; default half the machine's
 
     [roles.duty_cycle]              # required; an input
     variable = "D"
@@ -42,6 +47,7 @@ from pathlib import Path
 
 from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
+from cosim.base.labels import did_you_mean
 from cosim.base.toml_files import TomlLocator, parse_toml, where
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import (
@@ -57,9 +63,10 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
-from cosim.fmi.plant import normalise_interface
+from cosim.fmi.plant_fmi2 import normalise_interface
 
-TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "roles", "parameters"}
+TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "step_timeout", "memory_limit", "roles",
+            "parameters"}
 ROLE_KEYS = {"variable", "scale", "offset"}
 
 
@@ -67,6 +74,19 @@ def _number(value, label: str, place: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
         raise ConfigError(f"{place}: {label} = {value!r} is invalid: expected a finite number")
     return float(value)
+
+
+def _isolation_limit(data: dict, path: Path, loc: TomlLocator, key: str, unit: str, isolate: bool) -> float | None:
+    """An optional limit of the isolated plant process (``step_timeout``, ``memory_limit``): > 0, isolated only."""
+    if key not in data:
+        return None
+    value = _number(data[key], key, where(path, loc, key))
+    if not value > 0:
+        raise ConfigError(f"{where(path, loc, key)}: {key} = {value:g} {unit} is invalid: expected > 0")
+    if not isolate:
+        raise ConfigError(f"{where(path, loc, key)}: {key} needs isolate = true (the workbench cannot stop an FMU "
+                          "running in its own process)")
+    return value
 
 
 def fmu_path_of(data: dict, path: Path, loc: TomlLocator) -> Path:
@@ -88,8 +108,9 @@ def parse_roles(data: dict, path: Path, loc: TomlLocator, allowed: tuple[str, ..
     for role, entry in roles_table.items():
         table = f"roles.{role}"
         if role not in allowed:
-            raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}: expected one of "
-                              f"{', '.join(allowed)}")
+            hint = did_you_mean(role, allowed)
+            raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}"
+                              + (hint if hint else f": expected one of {', '.join(allowed)}"))
         if not isinstance(entry, dict):
             raise ConfigError(f"{where(path, loc, role, 'roles')}: role {role!r} must be a table with 'variable'")
         for key in entry:
@@ -163,6 +184,8 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     if not isinstance(isolate, bool):
         raise ConfigError(f"{where(path, loc, 'isolate')}: isolate = {isolate!r} has the wrong type: expected true or "
                           "false")
+    step_timeout = _isolation_limit(data, path, loc, "step_timeout", "s", isolate)
+    memory_limit = _isolation_limit(data, path, loc, "memory_limit", "MB", isolate)
 
     roles = parse_roles(data, path, loc, ROLES)
     for role in REQUIRED_ROLES:
@@ -177,9 +200,55 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
 
     checked = checked_fmu_of(fmu_path, path, loc)
     binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
-                           max_step=max_step, source=path, label=label, isolate=isolate)
+                           max_step=max_step, source=path, label=label, isolate=isolate, step_timeout=step_timeout,
+                           memory_limit=memory_limit)
     _check_variables(binding, checked, loc)
+    problems = unit_problems(binding, checked.model_description)
+    if problems:
+        print(f"warning: {path}: implausible binding: {'; '.join(problems)} "
+              "(fmu_value = scale * workbench_value + offset)", file=sys.stderr)
     return binding
+
+
+#: the quantity of each role's workbench value (SI; the duty 0..1)
+ROLE_QUANTITIES = {
+    "duty_cycle": "duty", "input_voltage": "voltage", "output_voltage": "voltage", "measured_output_voltage": "voltage",
+    "load_resistance": "resistance", "inductor_current": "current", "load_current": "current",
+    "measured_inductor_current": "current", "measured_load_current": "current",
+}
+#: units an FMU may declare for each quantity, with the binding scale each one needs
+UNIT_SCALES = {
+    "duty": {"1": 1.0, "%": 100.0},
+    "voltage": {"V": 1.0, "mV": 1e3, "kV": 1e-3},
+    "current": {"A": 1.0, "mA": 1e3, "uA": 1e6, "kA": 1e-3},
+    "resistance": {"Ohm": 1.0, "ohm": 1.0, "Ω": 1.0, "mOhm": 1e3, "kOhm": 1e-3},
+}
+
+
+def unit_problems(binding: PlantBinding, model_description) -> list[str]:
+    """Roles whose FMU variable declares a unit that contradicts them: another quantity (a current
+    bound as a voltage), or a known unit with another scale than it needs (a duty in % with
+    scale 1). Variables without a declared unit cannot be checked here (a run's results can:
+    :func:`cosim.metrics.implausible_runs`)."""
+    variables = {v.name: v for v in model_description.modelVariables}
+    problems = []
+    for role, mapping in binding.roles.items():
+        variable = variables.get(mapping.variable)
+        unit = _unit_of(variable) if variable is not None else ""
+        quantity = ROLE_QUANTITIES.get(role)
+        if not unit or quantity is None:
+            continue
+        if unit in UNIT_SCALES[quantity]:
+            needed = UNIT_SCALES[quantity][unit]
+            if not math.isclose(mapping.scale, needed, rel_tol=1e-9):
+                problems.append(f"{role} is {mapping.variable!r} in {unit} with scale = {mapping.scale:g} "
+                                f"(a {quantity} in {unit} needs scale = {needed:g})")
+        else:
+            other = next((q for q, units in UNIT_SCALES.items() if unit in units and q != quantity), None)
+            if other is not None:
+                what = "dimensionless" if unit == "1" else f"a {other}"
+                problems.append(f"{role} is {mapping.variable!r} in {unit}, {what}, not a {quantity}")
+    return problems
 
 
 def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
@@ -254,6 +323,15 @@ def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
                 taken.add(variable.name)
                 break
     return guesses
+
+
+def unitless_guesses(fmu_path: str | Path) -> list[str]:
+    """The draft's guessed roles whose variables declare no unit (``"D (duty_cycle)"``) and whose name
+    gives no hint either: their scale is a guess of 1 a user must check."""
+    md = check_fmu(fmu_path).model_description
+    variables = {v.name: v for v in md.modelVariables}
+    return [f"{name} ({role})" for role, (name, scale, _) in guess_roles(md).items()
+            if not _unit_of(variables[name]) and scale == 1.0]
 
 
 def draft_binding_text(fmu_path: Path, binding_path: Path) -> str:

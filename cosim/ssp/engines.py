@@ -45,7 +45,6 @@ controller alone). Everything else is read at each communication point from the 
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import math
 import platform
@@ -59,12 +58,13 @@ from xml.etree import ElementTree
 import fmpy
 import numpy as np
 
+from cosim.base.digests import file_sha256
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding, RoleMap
 from cosim.fmi.controller import CONTROLLER_INPUT_ROLES, ControllerBinding, FmuController
 from cosim.master import simulate
-from cosim.recorder import COLUMNS, SCHEMA, UNITS
+from cosim.recorder import COLUMNS, DESCRIPTIONS, SCHEMA, UNITS
 from cosim.results import RUN_FORMAT, RunInfo, RunResult, json_ready, package_versions
 from cosim.ssp.package import (
     COMPONENTS,
@@ -189,10 +189,6 @@ def _ssp_member(loop: Loop, name: str) -> str:
     return f"{Path(loop.archive).name}!{loop.components[name].source}"
 
 
-def _digest(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def _engine_metadata(loop: Loop, engine: str, step: float) -> dict:
     versions = {"fmpy": package_versions().get("fmpy")}
     if engine == "libcosim":
@@ -206,7 +202,7 @@ def _engine_metadata(loop: Loop, engine: str, step: float) -> dict:
                        "versions": versions,
                        "not_provided": {"controller_compute_time": "NaN: the engine does not time the controller"}
                        if engine != "workbench" else {}},
-            "ssp": {"file": Path(loop.archive).name, "sha256": _digest(loop.archive), "name": loop.name}}
+            "ssp": {"file": Path(loop.archive).name, "sha256": file_sha256(loop.archive), "name": loop.name}}
     if engine == "fmpy":
         meta["engine"]["deviations_from_simulate_ssp"] = list(DEVIATIONS)
     return meta
@@ -309,6 +305,7 @@ def _details(loop: Loop, engine: str, step: float, guids: dict[str, str], names:
         "versions": package_versions(),
         "platform": {"machine": platform.machine(), "system": platform.system()},
         "units": dict(UNITS),
+        "descriptions": dict(DESCRIPTIONS),
         **_engine_metadata(loop, engine, step),
     }
     if plant_mode_name(loop) is None:  # RunInfo reads the built-in FMU's mode from plant_mode

@@ -499,7 +499,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     margins) to ``tuning/`` and return the controllers to run beside the others (none at 1 ms)."""
     import time
 
-    from cosim.study.pi_tuning import tune_pi_envelope
+    from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
     from cosim.study.vocabulary import CURRENT_MODE, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
@@ -515,7 +515,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     write_design(linear_design("pi", pi, parameters, targets, pi.tuning.get("method", "")), files["pi-margins"])
     controllers = [d.controller for d in designs]
     if pipeline.plant_tag == ENVELOPE_PIPELINE_PLANT:
-        tuning = tune_pi_envelope(binding, period, record_period=2e-5, quick=quick)
+        tuning = tune_pi_envelope(binding, period, record_period=REPRODUCTION_RECORD_PERIOD, quick=quick)
         envelope_pi = tuning.controller(name=PI_ENVELOPE)
         design = linear_design("pi-envelope", envelope_pi, parameters, targets, tuning.method)
         design.notes.append(f"kp = {tuning.kp:.6g} 1/V, ki = {tuning.ki:.6g} 1/(V s); cost {tuning.cost:.4g} after "

@@ -40,7 +40,7 @@ from cosim.base.numeric_env import check_worker_environment, kernel_environment
 #: many small numpy arrays: no statistical profiler (it samples every thread's stack every 10 ms
 #: under the GIL; measured at 15-40 % of a 1 ms sweep's run time), and glibc's own heap trimming
 #: instead of the nanny's MALLOC_TRIM_THRESHOLD_=65536 (measured: a 13.33 us pipeline ran 20-30 %
-#: slower with it). For one's own ``dask worker`` processes the README gives the same as dask YAML.
+#: slower with it). For one's own ``dask worker`` processes docs/guide/sweeps.md gives the same as dask YAML.
 #: ``daemon`` off: a worker steps a binding file's plant FMU in a child process of its own
 #: (:mod:`cosim.fmi.isolation`), which a daemonic process may not start; the nanny still ends its
 #: worker, and the plant process ends when its pipe closes
@@ -108,7 +108,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
     from distributed import Client, LocalCluster
 
     level = _log_level()
-    for name in ("distributed", "tornado"):
+    # dask's logging configuration gives some children their own level (distributed.client: warning, whose
+    # reconnect loop logs a traceback when a lost scheduler's client is closed): set them all
+    children = [name for name in logging.Logger.manager.loggerDict if name.startswith(("distributed.", "tornado."))]
+    for name in ("distributed", "tornado", "distributed.client", *children):
         logging.getLogger(name).setLevel(level)
     cluster = None
     if scheduler is not None:

@@ -11,12 +11,14 @@ from pathlib import Path
 
 from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
 from controllers.predictors import CircuitParameters
-from cosim.base.errors import ConfigError
+from cosim.base.errors import ConfigError, ModelFileError
+from cosim.base.labels import did_you_mean, period_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
+from cosim.study.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
 from cosim.study.experiments import adaptive_nnpc, collection_settings, explicit_nnpc, model_mpc, nn_configs, nnpc
-from cosim.study.identification import Recipe, identify
-from cosim.study.pi_tuning import PITuning, load_or_tune
+from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
+from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
 from cosim.study.vocabulary import (
     CONTROLLERS,
     MPC_NOMINAL,
@@ -24,72 +26,126 @@ from cosim.study.vocabulary import (
     NETWORKS,
     NNPC_EXPLICIT,
     NOMINAL,
-    pipeline_tag,
 )
 from plant_fmu.table_ii import TABLE_II
 
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
-    path = out_dir / "tuning" / f"pi__{pipeline_tag(binding.tag, period)}.json"
-    if not path.is_file():
-        print(f"tuning the PI for {binding.label} at {period * 1e6:.4g} us (saved to {path}) ...", file=sys.stderr)
-    return load_or_tune(path, binding, period, progress=progress)
+    """The PI tuned for ``binding`` at ``period`` [s], cached in ``out_dir/tuning`` under its
+    design key (:mod:`cosim.study.design_cache`): tuned again, and said so, when the plant or the
+    tuning settings changed. Tuning is announced on stderr with its size and an estimate of its
+    duration, and ends with the gains and how long it took (progress bars or not)."""
+    path = pi_file(out_dir, binding.tag, period)
+    tuning = cached_tuning(path, binding, period)
+    if tuning is None:
+        tuning = announced_tuning(binding, period, path, progress)
+    return tuning
+
+
+def announced_tuning(binding: PlantBinding, period: float, path: Path | None, progress: bool = False) -> PITuning:
+    """:func:`cosim.study.pi_tuning.tune_pi`, told on stderr: what it does and at most how many
+    simulations, an estimate of its duration after the second evaluation, and the result with the
+    time it took; saved to ``path`` (if given)."""
+    import time
+
+    from cosim.base.files import atomic_write_text
+    from cosim.study.pi_tuning import TUNING_SCENARIOS, tune_pi, tuning_evaluations
+
+    total = tuning_evaluations()
+    say(f"tuning the PI for {binding.label} at {period_text(period)}: at most {total} evaluations x "
+        f"{len(TUNING_SCENARIOS)} scenarios (give --kp and --ki to skip it)"
+        + (f"; saved to {path}" if path is not None else ""))
+    start = time.perf_counter()
+    tuning = tune_pi(binding, period, progress=progress,
+                     on_estimate=lambda seconds: say(f"  one evaluation takes {seconds:.2g} s: the tuning takes "
+                                                     f"about {max(1.0, seconds * total):.0f} s"))
+    say(f"  tuned in {time.perf_counter() - start:.1f} s ({tuning.evaluations} evaluations, "
+        f"{tuning.evaluations * len(TUNING_SCENARIOS)} simulations): Kp = {tuning.kp:.4g} 1/V, "
+        f"Ki = {tuning.ki:.4g} 1/(V s), design key {tuning.design_key}")
+    if path is not None:
+        atomic_write_text(path, tuning.to_json() + "\n")
+    return tuning
+
+
+def say(message: str) -> None:
+    """A line of what a long step is doing, on stderr (with or without progress bars)."""
+    print(message, file=sys.stderr, flush=True)
 
 
 def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path, *, samples: int, seed: int,
                   model_path: str | None, progress: bool = False) -> NNPlantModel:
-    """Load ``model_path``, or identify the network on this plant (cached in out_dir): the
-    workbench's NNPC network by the recipe of :mod:`cosim.study.identification` (PI data, one-step
-    and simulation-error training, NNPC-in-the-loop data at fast rates), the paper's network by
-    one-step training on the PI data."""
+    """Load ``model_path``, or identify the network on this plant (cached in out_dir under its
+    design key: the plant, rate, seed, collection, recipe and network, and the PI that collects the
+    data -- identified again, and said so, when any of them changed): the workbench's NNPC network
+    by the recipe of :mod:`cosim.study.identification` (PI data, one-step and simulation-error
+    training, NNPC-in-the-loop data at fast rates), the paper's network by one-step training on the
+    PI data. The data file and the held-out RMSE are printed."""
     config = nn_configs(period)[name]
     if model_path:
         return load_model(Path(model_path), expect_period=period)
-    path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__{name}.pt"
-    settings = collection_settings(period, samples, seed)
-    collection = json.loads(json.dumps(asdict(settings)))  # as the model file stores it
-    recipe = Recipe(samples=samples)
-    wanted = json.loads(json.dumps(asdict(recipe)))
+    path = model_file(out_dir, binding.tag, period, name)
+    recipe = Recipe(samples=samples) if name == "nnpc" else None
+    wanted = network_design(name, binding, period, config, seed, samples, recipe=recipe,
+                            training=None if recipe else TrainingSettings(seed=seed),
+                            pi_key=pi_design(binding, period).key)
     if path.is_file():
-        model = load_model(path, expect_period=period, expect_config=config)
-        meta = model.metadata
-        if meta.get("plant") == binding.label and meta.get("collection") == collection \
-                and (name != "nnpc" or meta.get("recipe") == wanted):
-            return model  # same plant, identification settings (samples, seed, dither, recipe) and network
+        try:
+            model = load_model(path, expect_period=period, expect_config=config)
+            reason = stale_reason(model.metadata.get("design"), wanted)
+        except ModelFileError as error:
+            reason = f"it cannot be read ({str(error).splitlines()[0]})"
+        if reason is None:
+            return model
+        announce(path, reason, f"identifying {config.label} again")
     pi = tuned_pi(binding, period, out_dir, progress)
-    print(f"collecting {samples} samples on {binding.label} and identifying {config.label} ...", file=sys.stderr)
+    settings = collection_settings(period, samples, seed)
+    say(f"collecting {samples} samples on {binding.label} and identifying {config.label} (saved to {path}) ...")
     data = collect(binding, pi.controller(), settings, progress=progress)
-    save_samples(data, out_dir / "data" / f"{pipeline_tag(binding.tag, period)}.parquet")
-    meta = {"control_period_s": period, "plant": binding.label, "seed": seed, "collection": collection}
+    data_path = data_file(out_dir, binding.tag, period)
+    data.attrs["metadata"]["seed"] = seed
+    save_samples(data, data_path)
+    meta = {"control_period_s": period, "plant": binding.label, "seed": seed,
+            "collection": json.loads(json.dumps(asdict(settings))), "data_file": str(data_path),
+            "design": wanted.describe()}
     if name == "nnpc":
-        model = identify(binding, pi.controller(), period, config, seed, recipe, metadata={**meta, "recipe": wanted},
-                         data=data, progress=progress).model
+        model = identify(binding, pi.controller(), period, config, seed, recipe,
+                         metadata={**meta, "recipe": json.loads(json.dumps(asdict(recipe)))}, data=data,
+                         progress=progress).model
     else:
         model = train(data, config, TrainingSettings(seed=seed), progress=progress, metadata=meta)
     save_model(model, path)
+    figure = write_identification_figure(model, data, path)
+    rmse = model.metadata.get("held_out_rmse", {})
+    say(f"  {config.label}: held-out one-step RMSE {rmse.get('one_step_rmse_voltage_V', math.nan) * 1e3:.2f} mV, "
+        f"{rmse.get('one_step_rmse_current_A', math.nan) * 1e3:.2f} mA; data {data_path}, model {path} "
+        f"(identification figure {figure.name}), design key {wanted.key}")
     return model
 
 
 def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, out_dir: Path, *, seed: int,
                      progress: bool = False):
     """The explicit policy distilled from ``model``'s NNPC on this plant (cached in out_dir/models
-    for the same plant, expert network, budget and seed)."""
+    under its design key: the plant, rate, seed, budget and the expert network)."""
     from controllers.explicit_policy import load_policy, save_policy
     from cosim.study.distillation import FULL_DISTILLATION, distill, expert_fingerprint, settings_dict
 
     settings = replace(FULL_DISTILLATION, seed=seed)
-    path = out_dir / "models" / f"{pipeline_tag(binding.tag, period)}__nnpc-explicit.pt"
-    expert = expert_fingerprint(model)
+    path = model_file(out_dir, binding.tag, period, "nnpc-explicit")
+    wanted = design_key("nnpc-explicit", binding, period, seed=seed, settings=settings_dict(settings),
+                        depends_on={"expert_weights": expert_fingerprint(model),
+                                    "expert": model.metadata.get("design", {}).get("key")})
     if path.is_file():
-        policy = load_policy(path, expect_period=period)
-        meta = policy.metadata
-        if (meta.get("plant") == binding.label and meta.get("expert_model") == expert
-                and {k: v for k, v in meta.get("distillation", {}).items() if k not in ("labels", "history")}
-                == json.loads(json.dumps(settings_dict(settings)))):
+        try:
+            policy = load_policy(path, expect_period=period)
+            reason = stale_reason(policy.metadata.get("design"), wanted)
+        except ModelFileError as error:
+            reason = f"it cannot be read ({str(error).splitlines()[0]})"
+        if reason is None:
             return policy
-    print(f"distilling the NNPC into an explicit policy on {binding.label} ({settings.labels} labels, saved to "
-          f"{path}) ...", file=sys.stderr)
-    policy = distill(model, binding, period, settings, progress=progress)
+        announce(path, reason, "distilling again")
+    say(f"distilling the NNPC into an explicit policy on {binding.label} ({settings.labels} labels, saved to "
+        f"{path}) ...")
+    policy = distill(model, binding, period, settings, progress=progress, metadata={"design": wanted.describe()})
     save_policy(policy, path)
     return policy
 
@@ -109,8 +165,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int = 10_000, seed: int = 0,
                      progress: bool = False, policy_path: str | None = None) -> list:
-    """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`)
-    or paths of controller FMUs / controller-binding files (which run at their own sample period).
+    """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`),
+    paths of controller FMUs / controller-binding files, or Python controllers (``module:Class``,
+    ``file.py:Class``, :mod:`cosim.python_controller`); those run at their own sample period.
     Everything is checked first (names, gains, duty limits, the period, the roles each controller
     needs, a given model or policy file, controller FMUs and their bindings), then the PI is tuned,
     networks trained and the explicit NNPC distilled where needed -- so a mistake is refused before
@@ -119,10 +176,22 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
     from cosim.fmi.controller import FmuController, controller_binding
+    from cosim.python_controller import is_python_controller, load_python_controller
 
-    bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS}  # FMUs or binding files, checked now
+    for name in names:
+        if name not in CONTROLLERS and not is_python_controller(name) \
+                and Path(name).suffix.lower() not in (".fmu", ".toml"):
+            raise ConfigError(f"--controller {name} is unknown{did_you_mean(name, CONTROLLERS)}: expected one of "
+                              f"{', '.join(CONTROLLERS)}, a controller FMU (.fmu), a controller-binding file (.toml) "
+                              "or a Python controller (module:Class or path/to/file.py:Class)")
     if (kp is None) != (ki is None):
         raise ConfigError("--kp and --ki must be given together (or neither, to tune the PI automatically)")
+    if kp is not None and "pi" not in names:
+        raise ConfigError(f"--kp and --ki set the PI's gains, but no --controller pi is run (controllers: "
+                          f"{', '.join(names)}): drop them or add --controller pi")
+    python = {n: load_python_controller(n, sample_period=period, duty_limits=duty_limits)
+              for n in names if is_python_controller(n)}  # imported and checked now
+    bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS and n not in python}  # FMUs, binding files
     networks = [n for n in names if n in NETWORKS or n == "nnpc-adaptive"]
     if model_path and len(networks) > 1:
         raise ConfigError("--model gives one network: run nnpc, nnpc-paper and nnpc-adaptive separately when you "
@@ -194,8 +263,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
             elif name == "mpc-nominal":
                 controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
-            else:  # a controller FMU
-                controllers.append(FmuController(bound[name]))
+            elif name in python:  # the user's own Python controller, at its own sample period
+                controllers.append(python[name])
+            else:  # a controller FMU, named NAME (FMU) as the docs say (a binding file's label, if it has one)
+                controllers.append(FmuController(bound[name], name=external_name(name)))
     except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers
@@ -205,7 +276,7 @@ def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[f
     """Controller FMUs / controller-binding files for the reproduction, checked before any work:
     each must open, carry a name no built-in controller has, and sample at one of ``periods`` [s]
     (within 1e-9 relative). Returns the paths by the period whose pipelines run them."""
-    from cosim.base.labels import period_text
+    from cosim.base.labels import did_you_mean, period_text
     from cosim.fmi.controller import FmuController, controller_binding
 
     builtin = set(CONTROLLERS.values())

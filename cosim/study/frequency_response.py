@@ -37,7 +37,8 @@ from cosim.scenarios import Scenario, ScenarioEvent
 from cosim.study.sweeps import dataset
 from cosim.study.sweeps.designs import build, design, injected_recipe
 from cosim.study.sweeps.plan import PlannedRun, batch_key
-from cosim.study.sweeps.recipes import PlantRecipe, canonical, digest
+from cosim.base.digests import canonical, digest
+from cosim.study.sweeps.recipes import PlantRecipe
 
 INJECTIONS = ("duty", "reference", "load")
 #: default amplitudes: duty [1], reference [V], load [relative change of the load conductance]

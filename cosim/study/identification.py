@@ -26,12 +26,14 @@ identification; the reproduction keeps one round as an ablation variant.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 
 import pandas as pd
 
 from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, train
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect
+from cosim.study.design_cache import DesignKey, design_key
 from cosim.study.experiments import collection_settings, horizon_settings, implemented, nnpc
 from cosim.study.vocabulary import (
     CLOSED_LOOP_DITHER,
@@ -66,6 +68,23 @@ class Recipe:
     closed_loop_iterations: int = CLOSED_LOOP_ITERATIONS  # of the refinement after each round, at most
     implementation: str = "c"  # the NNPC in the rounds: its C twin (same duties, faster) or Python
     multi_step_iterations: int = MULTI_STEP_ITERATIONS  # at most, per simulation-error stage
+
+
+def network_design(name: str, binding: PlantBinding, control_period: float, config: NNConfig, seed: int,
+                   samples: int, *, recipe: Recipe | None = None, training: TrainingSettings | None = None,
+                   pi_key: str | None = None) -> DesignKey:
+    """The design key of a network ``name`` identified on ``binding`` at ``control_period`` [s]: by
+    :func:`identify` with ``recipe`` (the workbench's NNPC), else by one ``train`` with ``training``
+    on the PI data (the paper's network); ``samples`` of PI data collected with ``seed`` by the PI
+    whose design key is ``pi_key`` (:mod:`cosim.study.design_cache`)."""
+    collection = collection_settings(control_period, samples, seed)
+    if recipe is not None:
+        training = training_settings(control_period, seed, recipe.multi_step_iterations)
+    settings = {"network": asdict(config), "collection": asdict(collection),
+                "training": asdict(training or TrainingSettings(seed=seed)),
+                "recipe": asdict(recipe) if recipe is not None else None}
+    return design_key(f"nn-model:{name}", binding, control_period, seed=seed, settings=settings,
+                      depends_on={"pi": pi_key})
 
 
 @dataclass
@@ -105,6 +124,7 @@ def identify(binding: PlantBinding, pi_controller, control_period: float, config
     if training.multi_step_horizon > 1 and training.multi_step_iterations > 0:
         model = described(train(data, config, training, metadata=meta, progress=progress, initial=one_step),
                           MULTI_STEP, [])
+        model.metadata["training"]["history"] = one_step.metadata["training"]["history"]  # both learning curves
         stages[MULTI_STEP] = model
     identified = Identified(model=model, data=data, stages=stages)
     for _ in range(rounds):
@@ -134,3 +154,84 @@ def closed_loop_round(identified: Identified, binding: PlantBinding, control_per
                                         "closed_loop_dither": recipe.closed_loop_dither}
     return Identified(model=model, data=identified.data, stages={**identified.stages, f"{CLOSED_LOOP} {r}": model},
                       closed_loop=extra)
+
+
+# ---------------------------------------------------------------------------------------------
+# The identification figure (like the MATLAB NNPC block's plant-identification window)
+
+#: held-out samples drawn in the predicted-vs-measured panels (the start of the held-out tail)
+FIGURE_SAMPLES = 400
+
+
+def figure_path(model_path: Path) -> Path:
+    """Where a model's identification figure goes: ``<model>.identification.png`` beside it."""
+    model_path = Path(model_path)
+    return model_path.with_name(f"{model_path.stem}.identification.png")
+
+
+def write_identification_figure(model: NNPlantModel, data: pd.DataFrame, model_path: Path) -> Path:
+    """:func:`identification_figure` beside the model's file (:func:`figure_path`). PNG only (the
+    reproduction commits no SVG); the same model and data give the same bytes."""
+    from cosim.base.files import atomic_write
+    from cosim.plots import plt
+
+    fig = identification_figure(model, data)
+    path = figure_path(model_path)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100, metadata={"Software": None}))
+    plt.close(fig)
+    return path
+
+
+def identification_figure(model: NNPlantModel, data: pd.DataFrame):
+    """The learning curves (training and validation loss, standardised, at every L-BFGS check of the
+    one-step and the simulation-error stage) and the one-step predictions against the measured iL
+    and vo on the held-out tail of ``data`` (the samples ``train`` held out: its last
+    ``test_fraction``), with the held-out RMSE. Three stacked axes: loss, iL, vo."""
+    import numpy as np
+
+    from controllers.nn_model import build_dataset
+    from cosim.plots import plt
+
+    training = model.metadata.get("training", {})
+    test_fraction = training.get("test_fraction", TrainingSettings().test_fraction)
+    held_out = data.iloc[int(round(len(data) * (1 - test_fraction))):]
+    fig, (ax_loss, ax_i, ax_v) = plt.subplots(3, 1, figsize=(8, 9), constrained_layout=True,
+                                              gridspec_kw={"height_ratios": [1.1, 1, 1]})
+    offset = 0
+    stages = (("one-step", training.get("history") or []),
+              (f"simulation error over {((training.get('multi_step') or {}).get('horizon'))} steps",
+               (training.get("multi_step") or {}).get("history") or []))
+    for k, (stage, history) in enumerate(stages):
+        if not history:
+            continue
+        h = np.asarray(history, dtype=float)
+        ax_loss.semilogy(h[:, 0] + offset, h[:, 1], color=f"C{2 * k}", label=f"{stage}: training")
+        ax_loss.semilogy(h[:, 0] + offset, h[:, 2], color=f"C{2 * k + 1}", linestyle="--",
+                         label=f"{stage}: validation")
+        offset += float(h[-1, 0])
+    ax_loss.set_xlabel("L-BFGS iteration")
+    ax_loss.set_ylabel("loss (standardised MSE)")
+    ax_loss.grid(True, which="both", alpha=0.3)
+    if ax_loss.lines:
+        ax_loss.legend(fontsize=8)
+    rmse = model.metadata.get("held_out_rmse", {})
+    ax_loss.set_title(f"{model.config.label}\nidentified on {model.metadata.get('plant', '?')}: held-out one-step RMSE "
+                      f"{rmse.get('one_step_rmse_current_A', float('nan')) * 1e3:.3g} mA, "
+                      f"{rmse.get('one_step_rmse_voltage_V', float('nan')) * 1e3:.3g} mV", fontsize=9)
+    if len(held_out) > model.config.delays + 1:
+        x, y = build_dataset(held_out, model.config)
+        predicted = model.predict(x)
+        shown = slice(0, FIGURE_SAMPLES)
+        time = held_out["time"].to_numpy()[model.config.delays:] * 1e3 if "time" in held_out \
+            else np.arange(len(y)) + len(data) - len(held_out) + model.config.delays
+        for ax, j, name, unit in ((ax_i, 0, "inductor current $i_L$", "A"), (ax_v, 1, "output voltage $v_o$", "V")):
+            ax.plot(time[shown], y[shown, j], color="k", linewidth=1.2, label="measured (held out)")
+            ax.plot(time[shown], predicted[shown, j], color="C1", linestyle="--", linewidth=1.0,
+                    label="one-step prediction")
+            ax.set_ylabel(f"{name} [{unit}]")
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=8, loc="best")
+        ax_v.set_xlabel("time [ms]" if "time" in held_out else "sample")
+        ax_i.set_title(f"held-out samples {len(data) - len(held_out)} .. {len(data) - 1} (first "
+                       f"{min(FIGURE_SAMPLES, len(y))} shown), never used in training", fontsize=9)
+    return fig

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize
@@ -27,6 +29,7 @@ from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.metrics import run_metrics
 from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
+from cosim.study.design_cache import DesignKey, announce, design_key, stale_reason
 from plant_fmu.table_ii import TABLE_II
 
 TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
@@ -39,6 +42,9 @@ METHOD = (
     "<= 5 % and |steady-state error| <= 0.5 % (quadratic penalties); grid over a = Kp*Vs, b = Ki*Ts*Vs, "
     "then Nelder-Mead"
 )
+#: the recording step the reproduction tunes with [s] (half the resolution of a run's default: twice as fast, the
+#: same gains within the search's tolerance); part of the design key, so every reader of its tuning uses it
+REPRODUCTION_RECORD_PERIOD = 2e-5
 #: tuning runs are shortened versions of the paper scenarios: long enough to settle at either rate
 TUNING_DURATION = 0.02  # [s]
 TUNING_SETTLE = 0.015  # [s]
@@ -54,10 +60,16 @@ class PITuning:
     evaluations: int
     plant: str
     method: str = METHOD
+    design: dict | None = None  # {"key", "inputs"}: what the gains were tuned for (cosim.study.design_cache)
+
+    @property
+    def design_key(self) -> str | None:
+        return (self.design or {}).get("key")
 
     def controller(self, duty_limits: tuple[float, float] = (0.0, 1.0), name: str = "PI") -> PIController:
         return PIController(self.kp, self.ki, self.control_period, duty_limits, name=name,
-                            tuning={"method": self.method, "cost_V2s": self.cost, "plant": self.plant})
+                            tuning={"method": self.method, "cost_V2s": self.cost, "plant": self.plant,
+                                    "design_key": self.design_key})
 
     def to_json(self) -> str:
         return json_text(asdict(self))
@@ -77,12 +89,39 @@ def _tuning_scenarios():
     return scenarios
 
 
+def _grid(quick: bool) -> list[tuple[float, float]]:
+    return [(a, b) for a in ((0.0, 0.1) if quick else GRID_A) for b in ((0.01, 0.3) if quick else GRID_B)]
+
+
+def _nelder_mead_evaluations(quick: bool) -> int:
+    return 6 if quick else 40
+
+
+def pi_design(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
+              input_voltage: float = TABLE_II.input_voltage, quick: bool = False) -> DesignKey:
+    """The design key of :func:`tune_pi` with these arguments: the plant, the rate, the tuning
+    scenarios and every setting of the search (no tuning is done)."""
+    return design_key("pi", binding, control_period, scenarios=_tuning_scenarios(),
+                      settings={"method": METHOD, "record_period_s": record_period, "input_voltage_V": input_voltage,
+                                "grid": _grid(quick), "nelder_mead_evaluations": _nelder_mead_evaluations(quick)})
+
+
+def tuning_evaluations(quick: bool = False) -> int:
+    """Closed-loop evaluations :func:`tune_pi` makes at most: the grid, then Nelder-Mead (each
+    simulates every tuning scenario)."""
+    return len(_grid(quick)) + _nelder_mead_evaluations(quick)
+
+
 def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
-            input_voltage: float = TABLE_II.input_voltage, progress: bool = False, quick: bool = False) -> PITuning:
+            input_voltage: float = TABLE_II.input_voltage, progress: bool = False, quick: bool = False,
+            on_estimate: Callable[[float], None] | None = None) -> PITuning:
     """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring.
 
     ``quick`` (smoke tests only) searches a 2 x 2 grid and 6 Nelder-Mead evaluations.
+    ``on_estimate``: called once, with the wall-clock seconds of the second evaluation (the first
+    also loads the plant), for an estimate of the whole tuning: at most :func:`tuning_evaluations`.
     """
+    design = pi_design(binding, control_period, record_period=record_period, input_voltage=input_voltage, quick=quick)
     scenarios = _tuning_scenarios()
     evaluations = 0
     worst: dict[tuple[float, float], float] = {}
@@ -91,12 +130,16 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(desc=f"tuning PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False)
+        bar = tqdm(desc=f"tuning PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False,
+                   total=tuning_evaluations(quick))
+    started = None
 
     with open_plant(binding) as plant:
 
         def cost(params: np.ndarray) -> float:
-            nonlocal evaluations
+            nonlocal evaluations, started
+            if evaluations == 1 and started is None:
+                started = time.perf_counter()
             a, b = float(params[0]), float(params[1])
             kp, ki = a / input_voltage, b / (control_period * input_voltage)
             controller = PIController(max(kp, 0.0), max(ki, 0.0), control_period)
@@ -116,16 +159,18 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
                 worst_os = max(worst_os, metrics["overshoot_pct"], metrics["undershoot_pct"])
             evaluations += 1
             worst[(a, b)] = worst_os
+            if evaluations == 2 and started is not None and on_estimate is not None:
+                on_estimate(time.perf_counter() - started)
             if bar is not None:
                 bar.update(1)
             return total
 
-        grid = [(a, b) for a in ((0.0, 0.1) if quick else GRID_A) for b in ((0.01, 0.3) if quick else GRID_B)]
+        grid = _grid(quick)
         scores = [cost(np.array(p)) for p in grid]
         start = np.array(grid[int(np.argmin(scores))])
         result = minimize(cost, start, method="Nelder-Mead",
                           bounds=[(0.0, 3.0), (1e-4, 1.5)],
-                          options={"maxfev": 6 if quick else 40, "xatol": 1e-3, "fatol": 1e-7,
+                          options={"maxfev": _nelder_mead_evaluations(quick), "xatol": 1e-3, "fatol": 1e-7,
                                    "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
     if bar is not None:
         bar.close()
@@ -134,7 +179,7 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     a, b = float(best[0]), float(best[1])
     return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
                     cost=best_cost, worst_overshoot_pct=float(worst.get((a, b), math.nan)),
-                    evaluations=evaluations, plant=binding.label)
+                    evaluations=evaluations, plant=binding.label, design=design.describe())
 
 
 #: the envelope PI's operating points: (reference [V], load [Ohm], supply [V]) -- the envelope's corners in
@@ -202,35 +247,52 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELO
                 bar.update(1)
             return max(scores) if aggregate == "max" else sum(scores)
 
-        grid = [(a, b) for a in ((0.0, 0.1) if quick else GRID_A) for b in ((0.01, 0.3) if quick else GRID_B)]
+        grid = _grid(quick)
         scores = [cost(np.array(p)) for p in grid]
         start = np.array(grid[int(np.argmin(scores))])
         result = minimize(cost, start, method="Nelder-Mead", bounds=[(0.0, 3.0), (1e-4, 1.5)],
-                          options={"maxfev": 6 if quick else 40, "xatol": 1e-3, "fatol": 1e-7,
+                          options={"maxfev": _nelder_mead_evaluations(quick), "xatol": 1e-3, "fatol": 1e-7,
                                    "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
     if bar is not None:
         bar.close()
     best = result.x if result.fun <= min(scores) else start
     a, b = float(best[0]), float(best[1])
     method = METHOD_ENVELOPE.format(aggregate=aggregate, points=", ".join(f"({r:g}, {R:g}, {v:g})" for r, R, v in points))
+    design = design_key("pi-envelope", binding, control_period, scenarios=[s for _, s in scenarios],
+                        settings={"method": method, "record_period_s": record_period, "input_voltage_V": input_voltage,
+                                  "grid": _grid(quick), "nelder_mead_evaluations": _nelder_mead_evaluations(quick)})
     return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
                     cost=float(min(result.fun, min(scores))), worst_overshoot_pct=float(worst.get((a, b), math.nan)),
-                    evaluations=evaluations, plant=binding.label, method=method)
+                    evaluations=evaluations, plant=binding.label, method=method, design=design.describe())
 
 
-def load_or_tune(path: Path, binding: PlantBinding, control_period: float, **kwargs) -> PITuning:
-    """Read tuned gains from ``path`` if they match plant and period; else tune and save them there."""
+def cached_tuning(path: Path, binding: PlantBinding, control_period: float, **settings) -> PITuning | None:
+    """The gains tuned in ``path`` if they were tuned for exactly this plant, rate and ``settings``
+    (those of :func:`tune_pi`: the same design key); else None -- and one line on stderr saying why,
+    if a file was there."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    wanted = pi_design(binding, control_period, **settings)
+    try:
+        tuning = PITuning.from_json(path.read_text(encoding="utf-8"))
+        reason = stale_reason(tuning.design, wanted)
+    except (ValueError, TypeError, KeyError):
+        reason = "it is not a tuning file buck-cosim can read"
+    if reason is None:
+        return tuning
+    announce(path, reason, "re-tuning the PI")
+    return None
+
+
+def load_or_tune(path: Path, binding: PlantBinding, control_period: float, *, progress: bool = False,
+                 **settings) -> PITuning:
+    """Read tuned gains from ``path`` if they were tuned for this plant, rate and ``settings`` (the
+    same design key, :mod:`cosim.study.design_cache`); else tune and save them there."""
     from cosim.base.files import atomic_write_text
 
-    path = Path(path)
-    if path.is_file():
-        try:
-            tuning = PITuning.from_json(path.read_text(encoding="utf-8"))
-            if tuning.plant == binding.label and math.isclose(tuning.control_period, control_period, rel_tol=1e-12) \
-                    and tuning.method == METHOD:
-                return tuning
-        except (ValueError, TypeError, KeyError):
-            pass  # unreadable or stale: tune again
-    tuning = tune_pi(binding, control_period, **kwargs)
-    atomic_write_text(path, tuning.to_json() + "\n")
+    tuning = cached_tuning(path, binding, control_period, **settings)
+    if tuning is None:
+        tuning = tune_pi(binding, control_period, progress=progress, **settings)
+        atomic_write_text(Path(path), tuning.to_json() + "\n")
     return tuning

@@ -82,13 +82,17 @@ def delay_of(mode: str, step: float) -> float:
     return step
 
 
-def controllers_for(out_dir: Path, mode: str) -> dict:
+def controllers_for(out_dir: Path, mode: str, quick: bool = False) -> dict:
     """The reproduction's PI (tuned gains) and NNPC (trained network) for the nominal ``mode``
-    plant at 1 ms, read from ``out_dir`` (tuned or trained there if missing)."""
-    from cosim.study.controller_factory import trained_model, tuned_pi
+    plant at 1 ms, read from ``out_dir`` (tuned or trained there if missing; the PI with the
+    reproduction's tuning settings -- ``quick``: the quick profile's -- so its design key matches)."""
+    from cosim.study.controller_factory import trained_model
+    from cosim.study.design_cache import pi_file
+    from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 
     binding = plant_binding("nominal", mode)
-    pi = tuned_pi(binding, PAPER_PERIOD, out_dir).controller()
+    pi = load_or_tune(pi_file(out_dir, binding.tag, PAPER_PERIOD), binding, PAPER_PERIOD,
+                      record_period=REPRODUCTION_RECORD_PERIOD, quick=quick).controller()
     path = out_dir / "models" / f"{pipeline_tag(binding.tag, PAPER_PERIOD)}__nnpc.pt"
     if path.is_file():
         from controllers.nn_model import load_model
@@ -354,7 +358,7 @@ def agreement_section(out_dir: Path, quick: bool = False) -> str:
     out_dir = Path(out_dir)
     scenarios = QUICK_SCENARIOS if quick else PAPER_SCENARIOS
     ladder = QUICK_LADDER if quick else LADDER
-    controllers = {mode: controllers_for(out_dir, mode) for mode in PLANT_MODES}
+    controllers = {mode: controllers_for(out_dir, mode, quick) for mode in PLANT_MODES}
     with tempfile.TemporaryDirectory(prefix="buck-cosim-ssp-study-") as tmp:
         work = Path(tmp)
         cases = []

@@ -114,6 +114,9 @@ CLASSICAL = (PI, PI_ENVELOPE, CURRENT_MODE, TYPE_III)
 CONTROLLERS = {"pi": PI, "nnpc": NNPC, "nnpc-adaptive": f"{NNPC}-adaptive", "nnpc-paper": NNPC_PAPER,
                "mpc-oracle": MPC_ORACLE, "mpc-nominal": MPC_NOMINAL, "nnpc-explicit": NNPC_EXPLICIT,
                "current-mode": CURRENT_MODE, "type-iii": TYPE_III, "pi-envelope": PI_ENVELOPE}
+#: the command-line keys export-controller writes as FMUs: every built-in controller with a C twin (the adaptive
+#: NNPC adapts its network online in Python, which no C twin does)
+EXPORTABLE_CONTROLLERS = tuple(k for k in CONTROLLERS if k != "nnpc-adaptive")
 #: the command-line keys whose C twin has a float32 build (export-controller --precision float32; the Cortex-M4F)
 FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit", "current-mode", "type-iii")
 #: the NN plant models per rate, by command-line key

@@ -39,7 +39,8 @@ MANIFEST = "sweep.json"
 PARTITIONS = pa.schema([("controller", pa.string()), ("scenario", pa.string())])
 METRIC_UNITS = {"rise_time_ms": "ms", "overshoot_pct": "%", "undershoot_pct": "%", "settling_time_ms": "ms",
                 "steady_state_error_V": "V", "steady_state_error_pct": "%", "iae_Vs": "V s", "ise_V2s": "V^2 s",
-                "itae_Vs2": "V s^2", "peak_inductor_current_A": "A", "duty_saturation_ms": "ms",
+                "itae_Vs2": "V s^2", "peak_inductor_current_A": "A", "output_voltage_ripple_mV": "mV",
+                "inductor_current_ripple_A": "A", "duty_saturation_ms": "ms",
                 "controller_p50_us": "us", "controller_p99_us": "us"}
 
 
@@ -54,9 +55,13 @@ def row_schema(axes: list[tuple[str, str, bool]], extra: tuple[pa.Field, ...] = 
     return pa.schema(fields + list(extra))
 
 
+#: the wall-clock and machine figures of each run, apart from the dataset: its wall time, the controller's compute
+#: time, the worker, which of that worker process's runs it was (1, 2, ...) and the worker's resident memory after it
+#: (a soak shows growth per worker, `buck-cosim bench --only soak`)
 TIMING_SCHEMA = pa.schema([pa.field("run_id", pa.string()), pa.field("wall_time_s", pa.float64()),
                           pa.field("controller_p50_us", pa.float64()), pa.field("controller_p99_us", pa.float64()),
-                          pa.field("worker", pa.string())])
+                          pa.field("worker", pa.string()), pa.field("worker_run", pa.int64()),
+                          pa.field("worker_rss_mb", pa.float64())])
 
 
 def part_path(out_dir: Path, controller: str, scenario: str, key: str) -> Path:

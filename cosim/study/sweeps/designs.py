@@ -23,7 +23,9 @@ from typing import Callable, NamedTuple
 from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError, ModelFileError
 from cosim.fmi.binding import PlantBinding
-from cosim.study.sweeps.recipes import ControllerRecipe, canonical, digest
+from cosim.base.digests import canonical, digest
+from cosim.study.design_cache import model_file
+from cosim.study.sweeps.recipes import ControllerRecipe
 from cosim.study.sweeps.spec import ControllerEntry
 from cosim.study.vocabulary import NOMINAL
 
@@ -46,7 +48,8 @@ def _design_pi(entry: ControllerEntry, binding: PlantBinding, period: float, wor
 
         tuning = tuned_pi(binding, period, work_dir, progress)
         settings = {"kp_per_V": tuning.kp, "ki_per_V_s": tuning.ki,
-                    "tuning": {"method": tuning.method, "cost_V2s": tuning.cost, "plant": tuning.plant}}
+                    "tuning": {"method": tuning.method, "cost_V2s": tuning.cost, "plant": tuning.plant,
+                               "design_key": tuning.design_key}}
     return ControllerRecipe("pi", entry.name, period, _json(settings))
 
 
@@ -55,7 +58,6 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
     from controllers.nn_model import load_model
     from cosim.study.controller_factory import trained_model
     from cosim.study.experiments import nn_configs
-    from cosim.study.vocabulary import pipeline_tag
 
     config = nn_configs(period)[entry.kind]
     if entry.model is not None:
@@ -70,7 +72,7 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
                               "does not bind")
         model = trained_model(entry.kind, binding, period, work_dir, samples=entry.samples, seed=entry.seed,
                               model_path=None, progress=progress)
-        path = work_dir / "models" / f"{pipeline_tag(binding.tag, period)}__{entry.kind}.pt"
+        path = model_file(work_dir, binding.tag, period, entry.kind)
         origin = f"identified on the nominal plant ({entry.samples} samples, seed {entry.seed})"
     blob = path.read_bytes()
     rmse = model.metadata.get("held_out_rmse", {})
@@ -120,12 +122,11 @@ def _design_explicit(entry: ControllerEntry, binding: PlantBinding, period: floa
         path, origin = Path(entry.policy), entry.origin or f"policy file {Path(entry.policy).name}"
     else:
         from cosim.study.controller_factory import distilled_policy, trained_model
-        from cosim.study.vocabulary import pipeline_tag
 
         model = trained_model("nnpc", binding, period, work_dir, samples=entry.samples, seed=entry.seed,
                               model_path=None, progress=progress)
         distilled_policy(model, binding, period, work_dir, seed=entry.seed, progress=progress)
-        path = work_dir / "models" / f"{pipeline_tag(binding.tag, period)}__nnpc-explicit.pt"
+        path = model_file(work_dir, binding.tag, period, "nnpc-explicit")
         origin = "distilled on the nominal plant"
     return ControllerRecipe("nnpc-explicit", entry.name, period, _json({"origin": origin}), path.read_bytes())
 
@@ -170,7 +171,8 @@ def _design_envelope_pi(entry: ControllerEntry, binding: PlantBinding, period: f
 
         tuning = tune_pi_envelope(binding, period, progress=progress)
         settings = {"kp_per_V": tuning.kp, "ki_per_V_s": tuning.ki,
-                    "tuning": {"method": tuning.method, "cost": tuning.cost, "plant": tuning.plant}}
+                    "tuning": {"method": tuning.method, "cost": tuning.cost, "plant": tuning.plant,
+                               "design_key": tuning.design_key}}
     return ControllerRecipe("pi-envelope", entry.name, period, _json(settings))
 
 
@@ -317,7 +319,7 @@ def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.fmi.binding import RoleMap
     from cosim.fmi.controller import ControllerBinding, FmuController, builtin_controller_binding
     from cosim.study.sweeps.spec import PERIOD_MATCH
-    from cosim.study.sweeps.worker import process_file
+    from cosim.study.sweeps.process_files import process_file
 
     s = recipe.settings
     path = process_file(s["fmu"], recipe.blob, recipe.blob_digest)

@@ -25,7 +25,8 @@ from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario
-from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe, canonical, digest
+from cosim.base.digests import canonical, digest
+from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
 from cosim.study.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 
 RUN_ID_FORMAT = "buck-cosim sweep run 1"

@@ -17,28 +17,13 @@ run id.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+from cosim.base.digests import digest
 from cosim.fmi.binding import PlantBinding, RoleMap
-
-
-def digest(*parts: bytes | str) -> str:
-    """SHA-256 (hex) of the parts; of one part, the plain SHA-256 of its bytes (what ``sha256sum`` prints)."""
-    h = hashlib.sha256()
-    for i, part in enumerate(parts):
-        if i:
-            h.update(b"\0")  # a separator, so ("ab", "c") and ("a", "bc") differ
-        h.update(part.encode() if isinstance(part, str) else part)
-    return h.hexdigest()
-
-
-def canonical(value) -> str:
-    """JSON text with sorted keys: the same data always hashes the same (floats as Python's repr)."""
-    return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
 
 
 @dataclass(frozen=True)
@@ -55,6 +40,8 @@ class PlantRecipe:
     label: str
     tag: str
     isolate: bool = False  # step the FMU in a child process (a binding file's default): a crash is that run's row
+    step_timeout: float | None = None  # isolated: a step's wall-time limit [s] (None: derived from the step)
+    memory_limit: float | None = None  # isolated: the plant process's memory limit [MB] (None: half the machine's)
 
     @classmethod
     def of(cls, binding: PlantBinding) -> "PlantRecipe":
@@ -63,7 +50,8 @@ class PlantRecipe:
                    roles=tuple((r, m.variable, m.scale, m.offset) for r, m in sorted(binding.roles.items())),
                    parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
-                   label=binding.label, tag=binding.tag, isolate=binding.isolate)
+                   label=binding.label, tag=binding.tag, isolate=binding.isolate, step_timeout=binding.step_timeout,
+                   memory_limit=binding.memory_limit)
 
     @cached_property
     def fmu_digest(self) -> str:
@@ -74,7 +62,8 @@ class PlantRecipe:
         return PlantBinding(fmu_path=Path(fmu_path), roles={r: RoleMap(v, s, o) for r, v, s, o in self.roles},
                             interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
                             source=Path(self.source) if self.source else None, label=self.label,
-                            tag_override=self.tag, isolate=self.isolate)
+                            tag_override=self.tag, isolate=self.isolate, step_timeout=self.step_timeout,
+                            memory_limit=self.memory_limit)
 
     def identity(self) -> dict:
         """What decides a run's result (not where the files are)."""

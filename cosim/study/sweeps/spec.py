@@ -1,7 +1,7 @@
 """The sweep file: what a sweep runs, read and checked like scenario and binding files.
 
 Every mistake is one :class:`~cosim.base.errors.ConfigError` naming the file, the key and its
-line, the value and what was expected. The format (README, *Sweeps and Monte Carlo*)::
+line, the value and what was expected. The format (docs/guide/sweeps.md)::
 
     name = "tolerance"              # letters, digits, _ - . (default: the file's stem)
     description = "L, C +-20 %, ESR, DCR"

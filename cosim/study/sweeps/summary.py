@@ -8,7 +8,9 @@
   (box plots: median, quartiles, whiskers at 1.5 IQR, the spec as a dashed line).
 * **The most influential parameter** of each metric: the swept quantity with the largest Spearman
   rank correlation |rho| with it (monotonic, not only linear, dependence), and a scatter of the
-  metric against it.
+  metric against it -- only where the correlation is significant (p < :data:`SIGNIFICANCE`) and the
+  metric varies by more than its :data:`MAGNITUDE_FLOOR` over the runs; otherwise "none" (a rank
+  correlation of -1 on a steady-state error of 1e-10 % is numerical noise, not an influence).
 * **The worst case** per controller and scenario with its parameters: the run furthest outside the
   spec (largest metric / threshold), or the largest IAE without a spec.
 
@@ -39,8 +41,18 @@ WORST_METRICS = ("overshoot_pct", "undershoot_pct", "settling_time_ms", "steady_
                  "peak_inductor_current_A")
 ALL_SCENARIOS = "all scenarios (per unit)"
 MARKERS = ("o", "s", "^", "D", "v", "P")
-#: fixed margins of the 2 x 2 panel figures (a layout engine costs more than the rest of the summary)
-PANEL_MARGINS = {"left": 0.08, "right": 0.985, "bottom": 0.08, "top": 0.93, "wspace": 0.22, "hspace": 0.28}
+#: fixed margins of the 2 x 2 panel figures (a layout engine costs more than the rest of the summary), wide
+#: enough for the tick labels and axis labels of :data:`HEADLINE` (tests/test_first_contact.py measures them)
+PANEL_MARGINS = {"left": 0.085, "right": 0.985, "bottom": 0.08, "top": 0.93, "wspace": 0.26, "hspace": 0.28}
+#: a parameter is "most influential" only if its Spearman correlation has a p-value below this ...
+SIGNIFICANCE = 0.01
+#: ... and the metric spans more than this over the runs (max - min, in the metric's unit): below it, a
+#: perfect rank correlation is rounding in the solver, not an effect an engineer would act on
+MAGNITUDE_FLOOR = {"overshoot_pct": 0.01, "settling_time_ms": 0.01, "iae_Vs": 1e-7, "steady_state_error_pct": 1e-3}
+NO_INFLUENCE = "none"
+#: how the figures show each headline metric: (factor, axis label) -- IAE in mV s keeps its tick labels short
+DISPLAY = {"overshoot_pct": (1.0, "overshoot [%]"), "settling_time_ms": (1.0, "2 % settling time [ms]"),
+           "iae_Vs": (1e3, "IAE [mV s]"), "steady_state_error_pct": (1.0, "steady-state error [%]")}
 Z95 = 1.959963984540054
 
 
@@ -69,6 +81,12 @@ def spec_mask(rows: pd.DataFrame, thresholds) -> pd.Series:
     for threshold in thresholds:
         mask &= meets(rows, threshold)
     return mask.astype(bool)
+
+
+def pass_column(metric: str) -> str:
+    """The yield table's column of the share of runs [%] meeting the threshold on ``metric``:
+    ``pass_overshoot_pct`` (not ``pass_overshoot_pct_pct``), ``pass_settling_time_ms_pct``."""
+    return f"pass_{metric.removesuffix('_pct')}_pct"
 
 
 def _md(text: str) -> str:
@@ -148,7 +166,7 @@ class _Summary:
                         share = passed.mean() if len(passed) else math.nan
                     else:
                         share = meets(group, threshold).mean() if len(group) else math.nan
-                    record[f"pass_{threshold.metric}_pct"] = 100 * share
+                    record[pass_column(threshold.metric)] = 100 * share
                 record["failed_runs"] = int((mine["status"] == FAILED).sum()) if group is None else \
                     int((group["status"] == FAILED).sum())
                 records.append(record)
@@ -173,22 +191,39 @@ class _Summary:
         return pd.DataFrame(records)
 
     def influence_table(self) -> pd.DataFrame:
+        """Per scenario, controller and headline metric: the swept quantity with the largest |Spearman
+        rho| that is significant and moves the metric by more than its floor (module docstring), with
+        rho, its p-value and the metric's span; ``axis`` is :data:`NO_INFLUENCE` when none qualifies
+        (``reason`` says why)."""
+        from scipy.stats import spearmanr
+
         records = []
         for scenario in self.scenarios:
             for controller in self.controllers:
                 group = self.rows[(self.rows["scenario"] == scenario) & (self.rows["controller"] == controller)
                                   & (self.rows["status"] == OK)]
                 for metric in HEADLINE:
-                    best, rho = None, math.nan
+                    values = group[metric].astype(float).dropna()
+                    span = float(values.max() - values.min()) if len(values) else math.nan
+                    best, rho, p_value = None, math.nan, math.nan
                     for axis in self.axis_names:
                         pair = group[[axis, metric]].astype(float).dropna()
                         if len(pair) < 3 or pair[axis].nunique() < 2 or pair[metric].nunique() < 2:
                             continue
-                        r = float(pair[axis].rank().corr(pair[metric].rank()))
+                        r, p = spearmanr(pair[axis], pair[metric])
+                        r, p = float(r), float(p)
                         if math.isfinite(r) and (best is None or abs(r) > abs(rho)):
-                            best, rho = axis, r
+                            best, rho, p_value = axis, r, p
+                    reason = ""
+                    if best is None:
+                        reason = "the metric or no swept quantity varies"
+                    elif not span > MAGNITUDE_FLOOR[metric]:
+                        reason = f"the metric spans {span:.2g} only (floor {MAGNITUDE_FLOOR[metric]:g})"
+                    elif not p_value < SIGNIFICANCE:
+                        reason = f"not significant (p = {p_value:.2g} >= {SIGNIFICANCE:g})"
                     records.append({"scenario": scenario, "controller": controller, "metric": metric,
-                                    "axis": best or "n/a", "spearman_rho": rho})
+                                    "axis": NO_INFLUENCE if reason else best, "spearman_rho": rho,
+                                    "p_value": p_value, "span": span, "strongest": best or "n/a", "reason": reason})
         return pd.DataFrame(records)
 
     def worst_cases(self) -> pd.DataFrame:
@@ -248,11 +283,12 @@ class _Summary:
             group = self.rows[(self.rows["scenario"] == scenario) & (self.rows["status"] == OK)]
             fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
             fig.subplots_adjust(**PANEL_MARGINS)
-            for ax, (metric, label) in zip(axes.flat, HEADLINE.items()):
+            for ax, metric in zip(axes.flat, HEADLINE):
+                scale, label = DISPLAY[metric]
                 data, names = [], []
                 for controller in self.controllers:
                     values = group.loc[group["controller"] == controller, metric].astype(float)
-                    data.append(values.dropna().to_numpy())
+                    data.append(values.dropna().to_numpy() * scale)
                     missing = int(values.isna().sum())
                     names.append(controller + (f"\n({missing} never)" if missing else ""))
                 parts = ax.boxplot([d if len(d) else [np.nan] for d in data], patch_artist=True, widths=0.6,
@@ -263,9 +299,10 @@ class _Summary:
                     box.set_alpha(0.45)
                 for t in self.spec.thresholds:
                     if t.metric == metric:
-                        ax.axhline(t.limit, color="crimson", linestyle="--", linewidth=1.1, label=f"spec: {threshold_label(t)}")
+                        ax.axhline(t.limit * scale, color="crimson", linestyle="--", linewidth=1.1,
+                                   label=f"spec: {threshold_label(t)}")
                         if t.signed:
-                            ax.axhline(-t.limit, color="crimson", linestyle="--", linewidth=1.1)
+                            ax.axhline(-t.limit * scale, color="crimson", linestyle="--", linewidth=1.1)
                         ax.legend(loc="best", fontsize=8)
                 ax.set_ylabel(label)
                 ax.grid(True, axis="y", alpha=0.3)
@@ -277,29 +314,32 @@ class _Summary:
             if self.axis_names:
                 fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
                 fig.subplots_adjust(**PANEL_MARGINS)
-                for ax, (metric, label) in zip(axes.flat, HEADLINE.items()):
+                for ax, metric in zip(axes.flat, HEADLINE):
+                    scale, label = DISPLAY[metric]
                     mine = influence[(influence["scenario"] == scenario) & (influence["metric"] == metric)]
                     strength = {a: mine.loc[mine["axis"] == a, "spearman_rho"].abs().sum() for a in self.axis_names}
                     axis = max(self.axis_names, key=lambda a: (strength[a], -self.axis_names.index(a)))
+                    significant = strength[axis] > 0
                     unit = dict((a, u) for a, u, _ in self.axes)[axis]
                     factor, shown = display_unit(unit, group[axis].tolist())
                     for i, controller in enumerate(self.controllers):
                         sub = group[group["controller"] == controller]
                         rho = mine.loc[(mine["controller"] == controller) & (mine["axis"] == axis), "spearman_rho"]
                         tag = f" (rho {rho.iloc[0]:+.2f})" if len(rho) else ""
-                        ax.scatter(sub[axis].astype(float) * factor, sub[metric].astype(float), s=12, alpha=0.6,
-                                   color=self._style(controller, i), marker=MARKERS[i % len(MARKERS)],
+                        ax.scatter(sub[axis].astype(float) * factor, sub[metric].astype(float) * scale, s=12,
+                                   alpha=0.6, color=self._style(controller, i), marker=MARKERS[i % len(MARKERS)],
                                    label=controller + tag)  # shapes too: controllers often coincide
                     for t in self.spec.thresholds:
                         if t.metric == metric:
-                            ax.axhline(t.limit, color="crimson", linestyle="--", linewidth=1.1,
+                            ax.axhline(t.limit * scale, color="crimson", linestyle="--", linewidth=1.1,
                                        label=f"spec: {threshold_label(t)}")
-                    ax.set_xlabel(f"{axis} [{shown}]" if shown else axis)
+                    ax.set_xlabel((f"{axis} [{shown}]" if shown else axis)
+                                  + ("" if significant else " (no significant influence)"))
                     ax.set_ylabel(label)
                     ax.grid(True, alpha=0.3)
                     ax.legend(loc="best", fontsize=7)
                 fig.suptitle(f"{self.spec.name}: {scenario}, each metric against its most influential parameter "
-                             "(largest |Spearman rho|)", fontsize=10)
+                             f"(largest significant |Spearman rho|, p < {SIGNIFICANCE:g})", fontsize=10)
                 save(fig, folder / f"influence__{scenario}")
                 made[f"influence__{scenario}"] = f"figures/influence__{scenario}.png"
 
@@ -391,7 +431,7 @@ class _Summary:
                       "units (grid point and draw) that meet the spec in every scenario. 95 % CI: Wilson score "
                       "interval.", ""]
             columns = ["controller", "scenario", "runs", "meet_spec", "yield_pct", "ci95_low_pct", "ci95_high_pct",
-                       *[f"pass_{t.metric}_pct" for t in spec.thresholds], "failed_runs"]
+                       *[pass_column(t.metric) for t in spec.thresholds], "failed_runs"]
             headers = ["controller", "scenario", "runs", "meet spec", "yield [%]", "CI low [%]", "CI high [%]",
                        *[_md(f"{t.text()} [%]") for t in spec.thresholds], "failed"]
             lines += markdown_table(yield_table, columns, headers, digits=3)
@@ -411,11 +451,17 @@ class _Summary:
 
         lines += ["", "## Most influential parameter", "",
                   "Per metric, the swept quantity with the largest |Spearman rank correlation| over the complete "
-                  "runs (+1: the metric grows with it).", ""]
+                  f"runs (+1: the metric grows with it), if it is significant (p < {SIGNIFICANCE:g}) and the metric "
+                  "spans more than a floor (overshoot and steady-state error 0.01 / 0.001 %, settling 0.01 ms, IAE "
+                  "1e-7 V s); otherwise *none* and why -- a perfect rank correlation on a metric that moves by "
+                  "1e-10 % is rounding, not an influence.", ""]
         if len(influence) and self.axis_names:
-            shown = influence.assign(metric=influence["metric"].map(HEADLINE))
-            lines += markdown_table(shown, ["scenario", "controller", "metric", "axis", "spearman_rho"],
-                                    ["scenario", "controller", "metric", "most influential", "Spearman rho"], digits=3)
+            shown = influence.assign(metric=influence["metric"].map(HEADLINE),
+                                     why=[_md(r) for r in influence["reason"]])
+            lines += markdown_table(shown, ["scenario", "controller", "metric", "axis", "spearman_rho", "p_value",
+                                            "strongest", "why"],
+                                    ["scenario", "controller", "metric", "most influential", "Spearman rho", "p",
+                                     "largest correlation", "if none: why"], digits=3)
             for scenario in self.scenarios:
                 if f"influence__{scenario}" in figures:
                     lines += ["", f"![influence, {scenario}]({figures[f'influence__{scenario}']})"]
@@ -495,7 +541,7 @@ def report_section(summary: SweepSummary, folder: str) -> list[str]:
     if not len(table):
         return lines
     shown = table.assign(ci=[f"{lo:.0f} ... {hi:.0f}" for lo, hi in zip(table["ci95_low_pct"], table["ci95_high_pct"])])
-    pass_columns = [f"pass_{t.metric}_pct" for t in summary.thresholds]
+    pass_columns = [pass_column(t.metric) for t in summary.thresholds]
     lines += markdown_table(shown, ["controller", "scenario", "runs", "yield_pct", "ci", *pass_columns],
                             ["controller", "scenario", "units", "yield [%]", "95 % CI [%]",
                              *[_md(f"{threshold_label(t)} [%]") for t in summary.thresholds]], digits=3)
@@ -503,9 +549,9 @@ def report_section(summary: SweepSummary, folder: str) -> list[str]:
     deciding = []
     for controller, group in table[table["scenario"] == ALL_SCENARIOS].groupby("controller", sort=False):
         row = group.iloc[0]
-        worst = min(summary.thresholds, key=lambda t: row[f"pass_{t.metric}_pct"])
+        worst = min(summary.thresholds, key=lambda t: row[pass_column(t.metric)])
         deciding.append(f"{controller}: {row['yield_pct']:.0f} % of the units meet the spec in every scenario; the "
-                        f"limiting threshold is {threshold_label(worst)} ({row[f'pass_{worst.metric}_pct']:.0f} % "
+                        f"limiting threshold is {threshold_label(worst)} ({row[pass_column(worst.metric)]:.0f} % "
                         "pass it)")
     lines += ["- " + line + "." for line in deciding]
     for name in ("yield", *[k for k in summary.figures if k.startswith("distributions__")]):

@@ -8,6 +8,7 @@ answers, its workers can load this FMU); then the controllers are designed on th
 
 Exit codes (``cosim.cli``): 0 every run complete; 2 a mistake in the sweep file, the plant, the
 output folder or ``--scheduler``; 3 the sweep finished but some runs failed (their rows say why);
+5 the dask scheduler went away mid-sweep (``--resume`` against a new one finishes the rest);
 130 interrupted (``--resume`` finishes the rest).
 """
 
@@ -61,18 +62,24 @@ class SweepOutcome:
         return self.computed / self.elapsed if self.elapsed > 0 else float("nan")
 
 
-def check_output(plan: SweepPlan, out_dir: Path, resume: bool) -> None:
-    """Refuse to mix sweeps in one folder: without ``--resume`` the folder must hold no sweep; with
-    it, the same sweep (same id: the same plant, axes, samples, seed, scenarios, controllers, rates)."""
+def check_output(plan: SweepPlan, out_dir: Path, resume: bool) -> bool:
+    """Refuse to mix sweeps in one folder: without ``--resume`` the folder must hold no sweep, or this
+    very sweep complete (then the command is a no-op: True is returned); with it, the same sweep
+    (same id: the same plant, axes, samples, seed, scenarios, controllers, rates)."""
     manifest = dataset.read_manifest(out_dir)
     exists = manifest is not None or dataset.has_rows(out_dir)
     if not exists:
-        return
+        return False
     held = manifest.get("sweep_id", "unknown") if manifest else "unknown"
+    same = manifest is not None and held == plan.sweep_id()
+    if not resume and same and len(dataset.done_run_ids(out_dir)) >= int(manifest.get("runs", -1)) >= 0:
+        return True  # every planned run has its row: nothing to do
     if not resume:
-        raise ConfigError(f"{out_dir} already holds a sweep (id {held}): pass --resume to finish it, or choose "
-                          "another --out")
-    if manifest is None or held != plan.sweep_id():
+        raise ConfigError(f"{out_dir} already holds a sweep (id {held}), not complete: pass --resume to finish it, "
+                          "or choose another --out" if same else
+                          f"{out_dir} already holds another sweep (id {held}): choose another --out (or pass "
+                          "--resume with its sweep file)")
+    if not same:
         changed = []
         if manifest is not None:
             old, new = manifest.get("identity", {}), plan.identity()
@@ -80,6 +87,7 @@ def check_output(plan: SweepPlan, out_dir: Path, resume: bool) -> None:
         raise ConfigError(f"--resume: {out_dir} holds sweep {held}, but {plan.spec.path or 'the sweep file'} describes "
                           f"sweep {plan.sweep_id()}" + (f" (changed: {', '.join(changed)})" if changed else "")
                           + ": resume with the original file, or choose another --out")
+    return False
 
 
 def check_workers(client, plan: SweepPlan) -> None:
@@ -156,6 +164,16 @@ def interrupted(out_dir: Path, planned: int, done_before: int):
     return message
 
 
+def scheduler_lost(out_dir: Path, planned: int, done_before: int, where: str):
+    def message(counts) -> str:
+        done = done_before + counts.runs
+        return (f"sweep stopped: the dask scheduler ({where}) went away; {done} of {planned} runs are in "
+                f"{out_dir}/{dataset.DATASET_DIR} (every part complete); start a scheduler and workers again and run "
+                f"the same command with --resume (--scheduler ADDRESS for a new address) to finish the other "
+                f"{planned - done}")
+    return message
+
+
 def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | None = None, workers: int | None = None,
               resume: bool = False, progress: bool = False, connect_timeout: float | None = None) -> SweepOutcome:
     """Run a sweep (module docstring); returns what happened, the summary included. Failed runs do not
@@ -165,7 +183,16 @@ def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | N
     spec = spec if isinstance(spec, SweepSpec) else load_sweep(spec)
     out_dir = Path(out_dir)
     plan = SweepPlan(spec)
-    check_output(plan, out_dir, resume)
+    if check_output(plan, out_dir, resume):  # this sweep, complete: nothing to run, no cluster
+        recipes = design(spec.controllers, plan.binding, spec.control_period, out_dir, progress)
+        prepared = PreparedSweep(plan, out_dir, recipes, progress)
+        if not prepared.todo:
+            summary = prepared.summarise()
+            log(f"sweep {spec.name} ({prepared.sweep_id}): all {len(prepared.runs)} runs are in {out_dir}/ already: "
+                f"nothing to run (summary: {out_dir / 'SWEEP.md'})")
+            return SweepOutcome(out_dir, prepared.sweep_id, len(prepared.runs), prepared.done_before, 0,
+                                summary.counts["failed"], 0.0, summary, "none (nothing to run)")
+        resume = True  # rows of the same sweep id, yet runs missing (the controllers' designs changed): finish them
     if scheduler is not None and workers is not None:
         raise ConfigError("--workers sizes the local cluster; with --scheduler the cluster's own workers run the sweep")
     if workers is not None and workers < 1:
@@ -187,7 +214,8 @@ def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | N
         started = time.perf_counter()
         try:
             counts = execute(prepared.execution(), client,
-                             interrupted(out_dir, len(prepared.runs), prepared.done_before))
+                             interrupted(out_dir, len(prepared.runs), prepared.done_before),
+                             scheduler_lost(out_dir, len(prepared.runs), prepared.done_before, where))
         finally:
             remove_temporary_files(out_dir)
         elapsed = time.perf_counter() - started
