@@ -86,18 +86,23 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
                          evaluations: np.ndarray) -> dict[str, np.ndarray]:
     """Operations per step of a predictive controller with the real-time iteration, from the C code paths
     (``controllers/c``): where ``rti_steps`` is False the search planned (:func:`operation_counts` of its
-    ``evaluations``); an RTI step does a fixed amount of work -- ``iterations`` linearisations of the NN
-    (``nn_model.c``, buckc_nn_sensitivities) and one rollout (the shared path), the cost of each trial,
-    the Gauss-Newton model (at most ``iterations`` times) and ``qp_iterations`` box-QP iterations
-    (``box_qp.c``: H x, a Cholesky of at most n x n, two triangular solves), counted at the most the
-    code can do except for the QP, whose iterations are read off the step.
+    ``evaluations``); an RTI step does a fixed amount of work, counted at the most the code can do except
+    for the box QP, whose iterations are read off the step:
 
-    Per NN linearisation step j with c = block(j) + 1 propagated directions (one hidden layer of H, n_in
-    inputs, D delays): the forward pass n_in H + 2 H MACs and H tanh, the sensitivities 2 D H c (the window's
-    states) + D H (its duties, unit directions) + H (the slope 1 - a^2) + H c (the slope times the
-    sensitivity) + 2 H c (the output layer); further hidden layers H_l-1 H_l (1 + c) each. The model per
-    horizon step: 2 nb^2 + 3 nb MACs, one square root and one division; a trial's cost: 4 MACs and two
-    square roots per step."""
+    * ``iterations`` linearisations of the NN over the horizon (``nn_model.c``, buckc_nn_sensitivities);
+    * without the line search (:attr:`~controllers.predictive.RtiSettings.line_search`) the plan's first
+      state (one network evaluation); with it one rollout of the last trial over the horizon, and one more
+      where a duty quantum may round the plan;
+    * the costs of each evaluated trajectory (4 MACs and two square roots per step), the Gauss-Newton model
+      ``iterations`` times (2 nb^2 + 3 nb MACs, one square root and one division per step), and the box QP
+      (per iteration H x, a Cholesky of at most nb x nb, two triangular solves: 2 nb^2 + nb^3 / 6 MACs and nb
+      square roots).
+
+    Per linearisation step with c = block + 1 propagated directions (hidden widths H_0..H_L-1, n_in inputs,
+    D delays): the forward pass (n_in H_0 + sum H_l H_l+1 + 2 H_L-1 MACs, sum H tanh) with the slopes (one
+    MAC per hidden unit), the network's Jacobian to its 3 D window inputs backwards from the two outputs
+    (2 H_L-1 for the output layer's slopes, 2 H_l-1 (H_l + 1) per further layer, 2 3D H_0 for the window),
+    and the state's sensitivity 2 c 2D + 2 D."""
     from controllers.predictors import NNPredictor
 
     if controller.rti is None or not isinstance(controller.predictor, NNPredictor):
@@ -105,30 +110,30 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
     rti_steps = np.asarray(rti_steps, dtype=bool)
     search = operation_counts(controller, np.where(rti_steps, 0, np.asarray(evaluations, dtype=float)))
     config = controller.predictor.model.config
-    settings, iterations = controller.settings, controller.rti.iterations
+    settings, rti = controller.settings, controller.rti
+    iterations, horizon = rti.iterations, settings.horizon
     blocks = np.repeat(np.arange(len(settings.blocks)), settings.blocks)
     nb, hidden, delays = len(settings.blocks), list(config.hidden), config.delays
-    directions = blocks + 1
-    first = hidden[0]
-    macs_linearize = 0.0
-    for c in directions:
-        macs = config.n_inputs * first + 2 * hidden[-1] + 2 * delays * first * c + delays * first + first + first * c
-        for a, b in zip(hidden[:-1], hidden[1:]):
-            macs += a * b * (1 + c) + b + b * c
-        macs += 2 * hidden[-1] * c
-        macs_linearize += macs
     widths = [config.n_inputs, *hidden, 2]
-    macs_rollout = settings.horizon * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
-    macs_model = settings.horizon * (2 * nb * nb + 3 * nb)
+    forward = sum(a * b for a, b in zip(widths[:-1], widths[1:]))  # one network evaluation
+    backward = 2 * hidden[-1] + sum(2 * a * (b + 1) for a, b in zip(hidden[:-1], hidden[1:])) + 2 * 3 * delays * hidden[0]
+    macs_linearize = sum(forward + sum(hidden) + backward + 2 * int(c) * 2 * delays + 2 * delays for c in blocks + 1)
+    if rti.line_search:
+        rollouts = 1 + (1 if rti.duty_resolution else 0)  # the last trial's, and the rounded plan's
+        steps_evaluated, trajectories = rollouts * horizon, iterations + rollouts
+    else:
+        steps_evaluated, trajectories = 1, iterations  # the plan's first state; costs of the linearisations only
+    macs_model = horizon * (2 * nb * nb + 3 * nb)
     qp = np.asarray(qp_iterations, dtype=float) * (2 * nb * nb + nb ** 3 / 6.0)
-    per_step = iterations * macs_linearize + macs_rollout + iterations * macs_model + (iterations + 1) * 4 * settings.horizon
-    horizon, tanh = settings.horizon, sum(hidden)
+    per_step = (iterations * macs_linearize + steps_evaluated * forward + iterations * macs_model
+                + trajectories * 4 * horizon)
+    tanh = sum(hidden)
     return {"macs": np.where(rti_steps, per_step + qp, search["macs"]),
-            "tanh": np.where(rti_steps, (iterations + 1) * horizon * tanh, search["tanh"]),
-            "sqrt": np.where(rti_steps, (iterations + 1) * 2 * horizon + iterations * horizon + qp_iterations * nb,
+            "tanh": np.where(rti_steps, (iterations * horizon + steps_evaluated) * tanh, search["tanh"]),
+            "sqrt": np.where(rti_steps, trajectories * 2 * horizon + iterations * horizon + qp_iterations * nb,
                              search["sqrt"]),
             "division": np.where(rti_steps, iterations * horizon, 0.0),
-            "candidates": np.where(rti_steps, iterations + 1, search["candidates"]),
+            "candidates": np.where(rti_steps, iterations + (1 if rti.line_search else 0), search["candidates"]),
             "qp_iterations": np.where(rti_steps, np.asarray(qp_iterations, dtype=float), 0.0)}
 
 

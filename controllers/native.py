@@ -229,7 +229,7 @@ OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT, ERR_ILL_CONDITION
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
 SOLVERS = ("search", "rti")  # BUCKC_SOLVER_...: the names PredictiveController.last_solver uses
 #: BUCKC_FALLBACK_...: the reasons PredictiveController.fallback_reason gives ("" for none)
-FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error")
+FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error", "start-up")
 
 c_double, c_int = ctypes.c_double, ctypes.c_int
 
@@ -323,6 +323,7 @@ class RealMirrors:
             "buckc_pi_step": (real, [P(self.Pi), real, real]),
             "buckc_estimate_conductance": (real, [real, real, real, real]),
             "buckc_nn_check": (c_int, [P(self.NnConfig), P(ctypes.c_char_p)]),
+            "buckc_nn_activate": (None, [c_int, rp, c_int, rp]),
             "buckc_nn_forward": (None, [P(self.NnConfig), rp, rp]),
             "buckc_nn_rollout": (None, [P(self.NnConfig), rp, rp, rp, c_int, rp, rp]),
             "buckc_nn_shared_prepare": (None, [P(self.NnConfig), rp, rp, rp, P(self.NnShared)]),
@@ -427,9 +428,10 @@ class PredictorConfig(ctypes.Structure):
 
 
 class RtiSettingsC(ctypes.Structure):
-    _fields_ = [("enabled", c_int), ("iterations", c_int), ("smoothing", c_double), ("step_limit", c_double),
-                ("regularization", c_double), ("qp_iterations", c_int), ("reference_step", c_double),
-                ("load_step", c_double), ("innovation", c_double)]
+    _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("smoothing", c_double),
+                ("step_limit", c_double), ("regularization", c_double), ("qp_iterations", c_int),
+                ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
+                ("startup_region", c_double), ("duty_resolution", c_double)]
 
 
 class PredictiveConfig(ctypes.Structure):
@@ -442,7 +444,8 @@ class PredictiveState(ctypes.Structure):
     _fields_ = [("delays", c_int), ("have_history", c_int), ("history", _array(c_double, MAX_DELAYS, 3)),
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
-                ("conductance", c_double), ("previous_reference", c_double), ("best_cost", c_double),
+                ("conductance", c_double), ("previous_reference", c_double), ("starting", c_int),
+                ("best_cost", c_double),
                 ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
                 ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
                 ("warm_before_valid", c_int), ("warm_before", _array(c_double, MAX_HORIZON)), ("anchor", c_double)]
@@ -608,6 +611,7 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
         return c
     c.enabled = 1
     c.iterations = settings.iterations
+    c.line_search = int(settings.line_search)
     c.smoothing = settings.smoothing
     c.step_limit = settings.step_limit
     c.regularization = settings.regularization
@@ -615,6 +619,8 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.reference_step = settings.reference_step
     c.load_step = settings.load_step
     c.innovation = settings.innovation
+    c.startup_region = settings.startup_region
+    c.duty_resolution = settings.duty_resolution
     return c
 
 
@@ -817,6 +823,11 @@ class NativePredictiveController(_MeasurementStepper):
     @property
     def best_cost(self) -> float:
         return self._state.best_cost
+
+    @property
+    def plan_sequence(self) -> np.ndarray | None:
+        """:attr:`PredictiveController.plan_sequence`: the last step's per-step plan (None before the first)."""
+        return np.array(self._state.warm[:self._config.horizon.horizon]) if self._state.have_warm else None
 
     def search_last_sample(self) -> tuple[np.ndarray, float]:
         """:meth:`PredictiveController.search_last_sample` in C: the search on the last step's problem."""
@@ -1194,6 +1205,17 @@ def expm2(a: np.ndarray, t: float) -> np.ndarray:
 
 def _precision_of(config) -> str:
     return next(p for p, m in REAL_MIRRORS.items() if isinstance(config, (m.NnConfig, m.PolicyConfigC, m.PiConfig)))
+
+
+def nn_activate(z: np.ndarray, activation: str = "tanh", precision: str = "float64") -> np.ndarray:
+    """The NN twins' hidden-layer activation (``buckc_nn_activate``: ``buckc_tanh`` for tanh in double,
+    ``buckc_tanhf`` in float32) of every element of ``z``, returned as float64."""
+    dtype = REAL_MIRRORS[check_precision(precision)].dtype
+    z = np.ascontiguousarray(np.ravel(z), dtype=dtype)
+    out = np.empty_like(z)
+    library(precision).buckc_nn_activate(list(ACTIVATIONS).index(activation), _pointer(z, precision), len(z),
+                                         _pointer(out, precision))
+    return out.astype(float)
 
 
 def nn_forward(config, x: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ match what the Python reference actually evaluates."""
 from __future__ import annotations
 
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ from cosim.benchmark_harness import (
     replay,
 )
 from cosim.study.experiments import implemented, nnpc, plant_binding, scenarios_for
+
+FIXTURES = Path(__file__).parent / "fixtures"
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +43,9 @@ def test_the_replayed_c_step_is_the_twin_step(nnpc_1ms, measurements):
         evaluations.append(twin.state.evaluations)
     np.testing.assert_array_equal(result.duty, duties)
     np.testing.assert_array_equal(result.evaluations, evaluations)
-    assert (result.evaluations > 0).all() and (result.passes >= 0).all()
+    # the RTI plans every step but the cold start's, which the search plans (its candidate evaluations)
+    assert list(result.rti) == [False] + [True] * (len(measurements) - 1)
+    assert (result.evaluations[0] > 0) and (result.evaluations[1:] == 0).all() and (result.passes >= 0).all()
 
 
 def test_the_replayed_pi_matches_the_python_pi(measurements):
@@ -64,7 +69,7 @@ def test_tanh_counts_match_what_the_python_reference_evaluates(nnpc_1ms, measure
     proxy = types.SimpleNamespace(**{name: getattr(np, name) for name in dir(np) if not name.startswith("__")})
     proxy.tanh = counting_tanh
     monkeypatch.setattr(nn_model_module, "np", proxy)
-    controller = nnpc(nnpc_1ms.predictor.model, 1e-3)
+    controller = nnpc(nnpc_1ms.predictor.model, 1e-3, optimizer="search")  # the RTI's counts: the test below
     controller.reset()
     evaluations = []
     for row in measurements:
@@ -78,6 +83,46 @@ def test_tanh_counts_match_what_the_python_reference_evaluates(nnpc_1ms, measure
     np.testing.assert_array_equal(counts["macs"], np.array(evaluations) * (3 * hidden + 5 * hidden * (horizon - 1)
                                                                           + 3 * horizon))
     np.testing.assert_array_equal(counts["sqrt"], np.array(evaluations) * horizon)
+
+
+@pytest.mark.parametrize("line_search", [False, True])
+def test_rti_tanh_counts_match_what_the_python_reference_evaluates(monkeypatch, line_search):
+    """The RTI NNPC at 13.33 us (the fixture's 7-10-2, two delays, 6 blocks): numpy's tanh elements counted
+    per step equal the cost model's count, at the cold start's search and at every RTI step after it (one
+    linearisation, then the plan's first state -- or, with the line search, its rollout)."""
+    from dataclasses import replace
+
+    from controllers.cost_model import rti_operation_counts
+    from controllers.nn_model import load_model
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
+    controller = nnpc(model, SWITCHING_PERIOD, optimizer="rti")
+    controller.rti = replace(controller.rti, line_search=line_search)
+    controller.rti_optimizer.settings = controller.rti
+    counted = []
+
+    def counting_tanh(z, *args, **kwargs):
+        counted[-1] += np.size(z)
+        return np.tanh(z, *args, **kwargs)
+
+    proxy = types.SimpleNamespace(**{name: getattr(np, name) for name in dir(np) if not name.startswith("__")})
+    proxy.tanh = counting_tanh
+    monkeypatch.setattr(nn_model_module, "np", proxy)
+    monkeypatch.setattr(model, "_activation", counting_tanh)  # the generic path's (two delays) activation
+    rti, qp, evaluations = [], [], []
+    for k in range(6):
+        counted.append(0)
+        controller.step(Measurement(k * SWITCHING_PERIOD, 12.0, 11.8 + 0.05 * k, 2.0, 1.97, 48.0))
+        rti.append(controller.last_solver == "rti")
+        qp.append(controller.rti_optimizer.qp_iterations if rti[-1] else 0)
+        evaluations.append(0 if rti[-1] else controller.optimizer.evaluations)
+    counts = rti_operation_counts(controller, np.array(rti), np.array(qp), np.array(evaluations))
+    assert rti == [False] + [True] * 5
+    np.testing.assert_array_equal(counts["tanh"], counted)
+    hidden, horizon = model.config.hidden[0], 23
+    assert counted[1] == (horizon + (horizon if line_search else 1)) * hidden
+    assert (counts["qp_iterations"][1:] >= 1).all() and counts["macs"][1] > counts["tanh"][1]
 
 
 def test_cycle_estimate_is_the_cost_model_applied_to_the_counts():

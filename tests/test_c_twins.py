@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import json
 import math
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -162,6 +163,29 @@ def test_nn_forward_pass_and_rollouts_match_numpy(config):
         expected = model.rollout_shared(histories[0], duties, shared_extras, dist)
         actual = native.nn_rollout_shared(c_config, histories[0], duties, shared_extras, dist)
         assert relative_error(actual, expected) <= 1e-12
+
+
+def test_the_nn_twins_tanh_is_within_its_stated_bound_of_tanh():
+    """buckc_tanh (controllers/c/buckc_tanh.h), the double NN twins' activation: within BUCKC_TANH_ERROR of a
+    long-double tanh over 4.2 million arguments of both signs, 4.2 ulp relative from |x| = 0.3 on, exactly
+    +-1 from 19.1 on, and the specials as tanh has them; the sigmoid built on it alike."""
+    header = (native.SOURCE_DIR / "buckc_tanh.h").read_text()
+    bound = float(re.search(r"^#define\s+BUCKC_TANH_ERROR\s+([0-9.eE+-]+)", header, flags=re.M).group(1))
+    magnitudes = np.concatenate([np.linspace(0.0, 25.0, 2_000_001), np.geomspace(1e-300, 1.0, 100_001)])
+    x = np.concatenate([magnitudes, -magnitudes])
+    actual = native.nn_activate(x)
+    reference = np.tanh(x.astype(np.longdouble))
+    error = np.abs(actual.astype(np.longdouble) - reference)
+    assert float(error.max()) <= bound
+    far = np.abs(x) >= 0.3
+    assert float((error[far] / np.abs(reference[far])).max()) <= 4.2 * np.finfo(float).eps / 2
+    assert np.all(np.abs(actual[np.abs(x) >= 19.1]) == 1.0)
+    assert float(np.max(np.abs(actual - np.tanh(x)))) <= bound  # numpy's tanh, the Python references'
+    special = native.nn_activate(np.array([np.nan, np.inf, -np.inf, -0.0, 0.0, 1e-320]))
+    assert np.isnan(special[0]) and list(special[1:3]) == [1.0, -1.0]
+    assert np.signbit(special[3]) and special[4] == 0.0 and not np.signbit(special[4]) and special[5] >= 0.0
+    sigmoid = native.nn_activate(x[::97], "sigmoid")
+    assert float(np.max(np.abs(sigmoid - 0.5 * (1.0 + np.tanh(0.5 * x[::97]))))) <= bound
 
 
 def test_networks_above_the_c_maxima_are_refused_by_name():
@@ -478,7 +502,12 @@ def test_the_c_audit_searches_the_last_problem_like_python_without_changing_the_
         assert bytes(twin.state) == state  # the C controller's state is untouched
         # the warm start is the RTI's plan, equal to ~1e-14: so are the search's lattices around it
         assert np.max(np.abs(sequence_c - sequence)) <= DUTY_TOLERANCE and cost_c == pytest.approx(cost, rel=1e-9)
-        assert cost <= controller.best_cost * 1.5 or twin.last_solver == "search"
+        # the RTI's plan, not rolled out in the step (best_cost NaN), evaluated by cost() in both twins
+        plan_cost, first = controller.cost(controller.plan_sequence)
+        plan_cost_c, first_c = twin.cost(twin.plan_sequence)
+        assert plan_cost_c == pytest.approx(plan_cost, rel=1e-9) and np.allclose(first_c, first, rtol=1e-12)
+        assert math.isnan(controller.best_cost) == math.isnan(twin.best_cost) == (twin.last_solver == "rti")
+        assert cost <= plan_cost * 1.5 or twin.last_solver == "search"
     assert twin.last_solver == controller.last_solver == "rti"
 
 

@@ -4,6 +4,7 @@ optimizer ablation of the study."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -179,16 +180,20 @@ def test_rti_settings_are_validated_by_name():
                              **OPERATING_POINT, rti=RtiSettings())
 
 
-def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits():
+@pytest.mark.parametrize("line_search", [True, False])
+def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits(line_search):
     """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a
-    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout."""
+    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout. With
+    the line search the plan's exact cost comes with it; without, it is NaN (not rolled out) and the
+    first predicted state is still the model's."""
     settings = HorizonSettings(horizon=6, blocks=(1, 2, 3))
     predictor = AveragedModelPredictor(NOMINAL, TS)
     ctx = PredictionContext(history=np.array([[1.0, 9.0, 0.0]]), input_voltage=48.0, load_resistance=6.0,
                             load_conductance=1 / 6.0, load_current=1.5, previous_duty=0.2)
     weights = settings.discount ** np.arange(6)
     target = np.array([2.0, 12.0])
-    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3), settings, (0.1, 0.6), weights)
+    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3, line_search=line_search), settings,
+                                  (0.1, 0.6), weights)
 
     def cost(duties):
         e = predictor.rollout(ctx, duties, np.zeros(2)) - target
@@ -205,20 +210,25 @@ def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respe
     for sample in range(12):  # the same problem: the shift only moves the plan within its own blocks
         plan, exact, first = optimizer.solve(linearize, evaluate, target, plan)
         assert np.all((plan >= 0.1) & (plan <= 0.6))
-        assert exact == pytest.approx(cost(plan[None])[0], rel=1e-12)
+        if line_search:
+            assert exact == pytest.approx(cost(plan[None])[0], rel=1e-12)
+        else:
+            assert math.isnan(exact) and optimizer.accepted == 3
         np.testing.assert_allclose(first, evaluate(plan)[0], rtol=1e-12)
     _, searched = HorizonOptimizer(settings, (0.1, 0.6)).solve(cost, anchor=0.25)
+    exact = cost(plan[None])[0]
     assert exact <= searched * 1.001 and exact < previous
 
 
 def test_an_rti_step_never_plans_worse_than_the_shifted_warm_start():
-    """The accept test: whatever the quadratic model says, the plan applied is predicted no worse
-    (smoothed cost) than the previous plan shifted -- here from plans far off on the NN model."""
+    """The line search's accept test: whatever the quadratic model says, the plan applied is predicted no
+    worse (smoothed cost) than the previous plan shifted -- here from plans far off on the NN model."""
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     predictor = NNPredictor(model)
     settings = HorizonSettings(horizon=23)
     rng = np.random.default_rng(3)
-    optimizer = RealTimeIteration(RtiSettings(iterations=2), settings, (0.0, 1.0), settings.discount ** np.arange(23))
+    optimizer = RealTimeIteration(RtiSettings(iterations=2, line_search=True), settings, (0.0, 1.0),
+                                  settings.discount ** np.arange(23))
     target = np.array([2.0, 12.0])
     for trial in range(20):
         history = np.array([[rng.uniform(0, 4), rng.uniform(0, 16), 0.0], [rng.uniform(0, 4), rng.uniform(0, 16),
@@ -241,10 +251,43 @@ def test_an_rti_step_never_plans_worse_than_the_shifted_warm_start():
         assert 0 <= optimizer.accepted <= 2 and optimizer.qp_iterations >= 2
 
 
+def test_without_a_line_search_the_step_is_taken_and_only_the_first_state_is_predicted():
+    """The default RTI (one step, no line search): the QP's step is the plan, whether or not the model
+    predicts it better; the first predicted state is the model's for that plan; the cost is not known."""
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    predictor = NNPredictor(model)
+    settings = HorizonSettings(horizon=23)
+    rng = np.random.default_rng(5)
+    plain = RealTimeIteration(RtiSettings(), settings, (0.0, 1.0), settings.discount ** np.arange(23))
+    searched = RealTimeIteration(RtiSettings(line_search=True), settings, (0.0, 1.0), settings.discount ** np.arange(23))
+    target = np.array([2.0, 12.0])
+    rolled = []
+    for trial in range(10):
+        history = np.array([[rng.uniform(0, 4), rng.uniform(0, 16), 0.0], [rng.uniform(0, 4), rng.uniform(0, 16),
+                                                                          rng.uniform(0, 1)]])
+        ctx = PredictionContext(history=history, input_voltage=48.0, load_resistance=6.0, load_conductance=1 / 6.0,
+                                load_current=2.0, previous_duty=float(history[1, 2]))
+        warm = rng.uniform(0, 1, 23)
+
+        def linearize(duties):
+            return predictor.linearize(ctx, duties, np.zeros(2), plain.block_of_step, plain.n_blocks)
+
+        def evaluate(duties):
+            rolled.append(len(duties))
+            return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+        plan, exact, first = plain.solve(linearize, evaluate, target, warm)
+        assert math.isnan(exact) and plain.accepted == 1 and rolled[-1] == 1  # the first step only
+        np.testing.assert_array_equal(first, predictor.rollout(ctx, plan[None], np.zeros(2))[0, 0])
+        checked, _, _ = searched.solve(linearize, evaluate, target, warm)
+        if searched.accepted:  # the same step where the line search takes it
+            np.testing.assert_array_equal(checked, plan)
+
+
 def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_only_where_enabled():
     predictor = AveragedModelPredictor(PARASITICS, TS)
-    ramp = [Measurement(k * TS, 12.0, 0.3 * k, 0.1 * k, 0.05 * k, 48.0) for k in range(20)]
-    step = [Measurement((20 + k) * TS, 15.0, 6.0, 2.0, 1.0, 48.0) for k in range(3)]
+    ramp = [Measurement(k * TS, 12.0, 11.5 + 0.01 * k, 2.0, 1.9, 48.0) for k in range(20)]
+    step = [Measurement((20 + k) * TS, 15.0, 12.0, 2.0, 2.0, 48.0) for k in range(3)]
     plain = rti_controller(predictor)
     for triggered, settings in ((False, RtiSettings(reference_step=0.0)), (True, RtiSettings())):
         controller = rti_controller(predictor, settings)
@@ -260,7 +303,60 @@ def test_the_controller_searches_at_a_cold_start_then_iterates_and_falls_back_on
         assert controller.step(ramp[0]) == rti_controller(predictor).step(ramp[0])  # reset forgets the plan
         assert controller.last_fallback == "cold start"
     description = plain.describe()["optimizer"]
-    assert description["type"].startswith("real-time iteration") and description["iterations"] == 2
+    assert description["type"].startswith("real-time iteration") and description["iterations"] == 1
+
+
+def test_the_search_plans_the_start_up_until_the_output_first_comes_within_the_region():
+    """After a cold start the search plans while |vref - vo| > startup_region, then the RTI -- also when the
+    error grows again (an overshoot, a reference step: their own rules apply); a reset starts over."""
+    predictor = AveragedModelPredictor(PARASITICS, TS)
+    voltages = [0.0, 4.0, 8.0, 10.9, 11.2, 12.6, 13.5, 12.5, 12.0]
+    run = [Measurement(k * TS, 12.0, v, 2.0, v / 6.0, 48.0) for k, v in enumerate(voltages)]
+    for region, expected in ((1.0, ["cold start"] + ["start-up"] * 3 + [""] * 5), (0.0, ["cold start"] + [""] * 8),
+                             (5.0, ["cold start", "start-up"] + [""] * 7)):
+        controller = rti_controller(predictor, RtiSettings(startup_region=region, reference_step=0.0))
+        for _ in range(2):  # the second pass after a reset
+            reasons = []
+            for m in run:
+                controller.step(m)
+                reasons.append(controller.last_fallback)
+                assert controller.last_solver == ("search" if controller.last_fallback else "rti")
+            assert reasons == expected
+            controller.reset()
+    with pytest.raises(ValueError, match="RTI startup_region = -1.0 is invalid"):
+        RtiSettings(startup_region=-1.0)
+    with pytest.raises(ValueError, match="RTI duty_resolution = 1.0 is invalid"):
+        RtiSettings(duty_resolution=1.0)
+
+
+def test_a_duty_resolution_rounds_the_plan_and_evaluates_the_rounded_plan():
+    """With a duty quantum the plan's blocks are multiples of it (within the limits), the first predicted
+    state and, with the line search, the exact cost are those of the rounded plan."""
+    settings = HorizonSettings(horizon=1)
+    predictor = AveragedModelPredictor(NOMINAL, 1e-3)
+    ctx = PredictionContext(history=np.array([[2.0, 11.7, 0.0]]), input_voltage=48.0, load_resistance=6.0,
+                            load_conductance=1 / 6.0, load_current=1.95, previous_duty=0.25)
+    target = np.array([2.0, 12.0])
+    quantum = 1 / 10240
+
+    def evaluate(duties):
+        return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+    for line_search in (True, False):
+        exact_plan = None
+        for q in (0.0, quantum):
+            optimizer = RealTimeIteration(RtiSettings(iterations=2, line_search=line_search, step_limit=1.0,
+                                                      duty_resolution=q), settings, (0.0, 1.0), np.ones(1))
+            plan, exact, first = optimizer.solve(
+                lambda d: predictor.linearize(ctx, d, np.zeros(2), optimizer.block_of_step, 1), evaluate, target,
+                np.array([0.25]))
+            np.testing.assert_array_equal(first, evaluate(plan)[0])
+            if line_search:
+                assert exact == pytest.approx(optimizer.costs(evaluate(plan), target)[1], rel=1e-15)
+            if q:
+                assert plan[0] == np.floor(exact_plan[0] / q + 0.5) * q and plan[0] != exact_plan[0]
+            else:
+                exact_plan = plan
 
 
 def test_search_last_sample_leaves_the_controller_as_it_was():
@@ -286,8 +382,11 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     rows = compare(plant_binding("mismatch", "switched"), lambda optimizer: nnpc(model, TS, optimizer=optimizer),
                    scenarios)
     (row,) = rows
-    assert row["samples"] == 61 and row["search_samples"] == 1 and row["fallbacks"] == {"cold start": 1}
-    assert len(row["cost_excess"]) == 60 and row["closed_loop_cost_rti_Vs"] > 0
+    # the cold start, then the search while the output is more than 1 V off (the start-up region)
+    startup = row["fallbacks"].get("start-up", 0)
+    assert row["samples"] == 61 and set(row["fallbacks"]) == {"cold start", "start-up"} and 1 <= startup <= 10
+    assert row["search_samples"] == 1 + startup and len(row["cost_excess"]) == 60 - startup
+    assert np.all(np.isfinite(row["cost_excess"])) and row["closed_loop_cost_rti_Vs"] > 0
     assert row["iae_ratio"] == pytest.approx(row["iae_rti_Vs"] / row["iae_search_Vs"])
     assert row["overshoot_difference_points"] == pytest.approx(row["overshoot_rti_pct"] - row["overshoot_search_pct"])
     assert row["cost_excess_median"] == pytest.approx(float(np.median(row["cost_excess"])))

@@ -83,10 +83,17 @@ static buckc_real activate(int activation, buckc_real z)
     case BUCKC_ACTIVATION_RELU:
         return z < zero ? zero : z; /* np.maximum(z, 0.0): NaN stays NaN */
     case BUCKC_ACTIVATION_SIGMOID:
-        return half * (BUCKC_REAL_LITERAL(1.0) + BUCKC_TANH(half * z));
+        return half * (BUCKC_REAL_LITERAL(1.0) + BUCKC_NN_TANH(half * z));
     default:
-        return BUCKC_TANH(z);
+        return BUCKC_NN_TANH(z);
     }
+}
+
+void buckc_nn_activate(int activation, const buckc_real *z, int n, buckc_real *out)
+{
+    int i;
+    for (i = 0; i < n; ++i)
+        out[i] = activate(activation, z[i]);
 }
 
 /* y = x @ W_l + b_l: the product summed over the inputs in order, then the bias */
@@ -228,11 +235,11 @@ static buckc_real activate_with_slope(int activation, buckc_real z, buckc_real *
         *slope = z > zero ? one : zero;
         return a;
     case BUCKC_ACTIVATION_SIGMOID:
-        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_TANH(BUCKC_REAL_LITERAL(0.5) * z));
+        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_NN_TANH(BUCKC_REAL_LITERAL(0.5) * z));
         *slope = a * (one - a);
         return a;
     default:
-        a = BUCKC_TANH(z);
+        a = BUCKC_NN_TANH(z);
         *slope = one - a * a;
         return a;
     }
@@ -246,64 +253,69 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
     const buckc_real zero = BUCKC_REAL_LITERAL(0.0);
     buckc_real x[W];                            /* the window [iL, vc, d] x delays, then the extras */
     buckc_real state_sens[BUCKC_NN_MAX_DELAYS][2][D]; /* d [iL, vc] of each window row / d block values */
+    buckc_real slopes[BUCKC_NN_MAX_HIDDEN_LAYERS][W]; /* each hidden layer's activation slopes */
     int duty_block[BUCKC_NN_MAX_DELAYS];        /* the block whose value a window row's duty is (-1: none) */
     int delays = config->delays, e = config->n_extras, n_in = buckc_nn_inputs(config), last = config->n_hidden;
-    int j, r, c, h, l, o;
+    int window = 3 * delays, j, r, c, h, l, o, i;
     if (n_blocks < 1 || n_blocks > D)
         return BUCKC_ERR_LIMIT;
-    memcpy(x, history, sizeof(buckc_real) * 3 * (size_t)delays);
+    memcpy(x, history, sizeof(buckc_real) * (size_t)window);
     for (r = 0; r < e; ++r)
-        x[3 * delays + r] = extras != NULL ? extras[r] : (buckc_real)NAN;
+        x[window + r] = extras != NULL ? extras[r] : (buckc_real)NAN;
     memset(state_sens, 0, sizeof(state_sens));
     for (r = 0; r < delays; ++r)
         duty_block[r] = -1;
     for (j = 0; j < n; ++j) {
-        buckc_real h_val[W], h_sens[W][D], z_val[W], z_sens[W][D], y[2], y_sens[2][D];
-        int active = block_of_step[j] + 1, width;
+        buckc_real a[W], b[W], y[2], g[2][W], gn[2][W], jin[2][3 * BUCKC_NN_MAX_DELAYS], y_sens[2][D];
+        const buckc_real *hv = x;
+        int active = block_of_step[j] + 1, width = n_in;
         x[2] = duties[j];
         duty_block[0] = block_of_step[j];
-        /* layer 0: z = x @ W0 + b0; its sensitivity from the window's states (dense) and duties (unit) */
-        dense(config->weights[0], config->biases[0], x, n_in, config->hidden[0], z_val);
-        for (h = 0; h < config->hidden[0]; ++h) {
+        /* the forward pass, keeping each hidden layer's slopes */
+        for (l = 0; l < last; ++l) {
+            buckc_real *next = (l % 2 == 0) ? a : b;
+            dense(config->weights[l], config->biases[l], hv, width, config->hidden[l], next);
+            for (h = 0; h < config->hidden[l]; ++h)
+                next[h] = activate_with_slope(config->activation, next[h], &slopes[l][h]);
+            hv = next;
+            width = config->hidden[l];
+        }
+        dense(config->weights[last], config->biases[last], hv, width, BUCKC_NN_OUTPUTS, y);
+        /* the network's Jacobian to its window inputs, backwards from the two outputs:
+         * g = W_last' diag(slope), then g W_l' diag(slope) per further layer, jin = g W_0' (window rows) */
+        for (o = 0; o < 2; ++o)
+            for (h = 0; h < width; ++h)
+                g[o][h] = config->weights[last][h][o] * slopes[last - 1][h];
+        for (l = last - 1; l > 0; --l) {
+            int below = config->hidden[l - 1];
+            for (o = 0; o < 2; ++o)
+                for (i = 0; i < below; ++i) {
+                    buckc_real acc = g[o][0] * config->weights[l][i][0];
+                    for (h = 1; h < config->hidden[l]; ++h)
+                        acc += g[o][h] * config->weights[l][i][h];
+                    gn[o][i] = acc * slopes[l - 1][i];
+                }
+            memcpy(g, gn, sizeof(g));
+        }
+        for (o = 0; o < 2; ++o)
+            for (i = 0; i < window; ++i) {
+                buckc_real acc = g[o][0] * config->weights[0][i][0];
+                for (h = 1; h < config->hidden[0]; ++h)
+                    acc += g[o][h] * config->weights[0][i][h];
+                jin[o][i] = acc;
+            }
+        /* the state's sensitivity: jin times the window's (its states dense, its duties unit directions) */
+        for (o = 0; o < 2; ++o) {
             for (c = 0; c < active; ++c) {
                 buckc_real acc = zero;
                 for (r = 0; r < delays; ++r)
-                    acc += config->weights[0][3 * r][h] * state_sens[r][0][c]
-                           + config->weights[0][3 * r + 1][h] * state_sens[r][1][c];
-                z_sens[h][c] = acc;
+                    acc += jin[o][3 * r] * state_sens[r][0][c] + jin[o][3 * r + 1] * state_sens[r][1][c];
+                y_sens[o][c] = acc;
             }
             for (r = 0; r < delays; ++r)
                 if (duty_block[r] >= 0)
-                    z_sens[h][duty_block[r]] += config->weights[0][3 * r + 2][h];
+                    y_sens[o][duty_block[r]] += jin[o][3 * r + 2];
         }
-        width = config->hidden[0];
-        for (l = 0;; ++l) { /* activation of layer l, then layer l + 1 */
-            for (h = 0; h < width; ++h) {
-                buckc_real slope;
-                h_val[h] = activate_with_slope(config->activation, z_val[h], &slope);
-                for (c = 0; c < active; ++c)
-                    h_sens[h][c] = z_sens[h][c] * slope;
-            }
-            if (l + 1 == last)
-                break;
-            dense(config->weights[l + 1], config->biases[l + 1], h_val, width, config->hidden[l + 1], z_val);
-            for (o = 0; o < config->hidden[l + 1]; ++o)
-                for (c = 0; c < active; ++c) {
-                    buckc_real acc = zero;
-                    for (h = 0; h < width; ++h)
-                        acc += config->weights[l + 1][h][o] * h_sens[h][c];
-                    z_sens[o][c] = acc;
-                }
-            width = config->hidden[l + 1];
-        }
-        dense(config->weights[last], config->biases[last], h_val, width, BUCKC_NN_OUTPUTS, y);
-        for (o = 0; o < 2; ++o)
-            for (c = 0; c < active; ++c) {
-                buckc_real acc = zero;
-                for (h = 0; h < width; ++h)
-                    acc += config->weights[last][h][o] * h_sens[h][c];
-                y_sens[o][c] = acc;
-            }
         if (config->residual) { /* + x[:2] and its sensitivity */
             for (o = 0; o < 2; ++o) {
                 y[o] = y[o] + x[o];

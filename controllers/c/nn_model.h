@@ -76,6 +76,10 @@ int buckc_nn_check(const BuckcNnConfig *config, const char **what);
 /* 3 * delays + n_extras */
 int buckc_nn_inputs(const BuckcNnConfig *config);
 
+/* The hidden layers' activation as the forward passes compute it (BUCKC_NN_TANH for tanh and the
+ * sigmoid, buckc.h), elementwise: out[i] = act(z[i]) for i < n (for tests and tools). */
+void buckc_nn_activate(int activation, const buckc_real *z, int n, buckc_real *out);
+
 /* NNPlantModel.predict for one row: x[buckc_nn_inputs()] -> y[2]. */
 void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y);
 

@@ -414,9 +414,14 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
             FAIL(BUCKC_ERR_INVALID, "rti regularization: expected 0 <= mu < 1");
         if (r->qp_iterations < 1)
             FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
+        if (r->line_search != 0 && r->line_search != 1)
+            FAIL(BUCKC_ERR_INVALID, "rti line_search: expected 0 or 1");
         if (!(r->reference_step >= 0.0 && isfinite(r->reference_step)) || !(r->load_step >= 0.0 && isfinite(r->load_step))
-            || !(r->innovation >= 0.0 && isfinite(r->innovation)))
+            || !(r->innovation >= 0.0 && isfinite(r->innovation))
+            || !(r->startup_region >= 0.0 && isfinite(r->startup_region)))
             FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
+        if (!(r->duty_resolution >= 0.0 && r->duty_resolution < 1.0))
+            FAIL(BUCKC_ERR_INVALID, "rti duty_resolution: expected 0 <= quantum < 1");
     }
     memset(c, 0, sizeof(*c));
     status = buckc_optimizer_init(&c->optimizer, &config->horizon, config->duty_min, config->duty_max, what);
@@ -439,6 +444,7 @@ void buckc_predictive_reset(BuckcPredictive *c)
     s->previous_duty = 0.0;
     s->conductance = 1.0 / c->config->nominal_load;
     s->previous_reference = NAN;
+    s->starting = 1;
     s->best_cost = NAN;
     buckc_predictive_clear_caches(c); /* PredictiveController.reset: predictor.clear_cache() */
 }
@@ -574,13 +580,14 @@ static void expand(const BuckcOptimizer *o, const double *moves, double *duties)
         duties[t] = moves[o->block_of_step[t]];
 }
 
-/* RealTimeIteration.solve: the plan sequence[horizon] from the warm start; returns its exact cost */
+/* RealTimeIteration.solve: the plan sequence[horizon] from the warm start; returns its exact cost (NaN where the
+ * plan was not rolled out) and writes its first predicted state */
 static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence, double first[2])
 {
     const BuckcRtiSettings *st = &c->config->rti;
     const BuckcOptimizer *o = &c->optimizer;
     BuckcPredictiveState *state = &c->state;
-    int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration;
+    int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration, rolled_out = 1;
     double u[BUCKC_QP_MAX_VARIABLES], trial[BUCKC_QP_MAX_VARIABLES], delta[BUCKC_QP_MAX_VARIABLES];
     double lower[BUCKC_QP_MAX_VARIABLES], upper[BUCKC_QP_MAX_VARIABLES], gradient[BUCKC_QP_MAX_VARIABLES];
     double hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES];
@@ -615,13 +622,19 @@ static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence
             if (v > o->high) v = o->high;
             trial[b] = v;
         }
+        if (final && !st->line_search) { /* taken unevaluated */
+            memcpy(u, trial, sizeof(double) * (size_t)nb);
+            rolled_out = 0;
+            state->accepted += 1;
+            break;
+        }
         expand(o, trial, duties);
         if (final)
             predict(c, duties, horizon, trial_predicted);
         else
             linearize(c, duties, trial_predicted, jacobian);
         rti_costs(c, trial_predicted, &trial_smoothed, &trial_exact);
-        if (trial_smoothed <= smoothed * BUCKC_RTI_ACCEPT_TOLERANCE) {
+        if (!st->line_search || trial_smoothed <= smoothed * BUCKC_RTI_ACCEPT_TOLERANCE) {
             memcpy(u, trial, sizeof(double) * (size_t)nb);
             memcpy(predicted, trial_predicted, sizeof(double) * 2 * (size_t)horizon);
             smoothed = trial_smoothed;
@@ -633,20 +646,42 @@ static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence
             radius *= 0.25;
         }
     }
+    if (st->duty_resolution > 0.0) { /* floor(u / q + 1/2) q, within the limits */
+        double q = st->duty_resolution;
+        for (b = 0; b < nb; ++b) {
+            double v = floor(u[b] / q + 0.5) * q;
+            if (v < o->low) v = o->low;
+            if (v > o->high) v = o->high;
+            if (v != u[b])
+                rolled_out = 0;
+            u[b] = v;
+        }
+    }
     expand(o, u, sequence);
+    if (!rolled_out) {
+        if (st->line_search) { /* the plan's cost stays known, as the line search's plans' are */
+            predict(c, sequence, horizon, predicted);
+            rti_costs(c, predicted, &smoothed, &exact);
+        } else { /* its first state only: what the disturbance estimate needs */
+            predict(c, sequence, 1, predicted);
+            exact = NAN;
+        }
+    }
     first[0] = predicted[0];
     first[1] = predicted[1];
     return exact;
 }
 
 /* PredictiveController.fallback_reason */
-static int fallback_reason(const BuckcPredictive *c, double reference, double conductance,
+static int fallback_reason(const BuckcPredictive *c, double reference, double voltage, double conductance,
                            double previous_conductance, double surprise)
 {
     const BuckcRtiSettings *st = &c->config->rti;
     const BuckcPredictiveState *s = &c->state;
     if (!s->have_warm)
         return BUCKC_FALLBACK_COLD_START;
+    if (s->starting && st->startup_region != 0.0 && fabs(reference - voltage) > st->startup_region)
+        return BUCKC_FALLBACK_STARTUP;
     if (st->reference_step != 0.0 && fabs(reference - s->previous_reference) > st->reference_step)
         return BUCKC_FALLBACK_REFERENCE_STEP;
     if (st->load_step != 0.0 && fabs(conductance - previous_conductance) > st->load_step * previous_conductance)
@@ -745,8 +780,11 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
     s->anchor = anchor; /* the problem, for buckc_predictive_search_last */
     s->warm_before_valid = s->have_warm;
     memcpy(s->warm_before, s->warm, sizeof(s->warm));
-    fallback = config->rti.enabled ? fallback_reason(c, m->reference, s->conductance, previous_conductance, surprise)
+    fallback = config->rti.enabled ? fallback_reason(c, m->reference, voltage, s->conductance, previous_conductance,
+                                                     surprise)
                                    : BUCKC_FALLBACK_NONE;
+    if (fallback != BUCKC_FALLBACK_COLD_START && fallback != BUCKC_FALLBACK_STARTUP)
+        s->starting = 0;
     s->previous_reference = m->reference;
     if (config->rti.enabled && fallback == BUCKC_FALLBACK_NONE) {
         s->best_cost = rti_solve(c, s->warm, sequence, first);

@@ -85,6 +85,7 @@ double buckc_optimizer_solve(BuckcOptimizer *optimizer, BuckcCostFunction cost, 
 typedef struct {
     int enabled;
     int iterations;            /* Gauss-Newton steps per sample, 1..3 */
+    int line_search;           /* 1: roll each trial out, take it if not worse; 0: take every step, the last unevaluated */
     double smoothing;          /* eps [V] of sqrt(|e|^2 + eps^2) */
     double step_limit;         /* trust region [duty], 0 < r <= 1 */
     double regularization;     /* mu = this x mean(diag H) + 1e-12 */
@@ -92,6 +93,8 @@ typedef struct {
     double reference_step;     /* [V] fallback when the reference moves more than this, */
     double load_step;          /* the load-conductance estimate more than this fraction, */
     double innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
+    double startup_region;     /* [V] after a cold start, the search until |vref - vo| first falls to this (0: none) */
+    double duty_resolution;    /* round the plan's blocks to multiples of this (0: not rounded), 0 <= q < 1 */
 } BuckcRtiSettings;
 
 /* PredictiveController.last_solver and last_fallback */
@@ -101,7 +104,8 @@ enum {
     BUCKC_FALLBACK_COLD_START = 1,
     BUCKC_FALLBACK_REFERENCE_STEP = 2,
     BUCKC_FALLBACK_LOAD_STEP = 3,
-    BUCKC_FALLBACK_PREDICTION_ERROR = 4
+    BUCKC_FALLBACK_PREDICTION_ERROR = 4,
+    BUCKC_FALLBACK_STARTUP = 5
 };
 
 /* ------------------------------------------------------------------ the controller */
@@ -140,8 +144,9 @@ typedef struct {
     double previous_duty;
     double conductance;                     /* [S] the last load estimate (load_estimate.h) */
     double previous_reference;              /* [V] the reference of the last sample (NaN before the first) */
+    int starting;                           /* in the start-up region since the cold start (RtiSettings.startup_region) */
     /* diagnostics of the last step */
-    double best_cost;                       /* eq. 16 cost of the plan (exact, not smoothed) */
+    double best_cost;                       /* eq. 16 cost of the plan (exact, not smoothed; NaN where not rolled out) */
     int evaluations, passes, best_call, best_row; /* the search's, when it planned */
     int last_solver;                        /* BUCKC_SOLVER_... */
     int last_fallback;                      /* BUCKC_FALLBACK_... (with the RTI enabled) */

@@ -51,8 +51,8 @@ from plant_fmu.fmu_sources import (
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
-ALGORITHM_FILES = ("buckc.c", "buckc.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c", "predictors.h",
-                   "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
+ALGORITHM_FILES = ("buckc.c", "buckc.h", "buckc_tanh.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c",
+                   "predictors.h", "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
                    "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h",
                    "box_qp.c", "box_qp.h")
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in

@@ -1,0 +1,47 @@
+"""The every-seed evaluation of the real-time iteration against the search (issue 24's quality targets).
+
+Runs :func:`cosim.study.optimizer_ablation.every_seed`: the NNPC of every study seed on the nominal plants and
+the MPC baselines on every pipeline, both rates, each with the search and with the RTI (its C twins, as the
+study runs them), and prints one line per run and the targets' verdict per pipeline and over all. Needs the
+reproduction's models and PI tunings in RESULTS (``make reproduce``); the seeds' models are identified once
+and kept in CACHE. Long (an hour on two busy cores with the audit): run it niced.
+
+    nice ./.venv/bin/python scripts/optimizer_every_seed.py [--results results] [--cache ~/.cache/buck-cosim/every-seed]
+        [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str]) -> int:
+    from controllers.native import cache_dir
+    from cosim.study.optimizer_ablation import every_seed, summary, verdict
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--results", type=Path, default=Path("results"))
+    parser.add_argument("--cache", type=Path, default=cache_dir() / "every-seed")
+    parser.add_argument("--pipelines", default="", help="comma-separated pipeline tags (default: all)")
+    parser.add_argument("--seeds", default="", help="comma-separated seeds (default: the study's)")
+    parser.add_argument("--no-audit", action="store_true", help="skip the per-sample search (no plan-cost excess)")
+    parser.add_argument("--json", type=Path, help="write the rows (without their per-sample arrays) here")
+    args = parser.parse_args(argv)
+    rows = every_seed(args.results, args.cache, pipelines=args.pipelines.split(",") if args.pipelines else None,
+                      seeds=tuple(int(s) for s in args.seeds.split(",")) if args.seeds else None,
+                      audit=not args.no_audit, log=lambda line: print(line, flush=True))
+    for key, (value, met) in verdict(rows).items():
+        print(f"all: {key} = {value:.4g} ({'met' if met else 'NOT met'})")
+    if args.json:
+        args.json.write_text(json.dumps([{**summary(r), "pipeline": r["pipeline"], "seed": r["seed"]} for r in rows],
+                                        indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
