@@ -127,3 +127,24 @@ def test_the_map_has_the_delay_free_current_mode_row_from_its_own_design_file(tm
     measured = {r["target"]: r for r in target_rows(pd.DataFrame(columns=["pipeline", "controller"]), tmp_path)}
     row = next(r for t, r in measured.items() if "without the computation delay" in t)
     assert row["measured"] == "100 % (with the delay 0 %)"
+
+
+def test_the_oracle_diagnosis_names_ripple_horizon_or_model_per_point():
+    """A point fails by ripple when the period mean of vo meets the spec, by the horizon when the longer horizon
+    meets it, else by the model; both steps of a point count."""
+    from cosim.study.oracle_limits import verdicts
+
+    def row(r, step, overshoot, mean, settle, long_overshoot, long_settle):
+        return {"reference_V": r, "load_Ohm": 100.0, "input_voltage_V": 48.0, "step": step, "overshoot_pct": overshoot,
+                "overshoot_of_mean_pct": mean, "settling_time_ms": settle, "overshoot_pct_long": long_overshoot,
+                "settling_time_ms_long": long_settle}
+
+    frame = pd.DataFrame([
+        row(3, "reference_step", 6.0, 4.0, 0.1, 6.0, 0.1), row(3, "load_step", 1.0, 0.5, 0.1, 1.0, 0.1),  # ripple
+        row(7, "reference_step", 9.0, 8.0, 0.2, 4.0, 0.3), row(7, "load_step", 1.0, 0.5, 0.1, 1.0, 0.2),  # horizon
+        row(11, "reference_step", 9.0, 8.0, 0.2, 4.0, math.nan),  # the long horizon never settles: model
+        row(11, "load_step", 1.0, 0.5, 0.1, 1.0, 0.1),
+        row(15, "reference_step", 2.0, 1.0, 0.2, 2.0, 0.2), row(15, "load_step", 1.0, 0.5, 0.7, 1.0, 0.2),  # settling
+    ])
+    verdict = verdicts(frame).drop_duplicates("reference_V").set_index("reference_V")["verdict"]
+    assert verdict.to_dict() == {3: "ripple", 7: "horizon", 11: "model", 15: "horizon"}
