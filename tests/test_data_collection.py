@@ -74,3 +74,78 @@ def test_saved_samples_keep_their_metadata(samples, tmp_path):
 def test_invalid_settings_are_refused(kwargs, message):
     with pytest.raises(ConfigError, match=message):
         collect(builtin_binding("averaged"), PI, CollectionSettings(**kwargs))
+
+
+# ------------------------------------------------------------------ the envelope collection (13.33 us)
+
+
+class _Constant:
+    name, sample_period, duty_limits = "constant", 1e-3, (0.0, 1.0)
+
+    def reset(self):
+        pass
+
+    def step(self, measurement):
+        return 0.5
+
+    def describe(self):
+        return {"type": "constant"}
+
+
+def test_am_prbs_dither_holds_alternating_levels_of_random_amplitude():
+    """Levels +-a, a ~ U(0, sigma), each held 1-8 samples, the sign alternating at every new level."""
+    from cosim.study.data_collection import DitheredController
+
+    dithered = DitheredController(_Constant(), 0.2, seed=3, shape="am-prbs", hold=(1, 8))
+    m = Measurement(0.0, 12.0, 12.0)
+    dither = np.array([dithered.step(m) for _ in range(4000)]) - 0.5
+    starts = np.flatnonzero(np.r_[True, np.diff(dither) != 0])
+    holds = np.diff(np.r_[starts, len(dither)])[:-1]  # the last level may be cut short
+    assert holds.min() == 1 and holds.max() == 8 and 4.0 < holds.mean() < 5.0
+    levels = dither[starts]
+    assert np.all(np.sign(levels[1:]) == -np.sign(levels[:-1]))
+    assert np.abs(levels).max() <= 0.2 and np.abs(levels).min() < 0.01 and np.abs(levels).mean() == pytest.approx(0.1, abs=0.01)
+    dithered.reset()
+    assert np.array_equal(np.array([dithered.step(m) for _ in range(4000)]) - 0.5, dither)  # seeded
+    assert dithered.describe()["shape"] == "am-prbs" and dithered.describe()["hold"] == [1, 8]
+
+
+def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth():
+    """On the switched plant at 13.33 us with the tuned PI's gains, 10 000 samples: the envelope collection's
+    references, loads and supplies fill 45 of the 48 coverage cells (3-20 V x 4-100 Ohm x 36-60 V) with >= 20
+    samples each, a quarter of its samples in DCM; the paper's region fills the 8 cells of 4-10 Ohm at 48 V and
+    never reaches DCM."""
+    from cosim.study.envelope_identification import MIN_CELL_SAMPLES, coverage
+    from cosim.study.experiments import collection_settings, plant_binding
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    binding = plant_binding("nominal", "switched")
+    pi = PIController(0.007026878992716469, 172.92168103154324, SWITCHING_PERIOD)  # results/tuning/pi__nominal-switched__13p33us
+    envelope = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="envelope"))
+    paper = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="paper"))
+    e, p = coverage(envelope), coverage(paper)
+    assert MIN_CELL_SAMPLES == 20 and e["cells"] == p["cells"] == 48
+    assert e["cells_covered"] >= 44 and p["cells_covered"] == 8
+    assert 15.0 < e["dcm_share_pct"] < 40.0 and p["dcm_share_pct"] == 0.0
+    assert 36.0 <= e["supply_range_V"][0] < 37.0 and 59.0 < e["supply_range_V"][1] <= 60.0
+    assert p["supply_range_V"] == [48.0, 48.0]
+    assert e["load_range_Ohm"][0] < 4.5 and e["load_range_Ohm"][1] > 90.0 and p["load_range_Ohm"][1] <= 10.0
+    assert e["duty_limit_share_pct"] > p["duty_limit_share_pct"]  # more full-duty and braking moves
+    supply = envelope["input_voltage"].to_numpy()
+    held = np.diff(np.flatnonzero(np.r_[True, np.diff(supply) != 0]))
+    assert held.min() >= 20 and held.max() <= 200  # the supply's levels are held like the others
+    meta = envelope.attrs["metadata"]
+    assert meta["collection"]["input_voltage_range"] == (36.0, 60.0) and meta["controller"]["shape"] == "am-prbs"
+
+
+def test_envelope_collection_settings_are_checked():
+    with pytest.raises(ConfigError, match=r"input voltage range \(60.0, 36.0\) V is invalid"):
+        CollectionSettings(input_voltage_range=(60.0, 36.0)).check()
+    with pytest.raises(ConfigError, match="dither 'pink' is unknown: expected one of gaussian, am-prbs"):
+        CollectionSettings(dither="pink").check()
+    with pytest.raises(ConfigError, match=r"dither hold \(0, 4\) samples is invalid"):
+        CollectionSettings(dither_hold=(0, 4)).check()
+    from cosim.study.experiments import collection_settings
+
+    with pytest.raises(ConfigError, match="collection region 'moon' is unknown: expected one of paper, envelope"):
+        collection_settings(1e-3, region="moon")

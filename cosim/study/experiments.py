@@ -68,18 +68,45 @@ def multiply_accumulates(config: NNConfig) -> int:
     return sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
 
 
+#: where the identification data come from: the paper's region (references 0-20 V, loads 4-10 Ohm, 48 V) or the
+#: operating envelope of the map (cosim.study.envelope_identification)
+COLLECTION_REGIONS = ("paper", "envelope")
+#: the envelope collection: references (and rests at 0 V), loads (log-uniform), supplies [V, Ohm, V]; its dither:
+#: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
+ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
+ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
+
+
+def default_region(control_period: float) -> str:
+    """The region of the workbench's identification data at ``control_period``: the paper's everywhere for now."""
+    return "paper"
+
+
 def collection_settings(control_period: float, samples: int = 10_000, seed: int = 0,
-                        excitation: float | None = None) -> CollectionSettings:
+                        excitation: float | None = None, region: str | None = None) -> CollectionSettings:
     """Identification settings per rate (paper Section IV, random levels held for random intervals).
 
     At 1 ms levels are held 5-40 samples and the PI's duty is dithered with sigma 0.01. At faster
     rates levels are held 20-200 samples (the loop needs longer to settle in samples) and the dither
     is 0.1: the NNPC there plans 23-sample duty sequences (full and zero duty, then braking) far
     from the PI's own trajectories, and the network must have seen such moves.
+
+    ``region`` (one of :data:`COLLECTION_REGIONS`; None: :func:`default_region`): ``"paper"`` -- references
+    0-20 V, loads 4-10 Ohm at 48 V; ``"envelope"`` -- references 3-20 V (rests at 0 V), loads 4-100 Ohm and
+    supplies 36-60 V, with the amplitude-modulated random binary dither (``excitation`` its largest amplitude).
     """
+    region = default_region(control_period) if region is None else region
+    if region not in COLLECTION_REGIONS:
+        raise ConfigError(f"collection region {region!r} is unknown: expected one of {', '.join(COLLECTION_REGIONS)}")
     slow = transient_within_sample(control_period)
-    return CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
-                              excitation=excitation if excitation is not None else identification_dither(control_period))
+    settings = CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
+                                  excitation=excitation if excitation is not None else
+                                  identification_dither(control_period))
+    if region == "paper":
+        return settings
+    return replace(settings, reference_range=ENVELOPE_REFERENCES, load_range=ENVELOPE_LOADS,
+                   input_voltage_range=ENVELOPE_SUPPLIES, dither="am-prbs", dither_hold=ENVELOPE_DITHER_HOLD,
+                   excitation=excitation if excitation is not None else ENVELOPE_DITHER)
 
 
 def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBinding:
