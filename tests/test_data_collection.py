@@ -149,3 +149,28 @@ def test_envelope_collection_settings_are_checked():
 
     with pytest.raises(ConfigError, match="collection region 'moon' is unknown: expected one of paper, envelope"):
         collection_settings(1e-3, region="moon")
+
+
+def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_the_supply():
+    """At one sample per PWM period the workbench's data cover the envelope and its network has the supply
+    voltage as an input (the duty's effect scales with it); at 1 ms the paper's experiment stays as it is."""
+    from cosim.study.experiments import collection_settings, nn_configs
+    from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
+
+    fast, slow = collection_settings(SWITCHING_PERIOD), collection_settings(PAPER_PERIOD)
+    assert (fast.reference_range, fast.load_range, fast.input_voltage_range) == ((3.0, 20.0), (4.0, 100.0), (36.0, 60.0))
+    assert fast.dither == "am-prbs" and fast.excitation == 0.2 and fast.dither_hold == (1, 8)
+    assert (slow.reference_range, slow.load_range, slow.input_voltage_range) == ((0.0, 20.0), (4.0, 10.0), None)
+    assert slow.dither == "gaussian" and slow.excitation == 0.01
+    assert nn_configs(SWITCHING_PERIOD)["nnpc"].extra_signals == ("load_conductance", "input_voltage")
+    assert nn_configs(PAPER_PERIOD)["nnpc"].extra_signals == ("load_conductance",)
+
+
+def test_a_plant_without_a_supply_input_keeps_its_supply():
+    settings = CollectionSettings(samples=400, seed=2, input_voltage_range=(36.0, 60.0), hold_range=(20, 50))
+    varied = random_scenario(settings, 1e-3)
+    assert len(varied.schedule("input_voltage")) > 3
+    kept = random_scenario(settings, 1e-3, vary_supply=False)
+    assert [v for _, v in kept.schedule("input_voltage")] == [settings.input_voltage]
+    # the reference and load draws do not depend on whether the supply is drawn after them
+    assert kept.schedule("reference") == varied.schedule("reference")

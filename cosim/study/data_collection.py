@@ -89,11 +89,13 @@ class CollectionSettings:
             raise ConfigError(f"dither hold ({lo}, {hi}) samples is invalid: expected 1 <= min <= max")
 
 
-def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True) -> Scenario:
+def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True,
+                    vary_supply: bool = True) -> Scenario:
     """Random references and loads (and supplies, with ``input_voltage_range``) held for random whole
     numbers of control periods, each signal on its own schedule.
 
-    ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value.
+    ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value;
+    ``vary_supply=False`` (one bound without a supply input) the supply at ``input_voltage``.
     """
     rng = np.random.default_rng(settings.seed)
     duration = (settings.samples - 1) * control_period
@@ -111,7 +113,7 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
                "input_voltage": settings.input_voltage}
     changes: dict[int, dict[str, float]] = {}
     signals = (("reference", "reference"), ("load", "load_resistance")) if vary_load else (("reference", "reference"),)
-    if settings.input_voltage_range is not None:  # drawn after the others: their draws stay what they were
+    if settings.input_voltage_range is not None and vary_supply:  # drawn after the others: theirs stay as they were
         signals += (("supply", "input_voltage"),)
     for kind, key in signals:
         k = 0
@@ -173,11 +175,9 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
             progress: bool = False) -> pd.DataFrame:
     """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`)."""
     settings.check()
-    if settings.input_voltage_range is not None and not binding.has("input_voltage"):
-        raise ConfigError(f"{binding.origin} binds no input_voltage, so the collection cannot vary the supply "
-                          f"over {settings.input_voltage_range} V: expected input_voltage_range = None for it")
     period = controller.sample_period
-    scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"))
+    scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"),
+                               vary_supply=binding.has("input_voltage"))
     dithered = DitheredController(controller, settings.excitation, settings.seed, settings.dither, settings.dither_hold)
     with open_plant(binding) as plant:
         try:

@@ -41,9 +41,13 @@ REFERENCES, LOADS, SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
 REFERENCE_BINS, LOAD_BINS, SUPPLY_BINS = 4, 4, 3
 #: samples a cell must hold to count as covered (a held level lasts 20-200 samples at 13.33 us)
 MIN_CELL_SAMPLES = 20
-#: the collections compared: the paper's region, the envelope, and the envelope with the white dither of the paper's
-#: region (which of the two changes -- where the data are, or how they are excited -- buys what)
-VARIANTS = ("paper", "envelope", "envelope, white dither")
+#: the identifications compared: name -> (collection, whether the network sees the supply voltage). The paper's region
+#: with today's network (load conductance only); the envelope with that network, with the white dither of the paper's
+#: region, and with the supply voltage as a further input (the recipe at 13.33 us): which of the changes -- where the
+#: data are, how they are excited, what the network sees -- buys what
+VARIANTS = {"paper": ("paper", False), "envelope, no supply input": ("envelope", False),
+            "envelope, white dither, no supply input": ("envelope, white dither", False),
+            "envelope": ("envelope", True)}
 #: the test sets' seeds: far from every identification seed
 TEST_SEED = 1000
 TEST_SAMPLES = 3000
@@ -150,15 +154,25 @@ def nominal_scenarios(binding, model, name: str) -> list[dict]:
     return rows
 
 
-def variant_settings(variant: str, seed: int, samples: int):
-    """The collection settings of one of :data:`VARIANTS`."""
+def variant_settings(collection: str, seed: int, samples: int):
+    """The collection settings of a :data:`VARIANTS` collection."""
     from cosim.study.experiments import collection_settings
 
-    if variant == "envelope, white dither":
+    if collection == "envelope, white dither":
         paper = collection_settings(SWITCHING_PERIOD, samples, seed, region="paper")
         return replace(collection_settings(SWITCHING_PERIOD, samples, seed, region="envelope"), dither="gaussian",
                        dither_hold=(1, 1), excitation=paper.excitation)
-    return collection_settings(SWITCHING_PERIOD, samples, seed, region=variant)
+    return collection_settings(SWITCHING_PERIOD, samples, seed, region=collection)
+
+
+def variant_config(variant: str):
+    """The network of a :data:`VARIANTS` entry: the recipe's (with the supply voltage) or without that input."""
+    from cosim.study.experiments import nn_configs
+
+    config = nn_configs(SWITCHING_PERIOD)["nnpc"]
+    if VARIANTS[variant][1]:
+        return config
+    return replace(config, extra_signals=tuple(s for s in config.extra_signals if s != "input_voltage"))
 
 
 def identified(binding, pi, variant: str, seed: int, samples: int, folder: Path):
@@ -167,15 +181,14 @@ def identified(binding, pi, variant: str, seed: int, samples: int, folder: Path)
     from controllers.nn_model import load_model, save_model
     from cosim.results import read_parquet
     from cosim.study.data_collection import collect, save_samples
-    from cosim.study.experiments import nn_configs
     from cosim.study.identification import Recipe, identify
 
-    config = nn_configs(SWITCHING_PERIOD)["nnpc"]
+    config = variant_config(variant)
     path = folder / f"nnpc__{variant.replace(', ', '-').replace(' ', '-')}__seed{seed}__{samples}.pt"
     data_path = path.with_suffix(".parquet")
     if path.is_file() and data_path.is_file():
         return path, load_model(path, expect_period=SWITCHING_PERIOD, expect_config=config), read_parquet(data_path)
-    data = collect(binding, pi, variant_settings(variant, seed, samples))
+    data = collect(binding, pi, variant_settings(VARIANTS[variant][0], seed, samples))
     result = identify(binding, pi, SWITCHING_PERIOD, config, seed, Recipe(samples=samples), data=data)
     save_model(result.model, path)
     save_samples(data, data_path)
@@ -183,7 +196,7 @@ def identified(binding, pi, variant: str, seed: int, samples: int, folder: Path)
 
 
 def compare(results: Path, folder: Path, seeds=(0, 1), samples: int = 10_000, workers: int = 1,
-            map_runs: bool = True, variants=VARIANTS) -> dict:
+            map_runs: bool = True, variants=tuple(VARIANTS)) -> dict:
     """The comparison of the module docstring, written to ``folder`` (``comparison.json``, ``errors.csv``,
     ``map.csv``, ``nominal.csv``); ``results``: a reproduction's folder, for the tuned PI."""
     import torch
@@ -238,7 +251,7 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--samples", type=int, default=10_000)
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--no-map", action="store_true", help="prediction errors and nominal scenarios only")
     args = parser.parse_args(argv)
     out = compare(args.results, args.out, tuple(args.seeds), args.samples, args.workers, not args.no_map,
