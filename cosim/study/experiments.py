@@ -89,6 +89,13 @@ def default_region(control_period: float) -> str:
     return "paper" if transient_within_sample(control_period) else "envelope"
 
 
+def network_region(name: str, control_period: float) -> str:
+    """The collection region a network ``name`` of :func:`nn_configs` is identified from: the paper's 3-7-2
+    keeps the paper's experiment at every rate (it reproduces the paper's network); the workbench's NNPC the
+    rate's :func:`default_region`."""
+    return "paper" if name == "nnpc-paper" else default_region(control_period)
+
+
 def collection_settings(control_period: float, samples: int = 10_000, seed: int = 0,
                         excitation: float | None = None, region: str | None = None) -> CollectionSettings:
     """Identification settings per rate (paper Section IV, random levels held for random intervals).
