@@ -148,3 +148,25 @@ def test_the_oracle_diagnosis_names_ripple_horizon_or_model_per_point():
     ])
     verdict = verdicts(frame).drop_duplicates("reference_V").set_index("reference_V")["verdict"]
     assert verdict.to_dict() == {3: "ripple", 7: "horizon", 11: "model", 15: "horizon"}
+
+
+def test_a_given_network_runs_on_the_map_with_the_inputs_it_was_trained_for(tmp_path):
+    """The side studies map networks of another recipe (the NNPC identified before the supply voltage was an
+    input): a sweep's given model file is designed and built with the file's own inputs."""
+    from pathlib import Path
+
+    from controllers.base import Measurement
+    from cosim.study.experiments import nn_configs, plant_binding
+    from cosim.study.sweeps.designs import build, design
+    from cosim.study.sweeps.spec import ControllerEntry
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    path = Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt"
+    binding = plant_binding("nominal", "switched")
+    recipe, = design([ControllerEntry("nnpc", "NNPC (earlier recipe)", model=path)], binding, SWITCHING_PERIOD, tmp_path)
+    assert "input_voltage" in nn_configs(SWITCHING_PERIOD)["nnpc"].extra_signals
+    assert recipe.settings["network"] == "7-7-2 tanh, 2 delay(s), +load_conductance"
+    controller = build(recipe, binding, implementation="python")
+    assert controller.predictor.model.config.extra_signals == ("load_conductance",)
+    assert 0.0 <= controller.step(Measurement(0.0, 12.0, 0.0, inductor_current=0.0, load_current=0.0,
+                                              input_voltage=48.0)) <= 1.0
