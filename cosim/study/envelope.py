@@ -456,8 +456,9 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
     explicit, cmc = share.get(NNPC_EXPLICIT, math.nan), share.get(CURRENT_MODE, math.nan)
     add(f"Envelope map ({grid}, reference and load steps, overshoot <= 5 % and settling <= 0.5 ms): oracle MPC share "
         "(the limit; measured)", f"{oracle:.0f} %", True,
-        "MPC-oracle " + _failure_causes(points, MPC_ORACLE) + "; its horizon spans one LC period and its sensor model "
-        "is CCM: in DCM it predicts a current the diode blocks")
+        "MPC-oracle " + _failure_causes(points, MPC_ORACLE) + "; its horizon spans one LC period and its model is CCM "
+        "(in DCM it underestimates what a duty does to vo); `python -m cosim.study.oracle_limits` tells the spec's "
+        "ripple, the horizon and the model apart at the failing points")
     add(f"Envelope map: online NNPC share >= oracle share - {SHARE_LOSS_TARGET:g} points (seed 0's NNPC)",
         f"NNPC {online:.0f} % vs oracle {oracle:.0f} %", online >= oracle - SHARE_LOSS_TARGET,
         "NNPC " + _failure_causes(points, NNPC))
