@@ -319,8 +319,10 @@ def train_policy(features: np.ndarray, labels: np.ndarray, sample_period: float,
         def predict(inputs):
             return network(inputs)[:, 0] * out_std + out_mean
 
-        optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
-                                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
+        from controllers.lbfgs import LBFGS  # the same trial steps on every CPU
+
+        optimizer = LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
+                          line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
         fit_x, fit_y, val_x, val_y = xn[fit_idx], yt[fit_idx], xn[val_idx], yt[val_idx]
 
         def closure():

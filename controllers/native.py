@@ -225,7 +225,7 @@ POLICY_MAX_LAYERS = POLICY_MAX_HIDDEN_LAYERS + 1
 COMPENSATOR_MAX_ORDER = LIMITS["BUCKC_COMPENSATOR_MAX_ORDER"]
 assert LIMITS["BUCKC_POLICY_INPUTS"] == N_FEATURES, "explicit_policy.h and explicit_policy.FEATURES disagree"
 
-OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT = 0, -1, -2, -3, -4
+OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT, ERR_ILL_CONDITIONED = 0, -1, -2, -3, -4, -5
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
 SOLVERS = ("search", "rti")  # BUCKC_SOLVER_...: the names PredictiveController.last_solver uses
 #: BUCKC_FALLBACK_...: the reasons PredictiveController.fallback_reason gives ("" for none)
@@ -391,7 +391,7 @@ class SwitchedConfig(ctypes.Structure):
 
 
 class SwitchedTable(ctypes.Structure):
-    _fields_ = [("load", c_double), ("input_voltage", c_double), ("points", c_int),
+    _fields_ = [("load", c_double), ("input_voltage", c_double), ("points", c_int), ("condition", c_double),
                 ("rows", _array(c_double, MAX_GRID, COLUMNS))]
 
 
@@ -727,6 +727,8 @@ class _MeasurementStepper:
             if status == ERR_NO_INDUCTOR_CURRENT:
                 raise ValueError(f"{self.name} needs the inductor current: the plant binding has no "
                                  "inductor_current role")
+            if status == ERR_ILL_CONDITIONED:
+                raise ValueError(self._ill_conditioned(m))
             raise RuntimeError(f"{self.name}: the C step failed: {status_text(status)}")
         return self._duty.value
 
@@ -765,6 +767,17 @@ class NativePredictiveController(_MeasurementStepper):
         config.predictor = predictor_config(controller.predictor)
         config.rti = rti_config(controller.rti, controller.name)
         return cls(config, controller.name, controller.describe())
+
+    def _ill_conditioned(self, m: Measurement) -> str:
+        """The switched model's refusal, worded as its Python reference's."""
+        from controllers.predictors import ill_conditioned
+
+        config = self._config.predictor.switched
+        periods = round(config.sample_period * config.switching_frequency)
+        load = 1.0 / self._state.conductance
+        supply = m.input_voltage if math.isfinite(m.input_voltage) else self._config.nominal_input_voltage
+        table = self._lib.buckc_switched_cached(ctypes.byref(config), ctypes.byref(SwitchedCache()), load, supply)
+        return ill_conditioned(self.name, load, supply, periods, table.contents.condition)
 
     @property
     def config(self) -> PredictiveConfig:
@@ -1044,6 +1057,10 @@ class NativePredictor:
         self.delays = predictor.delays
         self.config = predictor_config(predictor)
         self._extras = tuple(predictor.model.config.extra_signals) if isinstance(predictor, NNPredictor) else ()
+        self.averaged_cache = AveragedCache()
+        self.switched_cache = SwitchedCache()
+
+    def clear_cache(self) -> None:
         self.averaged_cache = AveragedCache()
         self.switched_cache = SwitchedCache()
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from controllers.lbfgs import LBFGS
 from cosim.base.errors import ModelFileError
 
 FORMAT = "buck-cosim NN plant model"
@@ -451,9 +452,8 @@ def _lbfgs(network, evaluate, validation_of, max_iterations: int, settings: Trai
     of the best, iterations run, history) and leaves the best weights in ``network``. ``history``:
     ``[iteration, training loss, validation loss]`` at the start and at every check (the training
     loss from ``training_of``, NaN without it) -- the learning curves of the identification figure."""
-    optimizer = torch.optim.LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every,
-                                  history_size=20, line_search_fn="strong_wolfe",
-                                  tolerance_grad=1e-12, tolerance_change=1e-15)
+    optimizer = LBFGS(network.parameters(), lr=1.0, max_iter=settings.check_every, history_size=20,
+                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15)
 
     def losses() -> tuple[float, float]:
         with torch.no_grad():

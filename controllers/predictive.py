@@ -438,6 +438,9 @@ class PredictiveController:
         self.reset()
 
     def reset(self) -> None:
+        """Start over as a fresh controller: the predictor's cached matrices are forgotten too (an entry is
+        made from the first load estimate rounding to its key, so a duty would depend on the run before)."""
+        self.predictor.clear_cache()
         self._history = None  # (delays, 3)
         self._warm = None
         self._bias = np.zeros(2)

@@ -103,6 +103,11 @@ class Predictor(Protocol):
     def describe(self) -> dict:
         """JSON-ready description for run metadata."""
 
+    def clear_cache(self) -> None:
+        """Forget what was computed for earlier samples (the controller's reset: a cache entry is made
+        from the first load estimate that rounds to its key, so a kept one would let a duty depend on
+        what the controller computed before)."""
+
     def linearize(self, context: PredictionContext, duties: np.ndarray, disturbance: np.ndarray,
                   block_of_step: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
         """One sequence ``duties`` (N,) rolled out as :meth:`rollout` does, with the Jacobian of the
@@ -134,6 +139,9 @@ class NNPredictor:
         """Analytic forward sensitivities of the network (:meth:`NNPlantModel.rollout_sensitivities`)."""
         return self.model.rollout_sensitivities(context.history, duties, self._extra_values(context), disturbance,
                                                 block_of_step, n_blocks)
+
+    def clear_cache(self) -> None:
+        pass  # nothing is kept between samples
 
     def describe(self) -> dict:
         meta = self.model.metadata
@@ -181,7 +189,7 @@ class AveragedModelPredictor:
     vo = k (vC + R_esr iL), k = R / (R + R_esr). The d R_on term is frozen at the previous duty so the
     model stays linear; a predicted negative current is clipped to zero (the diode) before the
     disturbance estimate is added. Matrices are
-    cached per load estimate.
+    cached per load estimate (until :meth:`clear_cache`, the controller's reset).
     """
 
     def __init__(self, parameters: CircuitParameters, sample_period: float, name: str = "averaged model"):
@@ -190,6 +198,9 @@ class AveragedModelPredictor:
         self.name = name
         self.delays = 1
         self._cache: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
 
     def _discrete(self, load: float, switch_resistance: float) -> tuple[np.ndarray, np.ndarray]:
         key = (round(load, 9), round(switch_resistance, 12))
@@ -266,6 +277,20 @@ class AveragedModelPredictor:
 
 CARRIERS = ("sawtooth", "triangle")
 SENSOR_MODELS = ("period_average", "period_start")
+#: the largest condition number of the switched model's sensor map H it accepts: H^-1 rebuilds the state
+#: from a reading, so it multiplies rounding (1e-16) by up to this much. Over the operating envelope
+#: (4-100 Ohm, 36-60 V, 1 .. 75 PWM periods per control period) H stays below 1e2; at 1 ms and about
+#: 2 Ohm the natural response has decayed by e^-12 over the period, H tends to singular and K = F H^-1
+#: would be rounding noise (tests/test_predictive.py)
+MAX_SENSOR_CONDITION = 1e8
+
+
+def ill_conditioned(name: str, load: float, input_voltage: float, periods: int, condition: float) -> str:
+    """The line a switched model refuses a load with (the C twin raises the same)."""
+    return (f"{name}: at a load of {load:.6g} Ohm and {input_voltage:.6g} V the reading after {periods} PWM "
+            f"period(s) no longer tells the state the control period started from (sensor map condition number "
+            f"{condition:.3g} > {MAX_SENSOR_CONDITION:g}): this switched model cannot predict there; use a "
+            "shorter control period or the averaged model")
 
 
 def _compose(first: tuple[np.ndarray, np.ndarray], then: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -331,6 +356,9 @@ class SwitchedModelPredictor:
         self.duty_grid = np.linspace(0.0, 1.0, grid_points)
         self._cache: dict[tuple[float, float], np.ndarray] = {}
 
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
     def _interval(self, a: np.ndarray, voltage: float, durations: np.ndarray):
         """An interval of constant topology: (state at its end, integral of the state over it) as
         affine maps of the state at its start, for each duration (D,)."""
@@ -376,6 +404,9 @@ class SwitchedModelPredictor:
             seen = full
         to_y = measured_from_state(p, load)
         h_mat, h_vec = to_y @ seen[0], seen[1] @ to_y.T
+        condition = float(np.max(np.linalg.cond(h_mat)))
+        if not condition <= MAX_SENSOR_CONDITION:
+            raise ValueError(ill_conditioned(self.name, load, input_voltage, self.periods, condition))
         k_mat = full[0] @ np.linalg.inv(h_mat)
         k_vec = full[1] - np.einsum("dij,dj->di", k_mat, h_vec)
         values = np.concatenate([k_mat.reshape(size, 4), k_vec, h_mat.reshape(size, 4), h_vec], axis=1)

@@ -5,7 +5,7 @@ and plant events). Between instants the FMU is stepped with its inputs held (zer
 the duty cycle).
 
 Order at an instant t: (1) step the plant to t; (2) apply load / input-voltage and tunable-parameter
-events due at t (parameters through :meth:`~cosim.fmi.plant.FmuPlant.set_parameters`);
+events due at t (parameters through :meth:`~cosim.fmi.plant_fmi2.FmuPlant.set_parameters`);
 (3) at a control sample, measure, call the controller, set the new duty; (4) at a recording
 point, record outputs with the inputs now in effect. Reference changes reach the controller at
 its first sample at or after the event time.
@@ -26,7 +26,8 @@ import numpy as np
 from controllers.base import Controller, Measurement
 from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.binding import PlantBinding
-from cosim.fmi.plant import FmuPlant, open_plant
+from cosim.fmi.plant import open_plant
+from cosim.fmi.plant_fmi2 import FmuPlant
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
 from cosim.results import RunInfo, RunResult, RunStream, run_details
 from cosim.scenarios import Scenario, check_parameter_events

@@ -15,30 +15,29 @@ source file triggers exactly one rebuild and users and tests never build by hand
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
-from xml.etree import ElementTree
 
 import fmpy
 import fmpy.build
 import fmpy.util
 
-PACKAGE_DIR = Path(__file__).parent
-GLUE_DIR = PACKAGE_DIR / "glue"
-SOURCE_DIR = PACKAGE_DIR / "sources"
+from plant_fmu.fmi3 import fmi3_edition
+from plant_fmu.fmu_sources import (
+    CMAKE_OPTIONS,
+    MODEL_DESCRIPTION,
+    SOURCE_DIR,
+    FmuSources,
+    glue_files,
+    read_files,
+)
+
 MODEL_IDENTIFIER = "BuckConverter"
-GLUE_FILES = ("fmi2_glue.c", "fmu_model.h")
-#: the model interface's Integer and model-exchange functions for a co-simulation-only model with Real
-#: variables only (the controller and scenario FMUs): compiled beside the glue and the model
-REAL_CO_SIMULATION_ONLY = "real_co_simulation_only.c"
 PLANT_FILES = ("buck_model.c", "buck_model.h", "buck_variables.h", "buck_fmu.c")
-MODEL_DESCRIPTION = "modelDescription.xml"
 #: the FMI versions the workbench builds its FMUs for (one glue layer each: glue/fmi2_glue.c, glue/fmi3_glue.c)
 FMI_VERSIONS = (2, 3)
 #: the plant's event indicators (buck_event_indicators in buck_model.c), named for FMI 3.0, which makes them variables
@@ -47,86 +46,10 @@ PLANT_EVENT_INDICATORS = (
                               "blocks"),
     ("conduction_boundary_event_indicator", "CCM/DCM boundary of the averaged model (1 in switched mode)"),
 )
-#: warnings as errors; no fused multiply-add (the C twins must round like the Python references)
-CMAKE_OPTIONS = {"CMAKE_COMPILE_WARNING_AS_ERROR:BOOL": "ON", "CMAKE_C_FLAGS:STRING": "-ffp-contract=off"}
 
 
 class PlantBuildError(RuntimeError):
     """An FMU could not be compiled; the message names the log with the compiler output."""
-
-
-@dataclass(frozen=True)
-class FmuSources:
-    """What an FMU is built from: ``files`` are (name, contents) pairs staged under ``sources/``."""
-
-    identifier: str
-    model_description: str
-    files: tuple[tuple[str, bytes], ...]
-
-    def digest(self) -> str:
-        """Hash of everything that determines the binary: sources, fmpy version, platform, flags."""
-        h = hashlib.sha256()
-        h.update(f"fmpy {fmpy.__version__} {fmpy.platform} {sys.platform} {sorted(CMAKE_OPTIONS.items())}".encode())
-        h.update(self.identifier.encode())
-        h.update(self.model_description.encode())
-        for name, contents in sorted(self.files):
-            h.update(name.encode())
-            h.update(contents)
-        return h.hexdigest()[:16]
-
-    def stage(self, unzipdir: Path) -> None:
-        """Write ``modelDescription.xml`` and ``sources/`` into an FMU folder layout."""
-        unzipdir = Path(unzipdir)
-        (unzipdir / "sources").mkdir(parents=True)
-        (unzipdir / MODEL_DESCRIPTION).write_text(self.model_description, encoding="utf-8")
-        for name, contents in self.files:
-            (unzipdir / "sources" / name).write_bytes(contents)
-
-
-def read_files(folder: Path, names: tuple[str, ...]) -> tuple[tuple[str, bytes], ...]:
-    return tuple((name, (Path(folder) / name).read_bytes()) for name in names)
-
-
-def glue_files() -> tuple[tuple[str, bytes], ...]:
-    """The shared FMI 2.0 glue every FMU of the workbench is compiled with."""
-    return read_files(GLUE_DIR, GLUE_FILES)
-
-
-def real_co_simulation_only_files() -> tuple[tuple[str, bytes], ...]:
-    """:data:`REAL_CO_SIMULATION_ONLY`, for the sources of a co-simulation-only model with Real variables only
-    (list it in the model description's SourceFiles too)."""
-    return read_files(GLUE_DIR, (REAL_CO_SIMULATION_ONLY,))
-
-
-#: what the shared glue implements for co-simulation: every FMU built on it declares these capabilities
-GLUE_CO_SIMULATION_CAPABILITIES = {"canHandleVariableCommunicationStepSize": "true",
-                                   "canNotUseMemoryManagementFunctions": "true", "canGetAndSetFMUstate": "true",
-                                   "canSerializeFMUstate": "true"}
-
-
-def co_simulation_description_root(identifier: str, guid: str, description: str, generation_tool: str,
-                                   compiled: tuple[str, ...]) -> ElementTree.Element:
-    """The start of a generated ``modelDescription.xml`` of a co-simulation-only FMU built on the shared glue:
-    ``fmiModelDescription`` (FMI 2.0, model name ``identifier``, structured names, no event indicators) holding
-    its ``CoSimulation`` element (the glue's capabilities; ``compiled``, the files compiled, as its SourceFiles).
-    The caller adds units, variables and the model structure, then writes it with :func:`model_description_text`."""
-    root = ElementTree.Element("fmiModelDescription", {
-        "fmiVersion": "2.0", "modelName": identifier, "guid": guid, "description": description,
-        "generationTool": generation_tool, "variableNamingConvention": "structured",
-        "numberOfEventIndicators": "0"})
-    cs = ElementTree.SubElement(root, "CoSimulation", {"modelIdentifier": identifier,
-                                                       **GLUE_CO_SIMULATION_CAPABILITIES})
-    files = ElementTree.SubElement(cs, "SourceFiles")
-    for file in compiled:
-        ElementTree.SubElement(files, "File", {"name": file})
-    return root
-
-
-def model_description_text(root: ElementTree.Element) -> str:
-    """A model description's element tree as the text of ``modelDescription.xml`` (UTF-8 declaration,
-    indented by two spaces, a final newline)."""
-    ElementTree.indent(root, space="  ")
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
 def plant_sources(fmi_version: int = 2) -> FmuSources:
@@ -141,13 +64,6 @@ def check_fmi_version(fmi_version: int) -> int:
     if fmi_version not in FMI_VERSIONS:
         raise ValueError(f"FMI version {fmi_version!r} is not built: expected one of {', '.join(map(str, FMI_VERSIONS))}")
     return fmi_version
-
-
-def fmi3_edition(sources: FmuSources, event_indicators=()) -> FmuSources:
-    """:func:`plant_fmu.fmi3.fmi3_edition`: the FMI 3.0 edition of an FMU's sources."""
-    from plant_fmu import fmi3
-
-    return fmi3.fmi3_edition(sources, event_indicators)
 
 
 def cache_dir() -> Path:

@@ -25,7 +25,7 @@ from xml.etree import ElementTree
 
 import fmpy
 
-from plant_fmu.build import GLUE_DIR, FmuSources, model_description_text, read_files
+from plant_fmu.fmu_sources import GLUE_DIR, FmuSources, model_description_text, read_files
 
 #: value references the FMI 3.0 glue owns (a model's own value references stay below 1000)
 TIME_VALUE_REFERENCE = 1000

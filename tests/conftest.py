@@ -156,22 +156,27 @@ def raw_slave_factory(buck_fmu):
 # ------------------------------------------------------------------ the Cortex-M4F tests (marker: embedded)
 
 
-def pytest_collection_modifyitems(config, items):
-    """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
-    marked ``embedded`` and say why in one line."""
-    embedded = [item for item in items if item.get_closest_marker("embedded")]
-    if not embedded:
+def _deselect(config, items, marker: str, problem: str | None, what: str) -> None:
+    """Deselect the tests marked ``marker`` when ``problem`` says why they cannot run here, in one line."""
+    marked = [item for item in items if item.get_closest_marker(marker)]
+    if not marked or problem is None:
         return
-    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
-
-    problem = toolchain_problem()
-    if problem is None:
-        return
-    items[:] = [item for item in items if not item.get_closest_marker("embedded")]
-    config.hook.pytest_deselected(items=embedded)
+    items[:] = [item for item in items if not item.get_closest_marker(marker)]
+    config.hook.pytest_deselected(items=marked)
     reporter = config.pluginmanager.get_plugin("terminalreporter")
     if reporter is not None:
-        reporter.write_line(f"{len(embedded)} embedded tests deselected: {problem}")
+        reporter.write_line(f"{len(marked)} {what} deselected: {problem}")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
+    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``; each in one line."""
+    from cosim.benchmark_harness import cpu_emulation
+    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+    if any(item.get_closest_marker("embedded") for item in items):
+        _deselect(config, items, "embedded", toolchain_problem(), "embedded tests")
+    _deselect(config, items, "emulated", cpu_emulation.problem(), "emulated-CPU tests")
 
 
 CORPUS = Path(__file__).parent / "corpus"
@@ -230,8 +235,9 @@ variable = "IL"
 def faulty_binding(fmu: Path, kind: int | None = None) -> str:
     """The text of a plant-binding file for :func:`faulty_fmu` (its names bound to the workbench's roles)
     that fails at t = 0.0103 s, just after a 1 ms control sample, in the way ``kind`` selects
-    (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV); without ``kind`` it leaves
-    fault_kind to the FMU's default or to a sweep. fault_kind is on line 9, fault_time on the last line."""
+    (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV, 5 hang, 6 memory without
+    bound); without ``kind`` it leaves fault_kind to the FMU's default or to a sweep. fault_kind is on line 9,
+    fault_time on the last line."""
     return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n")
 
 

@@ -15,7 +15,9 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     markdown = (tmp_path / "benchmarks-quick.md").read_text()
     assert len(table) >= len(BENCHMARKS)
     measured = ~table["benchmark"].str.contains(": not measured")  # the embedded group without its toolchain
-    assert (table.loc[measured, "median"] > 0).all()
+    growth = table["benchmark"].str.contains("resident memory growth")  # may shrink: a difference, not a cost
+    assert (table.loc[measured & ~growth, "median"] > 0).all()
+    assert table.loc[growth, "median"].notna().all() and growth.sum() == 2
     assert "| benchmark | median | p99 |" in markdown and "## What profiling changed" in markdown
     for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms",
                 "controller compute per step, MPC-mismatched, 13.33 us", "data collection, 500 samples",
@@ -28,6 +30,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "closed-loop IAE, C RTI / do-mpc, load_change", "NNPC-explicit 13.33 us per step: multiply-accumulates (counted)",
                 "NNPC-explicit 13.33 us per step on a 170 MHz Cortex-M4F",
                 "sweep throughput on a LocalCluster of 2 workers", "sweep overhead per run",
+                "plant doStep, averaged DCM at d = 1e-07", "averaged DCM cost spread over d",
+                "soak: worker resident memory growth", "soak: the workbench's own process",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else
                 "NNPC-explicit 13.33 us on a Cortex-M4F (float32, QEMU mps2-an386): max cycles per step"):
         assert table["benchmark"].str.startswith(row).any(), row
@@ -44,3 +48,39 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     header = (tmp_path / "benchmarks-quick.md").read_text().splitlines()[2]
     assert header.startswith("Commands: ") and "`buck-cosim bench --only plant --quick` (plant)" in header
     assert "`buck-cosim bench --quick` (master, controllers," in header
+
+
+def test_the_trained_models_are_read_beside_the_output_not_from_the_working_directory(tmp_path, monkeypatch):
+    """The groups that time the reproduction's models read OUT/models (or --models), whatever the working
+    directory: before, they read ./results/models while writing to --out, so a bench run from another
+    folder, or into another results folder, silently trained a model of its own."""
+    import shutil
+    from pathlib import Path
+
+    import cosim.benchmarks.suite as suite
+    import cosim.study.data_collection as data_collection
+    from cosim.benchmarks import BenchRow, run_benchmarks
+    from cosim.benchmarks.subjects import _nn_model
+    from cosim.study.vocabulary import PAPER_PERIOD
+
+    name = "nominal-switched__1ms__nnpc.pt"
+    shutil.copy(Path(__file__).resolve().parents[1] / "results" / "models" / name, (tmp_path / "models").mkdir() or
+                tmp_path / "models" / name)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+
+    def must_not_train(*args, **kwargs):
+        raise AssertionError("the model was not found, so the benchmark collected data to train one")
+
+    monkeypatch.setattr(data_collection, "collect", must_not_train)
+    monkeypatch.setattr(suite, "BENCHMARKS", {"probe": lambda quick: [
+        BenchRow("probe", 0.0, None, "", note=_nn_model("nnpc", PAPER_PERIOD, False)[1])]})
+    run_benchmarks(tmp_path, only=["probe"])
+    table = pd.read_csv(tmp_path / "benchmarks.csv")
+    assert table.loc[0, "note"] == str(tmp_path / "models" / name)
+    other = tmp_path / "other"
+    (other / "models").mkdir(parents=True)
+    shutil.copy(tmp_path / "models" / name, other / "models" / name)
+    run_benchmarks(tmp_path / "out2", only=["probe"], models_dir=other / "models")
+    assert pd.read_csv(tmp_path / "out2" / "benchmarks.csv").loc[0, "note"] == str(other / "models" / name)

@@ -283,17 +283,28 @@ def test_switched_predictor_tables_and_rollouts_match(parameters, period, carrie
         assert relative_error(twin.rollout(ctx, duties, disturbance), expected) <= 1e-10
 
 
-def test_switched_model_is_ill_conditioned_at_1ms_and_low_loads():
-    """Documents a property of the Python model the twins inherit (not a twin defect): after 75
-    PWM periods the over-damped LC has forgotten all but its slow mode, so H, the map from the
-    state to the sensor reading, is nearly singular and K = F H^-1 amplifies rounding. Both
-    implementations then disagree far above the ulp level; with parasitics numpy calls H
-    singular and the Python predictor raises, where the C one returns non-finite maps."""
-    python = SwitchedModelPredictor(NOMINAL, 1e-3, FSW)
-    table = python._table(2.0, 48.0)
-    assert np.linalg.cond(table[:, 6:10].reshape(-1, 2, 2)).max() > 1e10
-    with pytest.raises(np.linalg.LinAlgError):
-        SwitchedModelPredictor(PARASITICS, 1e-3, FSW)._table(2.0, 48.0)
+def test_both_switched_models_refuse_the_same_ill_conditioned_loads(lib):
+    """After 75 PWM periods (1 ms) at 2 Ohm the over-damped LC has forgotten all but its slow mode, so H,
+    the map from the state to the sensor reading, is nearly singular (cond > 1e10 nominal, singular with
+    parasitics) and K = F H^-1 would be rounding noise. The Python model refuses such a load with one line
+    (predictors.MAX_SENSOR_CONDITION); the C table records the same condition number -- closed-form 2x2
+    singular values against numpy's SVD, equal to 1e-9 where H is well-conditioned -- so the twin's step
+    refuses the same loads (tests/test_predictive.py runs both controllers into the refusal)."""
+    from controllers.predictors import MAX_SENSOR_CONDITION
+
+    def c_condition(python, load):
+        table = native.SwitchedTable()
+        lib.buckc_switched_table(ctypes.byref(native.predictor_config(python).switched), load, 48.0,
+                                 ctypes.byref(table))
+        return table.condition
+
+    for parameters in (NOMINAL, PARASITICS):
+        python = SwitchedModelPredictor(parameters, 1e-3, FSW)
+        with pytest.raises(ValueError, match=r"at a load of 2 Ohm and 48 V .* condition number"):
+            python._table(2.0, 48.0)
+        assert not c_condition(python, 2.0) <= MAX_SENSOR_CONDITION
+        h = python._table(6.0, 48.0)[:, 6:10].reshape(-1, 2, 2)
+        assert c_condition(python, 6.0) == pytest.approx(np.linalg.cond(h).max(), rel=1e-9)
 
 
 def test_switched_cache_recomputes_evicted_tables_from_the_first_value_of_their_key(lib):

@@ -12,6 +12,10 @@ Layers, lowest first (a module belongs to the longest prefix that names it):
 
 Every import counts, also one inside a function (the lazy imports that keep the command line
 fast): a lazy upward import is still an upward dependency.
+
+Inside a layer imports point one way too: no module reaches itself through the modules it imports
+(an import circle, lazy or not -- e.g. the isolated plant and the plant opener, or the sweep worker
+and the controller designs, once did).
 """
 
 from __future__ import annotations
@@ -64,6 +68,69 @@ def imported_modules(source: str, module: str) -> list[tuple[int, str]]:
     return found
 
 
+def import_graph(sources: dict[str, str]) -> dict[str, set[str]]:
+    """Module -> the project modules it imports. ``from package import name`` imports the module
+    ``package.name`` if there is one (else the package); a package's own ``__init__`` counts as the
+    package."""
+    graph = {}
+    for module, source in sources.items():
+        targets = set()
+        tree = ast.parse(source)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                base = _from_base(node, module)
+                for alias in node.names:
+                    candidate = f"{base}.{alias.name}"
+                    targets.add(candidate if candidate in sources else base)
+            elif isinstance(node, ast.Import):
+                targets.update(alias.name for alias in node.names)
+        graph[module] = {t for t in targets if t in sources and t != module}
+    return graph
+
+
+def _from_base(node: ast.ImportFrom, module: str) -> str:
+    """The module a ``from ... import`` names, relative imports resolved."""
+    package = module.rsplit(".", 1)[0]
+    base = node.module or ""
+    if node.level:
+        anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+        base = ".".join(anchor + ([base] if base else []))
+    return base
+
+
+def import_circles(sources: dict[str, str]) -> list[list[str]]:
+    """Every set of modules that import each other in a circle (strongly connected, Tarjan), sorted."""
+    graph = import_graph(sources)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles = []
+
+    def visit(module: str) -> None:
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for target in sorted(graph[module]):
+            if target not in index:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in stack:
+                low[module] = min(low[module], index[target])
+        if low[module] == index[module]:
+            members = []
+            while True:
+                member = stack.pop()
+                members.append(member)
+                if member == module:
+                    break
+            if len(members) > 1:
+                circles.append(sorted(members))
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return sorted(circles)
+
+
 def upward_imports(sources: dict[str, str]) -> list[str]:
     """Each import of a module from a layer above its own, as ``module:line imports target``."""
     problems = []
@@ -104,3 +171,25 @@ def test_the_check_catches_an_upward_import():
         "cosim.fmi.sneaky:1 imports cosim.master (layer 3 above 2)",
         "cosim.master2:1 imports cosim.cli (layer 5 above 3)",
     ]
+
+
+def test_no_modules_import_each_other_in_a_circle():
+    sources = project_sources()
+    assert {"cosim.fmi.isolation", "cosim.fmi.plant", "cosim.study.sweeps.worker"} <= set(sources)
+    assert import_circles(sources) == []
+
+
+def test_the_circle_check_catches_lazy_and_indirect_circles():
+    """The two circles issue 26 untied, as they were (the lazy half of each inside a function), and a
+    circle of three; a package's ``from package import module`` is an import of that module."""
+    sources = {
+        "cosim.fmi.plant": "def open_plant():\n    from cosim.fmi.isolation import IsolatedPlant\n",
+        "cosim.fmi.isolation": "from cosim.fmi.plant import FATAL_REFUSAL, plant_signals\n",
+        "cosim.study.sweeps.worker": "from cosim.study.sweeps.designs import build\n",
+        "cosim.study.sweeps.designs": "def f():\n    from cosim.study.sweeps.worker import process_file\n",
+        "cosim.a": "import cosim.b\n", "cosim.b": "from cosim import c\n", "cosim.c": "from .a import x\n",
+        "plant_fmu": "from plant_fmu.build import fmu_path\n", "plant_fmu.build": "from plant_fmu import fmi3\n",
+        "plant_fmu.fmi3": "import math\n",
+    }
+    assert import_circles(sources) == [["cosim.a", "cosim.b", "cosim.c"], ["cosim.fmi.isolation", "cosim.fmi.plant"],
+                                       ["cosim.study.sweeps.designs", "cosim.study.sweeps.worker"]]

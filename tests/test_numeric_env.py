@@ -28,6 +28,7 @@ ENVIRONMENTS = {
     "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "OPENBLAS_CORETYPE": "SkylakeX", "OMP_NUM_THREADS": "2"},
 }
 TIMEOUT = 600  # [s] for all the jobs together (about 20 s each, two at a time on two cores)
+EMULATED_TIMEOUT = 1200  # [s] the training under QEMU (about 3 min on an idle core: it emulates every instruction)
 
 
 def _environment(extra: dict) -> dict:
@@ -74,6 +75,33 @@ def test_the_environments_do_change_the_bytes_when_the_kernels_are_left_native(a
     """What the pinning prevents, on this machine: the default kernels train other networks."""
     for artefact in ARTEFACTS:
         assert artefacts["native"][artefact] != artefacts["default"][artefact], artefact
+
+
+@pytest.mark.emulated
+def test_training_writes_the_same_bytes_on_an_emulated_cpu_of_another_kind(tmp_path):
+    """The NN training on another x86-64 CPU -- QEMU user mode answering CPUID as an AVX2-only Intel Haswell
+    (or, on a host without AVX-512, as the other vendor's AVX2 CPU) -- writes the host's bytes. Failed
+    before controllers/lbfgs.py: torch's line search took torch.sqrt, whose last bits depend on the CPU."""
+    from cosim.benchmark_harness import cpu_emulation
+    from cosim.study.data_collection import collect
+    from cosim.study.identification import collection_settings
+    from cosim.study.reproduce import FULL, Pipeline, _tuned
+    from cosim.study.vocabulary import PAPER_PERIOD
+
+    pipeline = Pipeline("nominal", "averaged", PAPER_PERIOD)
+    pi = _tuned(pipeline, tmp_path, FULL)
+    data = tmp_path / "data.parquet"
+    collect(pipeline.binding(), pi.controller(), collection_settings(PAPER_PERIOD, FULL.samples, 2)).to_parquet(data)
+    env = _environment({})
+    job = [sys.executable, str(JOB), "train", str(data)]
+    here = subprocess.run([*job, str(tmp_path / "host")], env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert here.returncode == 0, here.stderr[-2000:]
+    model = cpu_emulation.contrasting_model()
+    there = subprocess.run(cpu_emulation.command([*job, str(tmp_path / "emulated")], model), env=env,
+                           capture_output=True, text=True, timeout=EMULATED_TIMEOUT, cwd=ROOT)
+    assert there.returncode == 0, there.stderr[-2000:]
+    assert (tmp_path / "emulated" / "trained.pt").read_bytes() == (tmp_path / "host" / "trained.pt").read_bytes(), (
+        f"the network trained on an emulated {cpu_emulation.DESCRIPTIONS[model]} differs from this machine's")
 
 
 def test_a_workbench_process_runs_the_pinned_kernels_whatever_it_inherits():

@@ -279,3 +279,104 @@ def test_a_self_reproducing_warm_start_does_not_hold_the_output_off_its_referenc
     assert best < 0.7 * stale
     assert best <= cost(np.full((1, 23), 0.27))[0]  # at least as good as holding the right duty
     assert sequence[0] < 0.28  # and it moves the output towards 12 V
+
+
+# ------------------------------------------------------------------------------------------ history and conditioning
+
+
+def _measurements(load_scale: float, samples: int = 12) -> list[Measurement]:
+    """A short start-up-like sequence: the load estimate io/vo is R = 6 Ohm x load_scale."""
+    out = []
+    for k in range(samples):
+        vo = 2.0 + k
+        out.append(Measurement(time=k * TS, reference=12.0, output_voltage=vo, inductor_current=vo / 6.0 + 0.3,
+                               load_current=vo / (6.0 * load_scale), input_voltage=48.0))
+    return out
+
+
+def _history(rng) -> list[Measurement]:
+    """Another run before the reset: other references, loads, supplies and currents."""
+    out = []
+    for k in range(60):
+        vo = float(rng.uniform(0.0, 20.0))
+        load = float(np.exp(rng.uniform(np.log(2.0), np.log(200.0))))
+        out.append(Measurement(time=k * TS, reference=float(rng.choice([0.0, 5.0, 15.0])), output_voltage=vo,
+                               inductor_current=float(rng.uniform(0.0, 5.0)), load_current=vo / load,
+                               input_voltage=float(rng.uniform(36.0, 60.0))))
+    return out
+
+
+@pytest.mark.parametrize("optimizer", ["search", "rti"])
+@pytest.mark.parametrize("kind", ["averaged", "switched", "nn"])
+@pytest.mark.parametrize("implementation", ["python", "c"])
+def test_a_duty_does_not_depend_on_what_the_controller_computed_before_a_reset(kind, implementation, optimizer):
+    """The predictors cache their matrices per rounded load estimate (and input voltage), the optimizer
+    warm-starts from its last solution, the disturbance and load estimates filter the past: what a
+    controller computes after reset() must not depend on any of it. The same samples give the same
+    duties, bit for bit, as from a fresh controller -- after another run (other references, loads,
+    supplies), and after a run whose load estimate (6 Ohm x (1 + 4e-11)) shares its cache keys. Both
+    optimizers: the RTI keeps more of the past (its last plan, the last reference for its fallback)."""
+    from pathlib import Path
+
+    from controllers.nn_model import load_model
+    from cosim.study.experiments import implemented, model_mpc, nnpc
+
+    def make():
+        if kind == "nn":
+            model = load_model(Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt",
+                               expect_period=TS)
+            return implemented(nnpc(model, TS, optimizer=optimizer), implementation)
+        return implemented(model_mpc(NOMINAL, TS, "MPC", binding=builtin_binding(kind), optimizer=optimizer),
+                           implementation)
+
+    fresh = make()
+    expected = [fresh.step(m) for m in _measurements(1.0)]
+    rng = np.random.default_rng(3)
+    for before in (_history(rng), _measurements(1.0 + 4e-11)):
+        used = make()
+        for m in before:
+            used.step(m)
+        used.reset()
+        assert [used.step(m) for m in _measurements(1.0)] == expected
+
+
+ENVELOPE_LOADS = (4.0, 6.0, 10.0, 30.0, 100.0)  # [Ohm] the operating envelope (docs/guide/envelope.md)
+ENVELOPE_SUPPLIES = (36.0, 48.0, 60.0)  # [V]
+
+
+@pytest.mark.parametrize("periods", [1, 2, 10, 75])
+def test_the_switched_model_is_well_conditioned_over_the_operating_envelope(periods):
+    """The switched model rebuilds the state from a reading through H^-1: over the envelope (4-100 Ohm,
+    36-60 V), both carriers and sensor models, nominal and mismatch circuits, at 1 to 75 PWM periods per
+    control period (13.33 us .. 1 ms), cond(H) stays below 100 (measured <= 60), far below the refusal
+    limit MAX_SENSOR_CONDITION = 1e8."""
+    from controllers.predictors import MAX_SENSOR_CONDITION
+    from cosim.study.vocabulary import MISMATCH
+
+    worst = 0.0
+    for parameters in (NOMINAL, MISMATCH):
+        for carrier in ("sawtooth", "triangle"):
+            for sensor in ("period_average", "period_start"):
+                predictor = SwitchedModelPredictor(parameters, periods * TS, 1 / TS, carrier=carrier, sensor=sensor)
+                for load in ENVELOPE_LOADS:
+                    for supply in ENVELOPE_SUPPLIES:
+                        h = predictor._table(load, supply)[:, 6:10].reshape(-1, 2, 2)
+                        worst = max(worst, float(np.linalg.cond(h).max()))
+    assert worst < 100.0 < MAX_SENSOR_CONDITION
+
+
+@pytest.mark.parametrize("implementation", ["python", "c"])
+def test_the_switched_model_refuses_a_load_where_it_cannot_rebuild_the_state(implementation):
+    """At 1 ms (75 PWM periods) and a 1 Ohm load the circuit's response to its initial state decays by
+    ~e^-25 over a control period: the reading no longer tells the state (H singular). The controller
+    refuses with one line naming the load, the supply and what to do -- instead of numpy's "Singular
+    matrix" (Python) or a silent duty of 0 (the C twin), as before."""
+    from cosim.study.experiments import implemented, model_mpc
+
+    controller = implemented(model_mpc(NOMINAL, 75 * TS, "MPC", binding=builtin_binding("switched")), implementation)
+    with pytest.raises(ValueError, match=r"^MPC: at a load of 1 Ohm and 48 V the reading after 75 PWM period\(s\) no "
+                                         r"longer tells the state .* condition number .* > 1e\+08\): this switched "
+                                         r"model cannot predict there; use a shorter control period or the averaged "
+                                         r"model$"):
+        controller.step(Measurement(time=0.0, reference=12.0, output_voltage=5.0, inductor_current=6.0,
+                                    load_current=5.0, input_voltage=48.0))

@@ -420,6 +420,95 @@ def _alive(pid: int) -> bool:
     return Path(f"/proc/{pid}").exists() and "Z" not in (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1][:3])
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _dask_cluster(port: int) -> list[subprocess.Popen]:
+    """``dask scheduler`` and one ``dask worker`` on the loopback interface, each in its own session."""
+    dask = str(Path(sys.executable).with_name("dask"))
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "stdin": subprocess.DEVNULL,
+             "start_new_session": True}
+    scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                                 **quiet)
+    worker = subprocess.Popen([dask, "worker", f"tcp://127.0.0.1:{port}", "--nworkers", "1", "--nthreads", "1",
+                               "--no-dashboard", "--host", "127.0.0.1"], **quiet)
+    return [scheduler, worker]
+
+
+def _stop(processes: list[subprocess.Popen]) -> None:
+    for process in processes:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        process.wait(timeout=30)
+
+
+def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on_a_new_one(tmp_path):
+    """A sweep on a cluster of one's own (``dask scheduler`` + ``dask worker``) whose scheduler is killed
+    after the first parts: one line saying so, how many runs are in and how to finish, exit 5 -- and no
+    run written as failed (dask cancels the pending tasks; that is no fault of theirs). ``--resume`` against
+    a new scheduler runs exactly the rest: every run in the dataset once, none computed twice."""
+    scenario = tmp_path / "long_startup.toml"
+    scenario.write_text('name = "long_startup"\nduration = 0.02\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, f"""\
+        scenarios = ["long_startup.toml"]
+        samples = 24
+        batch_size = 2
+        [[controllers]]
+        kind = "pi"
+        {PI_GAINS.replace(', ', chr(10) + '        ')}
+        [plant]
+        mode = "switched"
+        [parameters]
+        inductance = {{ tolerance = 0.2 }}
+        """)
+    out = tmp_path / "out"
+    port = _free_port()
+    cluster = _dask_cluster(port)
+    try:
+        sweep = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
+                                  str(out), "--scheduler", f"tcp://127.0.0.1:{port}", "--scheduler-timeout", "60"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
+        deadline = time.time() + 180
+        while not list((out / "dataset").rglob("part-*.parquet")) and time.time() < deadline and sweep.poll() is None:
+            time.sleep(0.05)
+        assert sweep.poll() is None, "the sweep ended before the scheduler died"
+        _stop(cluster[:1])  # the scheduler dies; its worker is left looking for it
+        _, err = sweep.communicate(timeout=120)
+    finally:
+        _stop(cluster)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert sweep.returncode == 5, err
+    assert [line for line in lines if line.startswith("error:")] == lines[-1:] and "Traceback" not in err, err
+    kept = dataset.done_run_ids(out)
+    assert 1 <= len(kept) < 24
+    assert lines[-1].startswith(f"error: sweep stopped: the dask scheduler (the cluster at tcp://127.0.0.1:{port} "
+                                f"(1 worker(s))) went away; {len(kept)} of 24 runs are in {out}/dataset (every part "
+                                "complete); start a scheduler and workers again and run the same command with "
+                                f"--resume (--scheduler ADDRESS for a new address) to finish the other {24 - len(kept)}")
+    assert (dataset.read_rows(out)["status"] == "ok").all()  # the cancelled tasks left no rows
+    no_temporary_files(out)
+    before = {p: p.stat().st_mtime_ns for p in (out / "dataset").rglob("part-*.parquet")}
+    port = _free_port()
+    cluster = _dask_cluster(port)
+    try:
+        done = subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
+                               str(out), "--resume", "--scheduler", f"tcp://127.0.0.1:{port}", "--scheduler-timeout",
+                               "60"], capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
+    finally:
+        _stop(cluster)
+    assert done.returncode == 0, done.stderr
+    rows = dataset.read_rows(out)
+    assert len(rows) == rows["run_id"].nunique() == 24 and (rows["status"] == "ok").all()
+    assert all(p.stat().st_mtime_ns == t for p, t in before.items())  # the kept parts were not rewritten
+
+
 @pytest.mark.parametrize("interrupt", ["SIGTERM to the process", "Ctrl-C: SIGINT to the process group"])
 def test_an_interrupt_shuts_the_cluster_down_and_resume_finishes_without_recomputing(tmp_path, cluster, interrupt):
     """SIGTERM (a batch system) or Ctrl-C (the terminal signals every process of the group, the
@@ -560,17 +649,56 @@ def test_failing_runs_are_rows_with_their_cause_and_the_exit_code_says_so(tmp_pa
     no_temporary_files(out)
 
 
+def test_a_hanging_run_and_a_run_out_of_memory_are_rows_and_the_rest_complete(tmp_path, faulty_fmu, capsys):
+    """Isolated plants with limits: a doStep that never returns is stopped at the binding's step_timeout, a
+    plant process that allocates without bound at its memory_limit; each is one failed row naming the FMU,
+    the time and the limit, and the other runs (a fault time after the run's end: no fault), in the same
+    batches, complete (exit 3)."""
+    (tmp_path / "faulty.toml").write_text("step_timeout = 2.0\nmemory_limit = 600\n" + faulty_binding(faulty_fmu))
+    (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.02\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, """\
+        scenarios = ["short.toml"]
+        record_period = 1e-4
+        batch_size = 3
+        controllers = [{ kind = "pi", kp = 0.0, ki = 14.0 }]
+        [plant]
+        binding = "faulty.toml"
+        [parameters]
+        fault_kind = { values = [5, 0, 6] }
+        fault_time = { values = [0.0103, 1.0] }
+        """)
+    out = tmp_path / "out"
+    code = main(["--no-progress", "sweep", str(path), "--out", str(out), "--workers", "2"])
+    ends_in_one_line_error(capsys, code, 3, "2 of 6 runs failed")
+    rows = dataset.read_rows(out).set_index(["fault_kind", "fault_time"]).sort_index()
+    failed = rows[rows["status"] == "failed"]
+    assert list(failed.index) == [(5, 0.0103), (6, 0.0103)]
+    hang, hoard = failed["error"]
+    assert (f"the FMU {faulty_fmu.name} did not finish stepping from t = 0.0103 s to 0.0104 s within the step time "
+            "limit of 2 s (step_timeout); its process was stopped") in hang
+    assert f"the FMU {faulty_fmu.name}'s process used " in hoard and "above the memory limit of 600 MB" in hoard
+    complete = rows[rows["status"] == "ok"]
+    assert len(complete) == 4 and complete["steady_state_error_pct"].abs().max() < 0.5
+    no_temporary_files(out)
+
+
 def _plant_kind(recipe, queue) -> None:
+    from controllers.pi import PIController
+    from cosim.master import run
+    from cosim.scenarios import parse_scenario
     from cosim.study.sweeps.worker import _plant
 
-    plant, _ = _plant(recipe)
-    queue.put(type(plant).__name__)
+    plant, binding = _plant(recipe)
+    scenario = parse_scenario('name = "s"\nduration = 0.002\n[initial]\nreference = 12.0\n')
+    metadata = run(plant, PIController(0.0, 14.0, 1e-3), scenario).metadata
+    queue.put((type(plant).__name__, binding.isolate, metadata["plant"]["isolated"]))
     plant.close()
 
 
 def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty_fmu):
     """dask's default workers are daemonic and cannot start the isolated plant's process: there the
-    plant runs in the worker (the workbench's own LocalCluster is non-daemonic and keeps isolation)."""
+    plant runs in the worker (the workbench's own LocalCluster is non-daemonic and keeps isolation), and
+    the run's metadata says so: "isolated" states what was run, not what the binding asked for."""
     import multiprocessing
 
     from cosim.fmi.binding_file import load_binding
@@ -586,7 +714,8 @@ def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty
         process.start()
         kinds[daemon] = queue.get(timeout=60)
         process.join(timeout=60)
-    assert kinds == {True: "CoSimulationPlant", False: "IsolatedPlant"}  # in the worker process, or its own
+    assert kinds == {True: ("CoSimulationPlant", False, False),  # in the worker process, and said so
+                     False: ("IsolatedPlant", True, True)}  # in its own
 
 
 # ------------------------------------------------------------------------------------------ controller FMUs

@@ -264,6 +264,78 @@ def test_a_crashing_fmu_ends_the_run_not_the_workbench(tmp_path, faulty_fmu):
     assert crashed.returncode == -signal.SIGSEGV  # no message, no rows: what isolation prevents
 
 
+def test_a_hanging_fmu_is_stopped_at_its_step_time_limit(tmp_path, faulty_fmu):
+    """A hang is a fault like a crash: the isolated plant's doStep that never returns is stopped after the
+    binding's step_timeout, the run ends with exit 3 and one line naming the FMU, the time and the limit,
+    and the rows before it are written, marked incomplete. Before the watchdog the command waited forever."""
+    binding = tmp_path / "hang.toml"
+    binding.write_text("step_timeout = 2.0\n" + faulty_binding(faulty_fmu, 5))
+    started = time.monotonic()
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
+                       "--out", str(tmp_path / "out"), timeout=120), 3,
+                   f"binding file {binding}: the FMU {faulty_fmu.name} did not finish stepping from t = 0.0103 s to "
+                   "0.0104 s within the step time limit of 2 s (step_timeout); its process was stopped")
+    assert time.monotonic() - started < 60  # the limit, the interpreter's start and the rows before the hang
+    run = read_run(tmp_path / "out" / "runs" / "startup__pi__bound-hang__1ms.parquet")
+    assert run.complete is False and "step time limit of 2 s" in run.error
+    assert 0.0099 < run.frame["time"].max() < 0.0104
+
+
+def test_the_step_time_limit_on_the_command_line_overrides_the_binding(tmp_path, faulty_fmu):
+    """--step-timeout sets the limit for one command (the binding file sets none here); it needs an isolated
+    plant, so with --no-isolate it is refused before anything runs."""
+    binding = tmp_path / "hang.toml"
+    binding.write_text(faulty_binding(faulty_fmu, 5))
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--step-timeout", "1.5", "--kp", "0", "--ki", "14",
+                       "--record-period", "1e-4", "--out", str(tmp_path / "out"), timeout=120), 3,
+                   "did not finish stepping from t = 0.0103 s to 0.0104 s within the step time limit of 1.5 s")
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--no-isolate", "--step-timeout", "2",
+                       "--out", str(tmp_path / "refused")), 2, "--step-timeout needs an isolated plant")
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--step-timeout", "0",
+                       "--out", str(tmp_path / "refused")), 2, "expected a finite number >= 0.001 s")
+
+
+def test_the_default_step_time_limit_grows_with_the_simulated_step(faulty_fmu, tmp_path):
+    """Without step_timeout the limit is 30 s plus 1000 x the step's simulated length: a 1 ms step may take
+    31 s, a 1 s step 1030 s (an FMU 1000 x slower than real time still runs; a stalled one does not)."""
+    from cosim.fmi.binding_file import load_binding
+    from cosim.fmi.isolation import step_time_limit
+
+    (tmp_path / "plant.toml").write_text(faulty_binding(faulty_fmu, 0))
+    default = load_binding(tmp_path / "plant.toml")
+    assert default.step_timeout is None
+    assert step_time_limit(default, 1e-3) == pytest.approx(31.0) and step_time_limit(default, 1.0) == 1030.0
+    (tmp_path / "set.toml").write_text("step_timeout = 5\n" + faulty_binding(faulty_fmu, 0))
+    assert step_time_limit(load_binding(tmp_path / "set.toml"), 1.0) == 5.0
+
+
+@pytest.mark.parametrize("text,message", [
+    ("step_timeout = -1\n", "step_timeout = -1 s is invalid: expected > 0"),
+    ("step_timeout = \"long\"\n", "step_timeout = 'long' is invalid: expected a finite number"),
+    ("isolate = false\nstep_timeout = 5\n", "step_timeout needs isolate = true"),
+    ("memory_limit = 0\n", "memory_limit = 0 MB is invalid: expected > 0"),
+    ("isolate = false\nmemory_limit = 500\n", "memory_limit needs isolate = true"),
+])
+def test_isolation_limits_in_a_binding_file_are_checked(tmp_path, faulty_fmu, text, message):
+    binding = tmp_path / "limits.toml"
+    binding.write_text(text + faulty_binding(faulty_fmu, 0))
+    one_line_error(cli("run", "startup", "--plant", str(binding), "--out", str(tmp_path / "out")), 2, message)
+
+
+def test_an_fmu_that_allocates_without_bound_is_stopped_at_its_memory_limit(tmp_path, faulty_fmu):
+    """Isolated, the plant process's resident memory is watched: above the binding's memory_limit it is
+    stopped and the run ends like a crash (exit 3, one line with the FMU, the memory, the limit and the time)."""
+    binding = tmp_path / "hoard.toml"
+    binding.write_text("memory_limit = 600\n" + faulty_binding(faulty_fmu, 6))
+    line = one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14",
+                              "--record-period", "1e-4", "--out", str(tmp_path / "out"), timeout=300), 3,
+                          f"binding file {binding}: the FMU {faulty_fmu.name}'s process used ")
+    assert "above the memory limit of 600 MB (memory_limit), while stepping at t = " in line
+    assert "its process was stopped" in line
+    run = read_run(tmp_path / "out" / "runs" / "startup__pi__bound-hoard__1ms.parquet")
+    assert run.complete is False and "memory limit of 600 MB" in run.error
+
+
 def test_isolation_gives_the_same_run_as_in_process(tmp_path, faulty_fmu):
     from controllers.pi import PIController
     from cosim.fmi.binding_file import load_binding

@@ -27,6 +27,7 @@ const char *buckc_status_text(int status)
     case BUCKC_ERR_LIMIT: return "a size is above a compile-time maximum";
     case BUCKC_ERR_INVALID: return "an invalid value";
     case BUCKC_ERR_NO_INDUCTOR_CURRENT: return "the predictive controller needs the inductor current";
+    case BUCKC_ERR_ILL_CONDITIONED: return "the switched model's sensor map is ill-conditioned at this load";
     default: return "unknown status";
     }
 }

@@ -82,7 +82,8 @@ enum {
     BUCKC_ERR_NULL = -1,             /* a required pointer is NULL */
     BUCKC_ERR_LIMIT = -2,            /* a size above a compile-time maximum (BUCKC_MAX_...) */
     BUCKC_ERR_INVALID = -3,          /* a value the Python reference refuses too */
-    BUCKC_ERR_NO_INDUCTOR_CURRENT = -4 /* the predictive step needs a finite inductor current */
+    BUCKC_ERR_NO_INDUCTOR_CURRENT = -4, /* the predictive step needs a finite inductor current */
+    BUCKC_ERR_ILL_CONDITIONED = -5      /* the switched model cannot rebuild the state at this load */
 };
 
 /* A one-line description of a status code (a string literal). */

@@ -427,7 +427,6 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
     c->config = config;
     for (j = 0; j < config->horizon.horizon; ++j) /* discount ** np.arange(horizon) */
         c->weights[j] = pow(config->horizon.discount, (double)j);
-    buckc_predictive_clear_caches(c);
     buckc_predictive_reset(c);
     return BUCKC_OK;
 }
@@ -441,6 +440,7 @@ void buckc_predictive_reset(BuckcPredictive *c)
     s->conductance = 1.0 / c->config->nominal_load;
     s->previous_reference = NAN;
     s->best_cost = NAN;
+    buckc_predictive_clear_caches(c); /* PredictiveController.reset: predictor.clear_cache() */
 }
 
 void buckc_predictive_clear_caches(BuckcPredictive *c)
@@ -737,6 +737,8 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         break;
     default:
         c->table = buckc_switched_cached(&config->predictor.switched, &c->switched_cache, load, input_voltage);
+        if (!(c->table->condition <= BUCKC_SWITCHED_MAX_CONDITION))
+            return BUCKC_ERR_ILL_CONDITIONED; /* SwitchedModelPredictor._table's refusal */
         break;
     }
     anchor = input_voltage > 0 ? m->reference / input_voltage : s->previous_duty;

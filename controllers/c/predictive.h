@@ -164,7 +164,7 @@ typedef struct {
     BuckcNnShared nn;
     BuckcAveragedStep averaged;
     const BuckcSwitchedTable *table;
-    /* the predictors' caches (kept across reset(), as the Python predictor's are) */
+    /* the predictors' caches (cleared by reset(), as the Python predictor's are) */
     BuckcAveragedCache averaged_cache;
     BuckcSwitchedCache switched_cache;
 } BuckcPredictive;
@@ -172,11 +172,11 @@ typedef struct {
 size_t buckc_predictive_size(void);
 /* Validate the whole configuration (what Python refuses, and the C maxima) and reset. */
 int buckc_predictive_init(BuckcPredictive *controller, const BuckcPredictiveConfig *config, const char **what);
-/* PredictiveController.reset (the predictor caches are kept, as in Python) */
+/* PredictiveController.reset (the predictor caches are cleared too, as in Python) */
 void buckc_predictive_reset(BuckcPredictive *controller);
 /* PredictiveController.step: *duty receives the duty to hold until the next sample. */
 int buckc_predictive_step(BuckcPredictive *controller, const BuckcMeasurement *measurement, double *duty);
-/* Forget the predictors' cached matrices and tables (Python has no such call; for tests). */
+/* Forget the predictors' cached matrices and tables (Predictor.clear_cache; reset calls it). */
 void buckc_predictive_clear_caches(BuckcPredictive *controller);
 const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *controller);
 /* The eq. 23 cost of one duty sequence at the last step's context (for tests and tools). */

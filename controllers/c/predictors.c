@@ -363,6 +363,17 @@ int buckc_switched_check(const BuckcSwitchedConfig *config, int *periods, const 
     return BUCKC_OK;
 }
 
+/* The 2-norm condition number of a 2x2 matrix, sigma_max / sigma_min (inf if singular): the singular
+ * values squared are the eigenvalues of M^T M, (f +- sqrt(f^2 - 4 det^2)) / 2 with f = |M|_F^2. */
+static double condition2(const double m[4])
+{
+    double f = m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3];
+    double det = m[0] * m[3] - m[1] * m[2];
+    double root = sqrt(fmax(f * f - 4.0 * det * det, 0.0));
+    double small = 2.0 * det * det / (f + root); /* sigma_min^2, without cancellation */
+    return small > 0.0 ? sqrt((f + root) / 2.0 / small) : INFINITY;
+}
+
 void buckc_switched_table(const BuckcSwitchedConfig *config, double load, double input_voltage,
                           BuckcSwitchedTable *table)
 {
@@ -380,6 +391,7 @@ void buckc_switched_table(const BuckcSwitchedConfig *config, double load, double
     table->load = load;
     table->input_voltage = input_voltage;
     table->points = points;
+    table->condition = 0.0;
     for (i = 0; i < points; ++i) {
         double d = i == points - 1 ? 1.0 : (double)i * step + 0.0;
         double durations[3];
@@ -387,7 +399,7 @@ void buckc_switched_table(const BuckcSwitchedConfig *config, double load, double
         double voltages[3];
         int n_intervals;
         Affine state = identity_map(), mean, before_last, full, seen;
-        double h_mat[4], h_vec[2], h_inv[4], k_mat[4], k_h[2];
+        double h_mat[4], h_vec[2], h_inv[4], k_mat[4], k_h[2], condition;
         double *row = table->rows[i];
         memset(&mean, 0, sizeof(mean));
         if (config->carrier == BUCKC_CARRIER_SAWTOOTH) {
@@ -424,6 +436,9 @@ void buckc_switched_table(const BuckcSwitchedConfig *config, double load, double
         matmul2(to_y, seen.m, h_mat);
         h_vec[0] = seen.v[0] * to_y[0] + seen.v[1] * to_y[1]; /* seen[1] @ to_y.T */
         h_vec[1] = seen.v[0] * to_y[2] + seen.v[1] * to_y[3];
+        condition = condition2(h_mat);
+        if (!(condition <= table->condition)) /* a larger one, or NaN: counts as singular */
+            table->condition = isnan(condition) ? INFINITY : condition;
         buckc_inverse2(h_mat, h_inv);
         matmul2(full.m, h_inv, k_mat);
         matvec2(k_mat, h_vec, k_h);

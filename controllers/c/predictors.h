@@ -108,9 +108,13 @@ typedef struct {
     int grid_points;            /* duty grid linspace(0, 1, grid_points), 2..BUCKC_SWITCHED_MAX_GRID */
 } BuckcSwitchedConfig;
 
+/* predictors.MAX_SENSOR_CONDITION: a table whose sensor map H is worse conditioned is refused */
+#define BUCKC_SWITCHED_MAX_CONDITION 1e8
+
 typedef struct {
     double load, input_voltage; /* the values it was computed from */
     int points;
+    double condition;           /* the largest 2-norm condition number of H over the grid (inf: singular) */
     double rows[BUCKC_SWITCHED_MAX_GRID][BUCKC_SWITCHED_COLUMNS];
 } BuckcSwitchedTable;
 

@@ -42,6 +42,13 @@ class ModelFileError(WorkbenchError):
     """A trained-model file is missing, truncated, tampered with or made for other inputs."""
 
 
+class ClusterLost(WorkbenchError):
+    """The dask scheduler went away in the middle of the work (its process ended, its machine or the
+    network failed); every part finished before is kept, and ``--resume`` against a new one finishes it."""
+
+    exit_code = 5
+
+
 class RunInterrupted(WorkbenchError):
     """The user interrupted a run (Ctrl-C / SIGTERM); ``partial`` holds what was recorded."""
 

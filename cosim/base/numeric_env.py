@@ -24,6 +24,10 @@ warning line naming them, and :func:`late_imports` lets a caller refuse.
 
 On CPUs without AVX2 (or not x86-64: aarch64) the libraries fall back to what the CPU has and the
 numbers differ in the last digits; :func:`describe` records what was in force, for the report.
+
+Pinning does not reach every CPU-dependent kernel: ``torch.sqrt`` and ``torch.log`` give other last bits
+on AVX-512 CPUs than on AVX2-only ones whatever these settings say (measured with QEMU-emulated CPUs,
+cosim/benchmark_harness/cpu_emulation.py); the training avoids them (controllers/lbfgs.py).
 """
 
 from __future__ import annotations
@@ -139,6 +143,19 @@ def _cpu_model() -> tuple[str, str, list[str]]:
     return vendor or platform.machine(), model, simd
 
 
+def cpu_class(machine: str | None = None, simd: list[str] | None = None) -> str:
+    """What the pinned kernels need, in words that are the same on every machine they cover:
+    ``x86-64 with AVX2 and FMA`` (Intel and AMD alike), or what the machine lacks."""
+    machine = machine or platform.machine()
+    if simd is None:
+        simd = _cpu_model()[2]
+    if machine not in ("x86_64", "AMD64"):
+        return f"{machine} (not x86-64: the pinned kernels do not apply; results differ in the last digits)"
+    if "avx2" in simd and "fma" in simd:
+        return "x86-64 with AVX2 and FMA"
+    return "x86-64 without AVX2/FMA (the libraries fall back to older kernels; results differ in the last digits)"
+
+
 def describe() -> dict:
     """What this process computes with: the kernel settings, the library versions and the kernels they
     chose, the CPU (for the report's numeric-environment section)."""
@@ -152,10 +169,11 @@ def describe() -> dict:
             "cpu_vendor": vendor, "cpu_model": model, "cpu_simd_flags": simd,
             "torch": torch.__version__, "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "torch_threads": torch.get_num_threads(), "numpy": numpy.__version__, "scipy": scipy.__version__}
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__
+    try:  # numpy's run-time dispatch targets in use: X86_V3 (AVX2, FMA) when pinned on any AVX2 machine
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
 
-        info["numpy_features_used"] = sorted(k for k, v in __cpu_features__.items() if v and k.startswith("AVX"))
+        info["numpy_dispatch_used"] = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
     except ImportError:  # another numpy layout
         pass
+    info["cpu_class"] = cpu_class(machine=info["machine"], simd=simd)
     return info

@@ -1,13 +1,32 @@
 """What several groups time: the built-in FMU through fmpy alone, the benchmark PI, the NN plant model and
-the distilled policy (the reproduction's if results/ has them, else made here) and the mixed scenario."""
+the distilled policy (the reproduction's if the models folder has them, else made here) and the mixed scenario.
+The models folder is the one of the results folder written to (``--out``; ``--models`` names another), never
+the working directory's: :func:`reading_models_from` sets it for a run of the suite."""
 
 from __future__ import annotations
 
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
 
 from cosim.study.vocabulary import SWITCHING_PERIOD, transient_within_sample
 from plant_fmu.table_ii import TABLE_II
+
+
+#: where the reproduction's trained models are looked for (:func:`reading_models_from` sets it: ``OUT/models``
+#: or ``--models``); a group finds none there and trains or distils its own
+_models_dir: Path = Path("results") / "models"
+
+
+@contextmanager
+def reading_models_from(folder: Path):
+    """The groups run inside this read the reproduction's models from ``folder``."""
+    global _models_dir
+    before, _models_dir = _models_dir, Path(folder)
+    try:
+        yield
+    finally:
+        _models_dir = before
 
 
 class _RawSlave:
@@ -60,7 +79,7 @@ def _mixed_scenario(period: float, samples: int):
 
 
 def _nn_model(name: str, period: float, quick: bool):
-    """The reproduction's model if results/ has it, else one trained here on fresh data."""
+    """The reproduction's model if the models folder (:data:`_models_dir`) has it, else one trained here."""
     from controllers.nn_model import TrainingSettings, load_model, train
     from cosim.base.errors import ModelFileError
     from cosim.study.data_collection import collect
@@ -68,7 +87,7 @@ def _nn_model(name: str, period: float, quick: bool):
     from cosim.study.vocabulary import pipeline_tag, plant_tag
 
     config = nn_configs(period)[name]
-    path = Path("results") / "models" / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
+    path = _models_dir / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
     if path.is_file() and not quick:
         try:
             return load_model(path, expect_period=period, expect_config=config), str(path)
@@ -82,7 +101,7 @@ def _nn_model(name: str, period: float, quick: bool):
 
 
 def _explicit_policy(quick: bool):
-    """The reproduction's distilled policy if results/ has it, else one distilled here (small budget)."""
+    """The reproduction's distilled policy if the models folder has it, else one distilled here (small budget)."""
     from dataclasses import replace
 
     from controllers.explicit_policy import load_policy
@@ -91,7 +110,7 @@ def _explicit_policy(quick: bool):
     from cosim.study.experiments import plant_binding
     from cosim.study.vocabulary import pipeline_tag
 
-    path = Path("results") / "models" / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
+    path = _models_dir / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
     if path.is_file() and not quick:
         try:
             return load_policy(path, expect_period=SWITCHING_PERIOD), str(path)

@@ -22,8 +22,11 @@ from cosim.benchmarks.embedded import bench_embedded
 from cosim.benchmarks.explicit import bench_explicit
 from cosim.benchmarks.inference import bench_inference
 from cosim.benchmarks.master import bench_master
+from cosim.benchmarks.numeric_env import bench_numeric_env
 from cosim.benchmarks.plant import bench_plant
 from cosim.benchmarks.reproduction import bench_reproduction
+from cosim.benchmarks.soak import bench_soak
+from cosim.benchmarks.subjects import reading_models_from
 from cosim.benchmarks.sweep import bench_sweep
 from cosim.benchmarks.training import bench_training
 from cosim.results import package_versions
@@ -38,26 +41,30 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "explicit": bench_explicit,
     "embedded": bench_embedded,
     "training": bench_training,
+    "numeric-env": bench_numeric_env,
     "inference": bench_inference,
     "reproduction": bench_reproduction,
     "sweep": bench_sweep,
+    "soak": bench_soak,
 }
 
 
 def run_benchmarks(out_dir: Path, quick: bool = False, only: list[str] | None = None,
-                   command: str = "buck-cosim bench") -> tuple[Path, Path]:
+                   command: str = "buck-cosim bench", models_dir: Path | None = None) -> tuple[Path, Path]:
     """Run the benchmarks (``only``: some of them) and write the table. With ``only``, the other
-    groups' rows of the existing table are kept as they were measured, each with its own command."""
+    groups' rows of the existing table are kept as they were measured, each with its own command.
+    Trained models are read from ``models_dir`` (default: ``out_dir/models``)."""
     command += " --quick" if quick else ""
-    rows: list[BenchRow] = []
-    for name, function in BENCHMARKS.items():
-        if only and name not in only:
-            continue
-        print(f"benchmark: {name} ...", file=sys.stderr)
-        for row in function(quick):
-            row.group, row.command = name, command
-            rows.append(row)
     out_dir = Path(out_dir)
+    rows: list[BenchRow] = []
+    with reading_models_from(Path(models_dir) if models_dir is not None else out_dir / "models"):
+        for name, function in BENCHMARKS.items():
+            if only and name not in only:
+                continue
+            print(f"benchmark: {name} ...", file=sys.stderr)
+            for row in function(quick):
+                row.group, row.command = name, command
+                rows.append(row)
     if only:
         kept = [r for r in _read_rows(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"))
                 if r.group not in only]

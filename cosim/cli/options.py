@@ -139,7 +139,14 @@ def _plant_binding(args):
 
         binding = plant_binding(args.variant, args.mode, args.sensor)
     isolate = getattr(args, "isolate", None)
-    return binding if isolate is None else replace(binding, isolate=isolate)
+    binding = binding if isolate is None else replace(binding, isolate=isolate)
+    limits = {key: value for key, value in (("step_timeout", getattr(args, "step_timeout", None)),
+                                            ("memory_limit", getattr(args, "memory_limit", None))) if value is not None}
+    if limits and not binding.isolate:
+        option = "--" + next(iter(limits)).replace("_", "-")
+        raise ConfigError(f"{option} needs an isolated plant (--isolate, or a binding file's default): the workbench "
+                          "cannot stop an FMU running in its own process")
+    return replace(binding, **limits) if limits else binding
 
 
 def _check_duty_limits(args) -> None:
@@ -168,6 +175,13 @@ def _add_plant_options(parser) -> None:
                                 "one pipe round trip per step, see benchmarks.md)")
     isolation.add_argument("--no-isolate", dest="isolate", action="store_false",
                            help="step the plant FMU in this process (default for the built-in plant)")
+    parser.add_argument("--step-timeout", type=bounded(float, 1e-3, unit="s"), default=None, metavar="SECONDS",
+                        help="isolated plant: a step that takes longer (wall time) is stopped and the run fails "
+                             "(exit 3) (default: the binding file's step_timeout, else 30 s + 1000 x the step's "
+                             "simulated length)")
+    parser.add_argument("--memory-limit", type=bounded(float, 1.0, unit="MB"), default=None, metavar="MB",
+                        help="isolated plant: its process is stopped (the run fails, exit 3) above this resident "
+                             "memory (default: the binding file's memory_limit, else half the machine's)")
     parser.add_argument("--interface", choices=["cs", "me"], default=None,
                         help="FMI interface: cs = co-simulation (fmi2DoStep), me = model exchange with fmpy's CVode "
                              "(default: the binding's choice, else co-simulation)")

@@ -64,6 +64,12 @@ class PlantBinding:
     label: str = "BuckConverter (built-in)"
     tag_override: str | None = None  # short name for file names (see :attr:`tag`)
     isolate: bool = False  # step the FMU in a child process (cosim.fmi.isolation): a crash ends only the run
+    #: isolated only: the wall-time limit [s] for one step of the plant process, None: derived from the
+    #: step's simulated length (cosim.fmi.isolation.step_time_limit); a step over it is a fault
+    step_timeout: float | None = None
+    #: isolated only: the plant process's resident memory limit [MB], None: half the machine's memory
+    #: (cosim.fmi.isolation.memory_limit_bytes); a plant process above it is stopped, a fault
+    memory_limit: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
@@ -71,7 +77,8 @@ class PlantBinding:
 
     def __reduce__(self):  # read-only mappings do not pickle: rebuild from plain dicts (worker processes)
         return (PlantBinding, (self.fmu_path, dict(self.roles), self.interface, dict(self.parameters), self.max_step,
-                               self.source, self.label, self.tag_override, self.isolate))
+                               self.source, self.label, self.tag_override, self.isolate, self.step_timeout,
+                               self.memory_limit))
 
     def has(self, role: str) -> bool:
         return role in self.roles
@@ -102,6 +109,8 @@ class PlantBinding:
             "parameters": dict(self.parameters),
             "max_step_s": self.max_step,
             "isolated": self.isolate,
+            "step_timeout_s": self.step_timeout,
+            "memory_limit_mb": self.memory_limit,
         }
 
 

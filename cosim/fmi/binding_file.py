@@ -8,6 +8,11 @@ A binding is a small TOML file next to (or pointing at) the FMU::
     label = "My buck (Modelica)"    # optional: how runs and figures name this plant
     isolate = true                  # optional (default true): step the FMU in a child process, so a crash
                                     # in it ends the run with an error instead of the workbench
+    step_timeout = 30.0             # [s] optional, isolated only: a step of the FMU that takes longer
+                                    # (wall time) is stopped and the run fails; default 30 s + 1000 x
+                                    # the step's simulated length
+    memory_limit = 2000             # [MB] optional, isolated only: the FMU's process is stopped (the run
+                                    # fails) above this resident memory; default half the machine's
 
     [roles.duty_cycle]              # required; an input
     variable = "D"
@@ -58,9 +63,10 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
-from cosim.fmi.plant import normalise_interface
+from cosim.fmi.plant_fmi2 import normalise_interface
 
-TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "roles", "parameters"}
+TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "step_timeout", "memory_limit", "roles",
+            "parameters"}
 ROLE_KEYS = {"variable", "scale", "offset"}
 
 
@@ -68,6 +74,19 @@ def _number(value, label: str, place: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
         raise ConfigError(f"{place}: {label} = {value!r} is invalid: expected a finite number")
     return float(value)
+
+
+def _isolation_limit(data: dict, path: Path, loc: TomlLocator, key: str, unit: str, isolate: bool) -> float | None:
+    """An optional limit of the isolated plant process (``step_timeout``, ``memory_limit``): > 0, isolated only."""
+    if key not in data:
+        return None
+    value = _number(data[key], key, where(path, loc, key))
+    if not value > 0:
+        raise ConfigError(f"{where(path, loc, key)}: {key} = {value:g} {unit} is invalid: expected > 0")
+    if not isolate:
+        raise ConfigError(f"{where(path, loc, key)}: {key} needs isolate = true (the workbench cannot stop an FMU "
+                          "running in its own process)")
+    return value
 
 
 def fmu_path_of(data: dict, path: Path, loc: TomlLocator) -> Path:
@@ -165,6 +184,8 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     if not isinstance(isolate, bool):
         raise ConfigError(f"{where(path, loc, 'isolate')}: isolate = {isolate!r} has the wrong type: expected true or "
                           "false")
+    step_timeout = _isolation_limit(data, path, loc, "step_timeout", "s", isolate)
+    memory_limit = _isolation_limit(data, path, loc, "memory_limit", "MB", isolate)
 
     roles = parse_roles(data, path, loc, ROLES)
     for role in REQUIRED_ROLES:
@@ -179,7 +200,8 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
 
     checked = checked_fmu_of(fmu_path, path, loc)
     binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
-                           max_step=max_step, source=path, label=label, isolate=isolate)
+                           max_step=max_step, source=path, label=label, isolate=isolate, step_timeout=step_timeout,
+                           memory_limit=memory_limit)
     _check_variables(binding, checked, loc)
     problems = unit_problems(binding, checked.model_description)
     if problems:

@@ -37,13 +37,12 @@ from controllers.codegen import (
 )
 from controllers.native import FLOAT32_SOURCES, check_precision
 from controllers.native import SOURCE_DIR as ALGORITHM_DIR
-from plant_fmu.build import (
+from plant_fmu.build import check_fmi_version, export
+from plant_fmu.fmi3 import fmi3_edition
+from plant_fmu.fmu_sources import (
     REAL_CO_SIMULATION_ONLY,
     FmuSources,
-    check_fmi_version,
     co_simulation_description_root,
-    export,
-    fmi3_edition,
     glue_files,
     model_description_text,
     read_files,

@@ -1,7 +1,7 @@
 """FMI 3.0 plant FMUs stepped by fmpy (``FMU3Slave``, ``FMU3Model``), beneath the plant interface of
-:class:`cosim.fmi.plant.FmuPlant`: the master sees the same methods for either FMI version.
+:class:`cosim.fmi.plant_fmi2.FmuPlant`: the master sees the same methods for either FMI version.
 
-Each class here is its FMI 2.0 sibling with the FMI calls replaced (:func:`cosim.fmi.plant.open_plant`
+Each class here is its FMI 2.0 sibling with the FMI calls replaced (:func:`cosim.fmi.isolation.open_in_process`
 picks them by the archive's fmiVersion); the roles, scales, checks, buffers, life cycle and the model-
 exchange event loop are shared. What FMI 3.0 changes:
 
@@ -34,7 +34,7 @@ from fmpy.fmi3 import FMU3Model, FMU3Slave
 from cosim.base.errors import ConfigError, PlantError
 from cosim.fmi.binding import apply_parameters
 from cosim.fmi.fmu_log import STATUS_NAMES
-from cosim.fmi.plant import CoSimulationPlant, FmuPlant, ModelExchangePlant
+from cosim.fmi.plant_fmi2 import CoSimulationPlant, FmuPlant, ModelExchangePlant
 
 
 def clock_refusal(model_description, origin: str) -> str | None:

@@ -25,12 +25,11 @@ from xml.etree import ElementTree
 
 from cosim.scenarios import EVENT_SIGNALS, SIGNAL_UNITS, Scenario, parse_scenario
 from cosim.timeline import MERGE_TOLERANCE, plan_timeline
-from plant_fmu.build import (
+from plant_fmu.build import build, check_fmi_version
+from plant_fmu.fmi3 import fmi3_edition
+from plant_fmu.fmu_sources import (
     REAL_CO_SIMULATION_ONLY,
     FmuSources,
-    build,
-    check_fmi_version,
-    fmi3_edition,
     co_simulation_description_root,
     glue_files,
     model_description_text,

@@ -108,7 +108,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
     from distributed import Client, LocalCluster
 
     level = _log_level()
-    for name in ("distributed", "tornado"):
+    # dask's logging configuration gives some children their own level (distributed.client: warning, whose
+    # reconnect loop logs a traceback when a lost scheduler's client is closed): set them all
+    children = [name for name in logging.Logger.manager.loggerDict if name.startswith(("distributed.", "tornado."))]
+    for name in ("distributed", "tornado", "distributed.client", *children):
         logging.getLogger(name).setLevel(level)
     cluster = None
     if scheduler is not None:

@@ -13,7 +13,9 @@ sweep engine -- the one definition of the map (it replaces the explicit NNPC's e
   same designed and run without the one-sample computation delay (``CMC (no delay)``: the NNPC applies
   its duty in the sample it computes it, so this is the like-for-like classical baseline -- and a bound,
   since a microcontroller needs time to compute), the Type-III, the envelope PI and the nominal PI --
-  the pipeline's own, as its files hold them.
+  the pipeline's own, as its files hold them -- and the
+  online NNPC of every other identification seed (``NNPC (seed s)``, from the seed jobs' model files),
+  so the NNPC's share is given with its spread over seeds.
 * **Spec**: a point *meets* it when both steps overshoot <= 5 % and settle (2 %) within 0.5 ms; the
   share of the grid meeting it per controller (and per supply), the worst points by name, the IAE per
   step (median and worst) for the NNPC-against-the-best-classical comparison.
@@ -35,6 +37,7 @@ import pyarrow as pa
 
 from cosim.base.files import atomic_write
 from cosim.scenarios import Scenario, ScenarioEvent
+from cosim.study.claims import target_row
 from cosim.study.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSpec, Threshold
 from cosim.study.vocabulary import (
     CURRENT_MODE,
@@ -47,6 +50,8 @@ from cosim.study.vocabulary import (
     SWITCHING_PERIOD,
     TYPE_III,
     pipeline_tag,
+    seed_of,
+    seed_variant,
 )
 
 OVERSHOOT_TARGET_PCT = 5.0
@@ -101,6 +106,17 @@ def step_scenarios(settings: MapSettings = FULL_MAP) -> tuple[Scenario, Scenario
     )
 
 
+def seed_model_path(out_dir: Path, seed: int) -> Path:
+    """The NN model of the map plant's seed job ``seed`` (written by the seed job, read by the map)."""
+    return Path(out_dir) / "models" / f"{pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)}__nnpc__seed{seed}.pt"
+
+
+def seed_job_keys(seeds) -> list[str]:
+    """The reproduction's job keys whose files the map needs besides the pipeline's: its seed jobs."""
+    tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
+    return [f"{tag}__seed{s}" for s in seeds]
+
+
 def pipeline_files(out_dir: Path) -> dict[str, Path]:
     """The files of the nominal switched pipeline at 1/fsw the map's controllers come from."""
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
@@ -113,8 +129,9 @@ def pipeline_files(out_dir: Path) -> dict[str, Path]:
             "pi-envelope": out_dir / "tuning" / f"pi-envelope__{tag}.json"}
 
 
-def controllers_of(out_dir: Path, settings: MapSettings = FULL_MAP) -> tuple[ControllerEntry, ...]:
-    """The map's controllers, from the pipeline's files (tuned gains, network, policy, designs)."""
+def controllers_of(out_dir: Path, settings: MapSettings = FULL_MAP, seeds=()) -> tuple[ControllerEntry, ...]:
+    """The map's eight controllers, from the pipeline's files (tuned gains, network, policy, designs), and
+    the online NNPC of each seed job in ``seeds``."""
     import json
 
     files = pipeline_files(out_dir)
@@ -138,12 +155,15 @@ def controllers_of(out_dir: Path, settings: MapSettings = FULL_MAP) -> tuple[Con
         ControllerEntry("pi-envelope", PI_ENVELOPE, kp=envelope["kp_per_V"], ki=envelope["ki_per_V_s"],
                         origin=f"tuned over the envelope by the reproduction (tuning/{files['pi-envelope'].name})"),
         ControllerEntry("pi", PI, kp=pi["kp"], ki=pi["ki"], origin=f"tuned by the reproduction ({pi['method']})"),
+        *(ControllerEntry("nnpc", seed_variant(NNPC, s), model=seed_model_path(out_dir, s), settle=fast,
+                          origin=f"identified by the reproduction's seed job {s} (models/{seed_model_path(out_dir, s).name})")
+          for s in seeds),
     )
 
 
-def map_spec(out_dir: Path, settings: MapSettings = FULL_MAP) -> SweepSpec:
+def map_spec(out_dir: Path, settings: MapSettings = FULL_MAP, seeds=()) -> SweepSpec:
     """The map as a sweep: operating-point grid axes anchored where the steps land."""
-    return map_spec_for(controllers_of(out_dir, settings), settings)
+    return map_spec_for(controllers_of(out_dir, settings, seeds), settings)
 
 
 def map_spec_for(controllers, settings: MapSettings = FULL_MAP) -> SweepSpec:
@@ -166,8 +186,9 @@ def extra_columns() -> tuple[pa.Field, ...]:
     return tuple(pa.field(c, pa.float64()) for c in SHADOW_COLUMNS)
 
 
-def start(out_dir: Path, quick: bool = False, resume: bool = False, progress: bool = False):
-    """The map planned and its controllers designed (from the pipeline's files), ready to submit."""
+def start(out_dir: Path, quick: bool = False, resume: bool = False, progress: bool = False, seeds=()):
+    """The map planned and its controllers designed (from the pipeline's files and the models of the seed
+    jobs ``seeds``), ready to submit."""
     import shutil
 
     from cosim.base.errors import ConfigError
@@ -178,7 +199,7 @@ def start(out_dir: Path, quick: bool = False, resume: bool = False, progress: bo
     folder = Path(out_dir) / ENVELOPE_DIR / "sweep"
     if not resume and folder.exists():
         shutil.rmtree(folder)
-    plan = SweepPlan(map_spec(Path(out_dir), QUICK_MAP if quick else FULL_MAP))
+    plan = SweepPlan(map_spec(Path(out_dir), QUICK_MAP if quick else FULL_MAP, seeds))
     try:
         check_output(plan, folder, resume=True)
     except ConfigError:
@@ -221,8 +242,9 @@ def run_entries(entries, folder: Path, settings: MapSettings = FULL_MAP, workers
     return steps_table(prepared)
 
 
-def ready(finished_tags) -> bool:
-    return pipeline_tag(MAP_PLANT, SWITCHING_PERIOD) in set(finished_tags)
+def ready(finished_keys, seeds=()) -> bool:
+    """The map can start once the pipeline and the seed jobs whose models it runs have finished."""
+    return {pipeline_tag(MAP_PLANT, SWITCHING_PERIOD), *seed_job_keys(seeds)} <= set(finished_keys)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,6 +320,15 @@ def iae_ratios(steps: pd.DataFrame, numerator: str, denominator: str) -> pd.Seri
     a = steps[steps["controller"] == numerator].set_index(keys)["iae_Vs"]
     b = steps[steps["controller"] == denominator].set_index(keys)["iae_Vs"]
     return (a / b).dropna()
+
+
+def nnpc_share_spread(steps: pd.DataFrame):
+    """The online NNPC's share of the grid [%] for every identification seed on the map: a
+    :class:`~cosim.study.claims.Spread` (``NNPC`` is seed 0, ``NNPC (seed s)`` the others)."""
+    from cosim.study.claims import spread
+
+    share = share_of(steps)
+    return spread({seed_of(name): value for name, value in share.items() if seed_of(name) is not None})
 
 
 def best_classical(steps: pd.DataFrame) -> str:
@@ -433,8 +464,8 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
     """The envelope's targets (issue 25, section 4) as rows of the targets table."""
     rows = []
 
-    def add(target, measured, met, note=""):
-        rows.append({"target": target, "measured": measured, "met": "yes" if met else "**no**", "note": note})
+    def add(target, measured, met, note="", value=None, limit=None):
+        rows.append(target_row(target, measured, met, note, value=value, limit=limit))
 
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
     ratios = nominal_ratios(metrics, tag)
@@ -443,7 +474,8 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         r = ratios[worst_seed]
         add(f"NNPC IAE <= {IAE_RATIO_TARGET:g} x current-mode (CMC) IAE, every paper scenario and seed, {tag}",
             f"{r.max():.3f} (seed {worst_seed}, {r.idxmax()})", all(bool((x <= IAE_RATIO_TARGET).all()) for x in ratios.values()),
-            "; ".join(f"seed {s}: " + ", ".join(f"{k} {v:.2f}" for k, v in x.items()) for s, x in ratios.items()))
+            "; ".join(f"seed {s}: " + ", ".join(f"{k} {v:.2f}" for k, v in x.items()) for s, x in ratios.items()),
+            value=float(r.max()), limit=IAE_RATIO_TARGET)
     steps = load_steps(out_dir) if out_dir is not None else None
     if steps is None:
         return rows
@@ -459,9 +491,15 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         "MPC-oracle " + _failure_causes(points, MPC_ORACLE) + "; its horizon spans one LC period and its model is CCM "
         "(in DCM it underestimates what a duty does to vo); `python -m cosim.study.oracle_limits` tells the spec's "
         "ripple, the horizon and the model apart at the failing points")
-    add(f"Envelope map: online NNPC share >= oracle share - {SHARE_LOSS_TARGET:g} points (seed 0's NNPC)",
-        f"NNPC {online:.0f} % vs oracle {oracle:.0f} %", online >= oracle - SHARE_LOSS_TARGET,
-        "NNPC " + _failure_causes(points, NNPC))
+    seeds = nnpc_share_spread(steps)
+    worst_seed = seeds.worst_seed(higher_is_worse=False)
+    lowest = seeds.by_seed.get(worst_seed, online)
+    add(f"Envelope map: online NNPC share >= oracle share - {SHARE_LOSS_TARGET:g} points, every seed",
+        f"NNPC {lowest:.0f} % (seed {worst_seed}; {seeds.long_text('.0f', ' %')}) vs oracle "
+        f"{oracle:.0f} %", seeds.count > 0 and seeds.minimum >= oracle - SHARE_LOSS_TARGET,
+        "seed 0's NNPC " + _failure_causes(points, NNPC) + "; per seed: "
+        + ", ".join(f"seed {s} {v:.0f} %" for s, v in seeds.by_seed.items()),
+        value=lowest, limit=oracle - SHARE_LOSS_TARGET)
     high = per_supply[(per_supply["controller"] == MPC_ORACLE) & (per_supply["share_pct"] >= ORACLE_HIGH)]
     nnpc_there = per_supply[(per_supply["controller"] == NNPC) & per_supply["input_voltage_V"].isin(high["input_voltage_V"])]
     add(f"Envelope map: online NNPC share >= {NNPC_WHERE_HIGH:g} % at every supply where the oracle reaches "
@@ -471,11 +509,14 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         "oracle per supply: " + ", ".join(f"{v:g} V {s:.0f} %" for v, s in zip(
             per_supply[per_supply["controller"] == MPC_ORACLE]["input_voltage_V"],
             per_supply[per_supply["controller"] == MPC_ORACLE]["share_pct"])))
-    add(f"Envelope map: explicit NNPC share >= online NNPC share - {SHARE_LOSS_TARGET:g} points",
-        f"NNPC-explicit {explicit:.0f} % vs NNPC {online:.0f} %", explicit >= online - SHARE_LOSS_TARGET)
+    add(f"Envelope map: explicit NNPC share >= online NNPC share - {SHARE_LOSS_TARGET:g} points (seed 0's pair)",
+        f"NNPC-explicit {explicit:.0f} % vs NNPC {online:.0f} %", explicit >= online - SHARE_LOSS_TARGET,
+        "the explicit NNPC is distilled from seed 0's online NNPC only; the online NNPC's share over the seeds: "
+        + seeds.long_text(".0f", " %"), value=explicit, limit=online - SHARE_LOSS_TARGET)
     add(f"Envelope map: current-mode controller (CMC) share >= {CURRENT_MODE_SHARE_TARGET:g} %", f"{cmc:.0f} %",
         cmc >= CURRENT_MODE_SHARE_TARGET, "CMC " + _failure_causes(points, CURRENT_MODE) + "; the one-sample "
-        "computation delay limits its voltage loop (tuning/current-mode__*.json)")
+        "computation delay limits its voltage loop (tuning/current-mode__*.json)", value=cmc,
+        limit=CURRENT_MODE_SHARE_TARGET)
     if CURRENT_MODE_NO_DELAY in share:
         add("Envelope map: the current-mode controller designed and run without the computation delay (like for like "
             "with the NNPC; measured)", f"{share[CURRENT_MODE_NO_DELAY]:.0f} % (with the delay {cmc:.0f} %)", True,
@@ -487,29 +528,27 @@ def target_rows(metrics: pd.DataFrame, out_dir: Path | None) -> list[dict]:
         add(f"Envelope map: NNPC IAE <= {IAE_RATIO_TARGET:g} x CMC IAE, median and worst point (seed 0)",
             f"median {r.median():.3f}, worst {r.max():.2f} ({worst_key[1]:g} V / {worst_key[2]:.3g} Ohm / "
             f"{worst_key[0]:g} V, {worst_key[3]})", bool(r.median() <= IAE_RATIO_TARGET and r.max() <= IAE_RATIO_TARGET),
-            f"NNPC below CMC in {100 * (r <= IAE_RATIO_TARGET).mean():.0f} % of the {len(r)} runs")
+            f"NNPC below CMC in {100 * (r <= IAE_RATIO_TARGET).mean():.0f} % of the {len(r)} runs",
+            value=float(r.max()), limit=IAE_RATIO_TARGET)
     return rows
 
 
 def sentences(metrics: pd.DataFrame, out_dir: Path) -> list[str]:
-    """The summary's sentences about the envelope, computed from the numbers (per identification seed
-    where there are several). Issue 22's "conclusion with its spread over seeds" module is to replace
-    this helper at the merge."""
+    """The summary's sentences about the envelope, every comparison computed over the identification
+    seeds (:mod:`cosim.study.claims`): stated where it holds for every seed, else not ranked."""
+    from cosim.study.claims import comparison, per_scenario_text, plural, spread, verdict
+    from cosim.study.summaries import seed_ratio_spreads
+
     lines = []
     steps = load_steps(out_dir)
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
-    ratios = nominal_ratios(metrics, tag)
-    if ratios:
-        maxima = {s: float(x.max()) for s, x in ratios.items()}
-        minima = {s: float(x.min()) for s, x in ratios.items()}
-        holds = all(v <= IAE_RATIO_TARGET for v in maxima.values())
-        lines.append(f"- **Against the best-designed classical controller at the nominal point** (12 V, 6 Ohm, 48 V, "
-                     f"1/fsw, switched): the NNPC's IAE is {min(minima.values()):.2f}-{max(maxima.values()):.2f} x the "
-                     f"average-current-mode controller's over the paper's four scenarios and {len(ratios)} "
-                     f"identification seeds -- " + ("below it in every scenario for every seed."
-                                                    if holds else "not below it everywhere: worst "
-                                                    + ", ".join(f"seed {s} {v:.2f}" for s, v in maxima.items())
-                                                    + "."))
+    if nominal_ratios(metrics, tag):
+        spreads = seed_ratio_spreads(metrics, tag, CURRENT_MODE)
+        count = max(sp.count for sp in spreads.values())
+        lines.append("- **Against the best-designed classical controller at the nominal point** (12 V, 6 Ohm, 48 V, "
+                     "1/fsw, switched): NNPC IAE / average-current-mode (CMC) IAE per scenario, median (min-max) over "
+                     f"{plural(count, 'seed')}: {per_scenario_text(spreads)} -- "
+                     + comparison(spreads, "the NNPC", "the CMC") + ".")
     if steps is None:
         return lines
     share = share_of(steps)
@@ -522,14 +561,23 @@ def sentences(metrics: pd.DataFrame, out_dir: Path) -> list[str]:
         parts.append(f"{name} {share.get(name, math.nan):.0f} % (loads < 40 Ohm: "
                      f"{100 * p[~light.loc[p.index]]['meets'].mean():.0f} %, >= 40 Ohm: "
                      f"{100 * p[light.loc[p.index]]['meets'].mean():.0f} %)")
+    seeds = nnpc_share_spread(steps)
+    oracle = share.get(MPC_ORACLE, math.nan)
+    gap = spread({k: v - oracle for k, v in seeds.by_seed.items()})
+    ranking = {"below": "below the oracle's for every seed", "above": "above the oracle's for every seed"}.get(
+        verdict([gap], threshold=0.0), "not ranked against the oracle's (the seeds disagree)")
+    if seeds.count < 2:
+        ranking += " (one seed: no spread measured)"
     r = iae_ratios(steps, NNPC, best)
     lines.append(f"- **Over the envelope** ({points[['reference_V', 'load_Ohm', 'input_voltage_V']].drop_duplicates().shape[0]} "
-                 "points of references 3-20 V x loads 4-100 Ohm x supplies 36-60 V, a reference and a load step each; "
-                 "seed 0's NNPC): the share meeting overshoot <= 5 % and 2 % settling <= 0.5 ms in both steps is "
-                 + "; ".join(parts) + f". The best classical design, {best}, meets it at {share.get(best, 0):.0f} % "
+                 "points of references 3-20 V x loads 4-100 Ohm x supplies 36-60 V, a reference and a load step each): "
+                 "the share meeting overshoot <= 5 % and 2 % settling <= 0.5 ms in both steps is "
+                 + "; ".join(parts) + f" (seed 0's networks). Over {plural(seeds.count, 'identification seed')} the online "
+                 f"NNPC's share is {seeds.long_text('.0f', ' %')}, {ranking}. The best classical design, {best}, meets "
+                 f"it at {share.get(best, 0):.0f} % "
                  + ("(every classical design fails the 0.5 ms settling: with one sample of computation delay their "
                     "loops cross over at a few kHz at most, see *Classical baselines*)" if share.get(best, 0) < 5 else "")
-                 + (f"; the NNPC's IAE is {r.median():.2f} x {best}'s at the median run and below it in "
+                 + (f"; seed 0's NNPC's IAE is {r.median():.2f} x {best}'s at the median run and below it in "
                     f"{100 * (r <= 1).mean():.0f} % of the runs (worst {r.max():.2f})." if len(r) else "."))
     if CURRENT_MODE_NO_DELAY in share:
         free = iae_ratios(steps, NNPC, CURRENT_MODE_NO_DELAY)

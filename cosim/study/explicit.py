@@ -24,6 +24,7 @@ import pandas as pd
 from controllers.base import Measurement
 from controllers.explicit_policy import ExplicitPolicyController, load_policy, save_policy
 from cosim.base.labels import period_label
+from cosim.study.claims import target_row
 from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
 from cosim.study.experiments import explicit_nnpc
 from cosim.study.vocabulary import (
@@ -125,8 +126,8 @@ def target_rows(metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | Non
     the measured Cortex-M4F cycles are benchmark rows: ``buck-cosim bench --only explicit``, ``--only embedded``)."""
     rows = []
 
-    def add(target, measured, met, note=""):
-        rows.append({"target": target, "measured": measured, "met": "yes" if met else "**no**", "note": note})
+    def add(target, measured, met, note="", value=None, limit=None):
+        rows.append(target_row(target, measured, met, note, value=value, limit=limit))
 
     for tag in _fast_pipelines(metrics, pipelines):
         r = _ratios(metrics, tag)
@@ -135,7 +136,8 @@ def target_rows(metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | Non
         add(f"NNPC-explicit IAE <= {IAE_RATIO_TARGET:.2f} x online NNPC IAE, every scenario, {tag}",
             "; ".join(f"{s}: {v:.3f}" for s, v in r.items()), bool((r <= IAE_RATIO_TARGET).all()),
             "beyond the issue's target (set for the switched plant): the online NNPC is nearly dead-beat on the "
-            "averaged plant, so its IAE is small" if averaged else "")
+            "averaged plant, so its IAE is small" if averaged else "", value=float(r.max()) if len(r) else math.nan,
+            limit=IAE_RATIO_TARGET)
         m = metrics[(metrics["pipeline"] == tag) & (metrics["controller"] == NNPC_EXPLICIT)]
         startup = m[m["scenario"] == "startup"]["overshoot_pct"]
         if len(startup):
@@ -143,11 +145,13 @@ def target_rows(metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | Non
                              & (metrics["scenario"] == "startup")]["overshoot_pct"]
             add(f"NNPC-explicit start-up overshoot <= {OVERSHOOT_TARGET_PCT:g} %, {tag}", f"{startup.iloc[0]:.2f} %",
                 float(startup.iloc[0]) <= OVERSHOOT_TARGET_PCT,
-                f"online NNPC: {online.iloc[0]:.2f} %" if len(online) else "")
+                f"online NNPC: {online.iloc[0]:.2f} %" if len(online) else "", value=float(startup.iloc[0]),
+                limit=OVERSHOOT_TARGET_PCT)
         worst = m.loc[m["steady_state_error_pct"].abs().idxmax()]
         add(f"NNPC-explicit steady-state error <= {STEADY_STATE_TARGET_PCT:g} %, every scenario, {tag}",
             f"max |error| {abs(worst['steady_state_error_pct']):.3f} % ({worst['scenario']})",
-            bool((m["steady_state_error_pct"].abs() <= STEADY_STATE_TARGET_PCT).all()))
+            bool((m["steady_state_error_pct"].abs() <= STEADY_STATE_TARGET_PCT).all()),
+            value=abs(float(worst["steady_state_error_pct"])), limit=STEADY_STATE_TARGET_PCT)
     for tag in _fast_pipelines(metrics, pipelines):
         path = policy_path(out_dir, tag) if out_dir is not None else None
         if path is None or not path.is_file():
@@ -156,7 +160,8 @@ def target_rows(metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | Non
         macs = policy.config.macs()
         add(f"NNPC-explicit <= {MAC_TARGET} multiply-accumulates per step (counted), {tag}",
             f"{macs} MACs, {sum(policy.config.hidden)} tanh ({policy.config.label})", macs <= MAC_TARGET,
-            "C step time: benchmarks.md (group explicit); Cortex-M4F cycles, measured: group embedded")
+            "C step time: benchmarks.md (group explicit); Cortex-M4F cycles, measured: group embedded", value=macs,
+            limit=MAC_TARGET)
     return rows
 
 

@@ -13,9 +13,10 @@ rate (1 ms, one switching period). Each pipeline, all seeded:
 4. writes runs, metrics and figures as it goes.
 
 Beside the pipelines (seed 0), *seed jobs* identify the NNPC again from the data of every other
-study seed on the nominal plants at both rates and run it (with the identification ablation on
-the nominal switched plant at one switching period), and the *drift job* runs the drift study
-on the mismatch-study plant. Everything runs as dask tasks on a LocalCluster
+study seed on the built-in plants (nominal and mismatch) at both rates and run it (with the
+identification ablation on the nominal switched plant at one switching period), and the *drift
+jobs* run the drift study on the mismatch-study plant, one per study seed (the report states a
+comparison only where it holds for every seed: :mod:`cosim.study.claims`). Everything runs as dask tasks on a LocalCluster
 (:mod:`cosim.study.cluster`, one single-threaded worker process each): the tuned PI gains first
 (all pipelines in parallel), then every job, longest first. Once the nominal switched 1 ms
 pipeline has finished, the tolerance study (:mod:`cosim.study.tolerance_study`) runs its
@@ -73,6 +74,7 @@ from cosim.study.identification import (
 from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
+from cosim.study.summaries import transient_and_steady_iae
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
@@ -160,8 +162,8 @@ class Pipeline:
 
     @property
     def seed_study(self) -> bool:
-        """The nominal plants are identified from every study seed's data."""
-        return self.variant == "nominal"
+        """The built-in plants are identified from every study seed's data (an external plant: seed 0 only)."""
+        return self.variant in ("nominal", "mismatch")
 
     @property
     def identification_ablation(self) -> bool:
@@ -185,16 +187,19 @@ class Job:
     after: str | None = None  # key of a job that must finish first (the drift study reuses its model)
     controllers: tuple[str, ...] = ()  # controller FMUs / binding files run next to the built-in ones (pipelines)
 
+    first_drift: bool = True  # a drift job: the one of the reproduction's seed (the others: ``drift__seed<s>``)
+
     @property
     def key(self) -> str:
-        """File stem of the job's summary and metrics: the pipeline tag, ``<tag>__seed<s>`` or ``drift``."""
+        """File stem of the job's summary and metrics: the pipeline tag, ``<tag>__seed<s>``, ``drift``
+        (the reproduction's seed) or ``drift__seed<s>``."""
         return {"pipeline": self.pipeline.tag, "seed": f"{self.pipeline.tag}__seed{self.seed}",
-                "drift": DRIFT_KEY}[self.kind]
+                "drift": DRIFT_KEY if self.first_drift else f"{DRIFT_KEY}__seed{self.seed}"}[self.kind]
 
     def cost(self) -> float:
         """A rough relative cost, so the longest jobs start first and the workers finish together."""
         fast = not transient_within_sample(self.pipeline.control_period)
-        weight = {"pipeline": 4.0, "seed": 1.0, "drift": 4.0 if self.after is None else 2.5}[self.kind]
+        weight = {"pipeline": 4.0, "seed": 1.0, "drift": 2.5 if self.after is None else 1.5}[self.kind]
         if self.kind == "seed" and self.pipeline.identification_ablation:
             weight = 2.2
         return weight * (8.0 if fast else 1.0)
@@ -208,7 +213,7 @@ class PipelineOutput:
     models: dict[str, dict]  # name -> metadata (held-out RMSE, training)
     timings: dict[str, float] = field(default_factory=dict)
     key: str = ""  # the job that wrote it (default: the pipeline tag)
-    study: dict = field(default_factory=dict)  # the drift study's own figures (prediction errors, adaptation)
+    study: dict = field(default_factory=dict)  # the drift study's own figures (prediction errors, adaptation, seed)
 
     def __post_init__(self):
         self.key = self.key or self.pipeline.tag
@@ -454,6 +459,10 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, imp
     batch = Batch(binding, _scenarios(pipeline, binding, profile))
     metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
     meta = {name.lower(): _model_summary(identified.model, config)}
+    if pipeline.tag == pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD):  # the envelope map runs it too
+        from controllers.nn_model import save_model
+
+        save_model(identified.model, envelope.seed_model_path(out_dir, seed))
     if profile.ablations and pipeline.identification_ablation:
         ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
                                                    profile)
@@ -487,13 +496,22 @@ def drifted_binding(binding):
                    tag_override=f"{binding.tag}-drifted")
 
 
+def drift_names(seed: int, first: bool) -> tuple[str, str, str]:
+    """The drift study's three controllers for one seed: not adapted, adapted, identified on the drifted
+    plant (``NNPC``, ... for the reproduction's seed; ``NNPC (seed 2)``, ... for the others)."""
+    names = (NNPC, NNPC_ADAPTIVE, NNPC_DRIFTED)
+    return names if first else tuple(seed_variant(name, seed) for name in names)
+
+
 def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = "c",
-              reuse: bool = False) -> PipelineOutput:
-    """The drift study: the NNPC identified on the mismatch-study plant, without and with online
-    adaptation, and one identified offline on the drifted plant, on the drift scenario.
+              reuse: bool = False, first: bool = True) -> PipelineOutput:
+    """The drift study for one seed: the NNPC identified on the mismatch-study plant from that seed's
+    data, without and with online adaptation, and one identified offline on the drifted plant (same
+    seed), on the drift scenario.
 
     ``reuse``: the mismatch-study pipeline at this rate has run in this reproduction, so its NNPC
-    (the same recipe and seed) is read from its model file instead of being identified again."""
+    (the same recipe and seed) is read from its model file instead of being identified again.
+    ``first``: the reproduction's own seed (plain controller names, job key ``drift``)."""
     import torch
 
     from controllers.load_estimate import conductance_series
@@ -528,12 +546,13 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
         if not math.isclose(value, after_binding.parameters[name], rel_tol=1e-6):
             raise ValueError(f"{DRIFT_SCENARIO}: {name} ends at {value}, the drifted plant has "
                              f"{after_binding.parameters[name]}")
-    controllers = [nnpc(before_model, period, NNPC), implemented(adaptive_nnpc(before_model, period, NNPC_ADAPTIVE),
-                                                                 implementation),
-                   nnpc(after.model, period, NNPC_DRIFTED)]
+    frozen_name, adaptive_name, drifted_name = drift_names(seed, first)
+    controllers = [nnpc(before_model, period, frozen_name),
+                   implemented(adaptive_nnpc(before_model, period, adaptive_name), implementation),
+                   nnpc(after.model, period, drifted_name)]
     start = time.perf_counter()
     output = run_batch(Batch(binding, [scenario]), controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
-                       extra_metadata={"pipeline": asdict(pipeline), "study": "drift"})
+                       extra_metadata={"pipeline": asdict(pipeline), "study": "drift"}, figures=first)
     timings["runs_s"] = time.perf_counter() - start
     adaptive = controllers[1]
     # one-step prediction error after the drift, on the non-adapting NNPC's closed-loop data
@@ -548,19 +567,23 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     theta = adaptive.output_weights
     adapted._weights[-1][...], adapted._biases[-1][...] = theta[:-1], theta[-1]
     prediction = {}
-    for name, model in ((NNPC, before_model), (NNPC_ADAPTIVE, adapted), (NNPC_DRIFTED, after.model)):
+    for name, model in ((frozen_name, before_model), (adaptive_name, adapted), (drifted_name, after.model)):
         error = model.predict(x) - y
         prediction[name] = {"one_step_rmse_current_A": float(np.sqrt(np.mean(error[:, 0] ** 2))),
                             "one_step_rmse_voltage_V": float(np.sqrt(np.mean(error[:, 1] ** 2)))}
     metrics = _job_table([output.metrics], pipeline, DRIFT_KEY)
-    study = {"scenario": scenario.name, "analysis_start_s": scenario.metrics_start,
+    windows = {r.info.controller: transient_and_steady_iae(r.frame, scenario.metrics_start) for r in output.results}
+    study = {"seed": seed, "controllers": [frozen_name, adaptive_name, drifted_name], "iae_windows_Vs": windows,
+             "scenario": scenario.name, "analysis_start_s": scenario.metrics_start,
              "drifted_parameters": {k: after_binding.parameters[k] for k in final},
              "prediction_after_drift": prediction, "adaptation": dict(adaptive.counters),
              "adaptation_settings": asdict(adaptive.settings)}
-    models = {NNPC.lower(): _model_summary(before_model, config), NNPC_DRIFTED.lower(): _model_summary(after.model, config)}
-    log(f"  drift: {len(metrics)} runs ({timings['runs_s']:.1f} s); adaptation {adaptive.counters}")
+    models = {frozen_name.lower(): _model_summary(before_model, config),
+              drifted_name.lower(): _model_summary(after.model, config)}
+    key = DRIFT_KEY if first else f"{DRIFT_KEY}__seed{seed}"
+    log(f"  {key}: {len(metrics)} runs ({timings['runs_s']:.1f} s); adaptation {adaptive.counters}")
     return _finish(PipelineOutput(pipeline=pipeline, metrics=metrics, pi={}, models=models, timings=timings,
-                                  key=DRIFT_KEY, study=study), out_dir)
+                                  key=key, study=study), out_dir)
 
 
 def _job_table(parts: list[pd.DataFrame], pipeline: Pipeline, key: str) -> pd.DataFrame:
@@ -583,7 +606,7 @@ def run_job(job: Job, out_dir: Path, profile: Profile, implementation: str = "c"
         return run_pipeline(job.pipeline, out_dir, profile, job.seed, implementation, job.controllers)
     if job.kind == "seed":
         return run_seed(job.pipeline, out_dir, profile, job.seed, implementation)
-    return run_drift(out_dir, profile, job.seed, implementation, reuse=job.after is not None)
+    return run_drift(out_dir, profile, job.seed, implementation, reuse=job.after is not None, first=job.first_drift)
 
 
 @dataclass
@@ -638,13 +661,14 @@ def _load_finished(out_dir: Path, job: Job) -> PipelineOutput | None:
 def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_file: str | None,
               controllers: dict[float, tuple[str, ...]] | None = None) -> list[Job]:
     """Every job of a reproduction: the pipelines (with the controller FMUs ``controllers`` maps to
-    their period), the seed jobs of the nominal plants, the drift study."""
+    their period), the seed jobs of the built-in plants, the drift study for every study seed."""
     jobs = [Job("pipeline", p, seed, controllers=(controllers or {}).get(p.control_period, ())) for p in selected]
     if not binding_file:
         jobs += [Job("seed", p, seed + offset) for p in selected if p.seed_study for offset in profile.seeds[1:]]
-        if profile.drift:
+        if profile.drift:  # the reproduction's seed reuses the mismatch pipeline's NNPC (same recipe and seed)
             after = DRIFT_PIPELINE.tag if DRIFT_PIPELINE in selected else None
             jobs.append(Job("drift", DRIFT_PIPELINE, seed, after))
+            jobs += [Job("drift", DRIFT_PIPELINE, seed + offset, first_drift=False) for offset in profile.seeds[1:]]
     return jobs
 
 
@@ -694,6 +718,9 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         def finished_pipelines():
             return (job.key for job in outputs if job.kind == "pipeline")
 
+        map_seeds = [job.seed for job in todo + list(outputs) if job.kind == "seed"
+                     and job.pipeline.tag == pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD)]
+
         def start_study():
             nonlocal study, execution
             study = tolerance_study.start(out_dir, resume, profile.tolerance_samples)
@@ -704,7 +731,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
 
         def start_map():  # the envelope map, once the nominal switched pipeline at 1/fsw has its controllers
             nonlocal envelope_map, envelope_execution
-            envelope_map = envelope.start(out_dir, quick=profile.quick, resume=resume)
+            envelope_map = envelope.start(out_dir, quick=profile.quick, resume=resume, seeds=sorted(map_seeds))
             envelope_execution = envelope_map.execution()
             log(f"  {envelope_map.describe_start('the same cluster')}")
             for future in envelope_execution.submit(client, priority=STUDY_PRIORITY):
@@ -713,7 +740,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         def maybe_start():
             if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
                 start_study()
-            if map_wanted and envelope_map is None and envelope.ready(finished_pipelines()):
+            if map_wanted and envelope_map is None and envelope.ready((job.key for job in outputs), map_seeds):
                 start_map()
 
         maybe_start()
@@ -827,7 +854,7 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     # PNG only: the report links PNGs, and results/ commits no SVG
     tolerance = study.summarise(vector=False) if study is not None else None
     pipelines = _per_pipeline(selected, jobs, outputs)
-    drift = next((outputs[job] for job in jobs if job.kind == "drift"), None)
+    drift = [outputs[job] for job in jobs if job.kind == "drift"]
     report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift, tolerance=tolerance)
     if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
         append_to_report(out_dir, report, quick=profile.quick)

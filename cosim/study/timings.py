@@ -8,13 +8,24 @@ whole reproduction's time, and the wall-clock targets (:class:`cosim.study.targe
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.base.numeric_env import describe as describe_numeric_environment
+from cosim.study.claims import TARGET_COLUMNS
 from cosim.study.summaries import markdown_table
 from cosim.study.targets import TimingTargets
+
+
+def machine_line() -> str:
+    """The machine the figures come from: CPU vendor, model, SIMD flags (machine-dependent, like the times;
+    REPORT.md records the numeric environment in machine-independent terms)."""
+    info = describe_numeric_environment()
+    return (f"Machine: {info['cpu_vendor']} {info['cpu_model']} ({info['machine']}), SIMD flags "
+            f"{' '.join(info['cpu_simd_flags']) or 'none read'}; {os.cpu_count()} logical CPU(s).")
 
 
 def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, workers: int,
@@ -60,8 +71,9 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
              + (f" The envelope map's {envelope['runs']} runs took {envelope['worker_s']:.1f} s of worker time "
                 f"(its last part {envelope['last_part_s']:.1f} s after its first task; tables and figures "
                 f"{envelope.get('outputs_s', 0.0):.1f} s)." if envelope else ""), "",
+             machine_line(), "",
              "## Timing targets", ""]
-    lines += markdown_table(targets, ["target", "measured", "met", "note"])
+    lines += markdown_table(targets, TARGET_COLUMNS)
     lines += ["", "## Stages per job [s] (a pipeline, a seed job of it, or the drift study)", ""]
     lines += markdown_table(stages, list(stages.columns), digits=3) if len(stages) else []
     lines += ["", "## Controller compute time per step [us] (per run, two pipelines sharing the cores)", ""]

@@ -22,7 +22,7 @@ const FmuModelInfo FMU_MODEL = {
     BUCK_STATES,
     2,
     0x4255434bu, /* "BUCK" */
-    4u,          /* snapshot version: the data block of the shared glue */
+    5u,          /* snapshot version: the data block of the shared glue (5: pwm_latched) */
 };
 
 void model_set_defaults(void *data) {
@@ -34,7 +34,7 @@ void model_set_defaults(void *data) {
 const char *model_start(FmuInstance *fmu, void *data, double time, char *buffer, size_t size) {
     PlantData *d = (PlantData *)data;
     (void)fmu;
-    const char *problem = buck_check(&d->model, buffer, size);
+    const char *problem = buck_check(&d->model, true, buffer, size);
     if (problem != NULL) return problem;
     buck_start(&d->model, time);
     return NULL;
@@ -165,7 +165,8 @@ fmi2Status model_set_real(FmuInstance *fmu, void *data, fmi2ValueReference vr, f
         return fmi2Error;
     }
     char message[256];
-    const char *problem = buck_check(m, message, sizeof message);
+    const char *problem = buck_check(m, initializing || vr == VR_INDUCTOR_CURRENT || vr == VR_CAPACITOR_VOLTAGE,
+                                     message, sizeof message);
     if (problem != NULL) {
         fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetReal: %s", problem);
         return fmi2Error;
@@ -201,7 +202,7 @@ fmi2Status model_set_integer(FmuInstance *fmu, void *data, fmi2ValueReference vr
     if (vr == VR_PLANT_MODE) trial.p.plant_mode = value;
     else trial.p.pwm_carrier = value;
     char message[256];
-    const char *problem = buck_check(&trial, message, sizeof message);
+    const char *problem = buck_check(&trial, true, message, sizeof message);
     if (problem != NULL) {
         fmu_log(fmu, fmi2Error, "logStatusError", "fmi2SetInteger: %s", problem);
         return fmi2Error;

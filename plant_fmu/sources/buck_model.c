@@ -17,25 +17,14 @@
  * within this fraction of the input voltage of zero counts as reached. */
 #define EVENT_CURRENT_TOLERANCE 1e-9
 #define EVENT_VOLTAGE_TOLERANCE 1e-9
-/* Averaged DCM integrator (Dormand-Prince 5(4)) tolerances. */
+/* Averaged DCM integrator (Dormand-Prince 5(4) on v_C alone) tolerances. */
 #define DCM_RELATIVE_TOLERANCE 1e-11
-#define DCM_ABSOLUTE_TOLERANCE_CURRENT 1e-12 /* [A] */
 #define DCM_ABSOLUTE_TOLERANCE_VOLTAGE 1e-10 /* [V] */
 #define DCM_FIRST_STEP 1e-7                  /* [s] */
 #define MAX_GUARD_SAMPLES 1000000
 /* A call makes at most this many consecutive regime changes without time advancing (by more than
  * a few clock resolutions) before it gives up and reports the step as failed. */
 #define MAX_STALLED_TRANSITIONS 64
-/* Averaged mode: a duty whose on-time d / f_sw is shorter than this is no pulse [s]. No switch
- * makes a 1 ps pulse (PWM timers resolve ~0.1-1 ns). Below it the averaged DCM current's time
- * constant, d (Vs - vo) / (2 f_sw (Vf + vo)), is 1e-12..5e-11 s: too stiff for the explicit DCM
- * integrator once its smallest step (64 eps t) is coarser -- at t = 401 s a duty of 1e-9 made the
- * step fail with "no progress" (the integrated current kept dipping below zero and re-conducting).
- * Not removed by this rule: duties just above it (and any duty with vo close to Vs) are as stiff,
- * slow to integrate and can fail the same way late in long runs (d = 1e-7 at vo = 12 V: 2e-12 s,
- * past the integrator from t of a few hundred seconds on); an exponential or quasi-steady
- * treatment of that fast mode would be the fix. */
-#define AVERAGED_MIN_ON_TIME 1e-12
 
 typedef enum { TOPOLOGY_SWITCH_ON, TOPOLOGY_SWITCH_OFF, TOPOLOGY_AVERAGED } Topology;
 
@@ -53,7 +42,8 @@ void buck_set_defaults(BuckModel *m) {
     m->u.input_voltage = 48.0;
     m->u.load_resistance = 6.0;
     m->conduction = CONDUCTION_CONTINUOUS;
-    m->pwm_period = -1;
+    m->pwm_period = 0;
+    m->pwm_latched = false;
 }
 
 typedef struct {
@@ -63,7 +53,7 @@ typedef struct {
     int strictly_positive;
 } Rule;
 
-const char *buck_check(const BuckModel *m, char *buffer, size_t size) {
+const char *buck_check(const BuckModel *m, bool check_states, char *buffer, size_t size) {
     const Rule rules[] = {
         {"inductance", m->p.inductance, "H", 1},
         {"capacitance", m->p.capacitance, "F", 1},
@@ -76,7 +66,8 @@ const char *buck_check(const BuckModel *m, char *buffer, size_t size) {
         {"capacitor_esr", m->p.capacitor_esr, "Ohm", 0},
         {"inductor_current", m->inductor_current, "A", 0},
     };
-    for (size_t i = 0; i < sizeof rules / sizeof rules[0]; ++i) {
+    size_t count = sizeof rules / sizeof rules[0] - (check_states ? 0 : 1); /* the state rule is last */
+    for (size_t i = 0; i < count; ++i) {
         const Rule *r = &rules[i];
         int bad = !isfinite(r->value) || (r->strictly_positive ? r->value <= 0.0 : r->value < 0.0);
         if (bad) {
@@ -86,7 +77,7 @@ const char *buck_check(const BuckModel *m, char *buffer, size_t size) {
             return buffer;
         }
     }
-    if (!isfinite(m->capacitor_voltage)) {
+    if (check_states && !isfinite(m->capacitor_voltage)) {
         snprintf(buffer, size, "capacitor_voltage = %g V is invalid: expected a finite value",
                  m->capacitor_voltage);
         return buffer;
@@ -110,12 +101,6 @@ const char *buck_check(const BuckModel *m, char *buffer, size_t size) {
 /* v_o = k (v_C + ESR i_L) with k = R / (R + ESR): the output node between ESR branch and load. */
 static double esr_divider(const BuckModel *m) {
     return m->u.load_resistance / (m->u.load_resistance + m->p.capacitor_esr);
-}
-
-/* The duty the averaged model applies: the input, or 0 for an on-time below AVERAGED_MIN_ON_TIME. */
-static double averaged_duty(const BuckModel *m) {
-    double d = m->u.duty_cycle;
-    return d < AVERAGED_MIN_ON_TIME * m->p.switching_frequency ? 0.0 : d;
 }
 
 static double output_voltage_of(const BuckModel *m, double current, double capacitor_voltage) {
@@ -150,8 +135,8 @@ void buck_set_load_resistance(BuckModel *m, double resistance) {
 }
 
 double buck_applied_duty(const BuckModel *m) {
-    if (m->p.plant_mode == MODE_SWITCHED) return m->pwm_period >= 0 ? m->pwm_duty : m->u.duty_cycle;
-    return averaged_duty(m);
+    if (m->p.plant_mode == MODE_SWITCHED && m->pwm_latched) return m->pwm_duty;
+    return m->u.duty_cycle;
 }
 
 /* The switch node seen by the inductor: an ideal source behind a series resistance. */
@@ -162,7 +147,7 @@ typedef struct {
 
 static SwitchNode switch_node(const BuckModel *m, Topology topology) {
     SwitchNode node;
-    double d = averaged_duty(m); /* used by the averaged topology only */
+    double d = m->u.duty_cycle; /* used by the averaged topology only */
     switch (topology) {
     case TOPOLOGY_SWITCH_ON:
         node.voltage = m->u.input_voltage;
@@ -182,7 +167,7 @@ static SwitchNode switch_node(const BuckModel *m, Topology topology) {
 
 /* While blocked (i_L = 0), current starts to flow once v_o falls below this voltage. */
 static double unblock_threshold(const BuckModel *m, Topology topology) {
-    if (topology == TOPOLOGY_SWITCH_ON || (topology == TOPOLOGY_AVERAGED && averaged_duty(m) > 0.0))
+    if (topology == TOPOLOGY_SWITCH_ON || (topology == TOPOLOGY_AVERAGED && m->u.duty_cycle > 0.0))
         return m->u.input_voltage;
     return -m->p.diode_forward_voltage;
 }
@@ -190,26 +175,6 @@ static double unblock_threshold(const BuckModel *m, Topology topology) {
 static double capacitor_rate(const BuckModel *m, double current, double capacitor_voltage) {
     double R = m->u.load_resistance, esr = m->p.capacitor_esr;
     return (R * current - capacitor_voltage) / ((R + esr) * m->p.capacitance);
-}
-
-/* Averaged model valid in CCM and DCM (the full-order averaged model of Sun et al., IEEE Trans.
- * Power Electron. 16(4), 2001): within a period the switch conducts for d1, the diode for d2,
- * and nothing for 1 - d1 - d2. d2 follows from the ripple geometry; it saturates at 1 - d1 in
- * CCM, where the model reduces to eq. 3. Resistive drops use the period-average current. */
-static double averaged_current_rate(const BuckModel *m, double current, double capacitor_voltage) {
-    double d1 = averaged_duty(m);
-    double L = m->p.inductance;
-    double vo = output_voltage_of(m, current, capacitor_voltage);
-    double on_voltage = m->u.input_voltage - (m->p.switch_on_resistance + m->p.inductor_resistance) * current - vo;
-    double off_voltage = m->p.diode_forward_voltage + m->p.inductor_resistance * current + vo;
-    double d2 = 1.0 - d1;
-    if (current <= 0.0) {
-        d2 = 0.0; /* no current, nothing for the diode to carry: the rate is d1 (Vs - vo) / L */
-    } else if (d1 > 0.0 && on_voltage > 0.0) {
-        double d2_dcm = 2.0 * L * m->p.switching_frequency * current / (on_voltage * d1) - d1;
-        if (d2_dcm < d2) d2 = d2_dcm > 0.0 ? d2_dcm : 0.0;
-    }
-    return (d1 * on_voltage - d2 * off_voltage) / L;
 }
 
 /* ------------------------------------------------------------------------------------------ */
@@ -377,9 +342,57 @@ static double first_crossing(const Flow *f, const double x0[2], double h, const 
     return INFINITY;
 }
 
-/* Averaged mode: CCM holds while i_L >= half the ripple a d1 / (2 L f_sw). */
+/* ------------------------------------------------------------------------------------------ */
+/* Averaged model: the CCM/DCM boundary and the reduced-order (quasi-static) DCM current      */
+/*
+ * Within a PWM period the switch conducts for d Ts, the diode for d2 Ts, and in discontinuous
+ * conduction (DCM, d + d2 < 1) nothing for the rest: the inductor current returns to zero in every
+ * period. With on = Vs - vo - (R_on + DCR) i and off = V_F + vo + DCR i the voltages across L while
+ * the switch and the diode conduct (resistive drops at the period-mean current i), the full-order
+ * averaged model (Sun et al., IEEE TPEL 16(4), 2001) makes i a state,
+ *     L di/dt = d on - d2 off,   d2 = 2 L f_sw i / (d on) - d,
+ * whose linearisation in i has the time constant  tau = d on / (2 f_sw off)  (ideal parts:
+ * d (Vs - vo) / (2 f_sw (V_F + vo))). At its equilibrium tau = d2 / (2 f_sw), and DCM means
+ * d2 < 1 - d, so tau < Ts / 2 = 6.7 us at 75 kHz -- 1e-13 s at d = 1e-9, where the explicit
+ * integrator this replaces could not follow it (a 1 ms step did not return in 100 s).
+ * The output's time scales are far slower: in DCM the converter feeds the capacitor like a current
+ * source with output resistance r = -(di/dvo)^-1 = 2 L f_sw ((V_F + vo) / (d (Vs + V_F)))^2 >= 2 L f_sw
+ * (= 33 Ohm; DCM needs V_F + vo > d (Vs + V_F)), so vo moves with C (R || r) >= 36 us at the 4 Ohm
+ * end of the workbench's loads (60 us at 6 Ohm, 2 ms at 200 Ohm), and in CCM with the LC period
+ * 2 pi sqrt(L C) = 295 us. More to the point, the switched circuit has no memory here: in DCM the
+ * current starts every period at zero, so its period mean is a function of d and vo in that period
+ * -- the full-order model's fast mode is an artefact of averaging, a lag shorter than the period
+ * the averages are taken over. So the averaged DCM current is solved algebraically: the
+ * reduced-order model, di/dt = 0 in the equation above, i.e.
+ *     f(i) = d^2 (on + off) on - 2 L f_sw i off = 0,
+ * a quadratic in i (on, off and on + off = Vs + V_F - R_on i are linear in i and v_C); its root in
+ * [0, i_b] is the period mean (ideal parts: d^2 Vs (Vs - vo) / (2 L f_sw vo), the textbook result,
+ * exact for the switched circuit at constant vo; tests/test_plant_fmu.py checks it against the
+ * switched plant). Only v_C is then integrated in DCM, a non-stiff scalar ODE, at a cost per
+ * simulated second that does not depend on d. Nothing limits the duty any more (the former 1 ps
+ * minimum on-time existed only to keep the stiff mode away from the explicit integrator).
+ *
+ * Boundary: CCM holds while i >= i_b = d on / (2 L f_sw) (half the ripple, the guard g below). On
+ * g = 0 the DCM root equals i_b, and the sign of the CCM rate there, the margin L di/dt(i_b, v_C),
+ * tells which side the current is pushed to: DCM proper while it is negative (root below i_b).
+ * While it is positive but i_b rises faster than the CCM current (v_C falling), the full-order
+ * model slides along the boundary for about d Ts / 2; the reduced model keeps i = i_b there (the
+ * DCM regime's current is the root below the boundary, i_b above it -- continuous in v_C) and
+ * returns to CCM once the CCM flow leaves the boundary upwards (sigma >= 0 below, the rate of g
+ * along the CCM flow at i = i_b, in volts).
+ *
+ * The state i_L: in CCM a state with the closed-form flow. In DCM it is algebraic, i_L = i_q(v_C):
+ * entering DCM from CCM below the boundary (margin < 0), i_L drops from i_b to the root (the
+ * sub-period decay the full-order model would resolve); any input change re-settles it the same
+ * way (a duty step up out of DCM starts CCM at i_b). v_C, the slow state, is continuous throughout.
+ * Model exchange keeps i_L a continuous state in DCM too, with the chain-rule derivative
+ * di_q/dv_C * dv_C/dt, so it tracks the root to the solver's tolerance, while dv_C/dt uses the
+ * root itself (no stiffness); each regime change is an event that resets i_L (states changed).
+ * Derivatives, event indicators and co-simulation all call the functions below. */
+
+/* CCM holds while g(i_L, v_C) = i_L - d on(i_L, v_C) / (2 L f_sw) >= 0 (half the ripple). */
 static Guard continuous_conduction_guard(const BuckModel *m) {
-    double q = averaged_duty(m) / (2.0 * m->p.inductance * m->p.switching_frequency);
+    double q = m->u.duty_cycle / (2.0 * m->p.inductance * m->p.switching_frequency);
     double k = esr_divider(m);
     Guard g;
     g.c0 = 1.0 + q * (m->p.switch_on_resistance + m->p.inductor_resistance + k * m->p.capacitor_esr);
@@ -388,31 +401,129 @@ static Guard continuous_conduction_guard(const BuckModel *m) {
     return g;
 }
 
-static Conduction classify_conducting(const BuckModel *m, Topology topology) {
-    if (topology != TOPOLOGY_AVERAGED) return CONDUCTION_CONTINUOUS;
-    if (m->inductor_current <= 0.0) {
-        /* Leaving the blocked state (or starting) at zero current: whenever the switch can drive
-         * current (d > 0, Vs > vo) this is DCM, whose rate d (Vs - vo) / L is never negative. The
-         * guard below is only ~0 here and rounding must not pick CCM, which would block at once. */
-        double vo = esr_divider(m) * m->capacitor_voltage;
-        return averaged_duty(m) > 0.0 && m->u.input_voltage - vo >= 0.0 ? CONDUCTION_DISCONTINUOUS
-                                                                       : CONDUCTION_CONTINUOUS;
-    }
+/* i_b(v_C): the current on the boundary g = 0 [A]. */
+static double boundary_current(const BuckModel *m, double capacitor_voltage) {
     Guard g = continuous_conduction_guard(m);
-    double x[2] = {m->inductor_current, m->capacitor_voltage};
-    return guard_value(&g, x) >= 0.0 ? CONDUCTION_CONTINUOUS : CONDUCTION_DISCONTINUOUS;
+    return -(g.c1 * capacitor_voltage + g.k) / g.c0;
+}
+
+/* L di_L/dt of the averaged CCM model (eq. 3 plus parasitics) [V]. */
+static double ccm_drive(const BuckModel *m, double current, double capacitor_voltage) {
+    SwitchNode node = switch_node(m, TOPOLOGY_AVERAGED);
+    return node.voltage - (node.resistance + m->p.inductor_resistance) * current
+           - output_voltage_of(m, current, capacitor_voltage);
+}
+
+/* The CCM drive on the boundary [V]: < 0 pushes the current below i_b (DCM). */
+static double boundary_margin(const BuckModel *m, double capacitor_voltage) {
+    return ccm_drive(m, boundary_current(m, capacitor_voltage), capacitor_voltage);
+}
+
+/* L / g.c0 times dg/dt along the CCM flow at i_L = i_b(v_C) [V]: >= 0 when the CCM current leaves
+ * the boundary upwards. */
+static double boundary_departure(const BuckModel *m, double capacitor_voltage) {
+    Guard g = continuous_conduction_guard(m);
+    double ib = boundary_current(m, capacitor_voltage);
+    return ccm_drive(m, ib, capacitor_voltage)
+           + m->p.inductance * g.c1 / g.c0 * capacitor_rate(m, ib, capacitor_voltage);
+}
+
+/* The DCM regime's current i_q(v_C) [A] and its slope di_q/dv_C [A/V]: the root of f below the
+ * boundary while the margin is negative, i_b on and above it, 0 once vo reaches Vs. */
+static double dcm_current(const BuckModel *m, double capacitor_voltage, double *slope) {
+    double d = m->u.duty_cycle, k = esr_divider(m);
+    double ib = boundary_current(m, capacitor_voltage);
+    *slope = 0.0;
+    if (ib <= 0.0) return 0.0; /* vo >= Vs (or d = 0): no current */
+    if (!(ccm_drive(m, ib, capacitor_voltage) < 0.0)) { /* on or above the boundary */
+        Guard g = continuous_conduction_guard(m);
+        *slope = -g.c1 / g.c0;
+        return ib;
+    }
+    double ron = m->p.switch_on_resistance, dcr = m->p.inductor_resistance, esr = m->p.capacitor_esr;
+    double a0 = m->u.input_voltage + m->p.diode_forward_voltage, a1 = ron; /* on + off = a0 - a1 i */
+    double b0 = m->u.input_voltage - k * capacitor_voltage, b1 = ron + dcr + k * esr; /* on = b0 - b1 i */
+    double c0 = m->p.diode_forward_voltage + k * capacitor_voltage, c1 = dcr + k * esr; /* off = c0 + c1 i */
+    double p = 2.0 * m->p.inductance * m->p.switching_frequency, d2 = d * d;
+    /* f(i) = A i^2 + B i + C0 with f(0) = C0 > 0 > f(i_b): its smaller positive root, in the form
+     * that neither cancels (B < 0 there) nor divides by A (A = 0 for ideal parts) */
+    double A = d2 * a1 * b1 - p * c1;
+    double B = -d2 * (a0 * b1 + a1 * b0) - p * c0;
+    double C0 = d2 * a0 * b0;
+    double root = 2.0 * C0 / (-B + sqrt(fmax(B * B - 4.0 * A * C0, 0.0)));
+    double i = fmin(fmax(root, 0.0), ib);
+    double dfdi = 2.0 * A * i + B;                          /* < 0 at this root */
+    double dfdv = -k * (d2 * (a0 - a1 * i) + p * i);        /* df/dv_C */
+    *slope = dfdi < 0.0 ? -dfdv / dfdi : 0.0;
+    return i;
+}
+
+/* dv_C/dt in the DCM regime [V/s]. */
+static double dcm_rate(const BuckModel *m, double capacitor_voltage) {
+    double slope;
+    return capacitor_rate(m, dcm_current(m, capacitor_voltage, &slope), capacitor_voltage);
+}
+
+/* The DCM regime ends (CCM resumes) once the margin and the departure are both >= -tolerance. */
+static int dcm_ends(const BuckModel *m, double capacitor_voltage, double tolerance) {
+    return boundary_margin(m, capacitor_voltage) >= -tolerance
+           && boundary_departure(m, capacitor_voltage) >= -tolerance;
+}
+
+/* Enter CCM on the boundary: i_L = i_b, nudged up by rounding until g >= 0, so the CCM flow does
+ * not see the crossing it started from. */
+static void enter_ccm_on_boundary(BuckModel *m) {
+    Guard g = continuous_conduction_guard(m);
+    double i = fmax(boundary_current(m, m->capacitor_voltage), 0.0);
+    for (int n = 0; n < 8; ++n) {
+        double x[2] = {i, m->capacitor_voltage};
+        if (guard_value(&g, x) >= 0.0) break;
+        i = nextafter(i, INFINITY);
+    }
+    m->inductor_current = i;
+    m->conduction = CONDUCTION_CONTINUOUS;
+}
+
+/* Averaged mode, not blocked: decide the regime for the present state and inputs and settle i_L
+ * where the regime makes it algebraic. A CCM current on or above the boundary keeps CCM (i_L a
+ * state); below it, the DCM regime -- unless the CCM flow is pushed up there (dcm_ends), then CCM
+ * starting on the boundary. Co-simulation passes zero tolerances; model exchange's event update
+ * passes its own, since the solver stops on a crossing, where an indicator is zero to rounding: a
+ * CCM current within current_tolerance above the boundary counts as on it, a DCM margin within
+ * voltage_tolerance below zero as reached. */
+static void settle_averaged(BuckModel *m, double current_tolerance, double voltage_tolerance) {
+    double vc = m->capacitor_voltage;
+    if (m->conduction == CONDUCTION_CONTINUOUS) {
+        Guard g = continuous_conduction_guard(m);
+        double x[2] = {m->inductor_current, vc};
+        /* above the boundary: CCM, i_L a state (a zero current with d > 0 sits on a boundary that
+         * vo = Vs has shrunk to zero: the DCM regime's, where the switch drives current again) */
+        if (guard_value(&g, x) >= current_tolerance && (m->inductor_current > 0.0 || m->u.duty_cycle == 0.0)) return;
+        if (dcm_ends(m, vc, 0.0)) { /* on or below it but pushed up: CCM resumes on the boundary */
+            if (guard_value(&g, x) < 0.0) enter_ccm_on_boundary(m);
+            return;
+        }
+    } else if (dcm_ends(m, vc, voltage_tolerance)) {
+        enter_ccm_on_boundary(m);
+        return;
+    }
+    double slope;
+    m->inductor_current = dcm_current(m, vc, &slope);
+    m->conduction = CONDUCTION_DISCONTINUOUS;
+}
+
+/* Current starts to flow again after the diode blocked (i_L = 0). */
+static void leave_blocked(BuckModel *m, Topology topology, double current_tolerance, double voltage_tolerance) {
+    m->inductor_current = 0.0;
+    m->conduction = CONDUCTION_CONTINUOUS;
+    if (topology == TOPOLOGY_AVERAGED) settle_averaged(m, current_tolerance, voltage_tolerance);
 }
 
 /* ------------------------------------------------------------------------------------------ */
-/* Averaged DCM: Dormand-Prince 5(4) with error control                                       */
-
-static void dcm_rate(const BuckModel *m, const double x[2], double dx[2]) {
-    dx[0] = averaged_current_rate(m, x[0], x[1]);
-    dx[1] = capacitor_rate(m, x[0], x[1]);
-}
+/* Averaged DCM: Dormand-Prince 5(4) on v_C with error control                                */
 
 /* One step; returns the scaled error norm (<= 1 is acceptable). */
-static double dopri_step(const BuckModel *m, const double x[2], double h, double out[2]) {
+static double dopri_step(const BuckModel *m, double x, double h, double *out) {
     static const double c[7][6] = {
         {0},
         {1.0 / 5.0},
@@ -424,73 +535,58 @@ static double dopri_step(const BuckModel *m, const double x[2], double h, double
     };
     static const double e[7] = {71.0 / 57600.0, 0.0, -71.0 / 16695.0, 71.0 / 1920.0,
                                 -17253.0 / 339200.0, 22.0 / 525.0, -1.0 / 40.0};
-    double k[7][2];
-    dcm_rate(m, x, k[0]);
+    double k[7];
+    k[0] = dcm_rate(m, x);
     for (int s = 1; s < 7; ++s) {
-        double y[2] = {x[0], x[1]};
-        for (int j = 0; j < s; ++j) {
-            y[0] += h * c[s][j] * k[j][0];
-            y[1] += h * c[s][j] * k[j][1];
-        }
-        if (s == 6) {
-            out[0] = y[0];
-            out[1] = y[1];
-        }
-        dcm_rate(m, y, k[s]);
+        double y = x;
+        for (int j = 0; j < s; ++j) y += h * c[s][j] * k[j];
+        if (s == 6) *out = y;
+        k[s] = dcm_rate(m, y);
     }
-    double err0 = 0.0, err1 = 0.0;
-    for (int s = 0; s < 7; ++s) {
-        err0 += h * e[s] * k[s][0];
-        err1 += h * e[s] * k[s][1];
-    }
-    double sc0 = DCM_ABSOLUTE_TOLERANCE_CURRENT + DCM_RELATIVE_TOLERANCE * fmax(fabs(x[0]), fabs(out[0]));
-    double sc1 = DCM_ABSOLUTE_TOLERANCE_VOLTAGE + DCM_RELATIVE_TOLERANCE * fmax(fabs(x[1]), fabs(out[1]));
-    return fmax(fabs(err0) / sc0, fabs(err1) / sc1);
+    double err = 0.0;
+    for (int s = 0; s < 7; ++s) err += h * e[s] * k[s];
+    double scale = DCM_ABSOLUTE_TOLERANCE_VOLTAGE + DCM_RELATIVE_TOLERANCE * fmax(fabs(x), fabs(*out));
+    return fabs(err) / scale;
 }
 
-/* Integrate the averaged DCM regime to t_end, or until CCM is re-entered. */
+/* Integrate the DCM regime (v_C; i_L = i_q(v_C)) to t_end, or until CCM resumes. */
 static void advance_discontinuous(BuckModel *m, double t_end) {
-    Guard ccm = continuous_conduction_guard(m);
     double h = m->dcm_step > 0.0 ? m->dcm_step : DCM_FIRST_STEP;
     double min_step = 64.0 * DBL_EPSILON * fmax(fabs(t_end), 1e-9);
+    double slope;
     while (m->time < t_end) {
         double remaining = t_end - m->time;
         int last = h >= remaining;
         double step = last ? remaining : h;
-        double x[2] = {m->inductor_current, m->capacitor_voltage}, xn[2];
-        double err = dopri_step(m, x, step, xn);
+        double x = m->capacitor_voltage, xn;
+        double err = dopri_step(m, x, step, &xn);
         double factor = err > 0.0 ? fmin(5.0, fmax(0.2, 0.9 * pow(err, -0.2))) : 5.0;
         if (err > 1.0 && step > min_step) {
             h = step * factor;
             continue;
         }
-        int to_ccm = guard_value(&ccm, xn) >= 0.0;
-        int to_blocked = !to_ccm && xn[0] < 0.0; /* possible only if vo rose above Vs meanwhile */
-        if (to_ccm || to_blocked) { /* the regime ends within this step: locate the end by bisection */
+        if (dcm_ends(m, xn, 0.0)) { /* CCM resumes within this step: locate it by bisection */
             double lo = 0.0, hi = step;
             double resolution = 4.0 * DBL_EPSILON * (fabs(t_end) + step);
             while (hi - lo > resolution) {
-                double mid = 0.5 * (lo + hi), xm[2];
-                dopri_step(m, x, mid, xm);
-                int crossed = to_ccm ? guard_value(&ccm, xm) >= 0.0 : xm[0] < 0.0;
-                if (crossed) {
+                double mid = 0.5 * (lo + hi), xm;
+                dopri_step(m, x, mid, &xm);
+                if (dcm_ends(m, xm, 0.0)) {
                     hi = mid;
-                    xn[0] = xm[0];
-                    xn[1] = xm[1];
+                    xn = xm;
                 } else {
                     lo = mid;
                 }
             }
             m->time = hi == remaining ? t_end : m->time + hi;
-            m->inductor_current = to_ccm ? xn[0] : 0.0;
-            m->capacitor_voltage = xn[1];
-            m->conduction = to_ccm ? CONDUCTION_CONTINUOUS : CONDUCTION_BLOCKED;
+            m->capacitor_voltage = xn;
+            enter_ccm_on_boundary(m);
             m->dcm_step = h;
             return;
         }
         m->time = last ? t_end : m->time + step;
-        m->inductor_current = xn[0];
-        m->capacitor_voltage = xn[1];
+        m->capacitor_voltage = xn;
+        m->inductor_current = dcm_current(m, xn, &slope);
         if (!last || factor < 1.0) h = step * factor;
     }
     m->dcm_step = h;
@@ -513,7 +609,7 @@ static bool advance_topology(BuckModel *m, Topology topology, double t_end) {
             double vo = esr_divider(m) * m->capacitor_voltage;
             m->inductor_current = 0.0;
             if (threshold - vo > 0.0) {
-                m->conduction = classify_conducting(m, topology);
+                leave_blocked(m, topology, 0.0, 0.0);
             } else if (threshold - vo * exp(-h / tau) > 0.0) {
                 double dt = tau * log(vo / threshold); /* same sign, |vo| > |threshold| here */
                 if (!(dt >= 0.0 && dt < h)) dt = h;
@@ -523,7 +619,7 @@ static bool advance_topology(BuckModel *m, Topology topology, double t_end) {
                 m->capacitor_voltage = fmin(m->capacitor_voltage, threshold / esr_divider(m));
                 accumulate(m, 0.0, tau * (v0 - m->capacitor_voltage));
                 m->time = dt < h ? m->time + dt : t_end;
-                m->conduction = classify_conducting(m, topology);
+                leave_blocked(m, topology, 0.0, 0.0);
             } else {
                 double v0 = m->capacitor_voltage;
                 m->capacitor_voltage *= exp(-h / tau);
@@ -555,7 +651,7 @@ static bool advance_topology(BuckModel *m, Topology topology, double t_end) {
                 m->inductor_current = 0.0;
                 m->conduction = CONDUCTION_BLOCKED;
             } else if (t_dcm <= dt) {
-                m->conduction = CONDUCTION_DISCONTINUOUS;
+                settle_averaged(m, 0.0, 0.0); /* g < 0 here: the DCM regime, or CCM on the boundary */
             }
         } else {
             advance_discontinuous(m, t_end);
@@ -578,7 +674,8 @@ static long long period_index(const BuckModel *m, double t) {
 static void latch_period(BuckModel *m, double t) {
     long long k = period_index(m, t);
     int at_period_start = fabs(t * m->p.switching_frequency - (double)k) < PHASE_TOLERANCE;
-    if (k != m->pwm_period || at_period_start) {
+    if (!m->pwm_latched || k != m->pwm_period || at_period_start) {
+        m->pwm_latched = true;
         m->pwm_period = k;
         m->pwm_duty = m->u.duty_cycle;
     }
@@ -629,7 +726,8 @@ static Topology current_topology(const BuckModel *m) {
 
 void buck_start(BuckModel *m, double t) {
     m->time = t;
-    m->pwm_period = -1;
+    m->pwm_period = 0;
+    m->pwm_latched = false;
     m->dcm_step = 0.0;
     m->period_charge = 0.0;
     m->period_flux = 0.0;
@@ -648,7 +746,8 @@ void buck_start(BuckModel *m, double t) {
         m->inductor_current = 0.0;
         m->conduction = CONDUCTION_BLOCKED;
     } else {
-        m->conduction = classify_conducting(m, topology);
+        m->conduction = CONDUCTION_CONTINUOUS;
+        if (topology == TOPOLOGY_AVERAGED) settle_averaged(m, 0.0, 0.0);
     }
 }
 
@@ -658,7 +757,7 @@ bool buck_advance(BuckModel *m, double t_end) {
         ok = advance_switched(m, t_end);
     } else {
         /* inputs may have changed since the last step: re-decide CCM versus DCM */
-        if (m->conduction != CONDUCTION_BLOCKED) m->conduction = classify_conducting(m, TOPOLOGY_AVERAGED);
+        if (m->conduction != CONDUCTION_BLOCKED) settle_averaged(m, 0.0, 0.0);
         ok = advance_topology(m, TOPOLOGY_AVERAGED, t_end);
     }
     if (ok) m->time = t_end;
@@ -677,13 +776,16 @@ void buck_derivatives(const BuckModel *m, double dx[BUCK_STATES]) {
     }
     dx[2] = switched ? iL : 0.0;
     dx[3] = switched ? output_voltage_of(m, iL, vC) : 0.0;
-    if (m->p.plant_mode == MODE_AVERAGED) {
-        dx[0] = averaged_current_rate(m, iL, vC);
-    } else {
-        SwitchNode node = switch_node(m, current_topology(m));
-        double vo = output_voltage_of(m, iL, vC);
-        dx[0] = (node.voltage - (node.resistance + m->p.inductor_resistance) * iL - vo) / m->p.inductance;
+    if (m->conduction == CONDUCTION_DISCONTINUOUS) { /* averaged DCM: i_L = i_q(v_C), see above */
+        double slope;
+        double current = dcm_current(m, vC, &slope);
+        dx[1] = capacitor_rate(m, current, vC);
+        dx[0] = slope * dx[1];
+        return;
     }
+    SwitchNode node = switch_node(m, current_topology(m));
+    double vo = output_voltage_of(m, iL, vC);
+    dx[0] = (node.voltage - (node.resistance + m->p.inductor_resistance) * iL - vo) / m->p.inductance;
     dx[1] = capacitor_rate(m, iL, vC);
 }
 
@@ -693,10 +795,16 @@ void buck_event_indicators(const BuckModel *m, double z[2]) {
         z[1] = 1.0;
         return;
     }
+    if (m->conduction == CONDUCTION_DISCONTINUOUS) {
+        /* the margin's zero is the kink between DCM proper and the boundary; CCM resumes once both
+         * it and the departure are >= 0 */
+        z[0] = boundary_margin(m, m->capacitor_voltage);
+        z[1] = boundary_departure(m, m->capacitor_voltage);
+        return;
+    }
     z[0] = m->inductor_current;
     if (m->p.plant_mode == MODE_AVERAGED) {
-        /* CCM/DCM boundary: the averaged model has a kink here, the solver should stop on it */
-        Guard g = continuous_conduction_guard(m);
+        Guard g = continuous_conduction_guard(m); /* the CCM/DCM boundary */
         double x[2] = {m->inductor_current, m->capacitor_voltage};
         z[1] = guard_value(&g, x);
     } else {
@@ -720,18 +828,19 @@ bool buck_update_discrete(BuckModel *m, double *next_event_time, bool *next_even
     }
     Topology topology = current_topology(m);
     double drive = unblock_threshold(m, topology) - esr_divider(m) * m->capacitor_voltage;
+    double voltage_tolerance = EVENT_VOLTAGE_TOLERANCE * fmax(1.0, fabs(m->u.input_voltage));
+    double before = m->inductor_current;
     if (m->conduction == CONDUCTION_BLOCKED) {
         /* The solver stops on the crossing itself, where the drive is zero to rounding; waiting for
          * it to turn positive would wait forever (the indicator no longer changes sign). */
-        double tolerance = EVENT_VOLTAGE_TOLERANCE * fmax(1.0, fabs(m->u.input_voltage));
-        if (drive > -tolerance) m->conduction = CONDUCTION_CONTINUOUS;
+        if (drive > -voltage_tolerance) leave_blocked(m, topology, EVENT_CURRENT_TOLERANCE, voltage_tolerance);
     } else if (m->inductor_current <= EVENT_CURRENT_TOLERANCE && drive <= 0.0) {
         m->conduction = CONDUCTION_BLOCKED;
         m->inductor_current = 0.0;
-        states_changed = true;
+    } else if (topology == TOPOLOGY_AVERAGED) {
+        settle_averaged(m, EVENT_CURRENT_TOLERANCE, voltage_tolerance);
     } else if (m->inductor_current < 0.0) {
         m->inductor_current = 0.0;
-        states_changed = true;
     }
-    return states_changed;
+    return states_changed || m->inductor_current != before;
 }

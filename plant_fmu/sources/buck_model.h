@@ -7,8 +7,9 @@
  *
  * Between switch and diode transitions the circuit is linear, x' = A x + b, so every
  * interval has a closed-form solution (2x2 matrix exponential). The only non-linear piece
- * is the averaged model in discontinuous conduction (DCM), integrated by an embedded
- * Runge-Kutta 5(4) method with tight tolerances.
+ * is the averaged model in discontinuous conduction (DCM): its inductor current is algebraic
+ * there (the reduced-order model; buck_model.c derives why), and v_C alone is integrated by an
+ * embedded Runge-Kutta 5(4) method with tight tolerances.
  *
  * This file knows nothing about FMI: fmi2_functions.c is the glue. */
 #ifndef BUCK_MODEL_H
@@ -22,7 +23,8 @@ enum { CARRIER_SAWTOOTH = 0, CARRIER_TRIANGLE = 1 };
 
 typedef enum {
     CONDUCTION_CONTINUOUS = 0,    /* current flows (switched: through switch or diode; averaged: CCM) */
-    CONDUCTION_DISCONTINUOUS = 1, /* averaged mode only: each PWM period has an idle interval (DCM) */
+    CONDUCTION_DISCONTINUOUS = 1, /* averaged mode only: each PWM period has an idle interval (DCM);
+                                   * i_L is then the algebraic period mean i_q(v_C) */
     CONDUCTION_BLOCKED = 2        /* i_L held at 0 by the diode */
 } Conduction;
 
@@ -53,10 +55,11 @@ typedef struct {
     Conduction conduction;
     /* switched mode: PWM bookkeeping. The duty is latched at the start of each carrier period,
      * like the shadow register of a microcontroller PWM unit. */
-    long long pwm_period;     /* index of the period whose duty is latched, -1 before the first */
+    long long pwm_period;     /* index of the period whose duty is latched (any sign: a run may start before 0) */
+    bool pwm_latched;         /* a duty has been latched since the start (pwm_period is valid) */
     double pwm_duty;          /* duty latched for pwm_period */
     bool switch_on;           /* model exchange: switch state of the current interval */
-    double dcm_step;          /* last accepted step of the DCM integrator [s] */
+    double dcm_step;          /* last accepted step of the DCM (v_C) integrator [s] */
     /* switched mode: exact means over each PWM period, as an averaging ADC measures them */
     double period_charge;     /* integral of i_L since period_start [A s] (a model-exchange state) */
     double period_flux;       /* integral of v_o since period_start [V s] (a model-exchange state) */
@@ -77,8 +80,11 @@ typedef struct {
 
 void buck_set_defaults(BuckModel *m);
 
-/* NULL if parameters and inputs are physically valid, else a message naming the culprit. */
-const char *buck_check(const BuckModel *m, char *buffer, size_t size);
+/* NULL if parameters and inputs (and, with check_states, the states) are physically valid, else a
+ * message naming the culprit. During a model-exchange run the solver's trial states may dip below
+ * zero between events; setting an input then must not fail on them, so only a start value or a
+ * state set by name is checked. */
+const char *buck_check(const BuckModel *m, bool check_states, char *buffer, size_t size);
 
 /* Classify the conduction state and latch the PWM at time t (after initialization). */
 void buck_start(BuckModel *m, double t);

@@ -55,9 +55,13 @@ def row_schema(axes: list[tuple[str, str, bool]], extra: tuple[pa.Field, ...] = 
     return pa.schema(fields + list(extra))
 
 
+#: the wall-clock and machine figures of each run, apart from the dataset: its wall time, the controller's compute
+#: time, the worker, which of that worker process's runs it was (1, 2, ...) and the worker's resident memory after it
+#: (a soak shows growth per worker, `buck-cosim bench --only soak`)
 TIMING_SCHEMA = pa.schema([pa.field("run_id", pa.string()), pa.field("wall_time_s", pa.float64()),
                           pa.field("controller_p50_us", pa.float64()), pa.field("controller_p99_us", pa.float64()),
-                          pa.field("worker", pa.string())])
+                          pa.field("worker", pa.string()), pa.field("worker_run", pa.int64()),
+                          pa.field("worker_rss_mb", pa.float64())])
 
 
 def part_path(out_dir: Path, controller: str, scenario: str, key: str) -> Path:

@@ -320,7 +320,7 @@ def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.fmi.binding import RoleMap
     from cosim.fmi.controller import ControllerBinding, FmuController, builtin_controller_binding
     from cosim.study.sweeps.spec import PERIOD_MATCH
-    from cosim.study.sweeps.worker import process_file
+    from cosim.study.sweeps.process_files import process_file
 
     s = recipe.settings
     path = process_file(s["fmu"], recipe.blob, recipe.blob_digest)

@@ -11,6 +11,10 @@
   every time is a ``failed`` row naming that cause. The sweep goes on either way.
 * Ctrl-C / SIGTERM: the pending tasks are cancelled and the caller closes the cluster; every part
   on disk is complete (atomic writes), and ``--resume`` runs exactly the runs without a row.
+* The scheduler goes away (its process ends, its machine or the network fails): dask cancels every
+  pending future ("scheduler-connection-lost"). That is no fault of the runs -- nothing is written
+  for them -- and the execution ends with :class:`~cosim.base.errors.ClusterLost` (exit 5): every
+  finished part is kept, and ``--resume`` against a new scheduler runs exactly the rest.
 
 :class:`SweepExecution` is the sweep as a set of futures, so the reproduction can run a tolerance
 study on the same client as its pipelines, mixed into one ``as_completed`` loop.
@@ -20,9 +24,10 @@ from __future__ import annotations
 
 import sys
 import time
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 
-from cosim.base.errors import RunInterrupted
+from cosim.base.errors import ClusterLost, RunInterrupted
 from cosim.study.sweeps.dataset import write_part, write_timing, write_trace
 from cosim.study.sweeps.plan import BatchTask, batch_key
 from cosim.study.sweeps.worker import FAILED, BatchResult, RunSettings, run_batch, run_row, timing_row
@@ -88,13 +93,23 @@ class SweepExecution:
         return future.key in self._pending
 
     def handle(self, future) -> list:
-        """Write a finished future's part (or split a task that killed its worker); new futures to wait on."""
+        """Write a finished future's part (or split a task that killed its worker); new futures to wait on.
+        A future cancelled by dask, not by :meth:`cancel`, means the scheduler went away: :class:`SchedulerGone`."""
         from distributed.scheduler import KilledWorker
 
+        from distributed.comm.core import CommClosedError
+
+        if future.status == "cancelled":  # only dask cancels a pending future: cancel() stops handling first
+            raise SchedulerGone(future.key)
+        if future.status == "finished":
+            try:
+                result = future.result()
+            except (CommClosedError, CancelledError):  # finished, but the scheduler went away before the result came
+                raise SchedulerGone(future.key) from None
         task, attempt = self._pending.pop(future.key)
         self._futures.pop(future.key, None)
         if future.status == "finished":
-            self._write(task, future.result())
+            self._write(task, result)
             return []
         try:
             error = future.exception()
@@ -142,20 +157,39 @@ class SweepExecution:
             self._bar = None
 
 
-def execute(execution: SweepExecution, client, interrupted_message) -> ExecutionCounts:
+class SchedulerGone(Exception):
+    """dask cancelled a pending future: the client lost its scheduler (see the module docstring)."""
+
+
+def scheduler_lost(counts: ExecutionCounts) -> str:
+    """The default :class:`ClusterLost` message of :func:`execute`."""
+    return (f"the dask scheduler went away (the client lost its connection) after {counts.runs} run(s); what "
+            "finished is kept")
+
+
+def execute(execution: SweepExecution, client, interrupted_message, lost_message=scheduler_lost) -> ExecutionCounts:
     """Run ``execution`` to the end on ``client``. On Ctrl-C / SIGTERM: cancel, and raise
-    :class:`RunInterrupted` with ``interrupted_message(counts)``."""
+    :class:`RunInterrupted` with ``interrupted_message(counts)``; when the scheduler goes away, raise
+    :class:`ClusterLost` with ``lost_message(counts)``."""
     from distributed import as_completed
+
+    from distributed.comm.core import CommClosedError
 
     futures = execution.submit(client)
     try:
-        queue = as_completed(futures, loop=client.loop)
-        for future in queue:
-            for new in execution.handle(future):
-                queue.add(new)
+        try:
+            queue = as_completed(futures, loop=client.loop)
+            for future in queue:
+                for new in execution.handle(future):
+                    queue.add(new)
+        except CommClosedError:  # the connection to the scheduler closed under a call of ours
+            raise SchedulerGone() from None
     except KeyboardInterrupt:
         execution.cancel()
         raise RunInterrupted(interrupted_message(execution.counts)) from None
+    except SchedulerGone:
+        execution.cancel()
+        raise ClusterLost(lost_message(execution.counts)) from None
     except BaseException:
         execution.cancel()
         raise

@@ -40,6 +40,8 @@ class PlantRecipe:
     label: str
     tag: str
     isolate: bool = False  # step the FMU in a child process (a binding file's default): a crash is that run's row
+    step_timeout: float | None = None  # isolated: a step's wall-time limit [s] (None: derived from the step)
+    memory_limit: float | None = None  # isolated: the plant process's memory limit [MB] (None: half the machine's)
 
     @classmethod
     def of(cls, binding: PlantBinding) -> "PlantRecipe":
@@ -48,7 +50,8 @@ class PlantRecipe:
                    roles=tuple((r, m.variable, m.scale, m.offset) for r, m in sorted(binding.roles.items())),
                    parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
-                   label=binding.label, tag=binding.tag, isolate=binding.isolate)
+                   label=binding.label, tag=binding.tag, isolate=binding.isolate, step_timeout=binding.step_timeout,
+                   memory_limit=binding.memory_limit)
 
     @cached_property
     def fmu_digest(self) -> str:
@@ -59,7 +62,8 @@ class PlantRecipe:
         return PlantBinding(fmu_path=Path(fmu_path), roles={r: RoleMap(v, s, o) for r, v, s, o in self.roles},
                             interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
                             source=Path(self.source) if self.source else None, label=self.label,
-                            tag_override=self.tag, isolate=self.isolate)
+                            tag_override=self.tag, isolate=self.isolate, step_timeout=self.step_timeout,
+                            memory_limit=self.memory_limit)
 
     def identity(self) -> dict:
         """What decides a run's result (not where the files are)."""

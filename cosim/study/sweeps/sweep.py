@@ -8,6 +8,7 @@ answers, its workers can load this FMU); then the controllers are designed on th
 
 Exit codes (``cosim.cli``): 0 every run complete; 2 a mistake in the sweep file, the plant, the
 output folder or ``--scheduler``; 3 the sweep finished but some runs failed (their rows say why);
+5 the dask scheduler went away mid-sweep (``--resume`` against a new one finishes the rest);
 130 interrupted (``--resume`` finishes the rest).
 """
 
@@ -163,6 +164,16 @@ def interrupted(out_dir: Path, planned: int, done_before: int):
     return message
 
 
+def scheduler_lost(out_dir: Path, planned: int, done_before: int, where: str):
+    def message(counts) -> str:
+        done = done_before + counts.runs
+        return (f"sweep stopped: the dask scheduler ({where}) went away; {done} of {planned} runs are in "
+                f"{out_dir}/{dataset.DATASET_DIR} (every part complete); start a scheduler and workers again and run "
+                f"the same command with --resume (--scheduler ADDRESS for a new address) to finish the other "
+                f"{planned - done}")
+    return message
+
+
 def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | None = None, workers: int | None = None,
               resume: bool = False, progress: bool = False, connect_timeout: float | None = None) -> SweepOutcome:
     """Run a sweep (module docstring); returns what happened, the summary included. Failed runs do not
@@ -203,7 +214,8 @@ def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | N
         started = time.perf_counter()
         try:
             counts = execute(prepared.execution(), client,
-                             interrupted(out_dir, len(prepared.runs), prepared.done_before))
+                             interrupted(out_dir, len(prepared.runs), prepared.done_before),
+                             scheduler_lost(out_dir, len(prepared.runs), prepared.done_before, where))
         finally:
             remove_temporary_files(out_dir)
         elapsed = time.perf_counter() - started

@@ -2,7 +2,7 @@
 
 The fmpy ``parameter_variation`` pattern: the FMU is instantiated once per worker thread and
 reset between runs (``cosim.master.run`` re-initialises it with the run's parameters, set by
-:meth:`~cosim.fmi.plant.FmuPlant.replace_parameters`), never reloaded per run. Plants and controllers
+:meth:`~cosim.fmi.plant_fmi2.FmuPlant.replace_parameters`), never reloaded per run. Plants and controllers
 are kept per thread across tasks, so a worker pays for extracting the FMU, loading the model and
 building the C twins once. An FMU that reported ``fmi2Fatal`` is dropped and a fresh instance
 serves the next run.
@@ -16,22 +16,23 @@ rows, so the dataset stays byte-identical when the sweep is repeated.
 from __future__ import annotations
 
 import atexit
+import itertools
 import math
 import os
-import shutil
 import socket
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from cosim.base.errors import WorkbenchError
+from cosim.fmi.isolation import resident_bytes
 from cosim.master import RunFailed, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, run_metrics
 from cosim.scenarios import Scenario
 from cosim.study.sweeps.designs import build
 from cosim.study.sweeps.plan import PlannedRun, at_operating_point
+from cosim.study.sweeps.process_files import process_file
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
 
 OK, FAILED = "ok", "failed"
@@ -55,34 +56,7 @@ class BatchResult:
 # ---------------------------------------------------------------------------------------------
 # per-process files and per-thread instances
 
-_files_lock = threading.Lock()
-_files: dict[str, Path] = {}
-_folder: Path | None = None
 _local = threading.local()
-
-
-def _process_folder() -> Path:
-    global _folder
-    if _folder is None or not _folder.is_dir():
-        _folder = Path(tempfile.mkdtemp(prefix=f"buck-cosim-worker-{os.getpid()}-"))
-        atexit.register(shutil.rmtree, _folder, True)
-    return _folder
-
-
-def process_file(name: str, blob: bytes, key: str) -> Path:
-    """This process's copy of a file that travelled as bytes (``key``: their SHA-256), written once
-    per digest into the process's private folder (removed at exit) under its own ``name``."""
-    with _files_lock:
-        path = _files.get(key)
-        if path is None or not path.is_file():
-            folder = _process_folder() / key[:16]
-            folder.mkdir(exist_ok=True)
-            path = folder / name
-            tmp = folder / f".{name}.tmp"
-            tmp.write_bytes(blob)
-            os.replace(tmp, path)
-            _files[key] = path
-        return path
 
 
 def fmu_file(recipe: PlantRecipe) -> Path:
@@ -121,8 +95,9 @@ def _plant(recipe: PlantRecipe):
     if entry is None or entry[0].fatal:
         if entry is not None:
             entry[0].close()  # abandoned, not freed, as FMI 2.0 demands after fmi2Fatal
-        binding = recipe.binding(fmu_file(recipe))
-        entry = cache[_plant_key(recipe)] = _OpenPlant(open_plant(binding), binding)
+        plant = open_plant(recipe.binding(fmu_file(recipe)))
+        # the plant's binding says what runs: in a daemonic worker an isolated binding is stepped in process
+        entry = cache[_plant_key(recipe)] = _OpenPlant(plant, plant.binding)
     return entry
 
 
@@ -210,7 +185,7 @@ def run_batch(plant_recipe: PlantRecipe, controller_recipe: ControllerRecipe, sc
             _recover(plant_recipe, plant)
         elapsed = time.perf_counter() - start
         result.rows.append(run_row(run, status, error, metrics))
-        result.timings.append(timing_row(run, elapsed, metrics, name))
+        result.timings.append(timing_row(run, elapsed, metrics, name, next(_runs_here), _resident_mb()))
         if settings.keep_traces and trace is not None:
             result.traces.append((run.run_id, trace.frame.drop(columns=["controller_compute_time"], errors="ignore"),
                                   trace.metadata))
@@ -230,9 +205,19 @@ def run_row(run: PlannedRun, status: str, error: str | None, metrics: dict) -> d
     return row
 
 
-def timing_row(run: PlannedRun, elapsed: float, metrics: dict, worker: str) -> dict:
+def timing_row(run: PlannedRun, elapsed: float, metrics: dict, worker: str, worker_run: int | None = None,
+               rss_mb: float = math.nan) -> dict:
     return {"run_id": run.run_id, "wall_time_s": elapsed,
-            **{c: float(metrics.get(c, math.nan)) for c in WALLCLOCK_METRICS}, "worker": worker}
+            **{c: float(metrics.get(c, math.nan)) for c in WALLCLOCK_METRICS}, "worker": worker,
+            "worker_run": worker_run, "worker_rss_mb": rss_mb}
+
+
+_runs_here = itertools.count(1)  # this worker process's runs, in order
+
+
+def _resident_mb() -> float:
+    used = resident_bytes(os.getpid())
+    return math.nan if used is None else used / 1e6
 
 
 def worker_facts() -> dict:
