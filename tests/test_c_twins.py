@@ -134,7 +134,8 @@ def random_model(config: NNConfig, seed: int) -> NNPlantModel:
 NN_CONFIGS = [
     NNConfig(),  # the paper's 3-7-2: rollout_shared's fast path
     NNConfig(extra_signals=("load_conductance",)),  # the workbench's 1 ms network (fast path + extras)
-    NNConfig(delays=2, extra_signals=("load_conductance",)),  # the 13.33 us network (rollout() path)
+    NNConfig(delays=2, extra_signals=("load_conductance",)),  # the 13.33 us network before the envelope data
+    NNConfig(delays=2, hidden=(10,), extra_signals=("load_conductance", "input_voltage")),  # the 13.33 us network
     NNConfig(hidden=(5, 6)),  # two hidden layers
     NNConfig(hidden=(9,), activation="relu", delays=2, residual=True, extra_signals=("load_current", "input_voltage")),
     NNConfig(activation="sigmoid", residual=True),  # fast path with the skip connection

@@ -31,6 +31,7 @@ from cosim.study.classical_design import (
     DesignTargets,
     controller_from_description,
     design_current_mode,
+    design_current_mode_no_delay,
     design_type_iii,
     targets_for,
 )
@@ -129,6 +130,36 @@ def test_current_mode_design_meets_its_specification(designs):
     for _ in range(3):
         controller.step(Measurement(0.0, 12.0, 0.0, inductor_current=0.0, input_voltage=48.0))
     assert controller.voltage_integral <= t.current_limit
+
+
+def test_delay_free_current_mode_design_meets_its_specification_at_the_target_crossovers(designs):
+    """Without the computation delay (the map's like-for-like row) the same method reaches both crossover
+    targets: the inner loop at fsw/10 = 7.5 kHz, the outer at a fifth of it (1.5 kHz; 521 Hz with the delay),
+    with every margin target kept; the controller applies its duty in the sample it computes it."""
+    delayed, _ = designs
+    design = design_current_mode_no_delay(NOMINAL, DesignTargets(), "CMC (no delay)")
+    t = design.targets
+    assert t.computation_delay == 0 and design.controller.gains.computation_delay == 0
+    inner, outer, duty = (design.loops[k] for k in ("inner (current)", "outer (voltage, inner closed)", "duty"))
+    assert inner["crossover_hz"] == pytest.approx(t.crossover_target_hz, rel=1e-3)  # 7500 Hz
+    assert outer["crossover_hz"] == pytest.approx(t.outer_crossover_ratio * inner["crossover_hz"], rel=1e-3)
+    for loop in (inner, outer):
+        assert loop["closed_loop_stable"] and loop["phase_margin_deg"] >= t.phase_margin_deg - 1e-6
+        assert loop["gain_margin_db"] >= t.gain_margin_db - 1e-6
+    assert duty["closed_loop_stable"] and duty["phase_margin_deg"] >= t.cascade_phase_margin_deg - 1e-6
+    assert duty["gain_margin_db"] >= t.gain_margin_db - 1e-6
+    assert design.meets() and not any(n.startswith("outer crossover") for n in design.notes)
+    assert outer["crossover_hz"] > 2.5 * delayed.loops["outer (voltage, inner closed)"]["crossover_hz"]
+    # no delay: the first duty answers the first measurement (the delayed controller's is the pending 0)
+    m = Measurement(0.0, 12.0, 11.0, inductor_current=0.0, input_voltage=48.0)
+    free = design.controller
+    free.reset()
+    delayed.controller.reset()
+    assert free.step(m) > 0.0 and delayed.controller.step(m) == 0.0
+    free.reset()
+    twin = native_twin(free)
+    for measurement in _measurements(2, 200):
+        assert twin.step(measurement) == free.step(measurement)
 
 
 def test_type_iii_design_meets_its_specification_over_the_envelope(designs):

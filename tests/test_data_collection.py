@@ -76,6 +76,106 @@ def test_invalid_settings_are_refused(kwargs, message):
         collect(builtin_binding("averaged"), PI, CollectionSettings(**kwargs))
 
 
+# ------------------------------------------------------------------ the envelope collection (13.33 us)
+
+
+class _Constant:
+    name, sample_period, duty_limits = "constant", 1e-3, (0.0, 1.0)
+
+    def reset(self):
+        pass
+
+    def step(self, measurement):
+        return 0.5
+
+    def describe(self):
+        return {"type": "constant"}
+
+
+def test_am_prbs_dither_holds_alternating_levels_of_random_amplitude():
+    """Levels +-a, a ~ U(0, sigma), each held 1-8 samples, the sign alternating at every new level."""
+    from cosim.study.data_collection import DitheredController
+
+    dithered = DitheredController(_Constant(), 0.2, seed=3, shape="am-prbs", hold=(1, 8))
+    m = Measurement(0.0, 12.0, 12.0)
+    dither = np.array([dithered.step(m) for _ in range(4000)]) - 0.5
+    starts = np.flatnonzero(np.r_[True, np.diff(dither) != 0])
+    holds = np.diff(np.r_[starts, len(dither)])[:-1]  # the last level may be cut short
+    assert holds.min() == 1 and holds.max() == 8 and 4.0 < holds.mean() < 5.0
+    levels = dither[starts]
+    assert np.all(np.sign(levels[1:]) == -np.sign(levels[:-1]))
+    assert np.abs(levels).max() <= 0.2 and np.abs(levels).min() < 0.01 and np.abs(levels).mean() == pytest.approx(0.1, abs=0.01)
+    dithered.reset()
+    assert np.array_equal(np.array([dithered.step(m) for _ in range(4000)]) - 0.5, dither)  # seeded
+    assert dithered.describe()["shape"] == "am-prbs" and dithered.describe()["hold"] == [1, 8]
+
+
+def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth():
+    """On the switched plant at 13.33 us with the tuned PI's gains, 10 000 samples: the envelope collection's
+    references, loads and supplies fill 45 of the 48 coverage cells (3-20 V x 4-100 Ohm x 36-60 V) with >= 20
+    samples each, a quarter of its samples in DCM; the paper's region fills the 8 cells of 4-10 Ohm at 48 V and
+    never reaches DCM."""
+    from cosim.study.envelope_identification import MIN_CELL_SAMPLES, coverage
+    from cosim.study.experiments import collection_settings, plant_binding
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    binding = plant_binding("nominal", "switched")
+    pi = PIController(0.007026878992716469, 172.92168103154324, SWITCHING_PERIOD)  # results/tuning/pi__nominal-switched__13p33us
+    envelope = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="envelope"))
+    paper = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="paper"))
+    e, p = coverage(envelope), coverage(paper)
+    assert MIN_CELL_SAMPLES == 20 and e["cells"] == p["cells"] == 48
+    assert e["cells_covered"] >= 44 and p["cells_covered"] == 8
+    assert 15.0 < e["dcm_share_pct"] < 40.0 and p["dcm_share_pct"] == 0.0
+    assert 36.0 <= e["supply_range_V"][0] < 37.0 and 59.0 < e["supply_range_V"][1] <= 60.0
+    assert p["supply_range_V"] == [48.0, 48.0]
+    assert e["load_range_Ohm"][0] < 4.5 and e["load_range_Ohm"][1] > 90.0 and p["load_range_Ohm"][1] <= 10.0
+    assert e["duty_limit_share_pct"] > p["duty_limit_share_pct"]  # more full-duty and braking moves
+    supply = envelope["input_voltage"].to_numpy()
+    held = np.diff(np.flatnonzero(np.r_[True, np.diff(supply) != 0]))
+    assert held.min() >= 20 and held.max() <= 200  # the supply's levels are held like the others
+    meta = envelope.attrs["metadata"]
+    assert meta["collection"]["input_voltage_range"] == (36.0, 60.0) and meta["controller"]["shape"] == "am-prbs"
+
+
+def test_envelope_collection_settings_are_checked():
+    with pytest.raises(ConfigError, match=r"input voltage range \(60.0, 36.0\) V is invalid"):
+        CollectionSettings(input_voltage_range=(60.0, 36.0)).check()
+    with pytest.raises(ConfigError, match="dither 'pink' is unknown: expected one of gaussian, am-prbs"):
+        CollectionSettings(dither="pink").check()
+    with pytest.raises(ConfigError, match=r"dither hold \(0, 4\) samples is invalid"):
+        CollectionSettings(dither_hold=(0, 4)).check()
+    from cosim.study.experiments import collection_settings
+
+    with pytest.raises(ConfigError, match="collection region 'moon' is unknown: expected one of paper, envelope"):
+        collection_settings(1e-3, region="moon")
+
+
+def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_the_supply():
+    """At one sample per PWM period the workbench's data cover the envelope and its network has the supply
+    voltage as an input (the duty's effect scales with it); at 1 ms the paper's experiment stays as it is."""
+    from cosim.study.experiments import collection_settings, nn_configs
+    from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
+
+    fast, slow = collection_settings(SWITCHING_PERIOD), collection_settings(PAPER_PERIOD)
+    assert (fast.reference_range, fast.load_range, fast.input_voltage_range) == ((3.0, 20.0), (4.0, 100.0), (36.0, 60.0))
+    assert fast.dither == "am-prbs" and fast.excitation == 0.2 and fast.dither_hold == (1, 8)
+    assert (slow.reference_range, slow.load_range, slow.input_voltage_range) == ((0.0, 20.0), (4.0, 10.0), None)
+    assert slow.dither == "gaussian" and slow.excitation == 0.01
+    assert nn_configs(SWITCHING_PERIOD)["nnpc"].extra_signals == ("load_conductance", "input_voltage")
+    assert nn_configs(PAPER_PERIOD)["nnpc"].extra_signals == ("load_conductance",)
+
+
+def test_a_plant_without_a_supply_input_keeps_its_supply():
+    settings = CollectionSettings(samples=400, seed=2, input_voltage_range=(36.0, 60.0), hold_range=(20, 50))
+    varied = random_scenario(settings, 1e-3)
+    assert len(varied.schedule("input_voltage")) > 3
+    kept = random_scenario(settings, 1e-3, vary_supply=False)
+    assert [v for _, v in kept.schedule("input_voltage")] == [settings.input_voltage]
+    # the reference and load draws do not depend on whether the supply is drawn after them
+    assert kept.schedule("reference") == varied.schedule("reference")
+
+
 #: measured: 80 us per sample (5 000 samples at a 0 V reference in 0.39 s, averaged plant); 50 000
 #: samples take ~4 s plus the interpreter's start. 20x that for a loaded machine. Before the averaged
 #: plant's DCM current was solved algebraically, a 2 000 000-sample collection failed at t = 401 s (the

@@ -173,7 +173,7 @@ def switched_data():
 
     period = 1 / 75e3
     pi = PIController(0.336 / 48, 0.111 / (period * 48), period)
-    return collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 4000, seed=0))
+    return collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 4000, seed=0, region="paper"))
 
 
 SWITCHED_NN = NNConfig(hidden=(7,), delays=2, extra_signals=("load_conductance",))

@@ -62,14 +62,14 @@ def test_every_pipeline_writes_data_models_runs_metrics_and_figures(reproduction
     assert (reproduction / "runs" / "startup__my-pi-fmu__nominal-switched__1ms.parquet").is_file()
     assert set(metrics.loc[metrics["controller"] == "NNPC-explicit", "pipeline"]) == {"nominal-switched__13p33us"}
     assert (reproduction / "models" / "nominal-switched__13p33us__nnpc-explicit.pt").is_file()
-    for kind in ("current-mode", "type-iii", "pi-envelope", "pi-margins"):  # the designs, with their margins
+    for kind in ("current-mode", "current-mode-no-delay", "type-iii", "pi-envelope", "pi-margins"):  # with their margins
         design = json.loads((reproduction / "tuning" / f"{kind}__nominal-switched__13p33us.json").read_text())
         assert design["loops"]["duty"]["closed_loop_stable"]
     # the envelope map on the sweep engine: every point, step and controller; its shares from its table
     steps = pd.read_csv(reproduction / "envelope" / "map.csv")
-    # seven controllers and the online NNPC of every other identification seed (QUICK: seed 1)
-    assert len(steps) == 4 * 2 * (7 + 1) and set(steps["controller"]) >= {"NNPC", "NNPC (seed 1)", "MPC-oracle", "CMC",
-                                                                        "PI-envelope"}
+    # eight controllers and the online NNPC of every other identification seed (QUICK: seed 1)
+    assert len(steps) == 4 * 2 * (8 + 1) and set(steps["controller"]) >= {"NNPC", "NNPC (seed 1)", "MPC-oracle", "CMC",
+                                                                        "CMC (no delay)", "PI-envelope"}
     assert (reproduction / "models" / "nominal-switched__13p33us__nnpc__seed1.pt").is_file()
     shares = pd.read_csv(reproduction / "envelope" / "shares.csv")
     overall = shares[shares["input_voltage_V"] == "all"].set_index("controller")["share_pct"]

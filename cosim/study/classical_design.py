@@ -455,7 +455,8 @@ def controller_from_description(c: dict, name: str | None = None):
     raise ValueError(f"controller type {c.get('type')!r} is not a designed classical controller")
 
 
-__all__ = ["DesignTargets", "Envelope", "Design", "design_current_mode", "design_type_iii", "linear_design",
+__all__ = ["DesignTargets", "Envelope", "Design", "design_current_mode", "design_current_mode_no_delay",
+           "design_type_iii", "linear_design",
            "envelope_margins", "write_design", "controller_from_file"]
 
 
@@ -484,7 +485,23 @@ def targets_for(binding, control_period: float) -> DesignTargets:
 def design_files(out_dir: Path, tag: str) -> dict[str, Path]:
     """Where the reproduction writes each design of pipeline ``tag`` (``results/tuning/``)."""
     folder = Path(out_dir) / "tuning"
-    return {kind: folder / f"{kind}__{tag}.json" for kind in ("current-mode", "type-iii", "pi-envelope", "pi-margins")}
+    return {kind: folder / f"{kind}__{tag}.json" for kind in ("current-mode", "type-iii", "pi-envelope", "pi-margins",
+                                                              NO_DELAY_FILE)}
+
+
+#: the design file of the delay-free current-mode controller (``tuning/current-mode-no-delay__<pipeline>.json``)
+NO_DELAY_FILE = "current-mode-no-delay"
+
+
+def design_current_mode_no_delay(parameters: CircuitParameters, targets: DesignTargets, name: str) -> Design:
+    """The current-mode controller designed by the same method without the one-sample computation delay
+    (in the model and in the controller): the like-for-like baseline for the NNPC, which applies its duty
+    in the sample it computes it. The same targets otherwise; with 1.5 samples of lag (hold and averaging
+    sensor) less, both crossovers reach their targets (fsw/10 and a fifth of it)."""
+    design = design_current_mode(parameters, replace(targets, computation_delay=0), name)
+    design.notes.append("designed and run without the computation delay (a bound: a microcontroller needs time to "
+                        "compute the duty), the like-for-like comparison with the NNPC, which has none")
+    return design
 
 
 #: the pipeline whose envelope the map measures: the envelope PI is tuned there only
@@ -500,7 +517,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     import time
 
     from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
-    from cosim.study.vocabulary import CURRENT_MODE, PI_ENVELOPE, TYPE_III, pipeline_tag
+    from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
     if pipeline.binding_file or abs(period * TABLE_II.switching_frequency - 1) > 1e-9:
@@ -512,6 +529,8 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     designs = [design_current_mode(parameters, targets, CURRENT_MODE), design_type_iii(parameters, targets, TYPE_III)]
     for design in designs:
         write_design(design, files[design.kind])
+    if pipeline.plant_tag == ENVELOPE_PIPELINE_PLANT:  # the map's like-for-like row (not run at the nominal point)
+        write_design(design_current_mode_no_delay(parameters, targets, CURRENT_MODE_NO_DELAY), files[NO_DELAY_FILE])
     write_design(linear_design("pi", pi, parameters, targets, pi.tuning.get("method", "")), files["pi-margins"])
     controllers = [d.controller for d in designs]
     if pipeline.plant_tag == ENVELOPE_PIPELINE_PLANT:

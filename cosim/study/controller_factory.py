@@ -16,7 +16,16 @@ from cosim.base.labels import did_you_mean, period_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
-from cosim.study.experiments import adaptive_nnpc, collection_settings, explicit_nnpc, model_mpc, nn_configs, nnpc
+from cosim.study.experiments import (
+    adaptive_nnpc,
+    collection_settings,
+    default_region,
+    explicit_nnpc,
+    model_mpc,
+    network_region,
+    nn_configs,
+    nnpc,
+)
 from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
 from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
 from cosim.study.vocabulary import (
@@ -98,10 +107,11 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
             return model
         announce(path, reason, f"identifying {config.label} again")
     pi = tuned_pi(binding, period, out_dir, progress)
-    settings = collection_settings(period, samples, seed)
+    region = network_region(name, period)
+    settings = collection_settings(period, samples, seed, region=region)
     say(f"collecting {samples} samples on {binding.label} and identifying {config.label} (saved to {path}) ...")
     data = collect(binding, pi.controller(), settings, progress=progress)
-    data_path = data_file(out_dir, binding.tag, period)
+    data_path = data_file(out_dir, binding.tag, period, None if region == default_region(period) else region)
     data.attrs["metadata"]["seed"] = seed
     save_samples(data, data_path)
     meta = {"control_period_s": period, "plant": binding.label, "seed": seed,

@@ -7,6 +7,14 @@ inductor current and output voltage, and the duty applied until the next sample 
 3 x 10 000 matrix of iL, vc, d), plus reference, load, supply and load current. A small seeded
 random dither on the PI's duty (``excitation``) widens the data beyond the PI's own trajectories,
 which the optimizer will explore; set it to 0 for the paper's plain PI data.
+
+Two more settings make the data cover an operating envelope (the 13.33 us recipe,
+:func:`cosim.study.experiments.collection_settings`): ``input_voltage_range`` draws the supply as a
+third held random level (uniform), and ``dither = "am-prbs"`` replaces the white Gaussian dither by an
+amplitude-modulated random binary sequence -- a level +-a held for a random ``dither_hold`` samples,
+a new amplitude a ~ U(0, ``excitation``) at every flip -- whose energy sits at and below the LC
+resonance (a white dither at 75 kHz puts most of its power far above it, where the plant filters it
+away) and whose held full-amplitude runs are the full-duty and braking moves the NNPC plans.
 """
 
 from __future__ import annotations
@@ -35,6 +43,9 @@ SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage"
 
 MIN_SAMPLES = 100  # a data set smaller than this cannot be split into training, validation and test
 MAX_EXCITATION = 0.5  # [1] a dither this large would be the signal, not a perturbation of the PI
+#: the dither's shapes: white Gaussian (standard deviation ``excitation``) or the amplitude-modulated random
+#: binary sequence (levels +-a, a ~ U(0, ``excitation``), each held ``dither_hold`` samples)
+DITHERS = ("gaussian", "am-prbs")
 
 
 @dataclass(frozen=True)
@@ -45,8 +56,11 @@ class CollectionSettings:
     hold_range: tuple[int, int] = (5, 40)  # control periods a random level is held, uniform
     excitation: float = 0.01  # standard deviation of the duty dither [1]
     rest_probability: float = 0.15  # chance that a new reference level is 0 V, so start-ups recur
-    input_voltage: float = TABLE_II.input_voltage  # [V]
+    input_voltage: float = TABLE_II.input_voltage  # [V] the supply (its first level with input_voltage_range)
     seed: int = 0
+    input_voltage_range: tuple[float, float] | None = None  # [V], uniform held levels; None: the supply is fixed
+    dither: str = "gaussian"  # one of DITHERS
+    dither_hold: tuple[int, int] = (1, 1)  # samples an am-prbs level is held, uniform
 
     def check(self) -> None:
         if self.samples < MIN_SAMPLES:
@@ -64,12 +78,24 @@ class CollectionSettings:
             raise ConfigError(f"excitation = {self.excitation} is invalid: expected 0 <= sigma < {MAX_EXCITATION}")
         if not 0 <= self.rest_probability < 1:
             raise ConfigError(f"rest_probability = {self.rest_probability} is invalid: expected 0 <= p < 1")
+        if self.input_voltage_range is not None:
+            lo, hi = self.input_voltage_range
+            if not 0 < lo < hi:
+                raise ConfigError(f"input voltage range ({lo}, {hi}) V is invalid: expected 0 < min < max")
+        if self.dither not in DITHERS:
+            raise ConfigError(f"dither {self.dither!r} is unknown: expected one of {', '.join(DITHERS)}")
+        lo, hi = self.dither_hold
+        if not 1 <= lo <= hi:
+            raise ConfigError(f"dither hold ({lo}, {hi}) samples is invalid: expected 1 <= min <= max")
 
 
-def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True) -> Scenario:
-    """Random references and loads held for random whole numbers of control periods.
+def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True,
+                    vary_supply: bool = True) -> Scenario:
+    """Random references and loads (and supplies, with ``input_voltage_range``) held for random whole
+    numbers of control periods, each signal on its own schedule.
 
-    ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value.
+    ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value;
+    ``vary_supply=False`` (one bound without a supply input) the supply at ``input_voltage``.
     """
     rng = np.random.default_rng(settings.seed)
     duration = (settings.samples - 1) * control_period
@@ -78,6 +104,8 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
         if kind == "reference":
             value = float(rng.uniform(*settings.reference_range))
             return 0.0 if rng.random() < settings.rest_probability else value
+        if kind == "supply":
+            return float(rng.uniform(*settings.input_voltage_range))
         lo, hi = settings.load_range
         return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
@@ -85,6 +113,8 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
                "input_voltage": settings.input_voltage}
     changes: dict[int, dict[str, float]] = {}
     signals = (("reference", "reference"), ("load", "load_resistance")) if vary_load else (("reference", "reference"),)
+    if settings.input_voltage_range is not None and vary_supply:  # drawn after the others: theirs stay as they were
+        signals += (("supply", "input_voltage"),)
     for kind, key in signals:
         k = 0
         while True:
@@ -98,12 +128,16 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
 
 
 class DitheredController:
-    """Wraps a controller and adds seeded Gaussian noise to its duty (clipped to the limits)."""
+    """Wraps a controller and adds a seeded dither to its duty (clipped to the limits): white Gaussian
+    noise of standard deviation ``sigma``, or (``shape = "am-prbs"``) levels +-a, a ~ U(0, ``sigma``), each
+    held a random number of samples in ``hold`` (module docstring)."""
 
-    def __init__(self, inner, sigma: float, seed: int):
+    def __init__(self, inner, sigma: float, seed: int, shape: str = "gaussian", hold: tuple[int, int] = (1, 1)):
         self.inner = inner
         self.sigma = sigma
         self.seed = seed
+        self.shape = shape
+        self.hold = hold
         self.name = f"{inner.name}+dither"
         self.sample_period = inner.sample_period
         self.duty_limits = check_duty_limits(inner.duty_limits, self.name)
@@ -112,16 +146,28 @@ class DitheredController:
     def reset(self) -> None:
         self.inner.reset()
         self._rng = np.random.default_rng(self.seed + 1)
+        self._level, self._left = 0.0, 0
+
+    def _dither(self) -> float:
+        if self.shape == "gaussian":
+            return self.sigma * float(self._rng.standard_normal())
+        if self._left == 0:  # a new level: the other sign, a new amplitude, a new hold
+            sign = -1.0 if self._level > 0 else 1.0
+            self._level = sign * self.sigma * float(self._rng.random())
+            self._left = int(self._rng.integers(self.hold[0], self.hold[1] + 1))
+        self._left -= 1
+        return self._level
 
     def step(self, measurement: Measurement) -> float:
         duty = self.inner.step(measurement)
         if self.sigma:
-            duty += self.sigma * float(self._rng.standard_normal())
+            duty += self._dither()
         low, high = self.duty_limits
         return min(max(duty, low), high)
 
     def describe(self) -> dict:
-        return {"type": "dithered", "name": self.name, "sigma": self.sigma, "seed": self.seed,
+        shape = {} if self.shape == "gaussian" else {"shape": self.shape, "hold": list(self.hold)}
+        return {"type": "dithered", "name": self.name, "sigma": self.sigma, "seed": self.seed, **shape,
                 "duty_limits": list(self.duty_limits), "inner": self.inner.describe()}
 
 
@@ -130,8 +176,9 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`)."""
     settings.check()
     period = controller.sample_period
-    scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"))
-    dithered = DitheredController(controller, settings.excitation, settings.seed)
+    scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"),
+                               vary_supply=binding.has("input_voltage"))
+    dithered = DitheredController(controller, settings.excitation, settings.seed, settings.dither, settings.dither_hold)
     with open_plant(binding) as plant:
         try:
             result = run(plant, dithered, scenario, record_period=period, seed=settings.seed, progress=progress)

@@ -135,9 +135,12 @@ def pi_file(out_dir: Path, plant_tag: str, control_period: float) -> Path:
     return Path(out_dir) / "tuning" / f"pi__{pipeline_tag(plant_tag, control_period)}.json"
 
 
-def data_file(out_dir: Path, plant_tag: str, control_period: float) -> Path:
-    """The PI data a network of a plant tag and rate is identified from: ``data/<tag>__<period>.parquet``."""
-    return Path(out_dir) / "data" / f"{pipeline_tag(plant_tag, control_period)}.parquet"
+def data_file(out_dir: Path, plant_tag: str, control_period: float, region: str | None = None) -> Path:
+    """The PI data a network of a plant tag and rate is identified from: ``data/<tag>__<period>.parquet``;
+    ``region``: data of a collection region other than the rate's default (the paper's network at 13.33 us,
+    :func:`cosim.study.experiments.network_region`) have their own, ``data/<tag>__<period>__<region>.parquet``."""
+    suffix = f"__{region}" if region else ""
+    return Path(out_dir) / "data" / f"{pipeline_tag(plant_tag, control_period)}{suffix}.parquet"
 
 
 def model_file(out_dir: Path, plant_tag: str, control_period: float, name: str) -> Path:

@@ -49,11 +49,15 @@ FAST_RATE_HIDDEN = 10
 def nn_configs(control_period: float) -> dict[str, NNConfig]:
     """Networks trained per rate. At a sample per switching period the averaging sensor lags by
     half a sample, which makes the previous duty and state part of the dynamics: the workbench's
-    network then also sees the sample before (two delays), and has 10 hidden neurons (7-10-2,
-    90 multiply-accumulates per prediction against the 7-7-2's 63)."""
+    network then also sees the sample before (two delays), has 10 hidden neurons, and -- its data
+    cover the envelope's supplies 36-60 V there (:func:`collection_settings`) -- the measured supply
+    voltage, on which every duty's effect scales (8-10-2, 100 multiply-accumulates per prediction
+    against the 7-7-2's 63). Without that input the envelope data made a worse network than the
+    paper's region, at the nominal point too (cosim.study.envelope_identification)."""
     if transient_within_sample(control_period):
         return {"nnpc": WORKBENCH_NN, "nnpc-paper": PAPER_NN}
-    return {"nnpc": replace(WORKBENCH_NN, delays=2, hidden=(FAST_RATE_HIDDEN,)), "nnpc-paper": PAPER_NN}
+    return {"nnpc": replace(WORKBENCH_NN, delays=2, hidden=(FAST_RATE_HIDDEN,),
+                            extra_signals=(*WORKBENCH_NN.extra_signals, "input_voltage")), "nnpc-paper": PAPER_NN}
 
 
 def small_network(control_period: float) -> NNConfig:
@@ -68,18 +72,55 @@ def multiply_accumulates(config: NNConfig) -> int:
     return sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
 
 
+#: where the identification data come from: the paper's region (references 0-20 V, loads 4-10 Ohm, 48 V) or the
+#: operating envelope of the map (cosim.study.envelope_identification)
+COLLECTION_REGIONS = ("paper", "envelope")
+#: the envelope collection: references (and rests at 0 V), loads (log-uniform), supplies [V, Ohm, V]; its dither:
+#: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
+ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
+ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
+
+
+def default_region(control_period: float) -> str:
+    """The region of the workbench's identification data at ``control_period``: the envelope where the
+    transient is shaped within a sample (13.33 us: the envelope map's rate; measured against the paper's
+    region by cosim.study.envelope_identification), the paper's at 1 ms -- there the paper's experiment is
+    what the reproduction reproduces, and no map measures the envelope."""
+    return "paper" if transient_within_sample(control_period) else "envelope"
+
+
+def network_region(name: str, control_period: float) -> str:
+    """The collection region a network ``name`` of :func:`nn_configs` is identified from: the paper's 3-7-2
+    keeps the paper's experiment at every rate (it reproduces the paper's network); the workbench's NNPC the
+    rate's :func:`default_region`."""
+    return "paper" if name == "nnpc-paper" else default_region(control_period)
+
+
 def collection_settings(control_period: float, samples: int = 10_000, seed: int = 0,
-                        excitation: float | None = None) -> CollectionSettings:
+                        excitation: float | None = None, region: str | None = None) -> CollectionSettings:
     """Identification settings per rate (paper Section IV, random levels held for random intervals).
 
     At 1 ms levels are held 5-40 samples and the PI's duty is dithered with sigma 0.01. At faster
     rates levels are held 20-200 samples (the loop needs longer to settle in samples) and the dither
     is 0.1: the NNPC there plans 23-sample duty sequences (full and zero duty, then braking) far
     from the PI's own trajectories, and the network must have seen such moves.
+
+    ``region`` (one of :data:`COLLECTION_REGIONS`; None: :func:`default_region`): ``"paper"`` -- references
+    0-20 V, loads 4-10 Ohm at 48 V; ``"envelope"`` -- references 3-20 V (rests at 0 V), loads 4-100 Ohm and
+    supplies 36-60 V, with the amplitude-modulated random binary dither (``excitation`` its largest amplitude).
     """
+    region = default_region(control_period) if region is None else region
+    if region not in COLLECTION_REGIONS:
+        raise ConfigError(f"collection region {region!r} is unknown: expected one of {', '.join(COLLECTION_REGIONS)}")
     slow = transient_within_sample(control_period)
-    return CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
-                              excitation=excitation if excitation is not None else identification_dither(control_period))
+    settings = CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
+                                  excitation=excitation if excitation is not None else
+                                  identification_dither(control_period))
+    if region == "paper":
+        return settings
+    return replace(settings, reference_range=ENVELOPE_REFERENCES, load_range=ENVELOPE_LOADS,
+                   input_voltage_range=ENVELOPE_SUPPLIES, dither="am-prbs", dither_hold=ENVELOPE_DITHER_HOLD,
+                   excitation=excitation if excitation is not None else ENVELOPE_DITHER)
 
 
 def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBinding:

@@ -34,7 +34,7 @@ from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, train
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import collect
 from cosim.study.design_cache import DesignKey, design_key
-from cosim.study.experiments import collection_settings, horizon_settings, implemented, nnpc
+from cosim.study.experiments import collection_settings, horizon_settings, implemented, network_region, nnpc
 from cosim.study.vocabulary import (
     CLOSED_LOOP_DITHER,
     CLOSED_LOOP_ITERATIONS,
@@ -77,7 +77,7 @@ def network_design(name: str, binding: PlantBinding, control_period: float, conf
     :func:`identify` with ``recipe`` (the workbench's NNPC), else by one ``train`` with ``training``
     on the PI data (the paper's network); ``samples`` of PI data collected with ``seed`` by the PI
     whose design key is ``pi_key`` (:mod:`cosim.study.design_cache`)."""
-    collection = collection_settings(control_period, samples, seed)
+    collection = collection_settings(control_period, samples, seed, region=network_region(name, control_period))
     if recipe is not None:
         training = training_settings(control_period, seed, recipe.multi_step_iterations)
     settings = {"network": asdict(config), "collection": asdict(collection),

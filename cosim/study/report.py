@@ -216,9 +216,18 @@ def _numeric_environment() -> list[str]:
 def _identification(outputs, metrics) -> list[str]:
     fast_training = training_settings(SWITCHING_PERIOD, 0)
     lines = [
-        "The paper's identification data per plant and rate: 10 000 samples (iL, vc, d, plus the load "
-        "conductance), collected with the tuned PI under seeded random references and loads; the last 20 % is "
-        "held out. The workbench's NNPC network is then identified by one recipe "
+        "The identification data per plant and rate: 10 000 samples (iL, vc, d, plus the load conductance and "
+        "the supply voltage), collected with the tuned PI under seeded random references, loads and supplies "
+        "held for random intervals, with a duty dither; the last 20 % is held out. At 1 ms they are the paper's "
+        "experiment (references 0-20 V, loads 4-10 Ohm, 48 V, a white dither of 0.01). At one sample per PWM "
+        "period they cover the operating envelope the map measures (`cosim/study/envelope_identification.py`): "
+        "references 3-20 V with rests at 0 V, loads 4-100 Ohm log-uniform (continuous and discontinuous "
+        "conduction), supplies 36-60 V, and an amplitude-modulated random binary dither (levels +-a, a up to "
+        "0.2, held 1-8 samples: its power at and below the LC resonance); the network there also sees the "
+        "supply voltage, on which every duty's effect scales. The column *data cover* says what a pipeline's "
+        "data visit: the cells of references 3-20 V x loads 4-100 Ohm x supplies 36-60 V (4 x 4 x 3) holding "
+        "at least 20 samples, and the share of samples in DCM. The workbench's NNPC network is then identified "
+        "by one recipe "
         "(`cosim/study/identification.py`): (1) one-step training, the paper's loss (at most "
         f"{ONE_STEP_ITERATIONS} L-BFGS iterations where stage 2 follows); (2) where the predictive "
         f"controller plans over more than one sample (one switching period: {fast_training.multi_step_horizon} "
@@ -246,8 +255,11 @@ def _identification(outputs, metrics) -> list[str]:
             if meta is None:
                 continue
             rmse = meta.get("held_out_rmse", {})
+            cover = meta.get("data_coverage")
             rows.append({"pipeline": o.pipeline.tag, "model": name, "network": meta.get("architecture"),
                          "MACs": meta.get("multiply_accumulates", math.nan),
+                         "data cover": (f"{cover['cells_covered']}/{cover['cells']} cells, "
+                                        f"{cover['dcm_share_pct']:.0f} % DCM") if cover else "",
                          "1-step vo [mV]": rmse.get("one_step_rmse_voltage_V", math.nan) * 1e3,
                          "1-step iL [mA]": rmse.get("one_step_rmse_current_A", math.nan) * 1e3,
                          "10-step vo [mV]": rmse.get("10_step_rmse_voltage_V", math.nan) * 1e3,

@@ -45,13 +45,17 @@ from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 from cosim.study import classical_design, envelope, explicit, frequency_response, optimizer_ablation, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
-from cosim.study.data_collection import save_samples
+from cosim.study.data_collection import collect, save_samples
+from cosim.study.envelope_identification import coverage
 from cosim.study.experiments import (
     PAPER_NNPC_OPTIMIZER,
     adaptive_nnpc,
+    collection_settings,
+    default_region,
     implemented,
     model_mpc,
     multiply_accumulates,
+    network_region,
     nn_configs,
     nnpc,
     plant_binding,
@@ -314,17 +318,27 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     save_samples(data, data_file(out_dir, pipeline.plant_tag, period))
     models = {"nnpc": identified.model}
     start = time.perf_counter()
-    models["nnpc-paper"] = train(data, configs["nnpc-paper"], _paper_training(seed),
+    datasets = {"nnpc": data, "nnpc-paper": data}
+    paper_file = data_file(out_dir, pipeline.plant_tag, period)
+    if network_region("nnpc-paper", period) != default_region(period):  # the paper's network keeps the paper's data
+        region = network_region("nnpc-paper", period)
+        datasets["nnpc-paper"] = collect(binding, pi.controller(),
+                                         collection_settings(period, profile.samples, seed, region=region))
+        datasets["nnpc-paper"].attrs["metadata"]["seed"] = seed
+        paper_file = data_file(out_dir, pipeline.plant_tag, period, region)
+        save_samples(datasets["nnpc-paper"], paper_file)
+    models["nnpc-paper"] = train(datasets["nnpc-paper"], configs["nnpc-paper"], _paper_training(seed),
                                  metadata={"control_period_s": period, "plant": binding.label,
-                                           "data_file": f"data/{tag}.parquet", "seed": seed,
+                                           "data_file": f"data/{paper_file.name}", "seed": seed,
                                            "design": _network_design("nnpc-paper", binding, period, seed, profile,
                                                                      pi)})
     timings["training_nnpc-paper_s"] = time.perf_counter() - start
     model_meta = {}
     for name, model in models.items():
         save_model(model, model_file(out_dir, pipeline.plant_tag, period, name))
-        write_identification_figure(model, data, model_file(out_dir, pipeline.plant_tag, period, name))
+        write_identification_figure(model, datasets[name], model_file(out_dir, pipeline.plant_tag, period, name))
         model_meta[name] = _model_summary(model, configs[name])
+        model_meta[name]["data_coverage"] = coverage(datasets[name])  # what the data visit of the envelope
         rmse = model.metadata["held_out_rmse"]
         log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
             f"10 steps {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV")

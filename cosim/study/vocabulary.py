@@ -107,6 +107,9 @@ NNPC_EXPLICIT = "NNPC-explicit"
 #: the classical baselines designed from the small-signal model (cosim.study.classical_design) and the PI
 #: tuned over the envelope (cosim.study.pi_tuning.tune_pi_envelope)
 CURRENT_MODE = "CMC"
+#: the current-mode controller designed and run without the computation delay (the NNPC has none either: the
+#: like-for-like comparison of the envelope map; no microcontroller computes in zero time, so it is a bound)
+CURRENT_MODE_NO_DELAY = "CMC (no delay)"
 TYPE_III = "Type-III"
 PI_ENVELOPE = "PI-envelope"
 CLASSICAL = (PI, PI_ENVELOPE, CURRENT_MODE, TYPE_III)
@@ -187,6 +190,7 @@ CONTROLLER_STYLES = {
     NNPC_DRIFTED: ("tab:gray", (0, (4, 2))),
     NNPC_EXPLICIT: ("tab:brown", (0, (5, 1))),
     CURRENT_MODE: ("tab:cyan", "-"),
+    CURRENT_MODE_NO_DELAY: ("tab:cyan", (0, (3, 1))),
     TYPE_III: ("tab:olive", (0, (3, 1))),
     PI_ENVELOPE: ("tab:pink", (0, (2, 1))),
 }

@@ -60,12 +60,13 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
     from cosim.study.experiments import nn_configs
 
     config = nn_configs(period)[entry.kind]
-    if entry.model is not None:
+    if entry.model is not None:  # a given network runs with the inputs it was trained for (its file says which)
         try:
-            model = load_model(entry.model, expect_period=period, expect_config=config)
+            model = load_model(entry.model, expect_period=period)
         except ModelFileError as error:
             raise ConfigError(f"{entry.place}: {error}") from None
         path, origin = Path(entry.model), entry.origin or f"model file {Path(entry.model).name}"
+        config = model.config
     else:
         if not binding.has("inductor_current"):
             raise ConfigError(f"{entry.place}: {entry.kind} needs the inductor_current role, which {binding.origin} "
@@ -212,9 +213,9 @@ _models_lock = threading.Lock()
 
 def model_from_bytes(blob: bytes, period: float, kind: str):
     """An NN model from a file's bytes, read through :func:`load_model`'s checks (weights only,
-    SHA-256 of the weights, shapes, inputs and control period); cached per process by digest."""
+    SHA-256 of the weights, shapes and control period; the inputs are the file's own, as the design
+    read them); cached per process by digest."""
     from controllers.nn_model import load_model
-    from cosim.study.experiments import nn_configs
 
     key = f"{digest(blob)}:{period!r}:{kind}"
     with _models_lock:
@@ -222,7 +223,7 @@ def model_from_bytes(blob: bytes, period: float, kind: str):
             with tempfile.TemporaryDirectory(prefix="buck-cosim-model-") as folder:
                 path = Path(folder) / "model.pt"
                 path.write_bytes(blob)
-                _models[key] = load_model(path, expect_period=period, expect_config=nn_configs(period)[kind])
+                _models[key] = load_model(path, expect_period=period)
         return _models[key]
 
 
