@@ -294,3 +294,17 @@ def nnpc_1ms():
     model = train(data, nn_configs(1e-3)["nnpc"], TrainingSettings(seed=3, max_iterations=100),
                   metadata={"control_period_s": 1e-3})
     return nnpc(model, 1e-3)
+
+
+def random_model(config, seed: int):
+    """An untrained network of ``config`` (torch's initialisation from ``seed``) with random input and output
+    scalings: a model whose numbers no training shaped, for checking twins and exports against each other."""
+    import torch
+
+    from controllers.nn_model import NNPlantModel, PlantNetwork
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    n = config.n_inputs
+    return NNPlantModel(config, PlantNetwork(config), rng.normal(0, 3, n), rng.uniform(0.5, 5, n),
+                        rng.normal(0, 5, 2), rng.uniform(0.5, 5, 2))

@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
+from conftest import random_model
 
 from controllers import native
 from controllers.base import Controller, Measurement
-from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, TrainingSettings, load_model, train
+from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, load_model, train
 from controllers.pi import PIController
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, RtiSettings
 from controllers.predictors import (
@@ -121,14 +121,6 @@ def test_pi_twin_gives_the_same_duty_every_step(kp, ki, limits):
 
 
 # ------------------------------------------------------------------------------------------ NN
-
-
-def random_model(config: NNConfig, seed: int) -> NNPlantModel:
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    n = config.n_inputs
-    return NNPlantModel(config, PlantNetwork(config), rng.normal(0, 3, n), rng.uniform(0.5, 5, n),
-                        rng.normal(0, 5, 2), rng.uniform(0.5, 5, 2))
 
 
 NN_CONFIGS = [
@@ -597,9 +589,6 @@ def model_1ms() -> NNPlantModel:
 
 
 def replay_case(name: str, model_1ms):
-    from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-    from cosim.study.experiments import model_mpc, nnpc, plant_binding
-    from cosim.study.vocabulary import MISMATCH
 
     rti = name.endswith("-rti")  # the same case with the real-time iteration (and the search as its fallback)
     binding, controller, scenarios = _replay_case(name.removesuffix("-rti"), model_1ms)

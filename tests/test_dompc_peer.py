@@ -8,24 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import random_model
 
-from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork, load_model
+from controllers.nn_model import NNConfig, load_model
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
 
-def random_model(config: NNConfig, seed: int) -> NNPlantModel:
-    import torch
-
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    n = config.n_inputs
-    return NNPlantModel(config, PlantNetwork(config), rng.normal(0, 3, n), rng.uniform(0.5, 5, n),
-                        rng.normal(0, 5, 2), rng.uniform(0.5, 5, 2))
-
-
-@pytest.mark.parametrize("config", [NNConfig(delays=2, hidden=(10,), extra_signals=("load_conductance",)),
+@pytest.mark.parametrize("config", [NNConfig(delays=2, hidden=(10,), extra_signals=("load_conductance", "input_voltage")),
                                     NNConfig(hidden=(5, 6), activation="sigmoid", residual=True),
                                     NNConfig(hidden=(9,), activation="relu", delays=3)], ids=lambda c: c.label)
 def test_casadi_export_of_the_network_matches_the_workbench_forward_pass(config):

@@ -84,7 +84,7 @@ class DoMpcNnpc(PredictiveController):
         duty = model.set_variable("_u", "d")
         bias = model.set_variable("_p", "bias", shape=(2, 1))
         extras = model.set_variable("_p", "extras", shape=(max(n_extra, 1), 1))
-        target = model.set_variable("_p", "target", shape=(2, 1))
+        model.set_variable("_p", "target", shape=(2, 1))  # read back as model.p["target"] after the setup
         weight = model.set_variable("_tvp", "weight")
         inputs = [state[0], state[1], duty, state[2:]] + ([extras[:n_extra]] if n_extra else [])
         predicted = network(casadi.vertcat(*inputs)) + bias
