@@ -472,3 +472,18 @@ def test_an_ssp_loop_of_fmi3_components_runs_in_the_workbench_engine_only(tmp_pa
                                            "components 'scenario', 'controller', 'plant' are FMI 3.0: run this "
                                            "archive with --engine workbench"):
             run_ssp(tmp_path / "loop3.ssp", engine)
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_export_ssp_builds_a_named_controller_in_the_fmi_version_asked_for(tmp_path, version):
+    """``export-ssp --controller pi --fmi-version N``: the PI is exported as an FMI N.0 FMU beside the scenario source
+    and the built-in plant of the same version (the version was once passed as the C build's precision: the command
+    failed with 'precision 2 is unknown')."""
+    from cosim.ssp.package import read_ssp
+
+    done = cli("export-ssp", "reference_up", "--controller", "pi", "--fmi-version", str(version),
+               "--out", "loop.ssp", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    loop = read_ssp(tmp_path / "loop.ssp")
+    assert {name: c.fmi_version for name, c in loop.components.items()} == \
+        {"scenario": f"{version}.0", "controller": f"{version}.0", "plant": f"{version}.0"}

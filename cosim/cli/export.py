@@ -110,7 +110,7 @@ def cmd_export_ssp(args) -> int:
             controller = _design_controller(args, binding, period, cache_dir(args.work_dir))
             fmu, _ = _export_controller_fmu(controller,
                                             Path(tmp) / f"{re.sub(r'[^A-Za-z0-9_]', '_', controller.name)}.fmu",
-                                            args.fmi_version)
+                                            fmi_version=args.fmi_version)
         else:
             from cosim.fmi.controller import controller_binding
 
