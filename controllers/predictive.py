@@ -15,7 +15,7 @@ by the steady-state duty, bang-bang openings (full or zero duty for the first bl
 previous solution shifted by one sample (warm start); then a batched pattern search refines the
 best candidate block by block with a shrinking step.
 
-Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at both rates,
+Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at 1 ms, opt-in at 13.33 us,
 ``cosim.study.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
 blocked duties from the previous solution shifted by one sample, each a small box-constrained QP
 (:mod:`controllers.box_qp`) built from the predictor's forward sensitivities
