@@ -86,12 +86,19 @@ class AdaptiveNNPC:
     """An NNPC whose network's output layer follows the plant (see the module docstring)."""
 
     def __init__(self, inner, model: NNPlantModel, settings: AdaptationSettings = AdaptationSettings(),
-                 name: str | None = None, *, nominal_load: float):
+                 name: str | None = None, *, nominal_load: float, nominal_input_voltage: float | None = None):
         """``inner``: the NNPC to adapt (Python or C twin), built on ``model`` -- for the Python
         controller, on its *own copy* of it, since the output layer is rewritten in place.
-        ``nominal_load`` [Ohm]: the load assumed until the sensors tell (as the controller's)."""
+        ``nominal_load`` [Ohm]: the load assumed until the sensors tell (as the controller's);
+        ``nominal_input_voltage`` [V]: the supply a network with the supply as an input is given when the
+        measurement has none (default: the inner controller's, as its predictor assumes it)."""
         self.inner = inner
         self.nominal_load = nominal_load
+        self.nominal_input_voltage = (nominal_input_voltage if nominal_input_voltage is not None
+                                      else getattr(inner, "nominal_input_voltage", math.nan))
+        if "input_voltage" in model.config.extra_signals and not math.isfinite(self.nominal_input_voltage):
+            raise ValueError("AdaptiveNNPC: the network takes the supply voltage as an input; give "
+                             "nominal_input_voltage [V] for samples without a supply reading")
         self.model = model
         self.settings = settings
         self.name = name or f"{inner.name}-adaptive"
@@ -135,7 +142,9 @@ class AdaptiveNNPC:
         self._history.insert(0, (state[0], state[1], duty))
         del self._history[self._delays:]
         if len(self._history) == self._delays:
-            extras = {"load_conductance": conductance, "load_current": m.load_current, "input_voltage": m.input_voltage}
+            # a plant without a supply reading: the nominal supply, as the controller's predictor assumes it
+            supply = m.input_voltage if math.isfinite(m.input_voltage) else self.nominal_input_voltage
+            extras = {"load_conductance": conductance, "load_current": m.load_current, "input_voltage": supply}
             self._input = np.array([v for row in self._history for v in row] + [extras[s] for s in self._extras])
             self._input_conductance = conductance
         self._previous_state = state
@@ -234,4 +243,5 @@ class AdaptiveNNPC:
 
     def with_inner(self, inner) -> "AdaptiveNNPC":
         """The same adaptation around another implementation of the inner NNPC (e.g. its C twin)."""
-        return AdaptiveNNPC(inner, self.model, self.settings, self.name, nominal_load=self.nominal_load)
+        return AdaptiveNNPC(inner, self.model, self.settings, self.name, nominal_load=self.nominal_load,
+                            nominal_input_voltage=self.nominal_input_voltage)

@@ -790,6 +790,11 @@ class NativePredictiveController(_MeasurementStepper):
         return self._config
 
     @property
+    def nominal_input_voltage(self) -> float:
+        """The supply [V] assumed for samples without a supply reading (as the Python controller's)."""
+        return self._config.nominal_input_voltage
+
+    @property
     def state(self) -> PredictiveState:
         """The C controller's state between samples (a live view: read, do not write)."""
         return self._state

@@ -271,8 +271,9 @@ class RtiSettings:
     to the search (:class:`HorizonOptimizer`) instead."""
 
     iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known. With the
-    # start-up region below, one step met every quality target on every seed at 13.33 us (the every-seed evaluation,
-    # cosim.study.optimizer_ablation.every_seed), and it is what fits a switching period in C
+    # start-up region below, one step met every quality target on every seed at 13.33 us with the paper-region 7-10-2
+    # networks (the every-seed evaluation, cosim.study.optimizer_every_seed), not with the envelope-identified 8-10-2
+    # ones (see cosim.study.experiments.default_optimizer), and it is what fits a switching period in C
     line_search: bool = False  # roll each trial out and take it only if its smoothed cost is not higher (else the
     # trust region shrinks); False takes every step, as acados' SQP-RTI does, and the plan's states are not rolled
     # out past the first (the step's cost: one linearisation). The reweighted model majorises the linearised cost,

@@ -1,6 +1,6 @@
 """The every-seed evaluation of the real-time iteration against the search (issue 24's quality targets).
 
-Runs :func:`cosim.study.optimizer_ablation.every_seed`: the NNPC of every study seed on the nominal plants and
+Runs :func:`cosim.study.optimizer_every_seed.every_seed`: the NNPC of every study seed on the nominal plants and
 the MPC baselines on every pipeline, both rates, each with the search and with the RTI (its C twins, as the
 study runs them), and prints one line per run and the targets' verdict per pipeline and over all. Needs the
 reproduction's models and PI tunings in RESULTS (``make reproduce``); the seeds' models are identified once
@@ -22,7 +22,8 @@ from pathlib import Path
 
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
-    from cosim.study.optimizer_ablation import every_seed, summary, verdict
+    from cosim.study.optimizer_ablation import summary, verdict
+    from cosim.study.optimizer_every_seed import every_seed
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"))

@@ -197,3 +197,34 @@ def test_reset_starts_every_run_from_the_offline_weights():
 def test_invalid_settings_are_refused(kwargs):
     with pytest.raises(ValueError):
         AdaptationSettings(**kwargs)
+
+
+def test_a_network_with_the_supply_input_learns_without_a_supply_reading():
+    """A plant that reports no supply voltage (NaN): the regressor takes the nominal supply, as the NNPC's
+    predictor does, so the least-squares update stays finite and learns the drifted output layer (the plant here
+    sees 48 V, the nominal supply)."""
+    config = NNConfig(hidden=(6,), delays=2, extra_signals=("load_conductance", "input_voltage"))
+    torch.manual_seed(0)
+    mean = np.array([2.0, 12.0, 0.3, 2.0, 12.0, 0.3, 1 / LOAD, 48.0])
+    std = np.array([1.0, 5.0, 0.2, 1.0, 5.0, 0.2, 0.05, 5.0])
+    model = NNPlantModel(config, PlantNetwork(config), mean, std, np.array([2.0, 12.0]), np.array([1.0, 5.0]))
+    own = copy.deepcopy(model)
+    settings = AdaptationSettings(max_step=1.0, max_deviation=5.0, min_change_current=0.0, min_change_voltage=0.0)
+    with pytest.raises(ValueError, match="takes the supply voltage as an input; give nominal_input_voltage"):
+        AdaptiveNNPC(ScriptedNNPC(own, varied), own, settings, nominal_load=LOAD)
+    adaptive = AdaptiveNNPC(ScriptedNNPC(own, varied), own, settings, nominal_load=LOAD, nominal_input_voltage=48.0)
+    plant = drifted(model)
+    hidden = adaptive._hidden_layers
+    state, previous, errors = np.array([2.0, 12.0]), (2.0, 12.0, varied(0)), []
+    for k in range(600):
+        duty = adaptive.step(Measurement(k * adaptive.sample_period, 12.0, state[1], state[0], state[1] / LOAD,
+                                         float("nan")))
+        h = np.array([state[0], state[1], duty, *previous, 1 / LOAD, 48.0])
+        for w, b in hidden:
+            h = np.tanh(h @ w + b)
+        phi = np.append(h, 1.0)
+        new = phi @ plant
+        errors.append(float(np.abs(new - phi @ adaptive.output_weights).max()))
+        previous, state = (state[0], state[1], duty), np.clip(new, [0.0, 0.0], [5.0, 20.0])
+    assert adaptive.counters["updates"] > 500 and np.all(np.isfinite(adaptive.output_weights))
+    assert np.mean(errors[-100:]) < 0.02 * np.mean(errors[:5])

@@ -125,6 +125,29 @@ def test_collect_train_and_run_an_nnpc(tmp_path):
     assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=2e-3)
 
 
+def test_collect_data_draws_over_the_region_asked_for(tmp_path):
+    """``--region envelope`` at 1 ms (where the default is the paper's region): supplies drawn 36-60 V, loads up to
+    100 Ohm, the binary dither; the metadata says so. ``--region paper`` keeps 48 V and 4-10 Ohm."""
+    from cosim.results import read_parquet
+
+    frames = {}
+    for region in ("paper", "envelope"):
+        path = tmp_path / f"{region}.parquet"
+        assert main(["--no-progress", "collect-data", "--samples", "3000", "--region", region, "--out", str(path),
+                     "--work-dir", str(tmp_path)]) == 0
+        frames[region] = read_parquet(path)[0]
+    paper, envelope = frames["paper"], frames["envelope"]
+    assert set(paper["input_voltage"]) == {48.0} and (paper["output_voltage"] / paper["load_current"]).max() < 10.5
+    assert envelope["input_voltage"].nunique() > 3 and 36.0 <= envelope["input_voltage"].min()
+    assert envelope["input_voltage"].max() <= 60.0 and (envelope["output_voltage"] / envelope["load_current"]).max() > 20
+    collection = envelope.attrs["metadata"]["collection"]
+    assert collection["dither"] == "am-prbs" and list(collection["input_voltage_range"]) == [36.0, 60.0]
+    assert paper.attrs["metadata"]["collection"]["dither"] == "gaussian"
+    with pytest.raises(SystemExit) as refused:
+        main(["--no-progress", "collect-data", "--region", "moon", "--out", str(tmp_path / "x.parquet")])
+    assert refused.value.code == 2
+
+
 def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_path):
     from controllers.nn_model import load_model
 

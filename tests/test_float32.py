@@ -291,7 +291,8 @@ def replace_delay(controller):
 
 
 def test_the_nn_forward_pass_is_within_the_derived_bound_on_recorded_inputs(closed_loop):
-    """The NNPC's 13.33 us network (7-10-2, two delays, the load conductance) on its inputs built from the
+    """An NNPC network of 13.33 us (7-10-2, two delays, the load conductance: the fixture of the network before the
+    envelope data; today's adds the supply voltage) on its inputs built from the
     recorded explicit-NNPC runs: [iL, vo, d](k-1), [iL, vo, d](k-2), G(k-1)."""
     model = load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD)
     config = model.config

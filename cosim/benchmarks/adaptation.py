@@ -45,7 +45,8 @@ def bench_adaptation(quick: bool) -> list[BenchRow]:
             learned.append(self.counters["updates"] > updates)
             return duty
 
-    timed = Timed(adaptive.inner, adaptive.model, adaptive.settings, adaptive.name, nominal_load=adaptive.nominal_load)
+    timed = Timed(adaptive.inner, adaptive.model, adaptive.settings, adaptive.name, nominal_load=adaptive.nominal_load,
+                  nominal_input_voltage=adaptive.nominal_input_voltage)
     timed.inner.step = timed_inner
     with open_plant(plant_binding("nominal", "switched")) as plant:
         run(plant, timed, _mixed_scenario(period, samples), record_period=period)

@@ -21,7 +21,14 @@ from cosim.cli.options import (
     seed_value,
 )
 from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
-from cosim.study.vocabulary import DITHER_FAST, DITHER_SLOW, PAPER_PERIOD, TRANSIENT_WITHIN_SAMPLE_PERIOD
+from cosim.study.vocabulary import (
+    COLLECTION_REGIONS,
+    DITHER_FAST,
+    DITHER_SLOW,
+    ENVELOPE_DITHER,
+    PAPER_PERIOD,
+    TRANSIENT_WITHIN_SAMPLE_PERIOD,
+)
 
 
 def cmd_tune_pi(args) -> int:
@@ -47,7 +54,7 @@ def cmd_collect(args) -> int:
 
     output_file(args.out)
     work_dir = cache_dir(args.work_dir)
-    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation)
+    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation, args.region)
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
@@ -168,16 +175,28 @@ def cmd_distill(args) -> int:
 
 def add_collect_data_parser(sub) -> None:
     p = sub.add_parser("collect-data", help="collect NN training data with the tuned PI (paper Section IV)",
-                       description="Drive the plant with the tuned PI under random references and loads held for "
-                                   "random intervals; write one row per control sample (iL, vo, d, ...) as Parquet.")
+                       description="Drive the plant with the tuned PI under random references and loads (and, over "
+                                   "the envelope, supplies) held for random intervals, its duty dithered; write one "
+                                   "row per control sample (iL, vo, d, ...) as Parquet. The region: 'paper' -- "
+                                   "references 0-20 V, loads 4-10 Ohm at 48 V, a white dither (the paper's "
+                                   "experiment); 'envelope' -- references 3-20 V, loads 4-100 Ohm, supplies 36-60 V "
+                                   "(a plant binding without an input_voltage role keeps its supply), an "
+                                   "amplitude-modulated random binary dither. Default: the workbench's recipe, "
+                                   "'paper' at control periods >= 1 ms, 'envelope' faster (train such data with "
+                                   "--extra load_conductance input_voltage).")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="sample period in s (default: 1e-3)")
     p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
                    help=f"number of samples (>= {MIN_SAMPLES}; default: 10000, the paper's)")
     p.add_argument("--excitation", type=bounded(float, 0.0, MAX_EXCITATION, below_high=True), default=None,
-                   help=f"standard deviation of the duty dither added to the PI (default: {DITHER_SLOW} at control "
-                        f"periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, {DITHER_FAST} faster; 0 = plain PI)")
+                   help=f"the duty dither added to the PI: the white dither's standard deviation in the paper region "
+                        f"(default: {DITHER_SLOW} at control periods >= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, "
+                        f"{DITHER_FAST} faster), the binary dither's largest level over the envelope (default: "
+                        f"{ENVELOPE_DITHER}); 0 = plain PI")
+    p.add_argument("--region", choices=COLLECTION_REGIONS, default=None,
+                   help="where the references, loads and supplies are drawn (default: 'paper' at control periods "
+                        f">= {TRANSIENT_WITHIN_SAMPLE_PERIOD * 1e3:g} ms, 'envelope' faster)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="where tuned PI gains are cached, created only when they are (default: results/runs-cli, "

@@ -200,7 +200,6 @@ class FmuPlant:
         if self._initialized:
             self.reset()
         self._refuse_if_fatal()
-        fmu = self._fmu
         try:
             extra = resolve_parameters(start_values or {}, self.model_description, self.binding.fmu_path.name)
         except BindingMismatch as error:

@@ -48,8 +48,8 @@ class _CountingTwin:
 
 
 def count_nnpc_operations(model_path: Path, period: float, scenario_names) -> dict[str, np.ndarray]:
-    """Per control sample of the NNPC (``model_path``, at ``period`` [s], with its default optimizer: the RTI at
-    one switching period, the search at 1 ms) over ``scenario_names`` on the nominal switched plant: rollouts
+    """Per control sample of the NNPC (``model_path``, at ``period`` [s], with its default optimizer: the search at
+    one switching period, the RTI at 1 ms) over ``scenario_names`` on the nominal switched plant: rollouts
     (candidate evaluations), MACs, tanh calls, square roots and Cortex-M4F cycles."""
     controller = nnpc(load_model(model_path, expect_period=period), period, NNPC)
     counting = _CountingTwin(implemented(controller, "c"))

@@ -286,7 +286,7 @@ def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[f
     """Controller FMUs / controller-binding files for the reproduction, checked before any work:
     each must open, carry a name no built-in controller has, and sample at one of ``periods`` [s]
     (within 1e-9 relative). Returns the paths by the period whose pipelines run them."""
-    from cosim.base.labels import did_you_mean, period_text
+    from cosim.base.labels import period_text
     from cosim.fmi.controller import FmuController, controller_binding
 
     builtin = set(CONTROLLERS.values())

@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import ENVELOPE_LOADS, ENVELOPE_REFERENCES, ENVELOPE_SUPPLIES, SWITCHING_PERIOD
 from plant_fmu.table_ii import TABLE_II
 
-#: the envelope the map measures (cosim.study.envelope.FULL_MAP spans it)
-REFERENCES, LOADS, SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
+#: the envelope the map measures (cosim.study.envelope.FULL_MAP spans it) and the envelope collection draws from
+REFERENCES, LOADS, SUPPLIES = ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES
 #: coverage cells: 4 reference bins (linear) x 4 load bins (log) x 3 supply bins (linear)
 REFERENCE_BINS, LOAD_BINS, SUPPLY_BINS = 4, 4, 3
 #: samples a cell must hold to count as covered (a held level lasts 20-200 samples at 13.33 us)
@@ -190,8 +190,10 @@ def identified(binding, pi, variant: str, seed: int, samples: int, folder: Path)
     data_path = path.with_suffix(".parquet")
     if path.is_file() and data_path.is_file():
         return path, load_model(path, expect_period=SWITCHING_PERIOD, expect_config=config), read_parquet(data_path)[0]
-    data = collect(binding, pi, variant_settings(VARIANTS[variant][0], seed, samples))
-    result = identify(binding, pi, SWITCHING_PERIOD, config, seed, Recipe(samples=samples), data=data)
+    settings = variant_settings(VARIANTS[variant][0], seed, samples)
+    data = collect(binding, pi, settings)
+    result = identify(binding, pi, SWITCHING_PERIOD, config, seed, Recipe(samples=samples), data=data,
+                      collection=settings)
     save_model(result.model, path)
     save_samples(data, data_path)
     return path, result.model, data

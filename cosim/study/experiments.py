@@ -26,6 +26,12 @@ from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding, RoleMap, builtin_b
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from cosim.study.data_collection import CollectionSettings
 from cosim.study.vocabulary import (
+    COLLECTION_REGIONS,
+    ENVELOPE_DITHER,
+    ENVELOPE_DITHER_HOLD,
+    ENVELOPE_LOADS,
+    ENVELOPE_REFERENCES,
+    ENVELOPE_SUPPLIES,
     FAST_RATE_COMPRESSION,
     LC_PERIOD,
     PLANT_VARIANTS,
@@ -61,8 +67,8 @@ def nn_configs(control_period: float) -> dict[str, NNConfig]:
 
 
 def small_network(control_period: float) -> NNConfig:
-    """The workbench's network before the identification study: as :func:`nn_configs`' but with
-    the paper's 7 hidden neurons (the ablation's baseline)."""
+    """The ablation's baseline network: as :func:`nn_configs`' (its inputs, delays and data) but with the paper's 7
+    hidden neurons -- the hidden layer the workbench's network had before the identification study."""
     return replace(nn_configs(control_period)["nnpc"], hidden=PAPER_NN.hidden)
 
 
@@ -70,15 +76,6 @@ def multiply_accumulates(config: NNConfig) -> int:
     """Multiply-accumulates of one network prediction (the NNPC's cost per candidate and step)."""
     sizes = (config.n_inputs, *config.hidden, 2)
     return sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))
-
-
-#: where the identification data come from: the paper's region (references 0-20 V, loads 4-10 Ohm, 48 V) or the
-#: operating envelope of the map (cosim.study.envelope_identification)
-COLLECTION_REGIONS = ("paper", "envelope")
-#: the envelope collection: references (and rests at 0 V), loads (log-uniform), supplies [V, Ohm, V]; its dither:
-#: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
-ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
-ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
 
 
 def default_region(control_period: float) -> str:
@@ -170,8 +167,8 @@ def default_optimizer(control_period: float) -> str:
 
     Issue 24 makes the RTI the default where it meets its quality targets on every identification seed (IAE within
     2 % of the search's, start-up overshoot within 0.5 points). At 1 ms it does (the report's *Ablations*). At
-    13.33 us the every-seed evaluation (:func:`cosim.study.optimizer_ablation.every_seed`) found it did with the
-    paper-region 4-10-2 networks, but with the envelope-identified 8-10-2 networks (supply voltage as an input)
+    13.33 us the every-seed evaluation (:func:`cosim.study.optimizer_every_seed.every_seed`) found it did with the
+    paper-region 7-10-2 networks, but with the envelope-identified 8-10-2 networks (supply voltage as an input)
     the reproduction's ablation measured it on seed 0 at 1.9-2.8 x the search's IAE on the mismatch plant
     (start-up, load change, reference up) and the NNPC's controller FMU at 13.33 us left the Python reference
     within a start-up (C and Python RTI steps differ in the last bits; the RTI follows the model's local slope,
@@ -289,11 +286,13 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
 
 def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
               duty_limits: tuple[float, float] = (0.0, 1.0), binding: PlantBinding | None = None,
-              offset_free: bool = True, optimizer: str | None = None) -> PredictiveController:
+              offset_free: bool = True, optimizer: str | None = None,
+              horizon: int | None = None) -> PredictiveController:
     """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant; ``offset_free=False``
     drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error);
-    ``optimizer``: one of :data:`OPTIMIZERS` (None: :func:`default_optimizer`)."""
-    settings = horizon_settings(control_period)
+    ``optimizer``: one of :data:`OPTIMIZERS` (None: :func:`default_optimizer`); ``horizon``: samples
+    (None: the rate's, :func:`horizon_settings`)."""
+    settings = horizon_settings(control_period, horizon)
     if not offset_free:
         settings = replace(settings, bias_filter=0.0)
     return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,

@@ -32,7 +32,7 @@ import pandas as pd
 
 from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, train
 from cosim.fmi.binding import PlantBinding
-from cosim.study.data_collection import collect
+from cosim.study.data_collection import CollectionSettings, collect
 from cosim.study.design_cache import DesignKey, design_key
 from cosim.study.experiments import collection_settings, horizon_settings, implemented, network_region, nnpc
 from cosim.study.vocabulary import (
@@ -97,12 +97,13 @@ class Identified:
 
 def identify(binding: PlantBinding, pi_controller, control_period: float, config: NNConfig, seed: int,
              recipe: Recipe = Recipe(), metadata: dict | None = None, data: pd.DataFrame | None = None,
-             progress: bool = False) -> Identified:
+             progress: bool = False, collection: CollectionSettings | None = None) -> Identified:
     """The workbench's identification of ``config`` on ``binding`` (module docstring), seeded.
 
-    ``data``: PI data collected already (with ``collection_settings(period, samples, seed)``).
+    ``data``: PI data collected already, with ``collection`` (default: ``collection_settings(period, samples,
+    seed)``, the rate's recipe); the model's metadata records those settings.
     """
-    settings = collection_settings(control_period, recipe.samples, seed)
+    settings = collection if collection is not None else collection_settings(control_period, recipe.samples, seed)
     if data is None:
         data = collect(binding, pi_controller, settings, progress=progress)
     training = training_settings(control_period, seed, recipe.multi_step_iterations)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -178,60 +177,3 @@ def verdict(rows: list[dict]) -> dict[str, tuple[float, bool]]:
            "cost_excess_median": (median, median <= COST_EXCESS_TARGET),
            "cost_excess_worst": (float(np.max(pooled)) if len(pooled) else math.nan, True)}
     return out
-
-
-def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
-               audit: bool = True, log: Callable[[str], None] = print) -> list[dict]:
-    """The every-seed evaluation issue 24 asks before the RTI may be the default: :func:`compare` for the NNPC
-    identified from every study seed's data on the nominal plants (seed 0: the reproduction's model in
-    ``out_dir/models``; the other seeds identified here with the reproduction's recipe and PI, and kept in
-    ``cache``, so a rerun only simulates), and for the MPC baselines (the oracle and the mismatched model: no
-    identification, seed 0) on every pipeline, both rates. Each row carries ``pipeline``, ``seed`` and its
-    controller; :func:`verdict` of the rows of a pipeline or of all is the table the docs quote
-    (``scripts/optimizer_every_seed.py`` prints it)."""
-    from controllers.nn_model import load_model, save_model
-    from cosim.study import reproduce
-    from cosim.study.experiments import model_mpc, nn_configs, nnpc, scenarios_for
-    from cosim.study.identification import identify
-    from cosim.study.vocabulary import MISMATCH, MPC_MISMATCHED, MPC_NOMINAL, MPC_ORACLE, NNPC, NOMINAL, PLANT_VARIANTS
-
-    rows: list[dict] = []
-    for pipeline in reproduce.PIPELINES:
-        if pipelines is not None and pipeline.tag not in pipelines:
-            continue
-        period, binding = pipeline.control_period, pipeline.binding()
-        scenarios = scenarios_for(period)
-        study_seeds = reproduce.FULL.seeds if pipeline.seed_study else (0,)
-        for seed in [s for s in study_seeds if seeds is None or s in seeds]:
-            if seed == 0:
-                model = load_model(out_dir / "models" / f"{pipeline.tag}__nnpc.pt", expect_period=period)
-            else:
-                path = cache / f"{pipeline.tag}__seed{seed}__nnpc.pt"
-                if not path.is_file():
-                    pi = reproduce._tuned(pipeline, out_dir, reproduce.FULL)
-                    identified = identify(binding, pi.controller(), period, nn_configs(period)["nnpc"], seed,
-                                          reproduce._recipe(reproduce.FULL))
-                    cache.mkdir(parents=True, exist_ok=True)
-                    save_model(identified.model, path)
-                model = load_model(path, expect_period=period)
-            makers = {NNPC: lambda optimizer, model=model: nnpc(model, period, NNPC, optimizer=optimizer)}
-            if seed == 0:
-                wrong, wrong_name = (NOMINAL, MPC_NOMINAL) if pipeline.variant == "mismatch" else (MISMATCH,
-                                                                                                   MPC_MISMATCHED)
-                for name, parameters in ((MPC_ORACLE, PLANT_VARIANTS[pipeline.variant]), (wrong_name, wrong)):
-                    makers[name] = (lambda optimizer, name=name, parameters=parameters:
-                                    model_mpc(parameters, period, name, binding=binding, optimizer=optimizer))
-            for name, make in makers.items():
-                for row in compare(binding, make, scenarios, audit=audit):
-                    row.update(pipeline=pipeline.tag, seed=seed)
-                    rows.append(row)
-                    log(f"{pipeline.tag:27s} seed {seed} {name:14s} {row['scenario']:14s} IAE {row['iae_search_Vs']:.4g} "
-                        f"V s x {row['iae_ratio']:.4f}, eq. 16 x "
-                        f"{row['closed_loop_cost_rti_Vs'] / row['closed_loop_cost_search_Vs']:.4f}, overshoot "
-                        f"{row['overshoot_search_pct']:.2f} -> {row['overshoot_rti_pct']:.2f} %, plan cost excess "
-                        f"median {100 * row['cost_excess_median']:.2f} % worst {100 * row['cost_excess_worst']:.1f} %,"
-                        f" search {row['search_samples']} of {row['samples']} {row['fallbacks']}")
-        verdict_line = {k: (round(v[0], 4), v[1]) for k, v in verdict([r for r in rows
-                                                                       if r["pipeline"] == pipeline.tag]).items()}
-        log(f"{pipeline.tag}: {verdict_line}")
-    return rows

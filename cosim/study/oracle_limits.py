@@ -54,23 +54,13 @@ def _overshoot_of_mean(result, scenario) -> float:
 
 def oracle(binding, horizon: int | None = None, implementation: str = "c"):
     """The oracle MPC on ``binding`` (its own circuit), with ``horizon`` samples (None: the study's)."""
-    from controllers.predictive import PredictiveController
     from cosim.study.controller_factory import true_parameters
-    from cosim.study.experiments import (
-        NOMINAL_OPERATING_POINT,
-        horizon_settings,
-        implemented,
-        model_predictor,
-        rti_settings,
-    )
+    from cosim.study.experiments import horizon_settings, implemented, model_mpc
 
     period = SWITCHING_PERIOD
-    settings = horizon_settings(period, horizon)
-    name = MPC_ORACLE if horizon is None else f"{MPC_ORACLE} (N={settings.horizon})"
-    controller = PredictiveController(model_predictor(true_parameters(binding), period, name, binding), period,
-                                      settings, (0.0, 1.0), name=name, **NOMINAL_OPERATING_POINT,
-                                      rti=rti_settings(period))
-    return implemented(controller, implementation)
+    name = MPC_ORACLE if horizon is None else f"{MPC_ORACLE} (N={horizon_settings(period, horizon).horizon})"
+    return implemented(model_mpc(true_parameters(binding), period, name, binding=binding, horizon=horizon),
+                       implementation)
 
 
 def diagnose(results: Path, settle: float | None = None) -> pd.DataFrame:

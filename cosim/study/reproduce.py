@@ -428,7 +428,7 @@ def _identification_ablation(identified, binding, period, seed, batch, out_dir, 
     looped = closed_loop_round(identified, binding, period, config, seed, _recipe(profile)).model
     variants = [(NNPC_SMALL_ONE_STEP, earlier, small), (NNPC_ONE_STEP, identified.stages[ONE_STEP], None),
                 (NNPC_CLOSED_LOOP, looped, None)]
-    # closed-loop runs for the earlier NNPC and the closed-loop round; the one-step 7-10-2 by its
+    # closed-loop runs for the earlier NNPC and the closed-loop round; the one-step network by its
     # RMSE only (what growing the network buys in prediction; a run each would cost the time target)
     controllers = [nnpc(model, period, named(name)) for name, model, _ in variants if name in ABLATION_RUNS]
     scenarios = [s for s in batch.scenarios if s.name in ABLATION_SCENARIOS] or list(batch.scenarios)

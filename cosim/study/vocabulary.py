@@ -62,7 +62,9 @@ STUDY_SEEDS = (0, 1, 2, 3, 4)
 ONE_STEP_ITERATIONS, MULTI_STEP_STRIDE, MULTI_STEP_ITERATIONS = 3000, 6, 300
 #: NNPC-in-the-loop data rounds (the ablation's): samples per round, the refinement's iterations
 #: at most, the dither on the NNPC's duty, and the seed offset of their random references and
-#: loads (round r of seed s uses s + r * offset)
+#: loads (round r of seed s uses s + r * offset). The rounds draw from the rate's collection region: at
+#: 13.33 us the envelope, where the dither is the amplitude-modulated binary one, CLOSED_LOOP_DITHER its
+#: largest level; at 1 ms the paper's region, a white dither of that standard deviation
 CLOSED_LOOP_SAMPLES, CLOSED_LOOP_ITERATIONS, CLOSED_LOOP_DITHER, CLOSED_LOOP_SEED_OFFSET = 1000, 150, 0.03, 1000
 
 
@@ -220,3 +222,12 @@ class TimeCompression:
 
 
 FAST_RATE_COMPRESSION = TimeCompression()
+
+
+#: where the identification data come from: the paper's region (references 0-20 V, loads 4-10 Ohm, 48 V) or the
+#: operating envelope of the map (cosim.study.envelope_identification)
+COLLECTION_REGIONS = ("paper", "envelope")
+#: the envelope collection: references (and rests at 0 V), loads (log-uniform), supplies [V, Ohm, V]; its dither:
+#: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
+ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
+ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
