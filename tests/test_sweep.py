@@ -449,16 +449,14 @@ def _stop(processes: list[subprocess.Popen]) -> None:
         process.wait(timeout=30)
 
 
-def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on_a_new_one(tmp_path):
-    """A sweep on a cluster of one's own (``dask scheduler`` + ``dask worker``) whose scheduler is killed
-    after the first parts: one line saying so, how many runs are in and how to finish, exit 5 -- and no
-    run written as failed (dask cancels the pending tasks; that is no fault of theirs). ``--resume`` against
-    a new scheduler runs exactly the rest: every run in the dataset once, none computed twice."""
-    scenario = tmp_path / "long_startup.toml"
-    scenario.write_text('name = "long_startup"\nduration = 0.02\n[initial]\nreference = 12.0\n')
-    path = sweep_file(tmp_path, f"""\
+def long_startup_sweep(tmp_path, duration: float, samples: int):
+    """A sweep file of ``samples`` PI start-ups of ``duration`` [s] on the switched plant with L +-20 %, two runs a
+    task: long enough to be interrupted part-way."""
+    (tmp_path / "long_startup.toml").write_text(f'name = "long_startup"\nduration = {duration}\n[initial]\n'
+                                                'reference = 12.0\n')
+    return sweep_file(tmp_path, f"""\
         scenarios = ["long_startup.toml"]
-        samples = 24
+        samples = {samples}
         batch_size = 2
         [[controllers]]
         kind = "pi"
@@ -468,6 +466,14 @@ def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on
         [parameters]
         inductance = {{ tolerance = 0.2 }}
         """)
+
+
+def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on_a_new_one(tmp_path):
+    """A sweep on a cluster of one's own (``dask scheduler`` + ``dask worker``) whose scheduler is killed
+    after the first parts: one line saying so, how many runs are in and how to finish, exit 5 -- and no
+    run written as failed (dask cancels the pending tasks; that is no fault of theirs). ``--resume`` against
+    a new scheduler runs exactly the rest: every run in the dataset once, none computed twice."""
+    path = long_startup_sweep(tmp_path, duration=0.02, samples=24)
     out = tmp_path / "out"
     port = _free_port()
     cluster = _dask_cluster(port)
@@ -515,20 +521,7 @@ def test_an_interrupt_shuts_the_cluster_down_and_resume_finishes_without_recompu
     workers too): exit 130 in one line, no worker outlives the sweep, only complete parts; --resume
     runs exactly the rest and writes nothing that was done."""
     local, _ = cluster
-    scenario = tmp_path / "long_startup.toml"
-    scenario.write_text('name = "long_startup"\nduration = 0.1\n[initial]\nreference = 12.0\n')
-    path = sweep_file(tmp_path, f"""\
-        scenarios = ["long_startup.toml"]
-        samples = 40
-        batch_size = 2
-        [[controllers]]
-        kind = "pi"
-        {PI_GAINS.replace(', ', chr(10) + '        ')}
-        [plant]
-        mode = "switched"
-        [parameters]
-        inductance = {{ tolerance = 0.2 }}
-        """)
+    path = long_startup_sweep(tmp_path, duration=0.1, samples=40)
     out = tmp_path / "out"
     group = interrupt.startswith("Ctrl-C")
     process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
