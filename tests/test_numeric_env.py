@@ -71,9 +71,15 @@ def test_identification_distillation_and_seed_job_write_the_same_bytes_in_every_
             assert artefacts[name][artefact] == reference[artefact], f"{artefact} differs under {name}"
 
 
+#: what the native kernels change on this machine: the trained networks and the seed job's summary (its network's
+#: held-out errors). Its metrics table may come out the same: at 1 ms the NNPC's optimizer (the RTI) rounds the duty
+#: to the search's finest step (1/10240), which networks apart in their last bits mostly command alike
+CHANGED_BY_NATIVE_KERNELS = ("identified.pt", "policy.pt", "pipelines/nominal-averaged__1ms__seed1.json")
+
+
 def test_the_environments_do_change_the_bytes_when_the_kernels_are_left_native(artefacts):
     """What the pinning prevents, on this machine: the default kernels train other networks."""
-    for artefact in ARTEFACTS:
+    for artefact in CHANGED_BY_NATIVE_KERNELS:
         assert artefacts["native"][artefact] != artefacts["default"][artefact], artefact
 
 
