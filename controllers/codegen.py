@@ -11,8 +11,11 @@ written with 17 significant digits (``repr``), which a C compiler reads back to 
 ``precision="float32"`` writes the data of the float32 build (``buckc_real`` = float, see
 ``controllers/c/buckc.h``): the PI's, the explicit policy's, the current-mode controller's or the
 compensator's configuration from the float32 mirrors, every number the shortest literal that reads
-back to the same float, with an ``f`` suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``. The predictive
-controller has no float32 build (its optimizer computes in double): a ValueError says so.
+back to the same float, with an ``f`` suffix, and a guard that stops a compilation without ``-DBUCKC_FLOAT32``.
+A predictive controller's float32 data is its double configuration rounded to float, field by field (the
+float32 build of predictive.c has no host mirror: it runs in the Cortex-M4F image and the host's build of that
+image, cosim/benchmark_harness/cortex_m4.py); only the NN predictor's (the online NNPC's): the circuit predictors
+of the MPC baselines compute in double only, a ValueError says so.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from controllers.native import (
 )
 from controllers.pi import PIController
 from controllers.predictive import PredictiveController
+from controllers.predictors import NNPredictor
 
 KIND_PI, KIND_PREDICTIVE, KIND_EXPLICIT = "CONTROLLER_PI", "CONTROLLER_PREDICTIVE", "CONTROLLER_EXPLICIT"
 KIND_CURRENT_MODE, KIND_COMPENSATOR = "CONTROLLER_CURRENT_MODE", "CONTROLLER_COMPENSATOR"
@@ -97,7 +101,12 @@ def config_header(controller, name: str | None = None, precision: str = "float64
     controller (data only), in ``precision`` (float32: the controllers with a float32 build, for a build with
     ``-DBUCKC_FLOAT32``)."""
     kind = controller_kind(controller)
-    twin = native_twin(controller, check_precision(precision))  # the configuration the twins run, checked
+    if kind == KIND_PREDICTIVE and check_precision(precision) == "float32" and not isinstance(controller.predictor,
+                                                                                              NNPredictor):
+        raise ValueError(f"{controller.name} has no float32 build: its {type(controller.predictor).__name__} "
+                         "(controllers/c/predictors.c) computes in double only; the online NNPC (NN predictor) has one")
+    # the configuration the twins run, checked (a predictive controller's: the double one, rounded below)
+    twin = native_twin(controller, "float64" if kind == KIND_PREDICTIVE else check_precision(precision))
     mirrors = real_mirrors(precision)
     pi, policy = mirrors.PiConfig(), mirrors.PolicyConfigC()
     predictive = PredictiveConfig()
@@ -115,15 +124,15 @@ def config_header(controller, name: str | None = None, precision: str = "float64
     name = name or controller.name
     body = [f"static const int CONTROLLER_KIND = {kind};",
             f"static const BuckcPiConfig PI_CONFIG = {initializer(pi, precision)};"]
-    if precision == "float64":
-        body.append(f"static const BuckcPredictiveConfig PREDICTIVE_CONFIG = {initializer(predictive)};")
+    if precision == "float64" or kind == KIND_PREDICTIVE:
+        body.append(f"static const BuckcPredictiveConfig PREDICTIVE_CONFIG = {initializer(predictive, precision)};")
     body.append(f"static const BuckcPolicyConfig POLICY_CONFIG = {initializer(policy, precision)};")
     body.append(f"static const BuckcCurrentModeConfig CURRENT_MODE_CONFIG = {initializer(current_mode, precision)};")
     body.append(f"static const BuckcCompensatorConfig COMPENSATOR_CONFIG = {initializer(compensator, precision)};")
     data = "\n".join(body)
     guid = "{" + str(uuid.UUID(hashlib.sha256((name + data).encode()).hexdigest()[:32])) + "}"
     includes = ['#include "controller_variables.h"', '#include "pi.h"']
-    includes += ['#include "predictive.h"'] if precision == "float64" else []
+    includes += ['#include "predictive.h"'] if precision == "float64" or kind == KIND_PREDICTIVE else []
     includes += ['#include "explicit_policy.h"']
     includes += ['#include "current_mode.h"', '#include "compensator.h"']
     # the sample clock of an FMU stays in double: a float Ts would drift off the master's sample instants

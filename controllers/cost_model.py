@@ -35,8 +35,8 @@ class CostModel:
     tanh: float = 63.3  # buckc_tanhf (controllers/c/buckc_tanhf.h) inlined in a loop, with the loop's load,
     # store and branch: measured on the emulated Cortex-M4F (cortex_m4/tanh_probe.c; libm's tanhf: ~210)
     sqrt: float = 14.0  # VSQRT.F32 (ARM Cortex-M4 TRM, FPU instruction table)
-    candidate: float = 30.0  # per candidate: lattice generation, clipping, compare (an assumption: the
-    # optimizer has no float32 build to measure)
+    candidate: float = 30.0  # per candidate: lattice generation, clipping, compare (an assumption; the online
+    # NNPC's float32 build is measured on the emulated Cortex-M4F, group embedded, against this model's prediction)
     interrupt: float = 200.0  # per control sample: ADC read, PWM update, ISR entry and exit (an allowance)
     division: float = 14.0  # VDIV.F32 (ARM Cortex-M4 TRM, FPU instruction table)
 

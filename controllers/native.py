@@ -152,9 +152,11 @@ def build_c(name: str, sources: list[Path], headers: list[Path], flags: tuple[st
 
 #: the arithmetic of a build of the twins (``buckc_real`` in ``controllers/c/buckc.h``)
 PRECISIONS = ("float64", "float32")
-#: the files with a float32 build (buckc.h): predictive.c and predictors.c compute in double only
+#: the files with a float32 build (buckc.h): predictors.c (the circuit predictors) computes in double only, and
+#: predictive.c's float32 build (the online NNPC) has no ctypes mirrors here: the Cortex-M4F image and its host
+#: build run it (cosim/benchmark_harness/cortex_m4.py)
 FLOAT32_SOURCES = ("buckc.c", "pi.c", "load_estimate.c", "nn_model.c", "explicit_policy.c", "current_mode.c",
-                   "compensator.c", "box_qp.c")
+                   "compensator.c", "box_qp.c", "predictive.c")
 #: what a float32 build adds to FLAGS: buckc_real = float, and no expression silently computed in double
 FLOAT32_FLAGS = ("-DBUCKC_FLOAT32", "-Wdouble-promotion")
 
@@ -1049,7 +1051,8 @@ def native_twin(controller, precision: str = "float64"):
     if isinstance(controller, PredictiveController):
         if precision != "float64":
             raise ValueError(f"{controller.name} has no {precision} build: the predictive controller's C files "
-                             "(predictive.c, predictors.c) compute in double; float32: the PI, the explicit NNPC, "
+                             "compute in double here (predictive.c's float32 build runs in the Cortex-M4F image, "
+                             "cosim/benchmark_harness/cortex_m4.py); float32: the PI, the explicit NNPC, "
                              "the current-mode controller and the compensator")
         return NativePredictiveController.from_python(controller)
     if isinstance(controller, ExplicitPolicyController):

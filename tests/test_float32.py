@@ -99,7 +99,8 @@ def test_the_float32_build_is_single_precision():
     assert d32 != d64 and d32 == float(np.float32(d32)) and abs(d32 - d64) < 1e-6
     online = nnpc(load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD),
                   SWITCHING_PERIOD)
-    with pytest.raises(ValueError, match="NNPC has no float32 build: the predictive controller's C files"):
+    with pytest.raises(ValueError, match="NNPC has no float32 build: the predictive controller's C files compute in "
+                                         "double here"):
         native.native_twin(online, "float32")
 
 
@@ -374,7 +375,7 @@ def test_export_controller_float32_refuses_a_controller_without_a_float32_build(
     from conftest import cli, one_line_error
 
     done = cli("export-controller", "nnpc", "--precision", "float32", "--out", str(tmp_path / "n.fmu"))
-    one_line_error(done, 2, "nnpc has no float32 build")
+    one_line_error(done, 2, "nnpc has no float32 controller FMU")
     assert not list(tmp_path.iterdir())
 
 

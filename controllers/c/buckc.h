@@ -42,10 +42,15 @@
  * BUCKC_REAL_NAME names the build ("float64" / "float32") for bindings and generated headers.
  *
  * Which files have a float32 build: pi.c, load_estimate.c, nn_model.c (with the NN sensitivities of
- * the real-time iteration), box_qp.c, explicit_policy.c, current_mode.c, compensator.c (and buckc.c).
- * predictive.c and predictors.c (the online NNPC's optimizers and the circuit predictors) compute in
- * double only: BUCKC_HAVE_PREDICTIVE is 0 in a float32 build, and code shared by both
- * (controller_fmu.c) leaves the predictive controller out there.
+ * the real-time iteration), box_qp.c, explicit_policy.c, current_mode.c, compensator.c, predictive.c
+ * (and buckc.c). predictive.c's float32 build is the online NNPC alone -- the NN predictor with both
+ * optimizers, the real-time iteration and the search it falls back to -- for the Cortex-M4F
+ * (cosim/benchmark_harness/cortex_m4.py); predictors.c (the circuit predictors of the MPC baselines:
+ * matrix exponentials, switched-model tables of thousands of doubles, a host's tool) computes in double
+ * only, so BUCKC_HAVE_CIRCUIT_PREDICTORS is 0 in a float32 build and predictive.c leaves them out there.
+ * BUCKC_HAVE_PREDICTIVE (1 in double only) says whether the host bindings (controllers/native.py's ctypes
+ * mirrors, buckc_struct_size) and the controller FMU (controller_fmu.c) have the predictive controller:
+ * its float32 build is linked into the Cortex-M4F image (and the host's build of that image), not there.
  */
 #ifdef BUCKC_FLOAT32
 #include "buckc_tanhf.h"
@@ -55,9 +60,11 @@ typedef float buckc_real;
 #define BUCKC_EXP expf
 #define BUCKC_SQRT sqrtf
 #define BUCKC_FABS fabsf
+#define BUCKC_FLOOR floorf
 #define BUCKC_REAL_LITERAL(x) x##f
 #define BUCKC_REAL_NAME "float32"
 #define BUCKC_HAVE_PREDICTIVE 0
+#define BUCKC_HAVE_CIRCUIT_PREDICTORS 0
 #else
 #include "buckc_tanh.h"
 typedef double buckc_real;
@@ -66,9 +73,11 @@ typedef double buckc_real;
 #define BUCKC_EXP exp
 #define BUCKC_SQRT sqrt
 #define BUCKC_FABS fabs
+#define BUCKC_FLOOR floor
 #define BUCKC_REAL_LITERAL(x) x
 #define BUCKC_REAL_NAME "float64"
 #define BUCKC_HAVE_PREDICTIVE 1
+#define BUCKC_HAVE_CIRCUIT_PREDICTORS 1
 #endif
 
 /* controllers.base.Measurement (SI units, NaN where the plant has no such output): what every

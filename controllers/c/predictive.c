@@ -18,9 +18,18 @@
 
 #define FAIL(code, text) do { if (what) *what = (text); return (code); } while (0)
 
+#define ZERO BUCKC_REAL_LITERAL(0.0)
+#define ONE BUCKC_REAL_LITERAL(1.0)
+
 /* the linearisations propagate at least as many directions as the box QP has variables */
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
 typedef char buckc_directions_fit[(BUCKC_QP_MAX_VARIABLES <= BUCKC_NN_MAX_DIRECTIONS &&
                                    BUCKC_QP_MAX_VARIABLES <= BUCKC_SENSITIVITY_DIRECTIONS) ? 1 : -1];
+#else
+typedef char buckc_directions_fit[(BUCKC_QP_MAX_VARIABLES <= BUCKC_NN_MAX_DIRECTIONS) ? 1 : -1];
+#endif
+/* a full lattice (at most BUCKC_FULL_GRID_LIMIT rows) always fits */
+typedef char buckc_lattice_fits[(BUCKC_MAX_LATTICE >= BUCKC_FULL_GRID_LIMIT) ? 1 : -1];
 
 /* ------------------------------------------------------------------ settings */
 
@@ -53,16 +62,16 @@ static long capped_power(long base, int n, long limit)
 }
 
 /* np.linspace(low, high, num) for num >= 2: i * ((high - low) / (num - 1)) + low, the last = high */
-static void linspace(double low, double high, int num, double *out)
+static void linspace(buckc_real low, buckc_real high, int num, buckc_real *out)
 {
-    double step = (high - low) / (double)(num - 1);
+    buckc_real step = (high - low) / (buckc_real)(num - 1);
     int i;
     for (i = 0; i < num; ++i)
-        out[i] = (double)i * step + low;
+        out[i] = (buckc_real)i * step + low;
     out[num - 1] = high;
 }
 
-int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings, double low, double high,
+int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings, buckc_real low, buckc_real high,
                          const char **what)
 {
     BuckcHorizonSettings s;
@@ -90,15 +99,15 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
     }
     if (t != s.horizon)
         FAIL(BUCKC_ERR_INVALID, "blocks: expected lengths summing to the horizon");
-    if (!(s.discount > 0.0 && s.discount <= 1.0))
+    if (!(s.discount > ZERO && s.discount <= ONE))
         FAIL(BUCKC_ERR_INVALID, "discount: expected 0 < gamma <= 1");
     if (s.levels < 2 || s.refine_iterations < 0)
         FAIL(BUCKC_ERR_INVALID, "levels must be >= 2 and refine_iterations >= 0");
     if (s.levels > BUCKC_MAX_LEVELS)
         FAIL(BUCKC_ERR_LIMIT, "levels: above BUCKC_MAX_LEVELS");
-    if (!(s.bias_filter >= 0.0 && s.bias_filter <= 1.0))
+    if (!(s.bias_filter >= ZERO && s.bias_filter <= ONE))
         FAIL(BUCKC_ERR_INVALID, "bias_filter: expected 0 <= alpha <= 1");
-    if (!(0.0 <= low && low < high && high <= 1.0))
+    if (!(ZERO <= low && low < high && high <= ONE))
         FAIL(BUCKC_ERR_INVALID, "duty limits: expected 0 <= min < max <= 1");
 
     memset(o, 0, sizeof(*o));
@@ -135,10 +144,10 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
             }
         }
         o->n_lattice = rows;
-        o->shrink = (double)(2 * half);
+        o->shrink = (buckc_real)(2 * half);
         o->full_lattice = 1;
         o->warm_step = o->spacing / (10 * o->shrink);
-        o->warm_span = o->warm_step * (double)half;
+        o->warm_span = o->warm_step * (buckc_real)half;
     } else { /* many blocks: lines along each block, pairs of blocks, all blocks together */
         static const int line[8] = {-4, -3, -2, -1, 1, 2, 3, 4};
         static const int pair[4][2] = {{1, 1}, {1, -1}, {-1, 1}, {-1, -1}};
@@ -159,13 +168,13 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
             for (b = 0; b < nb; ++b)
                 o->lattice[r][b] = (signed char)all[v];
         o->n_lattice = r;
-        o->shrink = 3.0;
+        o->shrink = BUCKC_REAL_LITERAL(3.0);
         o->full_lattice = 0;
         o->warm_step = o->spacing / (10 * o->shrink);
-        o->warm_span = o->warm_step * 8.0;
+        o->warm_span = o->warm_step * BUCKC_REAL_LITERAL(8.0);
     }
     for (i = 0; i < BUCKC_NEAR_OFFSETS; ++i) /* spacing / 20 * np.arange(-10.0, 11.0) */
-        o->near_offsets[i] = o->spacing / 20 * (double)(i - 10);
+        o->near_offsets[i] = o->spacing / 20 * (buckc_real)(i - 10);
     if (o->global_is_full) {
         o->stage_candidates_cold = o->n_global;
         o->stage_candidates_warm = o->n_lattice + o->n_global;
@@ -184,9 +193,9 @@ int buckc_optimizer_init(BuckcOptimizer *o, const BuckcHorizonSettings *settings
 /* numpy's argmin over the candidates seen so far: the first minimum, or the first NaN */
 typedef struct {
     int count, index, is_nan;
-    double cost;
-    double values[BUCKC_MAX_BLOCKS];
-    double prediction[2];
+    buckc_real cost;
+    buckc_real values[BUCKC_MAX_BLOCKS];
+    buckc_real prediction[2];
 } Scan;
 
 typedef struct {
@@ -195,17 +204,17 @@ typedef struct {
     void *user;
 } Problem;
 
-static double clip(const BuckcOptimizer *o, double d)
+static buckc_real clip(const BuckcOptimizer *o, buckc_real d)
 {
     if (d < o->low) d = o->low; /* np.maximum then np.minimum: NaN stays NaN */
     if (d > o->high) d = o->high;
     return d;
 }
 
-static void consider(const Problem *p, Scan *scan, const double *values)
+static void consider(const Problem *p, Scan *scan, const buckc_real *values)
 {
     const BuckcOptimizer *o = p->o;
-    double duties[BUCKC_MAX_HORIZON], prediction[2] = {NAN, NAN}, c;
+    buckc_real duties[BUCKC_MAX_HORIZON], prediction[2] = {NAN, NAN}, c;
     int t, take;
     for (t = 0; t < o->settings.horizon; ++t) /* expand() */
         duties[t] = values[o->block_of_step[t]];
@@ -220,7 +229,7 @@ static void consider(const Problem *p, Scan *scan, const double *values)
         scan->cost = c;
         scan->index = scan->count;
         scan->is_nan = isnan(c) != 0;
-        memcpy(scan->values, values, sizeof(double) * (size_t)o->n_blocks);
+        memcpy(scan->values, values, sizeof(buckc_real) * (size_t)o->n_blocks);
         scan->prediction[0] = prediction[0];
         scan->prediction[1] = prediction[1];
     }
@@ -228,11 +237,11 @@ static void consider(const Problem *p, Scan *scan, const double *values)
 }
 
 /* _openings(anchor): each row ends at the steady-state duty */
-static void openings(const Problem *p, Scan *scan, double anchor)
+static void openings(const Problem *p, Scan *scan, buckc_real anchor)
 {
     const BuckcOptimizer *o = p->o;
     int nb = o->n_blocks, i, b, j, m, q;
-    double row[BUCKC_MAX_BLOCKS];
+    buckc_real row[BUCKC_MAX_BLOCKS];
     for (i = 0; i < o->settings.levels; ++i) { /* a grid over the first move */
         for (b = 0; b < nb; ++b)
             row[b] = anchor;
@@ -247,7 +256,7 @@ static void openings(const Problem *p, Scan *scan, double anchor)
         consider(p, scan, row);
     }
     for (q = 0; q < 2; ++q) { /* bang-bang: (high, low) then (low, high) */
-        double a = q == 0 ? o->high : o->low, bb = q == 0 ? o->low : o->high;
+        buckc_real a = q == 0 ? o->high : o->low, bb = q == 0 ? o->low : o->high;
         for (j = 1; j < nb; ++j)
             for (m = 0; m < nb - j; ++m) {
                 for (b = 0; b < nb; ++b)
@@ -257,13 +266,13 @@ static void openings(const Problem *p, Scan *scan, double anchor)
     }
 }
 
-double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *user, const double *warm,
-                             double anchor, double *sequence, double *first_prediction)
+buckc_real buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *user, const buckc_real *warm,
+                             buckc_real anchor, buckc_real *sequence, buckc_real *first_prediction)
 {
     Problem p;
     Scan scan;
-    double center[BUCKC_MAX_BLOCKS], row[BUCKC_MAX_BLOCKS], best[BUCKC_MAX_BLOCKS], best_prediction[2];
-    double best_cost, step;
+    buckc_real center[BUCKC_MAX_BLOCKS], row[BUCKC_MAX_BLOCKS], best[BUCKC_MAX_BLOCKS], best_prediction[2];
+    buckc_real best_cost, step;
     int nb = o->n_blocks, horizon = o->settings.horizon, n_warm = 0, i, b, t, it, near_warm = 0;
     p.o = o;
     p.cost = cost;
@@ -280,7 +289,7 @@ double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *us
         }
         for (i = 0; i < o->n_lattice; ++i) { /* first, so that ties go to the warm start */
             for (b = 0; b < nb; ++b)
-                row[b] = clip(o, center[b] + o->warm_step * (double)o->lattice[i][b]);
+                row[b] = clip(o, center[b] + o->warm_step * (buckc_real)o->lattice[i][b]);
             consider(&p, &scan, row);
         }
         n_warm = o->n_lattice;
@@ -297,7 +306,7 @@ double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *us
     } else {
         if (warm != NULL) /* constant sequences finely around the last move */
             for (i = 0; i < BUCKC_NEAR_OFFSETS; ++i) {
-                double d = clip(o, warm[0] + o->near_offsets[i]);
+                buckc_real d = clip(o, warm[0] + o->near_offsets[i]);
                 for (b = 0; b < nb; ++b)
                     row[b] = d;
                 consider(&p, &scan, row);
@@ -312,7 +321,7 @@ double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *us
     o->evaluations = scan.count;
     o->passes = 1;
     o->warm_count = n_warm;
-    memcpy(best, scan.values, sizeof(double) * (size_t)nb);
+    memcpy(best, scan.values, sizeof(buckc_real) * (size_t)nb);
     best_cost = scan.cost;
     best_prediction[0] = scan.prediction[0];
     best_prediction[1] = scan.prediction[1];
@@ -321,13 +330,13 @@ double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *us
 
     /* ---- refinement */
     if (n_warm) { /* strictly inside the warm lattice: on its edge the optimum may lie further out */
-        double deviation = 0.0;
+        buckc_real deviation = ZERO;
         for (b = 0; b < nb; ++b) {
-            double d = fabs(best[b] - center[b]);
+            buckc_real d = BUCKC_FABS(best[b] - center[b]);
             if (d > deviation || b == 0)
                 deviation = d;
         }
-        near_warm = deviation < o->warm_span - 0.5 * o->warm_step;
+        near_warm = deviation < o->warm_span - BUCKC_REAL_LITERAL(0.5) * o->warm_step;
     }
     o->near_warm = near_warm;
     if (near_warm)
@@ -335,20 +344,20 @@ double buckc_optimizer_solve(BuckcOptimizer *o, BuckcCostFunction cost, void *us
     else
         step = o->full_lattice ? o->spacing / o->shrink : (o->high - o->low) / 8;
     for (it = 0; it < o->settings.refine_iterations; ++it) {
-        double start[BUCKC_MAX_BLOCKS];
+        buckc_real start[BUCKC_MAX_BLOCKS];
         if (step < o->settings.duty_tolerance)
             break;
         memcpy(start, best, sizeof(start));
         memset(&scan, 0, sizeof(scan));
         for (i = 0; i < o->n_lattice; ++i) {
             for (b = 0; b < nb; ++b)
-                row[b] = clip(o, start[b] + step * (double)o->lattice[i][b]);
+                row[b] = clip(o, start[b] + step * (buckc_real)o->lattice[i][b]);
             consider(&p, &scan, row);
         }
         o->evaluations += scan.count;
         o->passes += 1;
         if (scan.cost < best_cost) {
-            memcpy(best, scan.values, sizeof(double) * (size_t)nb);
+            memcpy(best, scan.values, sizeof(buckc_real) * (size_t)nb);
             best_cost = scan.cost;
             best_prediction[0] = scan.prediction[0];
             best_prediction[1] = scan.prediction[1];
@@ -383,20 +392,26 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
     int status, j;
     if (c == NULL || config == NULL)
         FAIL(BUCKC_ERR_NULL, "controller or config is NULL");
-    if (!(config->sample_period > 0.0 && isfinite(config->sample_period)))
+    if (!(config->sample_period > ZERO && isfinite(config->sample_period)))
         FAIL(BUCKC_ERR_INVALID, "sample_period: expected a finite value > 0");
-    if (!(0.0 <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= 1.0))
+    if (!(ZERO <= config->duty_min && config->duty_min < config->duty_max && config->duty_max <= ONE))
         FAIL(BUCKC_ERR_INVALID, "duty limits: expected 0 <= min < max <= 1");
     switch (config->predictor.kind) {
     case BUCKC_PREDICTOR_NN:
         status = buckc_nn_check(&config->predictor.nn, what);
         break;
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
     case BUCKC_PREDICTOR_AVERAGED:
         status = buckc_averaged_check(&config->predictor.averaged, what);
         break;
     case BUCKC_PREDICTOR_SWITCHED:
         status = buckc_switched_check(&config->predictor.switched, NULL, what);
         break;
+#else
+    case BUCKC_PREDICTOR_AVERAGED:
+    case BUCKC_PREDICTOR_SWITCHED:
+        FAIL(BUCKC_ERR_INVALID, "predictor kind: the circuit predictors have no float32 build (the NN predictor's has)");
+#endif
     default:
         FAIL(BUCKC_ERR_INVALID, "predictor kind: unknown code");
     }
@@ -406,21 +421,21 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
         const BuckcRtiSettings *r = &config->rti;
         if (r->iterations < 1 || r->iterations > 3)
             FAIL(BUCKC_ERR_INVALID, "rti iterations: expected 1, 2 or 3");
-        if (!(r->smoothing > 0.0 && isfinite(r->smoothing)))
+        if (!(r->smoothing > ZERO && isfinite(r->smoothing)))
             FAIL(BUCKC_ERR_INVALID, "rti smoothing: expected eps > 0");
-        if (!(r->step_limit > 0.0 && r->step_limit <= 1.0))
+        if (!(r->step_limit > ZERO && r->step_limit <= ONE))
             FAIL(BUCKC_ERR_INVALID, "rti step_limit: expected 0 < limit <= 1");
-        if (!(r->regularization >= 0.0 && r->regularization < 1.0))
+        if (!(r->regularization >= ZERO && r->regularization < ONE))
             FAIL(BUCKC_ERR_INVALID, "rti regularization: expected 0 <= mu < 1");
         if (r->qp_iterations < 1)
             FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
         if (r->line_search != 0 && r->line_search != 1)
             FAIL(BUCKC_ERR_INVALID, "rti line_search: expected 0 or 1");
-        if (!(r->reference_step >= 0.0 && isfinite(r->reference_step)) || !(r->load_step >= 0.0 && isfinite(r->load_step))
-            || !(r->innovation >= 0.0 && isfinite(r->innovation))
-            || !(r->startup_region >= 0.0 && isfinite(r->startup_region)))
+        if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
+            || !(r->innovation >= ZERO && isfinite(r->innovation))
+            || !(r->startup_region >= ZERO && isfinite(r->startup_region)))
             FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
-        if (!(r->duty_resolution >= 0.0 && r->duty_resolution < 1.0))
+        if (!(r->duty_resolution >= ZERO && r->duty_resolution < ONE))
             FAIL(BUCKC_ERR_INVALID, "rti duty_resolution: expected 0 <= quantum < 1");
     }
     memset(c, 0, sizeof(*c));
@@ -430,8 +445,21 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
     if (config->rti.enabled && c->optimizer.n_blocks > BUCKC_QP_MAX_VARIABLES)
         FAIL(BUCKC_ERR_LIMIT, "rti: more move blocks than BUCKC_QP_MAX_VARIABLES");
     c->config = config;
+#ifdef BUCKC_FLOAT32
+    /* gamma^j by products in float (j ulp at most off the exact power, 1.4e-6 at j = 23): libms' powf differ
+     * in the last bit (glibc's and newlib's do), the products are the same on every IEEE target, so the
+     * Cortex-M4F's duties equal the host float32 build's; and newlib's powf would add 3 KiB of flash */
+    {
+        buckc_real power = ONE;
+        for (j = 0; j < config->horizon.horizon; ++j) {
+            c->weights[j] = power;
+            power *= config->horizon.discount;
+        }
+    }
+#else
     for (j = 0; j < config->horizon.horizon; ++j) /* discount ** np.arange(horizon) */
         c->weights[j] = pow(config->horizon.discount, (double)j);
+#endif
     buckc_predictive_reset(c);
     return BUCKC_OK;
 }
@@ -441,8 +469,8 @@ void buckc_predictive_reset(BuckcPredictive *c)
     BuckcPredictiveState *s = &c->state;
     memset(s, 0, sizeof(*s));
     s->delays = predictor_delays(c->config);
-    s->previous_duty = 0.0;
-    s->conductance = 1.0 / c->config->nominal_load;
+    s->previous_duty = ZERO;
+    s->conductance = ONE / c->config->nominal_load;
     s->previous_reference = NAN;
     s->starting = 1;
     s->best_cost = NAN;
@@ -451,9 +479,13 @@ void buckc_predictive_reset(BuckcPredictive *c)
 
 void buckc_predictive_clear_caches(BuckcPredictive *c)
 {
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
     buckc_averaged_cache_clear(&c->averaged_cache);
     buckc_switched_cache_clear(&c->switched_cache);
     c->table = NULL;
+#else
+    (void)c; /* the NN predictor caches nothing */
+#endif
 }
 
 const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *c)
@@ -462,13 +494,14 @@ const BuckcPredictiveState *buckc_predictive_state(const BuckcPredictive *c)
 }
 
 /* the predictor's rollout of one sequence at the sample's context (Predictor.rollout) */
-static void predict(BuckcPredictive *c, const double *duties, int horizon, double *predicted)
+static void predict(BuckcPredictive *c, const buckc_real *duties, int horizon, buckc_real *predicted)
 {
     const BuckcPredictorConfig *predictor = &c->config->predictor;
     switch (predictor->kind) {
     case BUCKC_PREDICTOR_NN:
         buckc_nn_shared_rollout(&predictor->nn, &c->nn, duties, horizon, predicted);
         break;
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
     case BUCKC_PREDICTOR_AVERAGED:
         buckc_averaged_rollout(&c->averaged, duties, horizon, predicted);
         break;
@@ -476,11 +509,15 @@ static void predict(BuckcPredictive *c, const double *duties, int horizon, doubl
         buckc_switched_rollout(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
                                c->context_disturbance, predicted);
         break;
+#else
+    default: /* refused at init */
+        break;
+#endif
     }
 }
 
 /* Predictor.linearize at the sample's context, the blocks of the horizon settings */
-static void linearize(BuckcPredictive *c, const double *duties, double *out, double *jacobian)
+static void linearize(BuckcPredictive *c, const buckc_real *duties, buckc_real *out, buckc_real *jacobian)
 {
     const BuckcPredictorConfig *predictor = &c->config->predictor;
     const BuckcOptimizer *o = &c->optimizer;
@@ -490,6 +527,7 @@ static void linearize(BuckcPredictive *c, const double *duties, double *out, dou
         buckc_nn_sensitivities(&predictor->nn, &c->nn.history[0][0], predictor->nn.n_extras ? c->nn.extras : NULL,
                                c->nn.disturbance, duties, horizon, o->block_of_step, o->n_blocks, out, jacobian);
         break;
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
     case BUCKC_PREDICTOR_AVERAGED:
         buckc_averaged_linearize(&c->averaged, duties, horizon, o->block_of_step, o->n_blocks, out, jacobian);
         break;
@@ -497,10 +535,14 @@ static void linearize(BuckcPredictive *c, const double *duties, double *out, dou
         buckc_switched_linearize(c->table, c->state.history[0], c->context_previous_duty, duties, horizon,
                                  c->context_disturbance, o->block_of_step, o->n_blocks, out, jacobian);
         break;
+#else
+    default: /* refused at init */
+        break;
+#endif
     }
 }
 
-int buckc_predictive_linearize(BuckcPredictive *c, const double *duties, double *out, double *jacobian)
+int buckc_predictive_linearize(BuckcPredictive *c, const buckc_real *duties, buckc_real *out, buckc_real *jacobian)
 {
     if (c->optimizer.n_blocks > BUCKC_QP_MAX_VARIABLES)
         return BUCKC_ERR_LIMIT;
@@ -508,18 +550,18 @@ int buckc_predictive_linearize(BuckcPredictive *c, const double *duties, double 
     return BUCKC_OK;
 }
 
-/* eq. 23: sum_j gamma^j sqrt((iL - iref)^2 + (vo - vref)^2) over the predicted states */
-static double sequence_cost(void *user, const double *duties, int horizon, double *first_prediction)
+/* eq. 23: sum_j gamma^j BUCKC_SQRT((iL - iref)^2 + (vo - vref)^2) over the predicted states */
+static buckc_real sequence_cost(void *user, const buckc_real *duties, int horizon, buckc_real *first_prediction)
 {
     BuckcPredictive *c = (BuckcPredictive *)user;
-    double predicted[BUCKC_MAX_HORIZON][2], total = 0.0;
+    buckc_real predicted[BUCKC_MAX_HORIZON][2], total = ZERO;
     int j;
     predict(c, duties, horizon, &predicted[0][0]);
     for (j = 0; j < horizon; ++j) {
-        double e0 = predicted[j][0] - c->target[0], e1 = predicted[j][1] - c->target[1];
+        buckc_real e0 = predicted[j][0] - c->target[0], e1 = predicted[j][1] - c->target[1];
         e0 *= e0;
         e1 *= e1;
-        total += sqrt(e0 + e1) * c->weights[j];
+        total += BUCKC_SQRT(e0 + e1) * c->weights[j];
     }
     if (first_prediction != NULL) {
         first_prediction[0] = predicted[0][0];
@@ -531,35 +573,35 @@ static double sequence_cost(void *user, const double *duties, int horizon, doubl
 /* ------------------------------------------------------------------ the real-time iteration */
 
 /* RealTimeIteration.costs: (smoothed, exact eq. 16) of one predicted trajectory */
-static void rti_costs(const BuckcPredictive *c, const double *predicted, double *smoothed, double *exact)
+static void rti_costs(const BuckcPredictive *c, const buckc_real *predicted, buckc_real *smoothed, buckc_real *exact)
 {
-    double eps = c->config->rti.smoothing, sum_smoothed = 0.0, sum_exact = 0.0;
+    buckc_real eps = c->config->rti.smoothing, sum_smoothed = ZERO, sum_exact = ZERO;
     int j, horizon = c->optimizer.settings.horizon;
     for (j = 0; j < horizon; ++j) {
-        double e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
-        double squared = e0 * e0 + e1 * e1;
-        sum_smoothed += sqrt(squared + eps * eps) * c->weights[j];
-        sum_exact += sqrt(squared) * c->weights[j];
+        buckc_real e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
+        buckc_real squared = e0 * e0 + e1 * e1;
+        sum_smoothed += BUCKC_SQRT(squared + eps * eps) * c->weights[j];
+        sum_exact += BUCKC_SQRT(squared) * c->weights[j];
     }
     *smoothed = sum_smoothed;
     *exact = sum_exact;
 }
 
 /* RealTimeIteration.model: the gradient and the reweighted (IRLS) Hessian + mu I of the smoothed cost */
-static void rti_model(const BuckcPredictive *c, const double *predicted, const double *jacobian, double *gradient,
-                      double hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES])
+static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, const buckc_real *jacobian, buckc_real *gradient,
+                      buckc_real hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES])
 {
     int nb = c->optimizer.n_blocks, horizon = c->optimizer.settings.horizon, j, a, b;
-    double eps = c->config->rti.smoothing, trace = 0.0, mu;
+    buckc_real eps = c->config->rti.smoothing, trace = ZERO, mu;
     for (a = 0; a < nb; ++a) {
-        gradient[a] = 0.0;
+        gradient[a] = ZERO;
         for (b = 0; b < nb; ++b)
-            hessian[a][b] = 0.0;
+            hessian[a][b] = ZERO;
     }
     for (j = 0; j < horizon; ++j) {
-        double e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
-        double s = sqrt(e0 * e0 + e1 * e1 + eps * eps), weight = c->weights[j] / s;
-        const double *j0 = jacobian + (2 * j) * nb, *j1 = jacobian + (2 * j + 1) * nb;
+        buckc_real e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
+        buckc_real s = BUCKC_SQRT(e0 * e0 + e1 * e1 + eps * eps), weight = c->weights[j] / s;
+        const buckc_real *j0 = jacobian + (2 * j) * nb, *j1 = jacobian + (2 * j + 1) * nb;
         for (a = 0; a < nb; ++a) {
             gradient[a] += (j0[a] * e0 + j1[a] * e1) * weight;
             for (b = 0; b < nb; ++b)
@@ -568,12 +610,12 @@ static void rti_model(const BuckcPredictive *c, const double *predicted, const d
     }
     for (a = 0; a < nb; ++a)
         trace += hessian[a][a];
-    mu = c->config->rti.regularization * trace / nb + 1e-12;
+    mu = c->config->rti.regularization * trace / (buckc_real)nb + BUCKC_REAL_LITERAL(1e-12);
     for (a = 0; a < nb; ++a)
         hessian[a][a] += mu;
 }
 
-static void expand(const BuckcOptimizer *o, const double *moves, double *duties)
+static void expand(const BuckcOptimizer *o, const buckc_real *moves, buckc_real *duties)
 {
     int t;
     for (t = 0; t < o->settings.horizon; ++t)
@@ -582,21 +624,21 @@ static void expand(const BuckcOptimizer *o, const double *moves, double *duties)
 
 /* RealTimeIteration.solve: the plan sequence[horizon] from the warm start; returns its exact cost (NaN where the
  * plan was not rolled out) and writes its first predicted state */
-static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence, double first[2])
+static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_real *sequence, buckc_real first[2])
 {
     const BuckcRtiSettings *st = &c->config->rti;
     const BuckcOptimizer *o = &c->optimizer;
     BuckcPredictiveState *state = &c->state;
     int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration, rolled_out = 1;
-    double u[BUCKC_QP_MAX_VARIABLES], trial[BUCKC_QP_MAX_VARIABLES], delta[BUCKC_QP_MAX_VARIABLES];
-    double lower[BUCKC_QP_MAX_VARIABLES], upper[BUCKC_QP_MAX_VARIABLES], gradient[BUCKC_QP_MAX_VARIABLES];
-    double hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES];
-    double duties[BUCKC_MAX_HORIZON], predicted[BUCKC_MAX_HORIZON * 2], trial_predicted[BUCKC_MAX_HORIZON * 2];
-    double jacobian[BUCKC_MAX_HORIZON * 2 * BUCKC_QP_MAX_VARIABLES];
-    double smoothed, exact, radius = st->step_limit;
+    buckc_real u[BUCKC_QP_MAX_VARIABLES], trial[BUCKC_QP_MAX_VARIABLES], delta[BUCKC_QP_MAX_VARIABLES];
+    buckc_real lower[BUCKC_QP_MAX_VARIABLES], upper[BUCKC_QP_MAX_VARIABLES], gradient[BUCKC_QP_MAX_VARIABLES];
+    buckc_real hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES];
+    buckc_real duties[BUCKC_MAX_HORIZON], predicted[BUCKC_MAX_HORIZON * 2], trial_predicted[BUCKC_MAX_HORIZON * 2];
+    buckc_real jacobian[BUCKC_MAX_HORIZON * 2 * BUCKC_QP_MAX_VARIABLES];
+    buckc_real smoothed, exact, radius = st->step_limit;
     for (b = 0; b < nb; ++b) { /* the previous solution shifted by one sample, at the block starts */
         int k = o->block_starts[b] + 1;
-        double v = warm[k < horizon ? k : horizon - 1];
+        buckc_real v = warm[k < horizon ? k : horizon - 1];
         if (v < o->low) v = o->low; /* np.minimum(np.maximum(center, low), high) */
         if (v > o->high) v = o->high;
         u[b] = v;
@@ -607,23 +649,23 @@ static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence
     rti_model(c, predicted, jacobian, gradient, hessian);
     state->qp_iterations = state->accepted = 0;
     for (iteration = 0; iteration < st->iterations; ++iteration) {
-        double trial_smoothed, trial_exact;
+        buckc_real trial_smoothed, trial_exact;
         int final = iteration + 1 == st->iterations;
         for (b = 0; b < nb; ++b) {
-            double lo = o->low - u[b], hi = o->high - u[b];
+            buckc_real lo = o->low - u[b], hi = o->high - u[b];
             lower[b] = lo > -radius ? lo : -radius;
             upper[b] = hi < radius ? hi : radius;
         }
         state->qp_iterations += buckc_box_qp(nb, &hessian[0][0], BUCKC_QP_MAX_VARIABLES, gradient, lower, upper,
                                              st->qp_iterations, delta, NULL);
         for (b = 0; b < nb; ++b) {
-            double v = u[b] + delta[b];
+            buckc_real v = u[b] + delta[b];
             if (v < o->low) v = o->low;
             if (v > o->high) v = o->high;
             trial[b] = v;
         }
         if (final && !st->line_search) { /* taken unevaluated */
-            memcpy(u, trial, sizeof(double) * (size_t)nb);
+            memcpy(u, trial, sizeof(buckc_real) * (size_t)nb);
             rolled_out = 0;
             state->accepted += 1;
             break;
@@ -635,21 +677,21 @@ static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence
             linearize(c, duties, trial_predicted, jacobian);
         rti_costs(c, trial_predicted, &trial_smoothed, &trial_exact);
         if (!st->line_search || trial_smoothed <= smoothed * BUCKC_RTI_ACCEPT_TOLERANCE) {
-            memcpy(u, trial, sizeof(double) * (size_t)nb);
-            memcpy(predicted, trial_predicted, sizeof(double) * 2 * (size_t)horizon);
+            memcpy(u, trial, sizeof(buckc_real) * (size_t)nb);
+            memcpy(predicted, trial_predicted, sizeof(buckc_real) * 2 * (size_t)horizon);
             smoothed = trial_smoothed;
             exact = trial_exact;
             state->accepted += 1;
             if (!final)
                 rti_model(c, predicted, jacobian, gradient, hessian);
         } else {
-            radius *= 0.25;
+            radius *= BUCKC_REAL_LITERAL(0.25);
         }
     }
-    if (st->duty_resolution > 0.0) { /* floor(u / q + 1/2) q, within the limits */
-        double q = st->duty_resolution;
+    if (st->duty_resolution > ZERO) { /* BUCKC_FLOOR(u / q + 1/2) q, within the limits */
+        buckc_real q = st->duty_resolution;
         for (b = 0; b < nb; ++b) {
-            double v = floor(u[b] / q + 0.5) * q;
+            buckc_real v = BUCKC_FLOOR(u[b] / q + BUCKC_REAL_LITERAL(0.5)) * q;
             if (v < o->low) v = o->low;
             if (v > o->high) v = o->high;
             if (v != u[b])
@@ -673,25 +715,25 @@ static double rti_solve(BuckcPredictive *c, const double *warm, double *sequence
 }
 
 /* PredictiveController.fallback_reason */
-static int fallback_reason(const BuckcPredictive *c, double reference, double voltage, double conductance,
-                           double previous_conductance, double surprise)
+static int fallback_reason(const BuckcPredictive *c, buckc_real reference, buckc_real voltage, buckc_real conductance,
+                           buckc_real previous_conductance, buckc_real surprise)
 {
     const BuckcRtiSettings *st = &c->config->rti;
     const BuckcPredictiveState *s = &c->state;
     if (!s->have_warm)
         return BUCKC_FALLBACK_COLD_START;
-    if (s->starting && st->startup_region != 0.0 && fabs(reference - voltage) > st->startup_region)
+    if (s->starting && st->startup_region != ZERO && BUCKC_FABS(reference - voltage) > st->startup_region)
         return BUCKC_FALLBACK_STARTUP;
-    if (st->reference_step != 0.0 && fabs(reference - s->previous_reference) > st->reference_step)
+    if (st->reference_step != ZERO && BUCKC_FABS(reference - s->previous_reference) > st->reference_step)
         return BUCKC_FALLBACK_REFERENCE_STEP;
-    if (st->load_step != 0.0 && fabs(conductance - previous_conductance) > st->load_step * previous_conductance)
+    if (st->load_step != ZERO && BUCKC_FABS(conductance - previous_conductance) > st->load_step * previous_conductance)
         return BUCKC_FALLBACK_LOAD_STEP;
-    if (st->innovation != 0.0 && surprise > st->innovation)
+    if (st->innovation != ZERO && surprise > st->innovation)
         return BUCKC_FALLBACK_PREDICTION_ERROR;
     return BUCKC_FALLBACK_NONE;
 }
 
-double buckc_predictive_search_last(BuckcPredictive *c, double *sequence)
+buckc_real buckc_predictive_search_last(BuckcPredictive *c, buckc_real *sequence)
 {
     BuckcOptimizer optimizer = c->optimizer; /* a copy: the controller's diagnostics stay as they are */
     const BuckcPredictiveState *s = &c->state;
@@ -699,17 +741,17 @@ double buckc_predictive_search_last(BuckcPredictive *c, double *sequence)
                                  s->anchor, sequence, NULL);
 }
 
-double buckc_predictive_cost(BuckcPredictive *c, const double *duties, double *first_prediction)
+buckc_real buckc_predictive_cost(BuckcPredictive *c, const buckc_real *duties, buckc_real *first_prediction)
 {
     return sequence_cost(c, duties, c->config->horizon.horizon, first_prediction);
 }
 
-int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double *duty)
+int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, buckc_real *duty)
 {
     const BuckcPredictiveConfig *config = c->config;
     BuckcPredictiveState *s = &c->state;
-    double current, voltage, load, input_voltage, anchor, first[2], sequence[BUCKC_MAX_HORIZON];
-    double surprise, previous_conductance;
+    buckc_real current, voltage, load, input_voltage, anchor, first[2], sequence[BUCKC_MAX_HORIZON];
+    buckc_real surprise, previous_conductance;
     int delays = s->delays, d, fallback;
     if (m == NULL || duty == NULL)
         return BUCKC_ERR_NULL;
@@ -732,19 +774,19 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         }
         s->history[0][0] = current;
         s->history[0][1] = voltage;
-        s->history[0][2] = 0.0;
+        s->history[0][2] = ZERO;
     }
-    surprise = 0.0;
+    surprise = ZERO;
     if (s->have_predicted) { /* the filtered one-step prediction error */
-        double alpha = config->horizon.bias_filter;
-        double b0 = s->bias[0], b1 = s->bias[1];
-        surprise = fabs(voltage - (s->predicted[1] + b1));
+        buckc_real alpha = config->horizon.bias_filter;
+        buckc_real b0 = s->bias[0], b1 = s->bias[1];
+        surprise = BUCKC_FABS(voltage - (s->predicted[1] + b1));
         s->bias[0] = (1 - alpha) * b0 + alpha * (current - s->predicted[0]);
         s->bias[1] = (1 - alpha) * b1 + alpha * (voltage - s->predicted[1]);
     }
     previous_conductance = s->conductance;
     s->conductance = buckc_estimate_conductance(voltage, m->load_current, m->inductor_current, s->conductance);
-    load = 1.0 / s->conductance;
+    load = ONE / s->conductance;
     c->target[0] = m->reference * s->conductance;
     c->target[1] = m->reference;
     input_voltage = isfinite(m->input_voltage) ? m->input_voltage : config->nominal_input_voltage;
@@ -754,7 +796,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
     switch (config->predictor.kind) {
     case BUCKC_PREDICTOR_NN: { /* NNPredictor.rollout's extra signals */
         const BuckcNnConfig *nn = &config->predictor.nn;
-        double extras[BUCKC_NN_MAX_EXTRAS];
+        buckc_real extras[BUCKC_NN_MAX_EXTRAS];
         int e;
         for (e = 0; e < nn->n_extras; ++e) {
             switch (nn->extras[e]) {
@@ -766,6 +808,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         buckc_nn_shared_prepare(nn, &s->history[0][0], nn->n_extras ? extras : NULL, s->bias, &c->nn);
         break;
     }
+#if BUCKC_HAVE_CIRCUIT_PREDICTORS
     case BUCKC_PREDICTOR_AVERAGED:
         buckc_averaged_prepare(&config->predictor.averaged, &c->averaged_cache, load, s->previous_duty,
                                input_voltage, s->history[0], s->bias, &c->averaged);
@@ -775,8 +818,13 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
         if (!(c->table->condition <= BUCKC_SWITCHED_MAX_CONDITION))
             return BUCKC_ERR_ILL_CONDITIONED; /* SwitchedModelPredictor._table's refusal */
         break;
+#else
+    default: /* refused at init */
+        (void)load;
+        break;
+#endif
     }
-    anchor = input_voltage > 0 ? m->reference / input_voltage : s->previous_duty;
+    anchor = input_voltage > ZERO ? m->reference / input_voltage : s->previous_duty;
     s->anchor = anchor; /* the problem, for buckc_predictive_search_last */
     s->warm_before_valid = s->have_warm;
     memcpy(s->warm_before, s->warm, sizeof(s->warm));
@@ -805,7 +853,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, double 
     s->predicted[0] = first[0] - s->bias[0];
     s->predicted[1] = first[1] - s->bias[1];
     s->have_predicted = 1;
-    memcpy(s->warm, sequence, sizeof(double) * (size_t)config->horizon.horizon);
+    memcpy(s->warm, sequence, sizeof(buckc_real) * (size_t)config->horizon.horizon);
     s->have_warm = 1;
     s->previous_duty = sequence[0];
     *duty = sequence[0];

@@ -47,10 +47,12 @@ from controllers.codegen import (
     KIND_CURRENT_MODE,
     KIND_EXPLICIT,
     KIND_PI,
+    KIND_PREDICTIVE,
     config_header,
     controller_kind,
 )
-from controllers.native import FLOAT32_SOURCES, SOURCE_DIR, cache_dir
+from controllers.native import FLOAT32_SOURCES, SOURCE_DIR, cache_dir, compiler
+from controllers.predictive import FULL_GRID_LIMIT
 
 HERE = Path(__file__).parent / "cortex_m4"
 CONTROLLER_FMU_DIR = Path(__file__).resolve().parents[1] / "fmi" / "controller_fmu"
@@ -106,6 +108,19 @@ def _policy_limits(controller) -> dict[str, int]:
     return {"BUCKC_POLICY_MAX_WIDTH": max(7, *hidden), "BUCKC_POLICY_MAX_HIDDEN_LAYERS": len(hidden)}
 
 
+def _predictive_limits(controller) -> dict[str, int]:
+    """The online NNPC's maxima sized to its network and horizon (predictive.h's and nn_model.h's defaults fit
+    every configuration the host runs: a 32-wide, 4-layer network's weights and a 16-block, 640-move lattice, 30 KiB
+    of flash and 11 KiB of RAM a Cortex-M4F build does not need). The search's pattern moves are at most
+    1 + 8 nb + 2 nb (nb - 1) + 8 (predictive.c), a full lattice at most FULL_GRID_LIMIT."""
+    network, settings = controller.predictor.model.config, controller.settings
+    blocks = len(settings.blocks)
+    return {"BUCKC_NN_MAX_WIDTH": max(network.n_inputs, *network.hidden),
+            "BUCKC_NN_MAX_HIDDEN_LAYERS": len(network.hidden), "BUCKC_MAX_HORIZON": settings.horizon,
+            "BUCKC_MAX_BLOCKS": blocks, "BUCKC_MAX_LEVELS": settings.levels,
+            "BUCKC_MAX_LATTICE": max(FULL_GRID_LIMIT, 1 + 8 * blocks + 2 * blocks * (blocks - 1) + 8)}
+
+
 #: one row per controller that runs on the Cortex-M4F
 EMBEDDED_CONTROLLERS = (
     EmbeddedController("PI", KIND_PI, ("pi.c",), "BuckcPi", "buckc_pi_init(state, &PI_CONFIG, what)",
@@ -120,6 +135,11 @@ EMBEDDED_CONTROLLERS = (
     EmbeddedController("Type-III", KIND_COMPENSATOR, ("compensator.c",), "BuckcCompensator",
                        "buckc_compensator_init(state, &COMPENSATOR_CONFIG, what)", "buckc_compensator_reset(state)",
                        "buckc_compensator_step(state, m, duty)"),
+    # the NN predictor's controller (the circuit predictors have no float32 build: codegen refuses them), with the
+    # optimizer its settings choose: the real-time iteration and the search it falls back to, or the search alone
+    EmbeddedController("online NNPC", KIND_PREDICTIVE, ("predictive.c", "nn_model.c", "box_qp.c", "load_estimate.c"),
+                       "BuckcPredictive", "buckc_predictive_init(state, &PREDICTIVE_CONFIG, what)",
+                       "buckc_predictive_reset(state)", "buckc_predictive_step(state, m, duty)", _predictive_limits),
 )
 
 
@@ -215,10 +235,8 @@ class _Compiler:
         return target
 
 
-def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _Compiler, Path]:
-    """controller.o in ``folder``: the row's C files and controller_instance.c with the generated headers,
-    linked into one relocatable object (``-r``); sections stay apart, so a firmware's --gc-sections keeps
-    only what it calls."""
+def _generated_headers(controller, folder: Path) -> EmbeddedController:
+    """controller_config.h (float32 data) and controller_entry.h (the row) in ``folder``; returns the row."""
     row = embedded_controller(controller)
     folder.mkdir(parents=True, exist_ok=True)
     for name in row.sources:
@@ -226,6 +244,14 @@ def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _C
             raise EmbeddedError(f"controllers/c/{name} has no float32 build (controllers.native.FLOAT32_SOURCES)")
     (folder / "controller_config.h").write_text(config_header(controller, precision="float32"), encoding="utf-8")
     (folder / "controller_entry.h").write_text(entry_header(row), encoding="utf-8")
+    return row
+
+
+def _controller_object(controller, folder: Path) -> tuple[EmbeddedController, _Compiler, Path]:
+    """controller.o in ``folder``: the row's C files and controller_instance.c with the generated headers,
+    linked into one relocatable object (``-r``); sections stay apart, so a firmware's --gc-sections keeps
+    only what it calls."""
+    row = _generated_headers(controller, folder)
     compile_ = _Compiler(controller, row, folder)
     objects = [compile_(SOURCE_DIR / name, f"{Path(name).stem}.o") for name in row.sources]
     objects.append(compile_(HERE / "controller_instance.c", "controller_instance.o"))
@@ -339,8 +365,8 @@ class CortexM4Replay:
     instructions: np.ndarray | None = None  # executed per step (None: the run was not traced)
     cycles: np.ndarray | None = None  # per step, the TRM's table with its upper assumptions (CYCLE_TABLE)
     cycles_low: np.ndarray | None = None  # per step, with its lower assumptions
-    mix: Counter | None = None  # instruction classes executed over all steps
-    functions: Counter | None = None  # cycles (upper table) per function over all steps
+    mix: Counter | None = None  # instruction classes executed over the selected steps (all by default)
+    functions: Counter | None = None  # cycles (upper table) per function over the selected steps
 
 
 def _execute(image: Path, steps: int, what: str, log: Path | None) -> list[str]:
@@ -370,17 +396,45 @@ def _printed_floats(lines: list[str], key: str, count: int) -> np.ndarray:
     return bits.view(np.float32).astype(float)
 
 
-def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False) -> CortexM4Replay:
-    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed."""
+def replay_on_cortex_m4(result: Build, samples: int, trace: bool = False,
+                        select: np.ndarray | None = None) -> CortexM4Replay:
+    """Run the replay image in ``qemu-system-arm -M mps2-an386``; with ``trace``, count what each step executed
+    (the mix and the cycles per function over the steps ``select`` marks, all by default)."""
     log = result.folder / "trace.log" if trace else None
     lines = _execute(result.replay, samples, "replay", log)
     stack = next((int(line.split()[1]) for line in lines if line.startswith("stack ")), -1)
     out = CortexM4Replay(_printed_floats(lines, "duty", samples), stack)
     if trace:
-        counts = count_steps(log, _symbols(result.replay), samples)
+        counts = count_steps(log, _symbols(result.replay), samples, select)
         out.instructions, out.cycles, out.cycles_low, out.mix, out.functions = counts
         log.unlink()
     return out
+
+
+def host_replay(controller, measurements: np.ndarray) -> np.ndarray:
+    """The float duties of the host's float32 build of the same replay image: the row's C files,
+    controller_instance.c and replay.c with the same generated headers and maxima, compiled by the host's C
+    compiler with ``-DBUCKC_FLOAT32 -ffp-contract=off`` and ``host_runtime.c`` in place of the start-up code and
+    semihosting. The same float operations in the same order as the target's, so its duties equal the target's
+    where the step calls no libm function that differs between glibc and newlib. It needs no host binding of the
+    controller's float32 structs: the online NNPC, whose float32 build has none (controllers/native.py), is
+    compared through it."""
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-host-", dir=_scratch()) as tmp:
+        folder = Path(tmp)
+        row = _generated_headers(controller, folder)
+        (folder / "replay_data.h").write_text(replay_header(measurements), encoding="utf-8")
+        defines = [f"-D{k}={v}" for k, v in sorted(row.limits(controller).items())]
+        sources = [SOURCE_DIR / name for name in row.sources] + [HERE / "controller_instance.c", HERE / "replay.c",
+                                                                 HERE / "host_runtime.c"]
+        image = folder / "replay_host"
+        _run([*compiler(), "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-ffp-contract=off",
+              "-DBUCKC_FLOAT32", *defines, f"-I{folder}", f"-I{SOURCE_DIR}", f"-I{CONTROLLER_FMU_DIR}", f"-I{HERE}",
+              *map(str, sources), "-lm", "-o", str(image)], "compiling the host's build of the replay image", folder)
+        done = _run([str(image)], "the host's build of the replay image", folder, timeout=TIMEOUT_S)
+        lines = done.stdout.splitlines()
+        if not lines or lines[-1] != f"done {len(measurements)}":
+            raise EmbeddedError(f"the host's build of the replay image stopped early: {lines[-1:] or 'no output'}")
+        return _printed_floats(lines, "duty", len(measurements))
 
 
 #: cortex_m4/tanh_probe.c's batch and steps
@@ -697,50 +751,75 @@ def _is_control(mnemonic: str, operands: str) -> bool:
         re.match(r"pc\b", operands))
 
 
-def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
+def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int, select: np.ndarray | None = None):
     """Instructions and cycles per step from QEMU's ``-d exec,nochain,in_asm`` log: the blocks executed
     between each call of ``buckc_step_begin`` and ``buckc_step_end``, without the replay loop's own
     instructions (``main``) and the two marker functions: what the controller object and the library
     functions it calls executed. Taken branches: a block ending in a branch whose successor is not the
-    next address."""
+    next address. The instruction mix and the cycles per function add up the steps ``select`` marks (all by
+    default).
+
+    A block's price depends only on the instruction executed before it (the TRM's pairing rules look one
+    back) and on whether its last branch was taken, so each (block, previous, taken) is priced once and
+    looked up after: a search step of the online NNPC executes millions of blocks."""
     begin, end = symbols["buckc_step_begin"][0], symbols["buckc_step_end"][0]
     main_start, main_size = symbols["main"]
     excluded = [(main_start, main_start + main_size), (begin, begin + 2), (end, end + 2)]
-    blocks: dict[int, list[tuple[int, int, str, str]]] = {}
+    # address -> (its instructions, the address after it, whether its last instruction may branch)
+    blocks: dict[int, tuple[list[tuple[int, int, str, str]], int, bool]] = {}
+    prices: dict[int, dict] = {}  # block address -> (previous, taken) -> its price (dropped when retranslated)
     current: list | None = None
     steps_insn, steps_high, steps_low = [], [], []
     mix: Counter = Counter()
     functions: Counter = Counter()
+    step_mix: Counter = Counter()  # the step's, added to mix and functions when it ends, if selected
+    step_functions: Counter = Counter()
     starts = sorted((a, a + max(s, 2), name) for name, (a, s) in symbols.items() if s)
-    owner_of: dict[int, str] = {}
 
     def owner(address: int) -> str:
-        if address not in owner_of:
-            name = next((n for a, b, n in starts if a <= address < b), "?")
-            owner_of[address] = name
-        return owner_of[address]
+        return next((n for a, b, n in starts if a <= address < b), "?")
 
-    inside = False
-    pending: list | None = None  # the last executed block of the step (its final branch awaits the successor)
-    insn = high = low = 0.0
-    previous: tuple[str, str] | None = None  # the instruction executed before, for the TRM's pairing rules
-
-    def account(block, successor: int | None):
-        nonlocal insn, high, low, previous
+    def price(block, previous, taken: bool):
+        """(instructions, upper cycles, lower cycles, classes, cycles per function, the last instruction)."""
+        insn = high = low = 0.0
+        classes: Counter = Counter()
+        owners: Counter = Counter()
         for i, (address, size, mnemonic, operands) in enumerate(block):
             if any(a <= address < b for a, b in excluded):
                 previous = None
                 continue
-            last = i == len(block) - 1
-            taken = last and successor is not None and successor != address + size and _is_control(mnemonic,
-                                                                                                  operands)
+            last_taken = taken and i == len(block) - 1
+            cycles = CYCLE_TABLE.cycles(mnemonic, operands, last_taken, previous)
             insn += 1
-            cycles = CYCLE_TABLE.cycles(mnemonic, operands, taken, previous)
             high += cycles
-            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, taken, previous)
-            mix[instruction_class(mnemonic)] += 1
-            functions[owner(address)] += cycles
+            low += CYCLE_TABLE_LOW.cycles(mnemonic, operands, last_taken, previous)
+            classes[instruction_class(mnemonic)] += 1
+            owners[owner(address)] += cycles
             previous = (mnemonic, operands)
+        return insn, high, low, tuple(classes.items()), tuple(owners.items()), previous
+
+    inside = False
+    pending: list | None = None  # the last executed block of the step (its final branch awaits the successor)
+    totals = [0.0, 0.0, 0.0]
+    previous: tuple[str, str] | None = None  # the instruction executed before, for the TRM's pairing rules
+
+    def account(translated, successor: int | None):
+        nonlocal previous
+        block, after, control = translated
+        taken = control and successor is not None and successor != after
+        known = prices.setdefault(block[0][0], {})
+        key = (previous, taken)
+        entry = known.get(key)
+        if entry is None:
+            entry = known[key] = price(block, previous, taken)
+        insn, high, low, classes, owners, previous = entry
+        totals[0] += insn
+        totals[1] += high
+        totals[2] += low
+        for name, n in classes:
+            step_mix[name] += n
+        for name, cycles in owners:
+            step_functions[name] += cycles
 
     with open(log, encoding="utf-8", errors="replace") as lines:
         for line in lines:
@@ -754,8 +833,12 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
                     current.append((int(match.group(1), 16), size, match.group(3), match.group(4).strip()))
                     continue
                 if current:
-                    blocks[current[0][0]] = current
+                    address, size, mnemonic, operands = current[-1]
+                    blocks[current[0][0]] = (current, address + size, _is_control(mnemonic, operands))
+                    prices.pop(current[0][0], None)
                 current = None
+            if not line.startswith("Trace"):
+                continue
             match = _TRACE.match(line)
             if not match:
                 continue
@@ -764,11 +847,16 @@ def count_steps(log: Path, symbols: dict[str, tuple[int, int]], samples: int):
                 account(pending, pc)
                 pending = None
             if pc == begin:
-                inside, insn, high, low, previous = True, 0.0, 0.0, 0.0, None
+                inside, totals, previous = True, [0.0, 0.0, 0.0], None
+                step_mix.clear()
+                step_functions.clear()
             elif pc == end and inside:
-                steps_insn.append(insn)
-                steps_high.append(high)
-                steps_low.append(low)
+                if select is None or (len(steps_insn) < len(select) and select[len(steps_insn)]):
+                    mix.update(step_mix)
+                    functions.update(step_functions)
+                steps_insn.append(totals[0])
+                steps_high.append(totals[1])
+                steps_low.append(totals[2])
                 inside = False
             elif inside:
                 pending = blocks.get(pc)
@@ -793,16 +881,18 @@ class Measured:
     object_file: Path | None = None
 
 
-def measure(controller, measurements: np.ndarray, keep: Path | None = None, trace: bool = True) -> Measured:
-    """Cross-compile ``controller`` (float32), replay ``measurements`` in QEMU (traced), size it. The build
-    folder is temporary unless ``keep`` names a folder to write it to (controller.o and the images)."""
+def measure(controller, measurements: np.ndarray, keep: Path | None = None, trace: bool = True,
+            select: np.ndarray | None = None) -> Measured:
+    """Cross-compile ``controller`` (float32), replay ``measurements`` in QEMU (traced; the mix and the cycles
+    per function over the samples ``select`` marks, all by default), size it. The build folder is temporary
+    unless ``keep`` names a folder to write it to (controller.o and the images)."""
     problem = toolchain_problem()
     if problem:
         raise EmbeddedError(problem)
     with tempfile.TemporaryDirectory(prefix="buck-cosim-m4-", dir=_scratch()) as tmp:
         folder = Path(keep) if keep else Path(tmp)
         result = build(controller, measurements, folder)
-        run = replay_on_cortex_m4(result, len(measurements), trace=trace)
+        run = replay_on_cortex_m4(result, len(measurements), trace=trace, select=select)
         size = footprint(result)
         return Measured(result.row.label, run, size, result.stack_usage, result.controller_object if keep else None)
 

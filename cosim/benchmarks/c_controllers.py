@@ -87,6 +87,6 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                 f"p99 is {fraction:.3g} x the period; cost model: {CORTEX_M4F.mac:g} cycles/MAC and "
                 f"{CORTEX_M4F.tanh:g}/tanh (calibrated: group embedded), {CORTEX_M4F.sqrt:g}/sqrt, "
                 f"{CORTEX_M4F.candidate:g}/candidate (assumed), {CORTEX_M4F.interrupt:g} per sample for ADC/PWM/ISR "
-                "(controllers/cost_model.py); the online NNPC's optimizer computes in double only -- a float32 "
-                "port is assumed"))
+                "(controllers/cost_model.py); the float32 build with the RTI is measured on an emulated Cortex-M4F "
+                "in group embedded, which replaces this estimate (the model's prediction / the measurement there)"))
     return rows

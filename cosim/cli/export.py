@@ -58,8 +58,9 @@ def cmd_export_controller(args) -> int:
         if toolchain_problem():
             raise ConfigError(f"--cortex-m4 {args.cortex_m4}: {toolchain_problem()}")
     if args.precision == "float32" and args.controller not in FLOAT32_CONTROLLERS:
-        raise ConfigError(f"--precision float32: {args.controller} has no float32 build (the predictive "
-                          "controller's optimizer, controllers/c/predictive.c, computes in double); expected one of "
+        raise ConfigError(f"--precision float32: {args.controller} has no float32 controller FMU (the predictive "
+                          "controller FMU computes in double; the online NNPC's float32 build runs on the Cortex-M4F: "
+                          "docs/guide/embedded.md); expected one of "
                           f"{', '.join(FLOAT32_CONTROLLERS)}")
     work_dir = cache_dir(args.work_dir)
     controller = _design_controller(args, _plant_binding(args), args.control_period, work_dir, args.policy)

@@ -99,12 +99,13 @@ def section(out_dir: Path, periods, scenario_names) -> list[str]:
         f"candidate (lattice, clipping, compare: assumed) and {m.interrupt:g} per sample for ADC, PWM and the "
         "interrupt. "
         "Nanoseconds per step on this machine (C harness vs Python) are wall-clock figures: "
-        "[benchmarks.md](benchmarks.md), group `c-controllers`. These cycles are the cost model's estimate: the "
-        "online NNPC has no float32 build yet. Where one exists (the PI, the explicit NNPC, the current-mode "
-        "controller, the Type-III) it is measured on an emulated Cortex-M4F, with the model's prediction against "
-        "the measurement: [benchmarks.md](benchmarks.md), group `embedded` (the explicit NNPC's 0.91, the small "
-        "controllers' 0.5-0.7: the model's 30 cycles of a step's or a candidate's bookkeeping are about half what "
-        "was measured -- read these figures as a lower bound).",
+        "[benchmarks.md](benchmarks.md), group `c-controllers`. These cycles are the cost model's estimate, kept "
+        "because it prices every sample of these runs; the float32 builds themselves -- the online NNPC's with the "
+        "real-time iteration and its search fallback, and the PI, the explicit NNPC, the current-mode controller, "
+        "the Type-III -- are measured on an emulated Cortex-M4F, with the model's prediction against the "
+        "measurement: [benchmarks.md](benchmarks.md), group `embedded` (rows \"cost-model prediction / measured\": "
+        "below 1 for every controller, the model leaves out loop and call overheads and the bookkeeping around "
+        "the network -- read these figures as a lower bound).",
         "",
         "| rate | samples | candidates p50 / max | MACs p50 / max | tanh p50 / max | M4F cycles p99 / max "
         "| cycles in a period | fraction of the period p99 / max | fits |",

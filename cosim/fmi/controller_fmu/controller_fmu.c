@@ -21,8 +21,8 @@
  * Precision. The FMU's variables are doubles (fmi2Real); the controller computes in buckc_real
  * (controllers/c/buckc.h). A float32 FMU (export-controller --precision float32) compiles every
  * file with BUCKC_FLOAT32 defined (by the generated f32_*.c wrappers): the inputs are rounded to
- * float at each sample, the duty is a float widened to fmi2Real; the predictive controller, which
- * has no float32 build, is left out (BUCKC_HAVE_PREDICTIVE). */
+ * float at each sample, the duty is a float widened to fmi2Real; the predictive controller is left
+ * out there (BUCKC_HAVE_PREDICTIVE: its float32 build, the online NNPC's, runs in the Cortex-M4F image). */
 #include <math.h>
 #include <stdio.h>
 #include <string.h>
