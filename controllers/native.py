@@ -453,8 +453,21 @@ class PredictiveState(ctypes.Structure):
                 ("warm_before_valid", c_int), ("warm_before", _array(c_double, MAX_HORIZON)), ("anchor", c_double)]
 
 
+class AdaptationSettingsC(ctypes.Structure):
+    _fields_ = [("forgetting", c_double), ("initial_covariance", c_double), ("duty_margin", c_double),
+                ("min_change_current", c_double), ("min_change_voltage", c_double), ("min_change_duty", c_double),
+                ("load_change", c_double), ("max_step", c_double), ("max_deviation", c_double),
+                ("error_memory", c_double), ("fallback_ratio", c_double), ("checkpoint_every", c_int),
+                ("warmup", c_int)]
+
+
+class AdaptationConfigC(ctypes.Structure):
+    _fields_ = [("settings", AdaptationSettingsC), ("nominal_load", c_double), ("nominal_input_voltage", c_double),
+                ("output_scale", _array(c_double, 2))]
+
+
 #: ctypes mirror -> C type name of the double-only structs (predictors.h, predictive.h), checked like RealMirrors'
-PREDICTIVE_MIRRORS = {CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
+PREDICTIVE_MIRRORS = {AdaptationSettingsC: "BuckcAdaptationSettings", AdaptationConfigC: "BuckcAdaptationConfig",CircuitParametersC: "BuckcCircuitParameters", AveragedConfig: "BuckcAveragedConfig",
                       AveragedStep: "BuckcAveragedStep", SwitchedConfig: "BuckcSwitchedConfig",
                       SwitchedTable: "BuckcSwitchedTable", HorizonSettingsC: "BuckcHorizonSettings",
                       Optimizer: "BuckcOptimizer", PredictorConfig: "BuckcPredictorConfig", RtiSettingsC: "BuckcRtiSettings",
@@ -495,6 +508,13 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
     "buckc_predictive_cost": (c_double, [ctypes.c_void_p, _D, _D]),
     "buckc_predictive_search_last": (c_double, [ctypes.c_void_p, _D]),
     "buckc_predictive_linearize": (c_int, [ctypes.c_void_p, _D, _D, _D]),
+    "buckc_adaptive_size": (ctypes.c_size_t, []),
+    "buckc_adaptive_init": (c_int, [ctypes.c_void_p, _P(PredictiveConfig), _P(AdaptationConfigC), _P(ctypes.c_char_p)]),
+    "buckc_adaptive_reset": (None, [ctypes.c_void_p]),
+    "buckc_adaptive_step": (c_int, [ctypes.c_void_p, _P(MeasurementC), _D]),
+    "buckc_adaptive_counters": (_P(c_int), [ctypes.c_void_p]),
+    "buckc_adaptive_output_layer": (None, [ctypes.c_void_p, _D]),
+    "buckc_adaptive_inner": (ctypes.c_void_p, [ctypes.c_void_p]),
 }
 
 
@@ -855,6 +875,90 @@ class NativePredictiveController(_MeasurementStepper):
 
     def describe(self) -> dict:
         return {**self._description, "name": self.name, "implementation": "C twin (controllers/c/predictive.c)"}
+
+
+class NativeAdaptiveNNPC(_MeasurementStepper):
+    """:class:`controllers.adaptation.AdaptiveNNPC` in C (``controllers/c/adaptation.c``): the recursive least
+    squares on the output layer, its guards and fallback, and the NNPC it adapts (``predictive.c``), in one C step.
+    Build it with :meth:`from_python`; it starts from the offline output layer, as the Python controller's reset
+    does."""
+
+    COUNTERS = ("samples", "updates", "saturated", "steady", "load_step", "bounded", "fallbacks", "checkpoints")
+
+    def __init__(self, predictive: PredictiveConfig, config: AdaptationConfigC, name: str, description: dict,
+                 features: int):
+        self._lib = library()
+        self._predictive, self._adaptation = predictive, config  # copied by init; kept for describe and tests
+        self.name = name
+        self.sample_period = check_sample_period(predictive.sample_period, name)
+        self.duty_limits = check_duty_limits((predictive.duty_min, predictive.duty_max), name)
+        self.nominal_load = config.nominal_load
+        self.nominal_input_voltage = config.nominal_input_voltage
+        self._description, self._features = description, features
+        size = self._lib.buckc_adaptive_size()
+        self._memory = (c_double * (size // ctypes.sizeof(c_double) + 1))()  # 8-byte aligned, never moved
+        self._handle = ctypes.cast(self._memory, ctypes.c_void_p)
+        what = ctypes.c_char_p()
+        _check(self._lib.buckc_adaptive_init(self._handle, ctypes.byref(predictive), ctypes.byref(config),
+                                             ctypes.byref(what)), what, name)
+        inner = self._lib.buckc_adaptive_inner(self._handle)
+        self._state = self._lib.buckc_predictive_state(inner).contents
+        self._bind_step(self._lib.buckc_adaptive_step, self._handle)
+
+    @classmethod
+    def from_python(cls, adaptive) -> "NativeAdaptiveNNPC":
+        """The C twin of an :class:`~controllers.adaptation.AdaptiveNNPC` (its inner NNPC Python or C), from its
+        offline output layer and settings."""
+        inner = adaptive.inner
+        config = (inner.config if isinstance(inner, NativePredictiveController)
+                  else NativePredictiveController.from_python(inner).config)
+        predictive = PredictiveConfig.from_buffer_copy(config)
+        nn = predictive.predictor.nn
+        offline = adaptive._offline  # (hidden + 1, 2): the offline weights and bias
+        weights, biases = np.ctypeslib.as_array(nn.weights), np.ctypeslib.as_array(nn.biases)
+        weights[nn.n_hidden, :len(offline) - 1, :2] = offline[:-1]
+        biases[nn.n_hidden, :2] = offline[-1]
+        settings = AdaptationSettingsC(**{name: getattr(adaptive.settings, name) for name, _ in
+                                          AdaptationSettingsC._fields_})
+        scale = (c_double * 2)(*adaptive._scale)
+        adaptation = AdaptationConfigC(settings, adaptive.nominal_load, adaptive.nominal_input_voltage, scale)
+        return cls(predictive, adaptation, adaptive.name, adaptive.describe(), len(offline))
+
+    def reset(self) -> None:
+        self._lib.buckc_adaptive_reset(self._handle)
+
+    @property
+    def predictive_config(self) -> PredictiveConfig:
+        """The NNPC's configuration it was built from (the offline output layer)."""
+        return self._predictive
+
+    @property
+    def adaptation_config(self) -> AdaptationConfigC:
+        return self._adaptation
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """:attr:`AdaptiveNNPC.counters` of the C controller."""
+        values = self._lib.buckc_adaptive_counters(self._handle)
+        return {name: values[i] for i, name in enumerate(self.COUNTERS)}
+
+    @property
+    def output_weights(self) -> np.ndarray:
+        """The adapted output layer [weights; bias], (hidden + 1, 2), physical units."""
+        theta = np.empty((self._features, 2))
+        self._lib.buckc_adaptive_output_layer(self._handle, _pointer(theta))
+        return theta
+
+    @property
+    def rti(self):
+        return self._predictive.rti if self._predictive.rti.enabled else None
+
+    @property
+    def last_solver(self) -> str:
+        return SOLVERS[self._state.last_solver]
+
+    def describe(self) -> dict:
+        return {**self._description, "implementation": "C twin (controllers/c/adaptation.c around predictive.c)"}
 
 
 def policy_config(controller: ExplicitPolicyController, precision: str = "float64"):

@@ -34,8 +34,11 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "sweep throughput on a LocalCluster of 2 workers", "sweep overhead per run",
                 "plant doStep, averaged DCM at d = 1e-07", "averaged DCM cost spread over d",
                 "soak: worker resident memory growth", "soak: the workbench's own process",
+                "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else
-                "NNPC-explicit 13.33 us on a Cortex-M4F (float32, QEMU mps2-an386): max cycles per step"):
+                "NNPC-explicit 13.33 us on a Cortex-M4F (float32, QEMU mps2-an386): max cycles per step",
+                "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else
+                "online NNPC (RTI, 4-7-2) 1 ms on a Cortex-M4F (float32, QEMU mps2-an386): cycles per RTI step"):
         assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
     assert table["machine"].iloc[0].endswith("cores)")

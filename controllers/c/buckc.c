@@ -10,6 +10,7 @@
 #include "nn_model.h"
 #include "pi.h"
 #if BUCKC_HAVE_PREDICTIVE
+#include "adaptation.h"
 #include "predictive.h"
 #include "predictors.h"
 #endif
@@ -57,6 +58,8 @@ size_t buckc_struct_size(const char *type_name)
     SIZE(BuckcPredictiveConfig);
     SIZE(BuckcPredictiveState);
     SIZE(BuckcPredictive);
+    SIZE(BuckcAdaptationSettings);
+    SIZE(BuckcAdaptationConfig);
 #endif
     SIZE(BuckcCurrentModeConfig);
     SIZE(BuckcCurrentMode);

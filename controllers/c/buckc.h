@@ -4,8 +4,8 @@
  * Not an algorithm file. The twins themselves are pi.c (controllers/pi.py), nn_model.c
  * (controllers/nn_model.py), predictors.c (controllers/predictors.py), predictive.c
  * (controllers/predictive.py), box_qp.c (controllers/box_qp.py), explicit_policy.c
- * (controllers/explicit_policy.py), current_mode.c (controllers/current_mode.py) and compensator.c
- * (controllers/compensator.py).
+ * (controllers/explicit_policy.py), current_mode.c (controllers/current_mode.py), compensator.c
+ * (controllers/compensator.py) and adaptation.c (controllers/adaptation.py, double only).
  *
  * Conventions of all twins:
  *  - C99, libm only, no allocation, no mutable globals: every instance lives in a caller-owned

@@ -108,9 +108,9 @@ static void dense(const buckc_real (*weights)[W], const buckc_real *bias, const 
     }
 }
 
-void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y)
+/* the hidden layers of one row, into a or b (alternating); returns the last hidden layer's activations */
+static const buckc_real *hidden_layers(const BuckcNnConfig *config, const buckc_real *x, buckc_real *a, buckc_real *b)
 {
-    buckc_real a[W], b[W];
     const buckc_real *h = x;
     int width = buckc_nn_inputs(config);
     int l, j;
@@ -122,6 +122,21 @@ void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_re
         h = next;
         width = config->hidden[l];
     }
+    return h;
+}
+
+void buckc_nn_features(const BuckcNnConfig *config, const buckc_real *x, buckc_real *features)
+{
+    buckc_real a[W], b[W];
+    const buckc_real *h = hidden_layers(config, x, a, b);
+    memcpy(features, h, sizeof(buckc_real) * (size_t)config->hidden[config->n_hidden - 1]);
+}
+
+void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y)
+{
+    buckc_real a[W], b[W];
+    const buckc_real *h = hidden_layers(config, x, a, b);
+    int width = config->hidden[config->n_hidden - 1];
     dense(config->weights[config->n_hidden], config->biases[config->n_hidden], h, width, BUCKC_NN_OUTPUTS, y);
     if (config->residual) { /* h + x[:, :2] */
         y[0] = y[0] + x[0];

@@ -80,6 +80,10 @@ int buckc_nn_inputs(const BuckcNnConfig *config);
  * sigmoid, buckc.h), elementwise: out[i] = act(z[i]) for i < n (for tests and tools). */
 void buckc_nn_activate(int activation, const buckc_real *z, int n, buckc_real *out);
 
+/* The last hidden layer's activations of one row, x[buckc_nn_inputs()] -> features[hidden[n_hidden - 1]]:
+ * what the output layer sees (AdaptiveNNPC._features, without its appended 1). */
+void buckc_nn_features(const BuckcNnConfig *config, const buckc_real *x, buckc_real *features);
+
 /* NNPlantModel.predict for one row: x[buckc_nn_inputs()] -> y[2]. */
 void buckc_nn_forward(const BuckcNnConfig *config, const buckc_real *x, buckc_real *y);
 

@@ -6,9 +6,11 @@
  * cosim/benchmark_harness writes them -- replays them through the controller's step `repeats`
  * times (reset before each pass) and prints, after all passes, one line per step of every pass:
  *
- *     <ns of the step> <duty> <candidate evaluations> <refinement passes> <solver> <box-QP iterations>
+ *     <ns of the step> <duty> <candidate evaluations> <refinement passes> <solver> <box-QP iterations> <updated>
  *
- * (solver: 0 the search, 1 the real-time iteration; both 0 for the PI and the explicit policy)
+ * (solver: 0 the search, 1 the real-time iteration; both 0 for the PI and the explicit policy; updated: 1
+ * where the adaptive NNPC's recursive least squares updated the output layer in the step -- the header
+ * of an adaptive NNPC defines ADAPTIVE_CONTROLLER and the adaptation's configuration)
  *
  * (the caller computes p50 / p99). Timer: clock_gettime(CLOCK_MONOTONIC), read around the step
  * only; results are kept in memory allocated before the first step and printed at the end. */
@@ -17,6 +19,7 @@
 #include <stdlib.h>
 #include <time.h>
 
+#include "adaptation.h"
 #include "controller_config.h"
 #include "explicit_policy.h"
 #include "pi.h"
@@ -54,27 +57,50 @@ int main(int argc, char **argv) {
     double *duties = (double *)malloc((total + 1) * sizeof(double));
     int *evaluations = (int *)malloc((total + 1) * sizeof(int)), *passes = (int *)malloc((total + 1) * sizeof(int));
     int *solvers = (int *)malloc((total + 1) * sizeof(int)), *qp = (int *)malloc((total + 1) * sizeof(int));
-    if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL || solvers == NULL || qp == NULL)
+    int *updated = (int *)malloc((total + 1) * sizeof(int));
+    if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL || solvers == NULL || qp == NULL
+        || updated == NULL)
         return 2;
+    const char *what = NULL;
+#ifdef ADAPTIVE_CONTROLLER
+    static BuckcAdaptive adaptive; /* big: not on the stack */
+    int status = buckc_adaptive_init(&adaptive, &PREDICTIVE_CONFIG, &ADAPTATION_CONFIG, &what);
+    const BuckcPredictiveState *s = buckc_predictive_state(buckc_adaptive_inner(&adaptive));
+    const int *counters = buckc_adaptive_counters(&adaptive);
+#else
     static BuckcPredictive predictive; /* big: not on the stack */
     BuckcPi pi;
     BuckcPolicy policy;
-    const char *what = NULL;
     int status = CONTROLLER_KIND == CONTROLLER_PI         ? buckc_pi_init(&pi, &PI_CONFIG, &what)
                  : CONTROLLER_KIND == CONTROLLER_EXPLICIT ? buckc_policy_init(&policy, &POLICY_CONFIG, &what)
                                                           : buckc_predictive_init(&predictive, &PREDICTIVE_CONFIG, &what);
+    const BuckcPredictiveState *s = buckc_predictive_state(&predictive);
+#endif
     if (status != BUCKC_OK) {
         fprintf(stderr, "the configuration is refused: %s\n", what ? what : "");
         return 2;
     }
     for (int r = 0; r < repeats; ++r) {
+#ifdef ADAPTIVE_CONTROLLER
+        buckc_adaptive_reset(&adaptive);
+#else
         if (CONTROLLER_KIND == CONTROLLER_PI) buckc_pi_reset(&pi);
         else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) buckc_policy_reset(&policy);
         else buckc_predictive_reset(&predictive);
+#endif
         for (size_t k = 0; k < rows; ++k) {
             const double *row = m + 6 * k;
             double duty = 0.0;
+#ifdef ADAPTIVE_CONTROLLER
+            int updates = counters[BUCKC_ADAPT_UPDATES];
+#endif
             long long start = now_ns();
+#ifdef ADAPTIVE_CONTROLLER
+            {
+                BuckcMeasurement x = {row[0], row[1], row[2], row[3], row[4], row[5]};
+                if (buckc_adaptive_step(&adaptive, &x, &duty) != BUCKC_OK) return 3;
+            }
+#else
             if (CONTROLLER_KIND == CONTROLLER_PI) {
                 duty = buckc_pi_step(&pi, row[1], row[2]);
             } else if (CONTROLLER_KIND == CONTROLLER_EXPLICIT) {
@@ -84,19 +110,26 @@ int main(int argc, char **argv) {
                 BuckcMeasurement x = {row[0], row[1], row[2], row[3], row[4], row[5]};
                 if (buckc_predictive_step(&predictive, &x, &duty) != BUCKC_OK) return 3;
             }
+#endif
             long long elapsed = now_ns() - start;
             size_t i = (size_t)r * rows + k;
-            const BuckcPredictiveState *s = buckc_predictive_state(&predictive);
+            int predictive_kind = CONTROLLER_KIND == CONTROLLER_PREDICTIVE || CONTROLLER_KIND == CONTROLLER_ADAPTIVE;
             ns[i] = elapsed;
             duties[i] = duty;
-            evaluations[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->evaluations : 0;
-            passes[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->passes : 0;
-            solvers[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->last_solver : 0;
-            qp[i] = CONTROLLER_KIND == CONTROLLER_PREDICTIVE ? s->qp_iterations : 0;
+            evaluations[i] = predictive_kind ? s->evaluations : 0;
+            passes[i] = predictive_kind ? s->passes : 0;
+            solvers[i] = predictive_kind ? s->last_solver : 0;
+            qp[i] = predictive_kind ? s->qp_iterations : 0;
+#ifdef ADAPTIVE_CONTROLLER
+            updated[i] = counters[BUCKC_ADAPT_UPDATES] > updates;
+#else
+            updated[i] = 0;
+#endif
         }
     }
     for (size_t i = 0; i < total; ++i)
-        printf("%lld %.17g %d %d %d %d\n", ns[i], duties[i], evaluations[i], passes[i], solvers[i], qp[i]);
+        printf("%lld %.17g %d %d %d %d %d\n", ns[i], duties[i], evaluations[i], passes[i], solvers[i], qp[i],
+               updated[i]);
     free(m);
     free(ns);
     free(duties);
@@ -104,5 +137,6 @@ int main(int argc, char **argv) {
     free(passes);
     free(solvers);
     free(qp);
+    free(updated);
     return 0;
 }

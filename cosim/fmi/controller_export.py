@@ -27,6 +27,7 @@ from pathlib import Path
 from xml.etree import ElementTree
 
 from controllers.codegen import (
+    KIND_ADAPTIVE,
     KIND_COMPENSATOR,
     KIND_CURRENT_MODE,
     KIND_EXPLICIT,
@@ -54,7 +55,8 @@ MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
 ALGORITHM_FILES = ("buckc.c", "buckc.h", "buckc_tanh.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c",
                    "predictors.h", "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
                    "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h",
-                   "box_qp.c", "box_qp.h")
+                   "box_qp.c", "box_qp.h",
+                   "adaptation.h")  # buckc.c's struct sizes include it; the FMU does not run the adaptation
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
 #: modelDescription.xml's SourceFiles
 COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c", "pi.c", "nn_model.c",
@@ -143,8 +145,11 @@ def model_description(identifier: str, name: str, guid: str, description: str, s
 def controller_sources(controller, identifier: str, precision: str = "float64") -> FmuSources:
     """What the FMU of a Python PI, predictive, explicit-policy, current-mode or compensator controller is built from (``precision``:
     the build of the twins it computes with; ValueError for a controller without a float32 build)."""
-    header = config_header(controller, name=identifier, precision=check_precision(precision))
     kind = controller_kind(controller)
+    if kind == KIND_ADAPTIVE:
+        raise ValueError(f"{controller.name} has no controller FMU: the adaptive NNPC's C twin (controllers/c/"
+                         "adaptation.c) runs in the workbench and its benchmark harness, not in controller_fmu.c")
+    header = config_header(controller, name=identifier, precision=check_precision(precision))
     pi = kind == KIND_PI
     low, high = controller.duty_limits
     starts = {"sample_period": repr(float(controller.sample_period)), "duty_min": repr(float(low)),

@@ -25,6 +25,6 @@ typedef enum {
 
 /* what kind of algorithm a generated configuration holds (controller_config.h: CONTROLLER_KIND) */
 enum { CONTROLLER_PI = 0, CONTROLLER_PREDICTIVE = 1, CONTROLLER_EXPLICIT = 2, CONTROLLER_CURRENT_MODE = 3,
-       CONTROLLER_COMPENSATOR = 4 };
+       CONTROLLER_COMPENSATOR = 4, CONTROLLER_ADAPTIVE = 5 /* the bench harness only: no controller FMU */ };
 
 #endif
