@@ -367,7 +367,7 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     mismatch switched plant): both runs exist, the audit compared every RTI sample with the search."""
     from cosim.scenarios import load_scenario
     from cosim.study.experiments import nnpc, plant_binding
-    from cosim.study.optimizer_ablation import compare, verdict
+    from cosim.study.optimizer_ablation import compare, report_lines, verdict
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     scenarios = [replace(load_scenario("startup"), duration=0.0008)]
@@ -383,6 +383,12 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     assert row["overshoot_difference_points"] == pytest.approx(row["overshoot_rti_pct"] - row["overshoot_search_pct"])
     assert row["cost_excess_median"] == pytest.approx(float(np.median(row["cost_excess"])))
     assert 0.8 < row["iae_ratio"] < 1.2  # the same model, the same plant: close, whichever wins
+    # the one-step RTI (13.33 us) is run beside its two-step variant, a run of its own: an IAE and an overshoot
+    assert row["iae_rti_two_steps_Vs"] > 0 and row["iae_rti_two_steps_Vs"] != row["iae_rti_Vs"]
+    assert np.isfinite(row["overshoot_rti_two_steps_pct"])
+    (line,) = [x for x in report_lines(rows) if x.startswith("|  | NNPC | startup")]
+    assert line.endswith(f"| {row['iae_rti_two_steps_Vs'] / row['iae_search_Vs']:.3f}, "
+                         f"{row['overshoot_rti_two_steps_pct']:.2f} |")
     targets = verdict(rows)
     assert targets["iae_ratio_worst"] == (row["iae_ratio"], row["iae_ratio"] <= 1.02)
     assert targets["startup_overshoot_increase_points_worst"] == (row["overshoot_difference_points"],

@@ -16,7 +16,10 @@ default:
   (same context, disturbance estimate and warm start: :meth:`~controllers.predictive.PredictiveController.search_last_sample`),
   both in the paper's exact eq. 16: the relative excess (J_rti - J_search) / J_search, median over the
   run's RTI samples (target <= 1 %) and the worst; negative where the RTI plans better than the search;
-* how often the RTI controller fell back to the search, and why.
+* how often the RTI controller fell back to the search, and why;
+* where the RTI takes one Gauss-Newton step without a line search (13.33 us), the same for a variant with two
+  steps and the line search (:data:`TWO_STEPS`): its IAE and overshoot beside the default's, so that what a second
+  step buys in quality is measured; its C step's time is a row of the benchmark group ``c-controllers``.
 
 Both run as their C twins by default (equal to the Python references at every sample: tests/test_c_twins.py),
 the audit's search too.
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -39,6 +43,16 @@ from cosim.results import RunResult
 IAE_RATIO_TARGET = 1.02
 OVERSHOOT_POINTS_TARGET = 0.5
 COST_EXCESS_TARGET = 0.01
+#: the RTI variant run beside a one-step RTI: two Gauss-Newton steps, each trial rolled out (the 1 ms setting's)
+TWO_STEPS = {"iterations": 2, "line_search": True}
+
+
+def with_rti(controller: PredictiveController, **changes) -> PredictiveController:
+    """``controller`` (a Python predictive controller with the RTI) with its RTI settings changed."""
+    return PredictiveController(controller.predictor, controller.sample_period, controller.settings,
+                                controller.duty_limits, controller.name, nominal_load=controller.nominal_load,
+                                nominal_input_voltage=controller.nominal_input_voltage,
+                                rti=replace(controller.rti, **changes))
 
 
 class AuditedRti:
@@ -107,6 +121,12 @@ def compare(binding, make_controller: Callable[[str], PredictiveController], sce
         result_search = simulate(binding, runner(search), scenario, record_period=period)
         result_rti = simulate(binding, audited, scenario, record_period=period)
         m_search, m_rti = run_metrics(result_search), run_metrics(result_rti)
+        variant = {}
+        default_rti = make_controller("rti")
+        if default_rti.rti.iterations == 1 and not default_rti.rti.line_search:
+            m_two = run_metrics(simulate(binding, runner(with_rti(default_rti, **TWO_STEPS)), scenario,
+                                         record_period=period))
+            variant = {"iae_rti_two_steps_Vs": m_two["iae_Vs"], "overshoot_rti_two_steps_pct": m_two["overshoot_pct"]}
         solvers = [r[0] for r in audited.rows]
         rti_rows = [r for r in audited.rows if r[0] == "rti"]
         excess = np.array([(r[2] - r[3]) / r[3] if r[3] > 0 else 0.0 for r in rti_rows]) if audit else np.zeros(0)
@@ -126,6 +146,7 @@ def compare(binding, make_controller: Callable[[str], PredictiveController], sce
             "search_samples": solvers.count("search"),
             "fallbacks": dict(sorted(reasons.items())),
             "qp_iterations_max": max((r[4] for r in rti_rows), default=0),
+            **variant,
         })
     return rows
 
@@ -149,9 +170,14 @@ def report_lines(rows: list[dict]) -> list[str]:
              f"RTI sample within {100 * COST_EXCESS_TARGET:.0f} % of the best the search finds for the same problem "
              "(negative: the RTI plans better). *eq. 16 cost* is the closed loop's, on the measured trajectory "
              "[`cosim/study/optimizer_ablation.py`].", "",
+             "The last column runs, where the RTI takes one step without a line search (13.33 us), the variant "
+             "with two Gauss-Newton steps and the line search: its IAE over the search's and its overshoot "
+             "(its C step's time beside the one-step RTI's: benchmarks.md, group `c-controllers`, \"NNPC (rti, two "
+             "steps)\").", "",
              "| pipeline | controller | scenario | IAE search [V s] | IAE RTI / search | eq. 16 cost RTI / search "
-             "| overshoot search -> RTI [%] | plan cost excess median / worst [%] | search steps | meets |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| overshoot search -> RTI [%] | plan cost excess median / worst [%] | search steps | meets "
+             "| two RTI steps: IAE / search, overshoot [%] |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         meets = (r["iae_ratio"] <= IAE_RATIO_TARGET and (r["scenario"] != "startup" or
                                                          r["overshoot_difference_points"] <= OVERSHOOT_POINTS_TARGET)
@@ -160,7 +186,9 @@ def report_lines(rows: list[dict]) -> list[str]:
                      f"{r['iae_ratio']:.3f} | {r['closed_loop_cost_rti_Vs'] / r['closed_loop_cost_search_Vs']:.3f} | "
                      f"{r['overshoot_search_pct']:.2f} -> {r['overshoot_rti_pct']:.2f} | "
                      f"{100 * r['cost_excess_median']:.2f} / {100 * r['cost_excess_worst']:.1f} | "
-                     f"{r['search_samples']} of {r['samples']} | {'yes' if meets else '**no**'} |")
+                     f"{r['search_samples']} of {r['samples']} | {'yes' if meets else '**no**'} | "
+                     + (f"{r['iae_rti_two_steps_Vs'] / r['iae_search_Vs']:.3f}, "
+                        f"{r['overshoot_rti_two_steps_pct']:.2f} |" if "iae_rti_two_steps_Vs" in r else "-- |"))
     return lines + [""]
 
 
