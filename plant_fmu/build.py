@@ -10,6 +10,10 @@ zips the result; :func:`build_source_fmu` zips the same folder without compiling
 compile FMUs themselves. Both are cached under a name that holds a hash of everything that
 determines the binary (sources, model description, fmpy version, platform, flags), so editing a
 source file triggers exactly one rebuild and users and tests never build by hand.
+
+The archives are reproducible (:func:`zip_folder`): the same sources and toolchain give the same
+FMU bytes on every build and machine, so the SHA-256 of the plant FMU that the design keys and the
+runs' metadata record is the same in a fresh clone as in the committed results.
 """
 
 from __future__ import annotations
@@ -20,11 +24,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import zipfile
 from pathlib import Path
 
 import fmpy
 import fmpy.build
-import fmpy.util
 
 from plant_fmu.fmi3 import fmi3_edition
 from plant_fmu.fmu_sources import (
@@ -46,6 +50,10 @@ PLANT_EVENT_INDICATORS = (
                               "blocks"),
     ("conduction_boundary_event_indicator", "CCM/DCM boundary of the averaged model (1 in switched mode)"),
 )
+
+
+#: every member of a workbench archive (FMU, SSP) gets this date, so the same content gives the same bytes
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
 class PlantBuildError(RuntimeError):
@@ -114,6 +122,31 @@ def _compile(unzipdir: Path, build_dir: Path, log_path: Path, identifier: str) -
         os.environ["PATH"] = path
 
 
+def zip_folder(folder: Path, target: Path) -> None:
+    """Zip ``folder``'s tree into ``target`` reproducibly: members in sorted order, folders before the files
+    in them, each dated :data:`ZIP_DATE` with fixed permissions (0755 folders, 0644 files, the execute bit
+    kept), deflated at zlib's default level.
+
+    Hand-written rather than ``fmpy.util.create_zip_archive``, which stamps each member with its file's
+    modification time and takes a folder's files in ``os.walk`` order: every build of the same sources gave
+    another archive, so the plant FMU's SHA-256 -- part of the PI tuning's design key and of every run's
+    metadata -- differed in each fresh clone from the committed results' (measured: two builds of the plant
+    in two folders, member bytes identical, archives not)."""
+    folder = Path(folder)
+    with zipfile.ZipFile(target, "w") as archive:
+        for path in sorted(folder.rglob("*"), key=lambda p: p.relative_to(folder).parts):
+            name = path.relative_to(folder).as_posix()
+            if path.is_dir():
+                info = zipfile.ZipInfo(name + "/", ZIP_DATE)
+                info.external_attr = (0o40755 << 16) | 0x10  # a folder (MS-DOS directory flag too)
+                archive.writestr(info, b"")
+            elif path.is_file():
+                info = zipfile.ZipInfo(name, ZIP_DATE)
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = (0o100755 if os.access(path, os.X_OK) else 0o100644) << 16
+                archive.writestr(info, path.read_bytes())
+
+
 def _zip_into(unzipdir: Path, target: Path, compile_first: bool, identifier: str) -> Path:
     """Optionally compile a staged FMU folder (fmpy's CMake build), then zip it atomically to ``target``."""
     target = Path(target)
@@ -123,7 +156,7 @@ def _zip_into(unzipdir: Path, target: Path, compile_first: bool, identifier: str
         if compile_first:
             _compile(Path(unzipdir), tmp_path / "build", target.parent / f"{target.stem}.build.log", identifier)
         staged = tmp_path / "staged.fmu"
-        fmpy.util.create_zip_archive(staged, unzipdir)
+        zip_folder(Path(unzipdir), staged)
         os.replace(staged, target)  # atomic: a concurrent build writes the same bytes
     return target
 

@@ -24,6 +24,8 @@ GLUE_FILES = ("fmi2_glue.c", "fmu_model.h")
 REAL_CO_SIMULATION_ONLY = "real_co_simulation_only.c"
 MODEL_DESCRIPTION = "modelDescription.xml"
 #: warnings as errors; no fused multiply-add (the C twins must round like the Python references)
+#: how plant_fmu.build.zip_folder lays an archive out; in the cache key, so FMUs zipped another way are rebuilt
+ARCHIVE_LAYOUT = "zip: members sorted, dated 1980-01-01, fixed permissions, deflated"
 CMAKE_OPTIONS = {"CMAKE_COMPILE_WARNING_AS_ERROR:BOOL": "ON", "CMAKE_C_FLAGS:STRING": "-ffp-contract=off"}
 
 
@@ -36,9 +38,11 @@ class FmuSources:
     files: tuple[tuple[str, bytes], ...]
 
     def digest(self) -> str:
-        """Hash of everything that determines the binary: sources, fmpy version, platform, flags."""
+        """Hash of everything that determines the archive: sources, fmpy version, platform, flags and the archive's
+        layout (:data:`ARCHIVE_LAYOUT`)."""
         h = hashlib.sha256()
         h.update(f"fmpy {fmpy.__version__} {fmpy.platform} {sys.platform} {sorted(CMAKE_OPTIONS.items())}".encode())
+        h.update(ARCHIVE_LAYOUT.encode())
         h.update(self.identifier.encode())
         h.update(self.model_description.encode())
         for name, contents in sorted(self.files):

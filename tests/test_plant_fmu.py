@@ -90,6 +90,22 @@ def test_build_is_cached_by_source_hash(buck_fmu, tmp_path, monkeypatch):
     assert plant_build.source_digest() != digest
 
 
+def test_two_builds_in_two_places_give_the_same_fmu_bytes(buck_fmu, tmp_path, monkeypatch):
+    """The FMU's SHA-256 is in the design keys and the runs' metadata: a fresh clone must build the same bytes."""
+    import hashlib
+
+    monkeypatch.setenv("BUCK_COSIM_CACHE", str(tmp_path / "elsewhere"))
+    again = plant_build.fmu_path()
+    assert again != buck_fmu and again.name == buck_fmu.name
+    assert hashlib.sha256(again.read_bytes()).hexdigest() == hashlib.sha256(buck_fmu.read_bytes()).hexdigest()
+    with zipfile.ZipFile(again) as z:
+        infos = z.infolist()
+    names = [i.filename for i in infos]
+    assert names == sorted(names, key=lambda n: n.rstrip("/").split("/"))
+    assert {i.date_time for i in infos} == {plant_build.ZIP_DATE}
+    assert "binaries/" in names and "modelDescription.xml" in names
+
+
 def test_compile_errors_name_the_log(tmp_path, monkeypatch):
     copy = tmp_path / "sources"
     copy.mkdir()

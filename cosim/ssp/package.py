@@ -54,6 +54,7 @@ from cosim.scenarios import Scenario, parse_scenario
 from cosim.ssp.scenario_source import OUTPUTS as SCENARIO_OUTPUTS
 from cosim.ssp.scenario_source import scenario_fmu, scenario_toml, settle_time
 from cosim.timeline import plan_timeline
+from plant_fmu.build import ZIP_DATE
 
 SSD = "http://ssp-standard.org/SSP1/SystemStructureDescription"
 SSC = "http://ssp-standard.org/SSP1/SystemStructureCommon"
@@ -77,8 +78,6 @@ UNITS = {"V": {"kg": "1", "m": "2", "s": "-3", "A": "-1"}, "A": {"A": "1"}, "Ohm
          "s": {"s": "1"}, "1": {}, "H": {"kg": "1", "m": "2", "s": "-2", "A": "-2"},
          "F": {"kg": "-1", "m": "-2", "s": "4", "A": "2"}, "Hz": {"s": "-1"},
          "1/V": {"kg": "-1", "m": "-2", "s": "3", "A": "1"}, "1/(V.s)": {"kg": "-1", "m": "-2", "s": "2", "A": "1"}}
-#: members of the archive get this date, so the same content gives the same bytes
-ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 #: controller inputs fed by a plant sensor: (controller input, plant roles in order of preference)
 SENSOR_ROLES = {"measured_output_voltage": ("measured_output_voltage", "output_voltage"),
                 "measured_inductor_current": ("measured_inductor_current", "inductor_current"),
