@@ -7,7 +7,7 @@ reproduction's models and PI tunings in RESULTS (``make reproduce``); the seeds'
 and kept in CACHE. Long (an hour on two busy cores with the audit): run it niced.
 
     nice ./.venv/bin/python scripts/optimizer_every_seed.py [--results results] [--cache ~/.cache/buck-cosim/every-seed]
-        [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--json FILE]
+        [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--json FILE] [--rti FIELD=VALUE ...]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
     from cosim.study.optimizer_ablation import summary, verdict
-    from cosim.study.optimizer_every_seed import every_seed
+    from cosim.study.optimizer_every_seed import every_seed, rti_changes
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"))
@@ -32,10 +32,17 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--seeds", default="", help="comma-separated seeds (default: the study's)")
     parser.add_argument("--no-audit", action="store_true", help="skip the per-sample search (no plan-cost excess)")
     parser.add_argument("--json", type=Path, help="write the rows (without their per-sample arrays) here")
+    parser.add_argument("--rti", action="append", default=[], metavar="FIELD=VALUE",
+                        help="an RtiSettings field of the RTI runs changed from each rate's setting, e.g. iterations=2, "
+                             "line_search=false, regularization=1e-2 (repeatable)")
     args = parser.parse_args(argv)
+    try:
+        changes = rti_changes(args.rti)
+    except ValueError as error:
+        parser.error(str(error))
     rows = every_seed(args.results, args.cache, pipelines=args.pipelines.split(",") if args.pipelines else None,
                       seeds=tuple(int(s) for s in args.seeds.split(",")) if args.seeds else None,
-                      audit=not args.no_audit, log=lambda line: print(line, flush=True))
+                      audit=not args.no_audit, log=lambda line: print(line, flush=True), rti_changes=changes)
     for key, (value, met) in verdict(rows).items():
         print(f"all: {key} = {value:.4g} ({'met' if met else 'NOT met'})")
     if args.json:

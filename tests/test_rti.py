@@ -172,6 +172,21 @@ def test_rti_settings_are_validated_by_name():
                              **OPERATING_POINT, rti=RtiSettings())
 
 
+def test_the_every_seed_evaluation_takes_rti_settings_by_name_and_type():
+    from cosim.study.optimizer_every_seed import rti_changes
+
+    assert rti_changes(["iterations=2", "line_search=False", "regularization=1e-3"]) == \
+        {"iterations": 2, "line_search": False, "regularization": 1e-3}
+    assert rti_changes([]) == {}
+    for item, message in (("steps=2", r"--rti steps=2: 'steps' is not an RTI setting \(expected one of iterations, "),
+                          ("iterations=two", "--rti iterations=two: expected an integer"),
+                          ("line_search=yes", "--rti line_search=yes: expected true or false"),
+                          ("smoothing=", "--rti smoothing=: expected a number"),
+                          ("iterations=5", "RTI iterations = 5 is invalid: expected 1, 2 or 3")):
+        with pytest.raises(ValueError, match=message):
+            rti_changes([item])
+
+
 @pytest.mark.parametrize("line_search", [True, False])
 def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits(line_search):
     """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a

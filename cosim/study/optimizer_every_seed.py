@@ -9,21 +9,25 @@ workbench imports this module; ``scripts/optimizer_every_seed.py`` runs it.
 from __future__ import annotations
 
 import re
+from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
-from cosim.study.optimizer_ablation import compare, verdict
+from controllers.predictive import RtiSettings
+from cosim.study.optimizer_ablation import compare, verdict, with_rti
 
 
 def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
-               audit: bool = True, log: Callable[[str], None] = print) -> list[dict]:
+               audit: bool = True, log: Callable[[str], None] = print, rti_changes: dict | None = None) -> list[dict]:
     """The every-seed evaluation issue 24 asks before the RTI may be the default: :func:`compare` for the NNPC
     identified from every study seed's data on the nominal plants (seed 0: the reproduction's model in
     ``out_dir/models``; the other seeds identified here with the reproduction's recipe and PI, and kept in
     ``cache``, so a rerun only simulates), and for the MPC baselines (the oracle and the mismatched model: no
     identification, seed 0) on every pipeline, both rates. Each row carries ``pipeline``, ``seed`` and its
     controller; :func:`verdict` of the rows of a pipeline or of all is the table the docs quote
-    (``scripts/optimizer_every_seed.py`` prints it)."""
+    (``scripts/optimizer_every_seed.py`` prints it). ``rti_changes``: :class:`~controllers.predictive.RtiSettings`
+    fields changed from each rate's defaults for the RTI runs (e.g. ``{"iterations": 2}``: a candidate default
+    evaluated before it becomes one)."""
     from controllers.nn_model import load_model, save_model
     from cosim.study import envelope, reproduce
     from cosim.study.experiments import model_mpc, network_region, nn_configs, nnpc, scenarios_for
@@ -60,6 +64,9 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
                 for name, parameters in ((MPC_ORACLE, PLANT_VARIANTS[pipeline.variant]), (wrong_name, wrong)):
                     makers[name] = (lambda optimizer, name=name, parameters=parameters:
                                     model_mpc(parameters, period, name, binding=binding, optimizer=optimizer))
+            if rti_changes:
+                makers = {name: (lambda optimizer, make=make: with_rti(make(optimizer), **rti_changes)
+                                 if optimizer == "rti" else make(optimizer)) for name, make in makers.items()}
             for name, make in makers.items():
                 for row in compare(binding, make, scenarios, audit=audit):
                     row.update(pipeline=pipeline.tag, seed=seed)
@@ -74,3 +81,26 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
                                                                        if r["pipeline"] == pipeline.tag]).items()}
         log(f"{pipeline.tag}: {verdict_line}")
     return rows
+
+
+def rti_changes(items: list[str]) -> dict:
+    """``["iterations=2", "line_search=false"]`` -> ``{"iterations": 2, "line_search": False}``, each value of its
+    :class:`~controllers.predictive.RtiSettings` field's type; ValueError names a field or value that is not."""
+    types = {f.name: type(getattr(RtiSettings(), f.name)) for f in fields(RtiSettings)}
+    changes = {}
+    for item in items:
+        name, _, text = item.partition("=")
+        if name not in types:
+            raise ValueError(f"--rti {item}: {name!r} is not an RTI setting (expected one of {', '.join(types)})")
+        kind = types[name]
+        if kind is bool:
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"--rti {item}: expected true or false")
+            changes[name] = text.lower() == "true"
+        else:
+            try:
+                changes[name] = kind(text)
+            except ValueError:
+                raise ValueError(f"--rti {item}: expected {'an integer' if kind is int else 'a number'}") from None
+    RtiSettings(**changes)  # its own checks (ranges), before any simulation
+    return changes
