@@ -128,7 +128,8 @@ def test_report_has_every_section_and_checks_the_targets(reproduction):
     assert "median (min-max) over 2 seeds" in summary  # spreads beside the headline ratios
     assert "adapted / not adapted" in summary
     assert "**Identification** (nominal switched plant" in report
-    ablation = report.split("Old vs new optimizer on the same models")[1].split("\n\n")[1].splitlines()[2:]
+    ablation_section = report.split("Old vs new optimizer on the same models")[1]
+    ablation = next(block for block in ablation_section.split("\n\n") if block.startswith("| pipeline |")).splitlines()[2:]
     pipelines = {line.split(" | ")[0].lstrip("| ") for line in ablation}
     assert pipelines == set(QUICK.pipelines)  # every built-in pipeline: the NNPC and the oracle MPC, each scenario
     assert {"NNPC", "MPC-oracle"} == {line.split(" | ")[1] for line in ablation}
