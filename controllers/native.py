@@ -431,9 +431,10 @@ class PredictorConfig(ctypes.Structure):
 
 class RtiSettingsC(ctypes.Structure):
     _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("smoothing", c_double),
-                ("step_limit", c_double), ("regularization", c_double), ("qp_iterations", c_int),
+                ("step_limit", c_double), ("regularization", c_double), ("move_damping", c_double),
+                ("qp_iterations", c_int),
                 ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
-                ("startup_region", c_double), ("duty_resolution", c_double)]
+                ("startup_region", c_double), ("reference_region", c_double), ("duty_resolution", c_double)]
 
 
 class PredictiveConfig(ctypes.Structure):
@@ -447,6 +448,7 @@ class PredictiveState(ctypes.Structure):
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
                 ("conductance", c_double), ("previous_reference", c_double), ("starting", c_int),
+                ("stepping", c_int),
                 ("best_cost", c_double),
                 ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
                 ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
@@ -637,11 +639,13 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.smoothing = settings.smoothing
     c.step_limit = settings.step_limit
     c.regularization = settings.regularization
+    c.move_damping = settings.move_damping
     c.qp_iterations = settings.qp_iterations
     c.reference_step = settings.reference_step
     c.load_step = settings.load_step
     c.innovation = settings.innovation
     c.startup_region = settings.startup_region
+    c.reference_region = settings.reference_region
     c.duty_resolution = settings.duty_resolution
     return c
 

@@ -15,16 +15,16 @@ by the steady-state duty, bang-bang openings (full or zero duty for the first bl
 previous solution shifted by one sample (warm start); then a batched pattern search refines the
 best candidate block by block with a shrinking step.
 
-Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at 1 ms, opt-in at 13.33 us,
-``cosim.study.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
+Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at both rates, its
+settings per rate in ``cosim.study.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
 blocked duties from the previous solution shifted by one sample, each a small box-constrained QP
 (:mod:`controllers.box_qp`) built from the predictor's forward sensitivities
 (:meth:`~controllers.predictors.Predictor.linearize`). Eq. 16 sums *non-squared* norms, which have
 a kink at zero error; the RTI minimises the smoothed norm sqrt(|e|^2 + eps^2) (eps in volts,
 :attr:`RtiSettings.smoothing`), while the cost it reports -- and the study's comparison -- is always
 the paper's exact one. The search above stays as the reference and as the fallback at a cold start,
-through the start-up's large error, and when the measurements show a large change (a reference or
-load step, a prediction error far outside the model's), where one step from the last plan cannot
+through the start-up's large error and a reference step's transient, and when the measurements show a large
+change (a reference or load step, a prediction error far outside the model's), where one step from the last plan cannot
 reach the new optimum or the model is poor (:meth:`PredictiveController.fallback_reason`).
 
 Offset-free tracking: the model's one-step prediction made at k-1 for the applied duty is
@@ -270,10 +270,10 @@ class RtiSettings:
     """The real-time-iteration optimizer (:class:`RealTimeIteration`) and when the controller falls back
     to the search (:class:`HorizonOptimizer`) instead."""
 
-    iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known. With the
-    # start-up region below, one step met every quality target on every seed at 13.33 us with the paper-region 7-10-2
-    # networks (the every-seed evaluation, cosim.study.optimizer_every_seed), not with the envelope-identified 8-10-2
-    # ones (see cosim.study.experiments.default_optimizer), and it is what fits a switching period in C
+    iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known. One step
+    # is what fits a switching period best in C; with the envelope-identified 8-10-2 networks it missed the quality
+    # targets at 13.33 us (2.8 x the search's IAE at worst), and the study takes two, damped
+    # (cosim.study.experiments.SWITCHING_PERIOD_RTI)
     line_search: bool = False  # roll each trial out and take it only if its smoothed cost is not higher (else the
     # trust region shrinks); False takes every step, as acados' SQP-RTI does, and the plan's states are not rolled
     # out past the first (the step's cost: one linearisation). The reweighted model majorises the linearised cost,
@@ -282,6 +282,12 @@ class RtiSettings:
     smoothing: float = 0.05  # eps [V] of the smoothed norm sqrt(|e|^2 + eps^2) that stands in for |e| (eq. 16)
     step_limit: float = 0.25  # trust region: the most a block's duty moves in one step (/4 after a rejected step)
     regularization: float = 1e-6  # Levenberg-Marquardt: mu = this x mean(diag H) (+ 1e-12) added to H's diagonal
+    move_damping: float = 0.0  # rho: each step's quadratic model adds (rho x mean(diag H) / 2) (u_0 - d_prev)^2, a
+    # proximal term that pulls the first block (the duty applied next) toward the duty applied last sample (0: none).
+    # Unlike the Levenberg-Marquardt term, which damps the step from the shifted plan and so lags every transient,
+    # it only prices the applied move: it stops the sample-to-sample alternation of the first two 1-sample blocks
+    # that a model identified from PI data invites at 13.33 us (a period-2 limit cycle, see
+    # cosim.study.experiments.rti_settings). It is not in eq. 16: the plan cost the ablation reports stays eq. 16's
     qp_iterations: int = 24  # the box QP's active-set iterations, at most (controllers.box_qp)
     # fall back to the search (besides a cold start) when the reference moves more than reference_step [V], the
     # load-conductance estimate more than the fraction load_step, or the measured vo lands more than innovation [V]
@@ -302,6 +308,11 @@ class RtiSettings:
     # identified from PI data is poor in the start-up's fast transient, and the search's coarse plan overshoots
     # less. With it, 4-10 samples of each start-up are planned by the search, and none of the rest
     startup_region: float = 1.0
+    # [V] after a reference step (reference_step), the search plans until the measured |vref - vo| first falls to this
+    # (0: the step's sample only). A reference step is a start-up in small: with the step's sample alone, the
+    # two-step damped RTI at 13.33 us overshot the step up by 14-31 points more than the search (mismatch switched
+    # plant, seed 4; 1.02-1.09 x its IAE); the search through the step's transient gives 0.98 x
+    reference_region: float = 0.0
     # duty quantum: the plan's blocks are rounded to multiples of it (0: not rounded); at 1 ms the study sets the
     # search's finest step, so both optimizers command duties on the same lattice (a 13-bit DPWM). Without it the
     # RTI's exact optimum differs from the search's lattice point by < 1e-4 (< 5 mV of output), which decided the
@@ -317,9 +328,11 @@ class RtiSettings:
             raise ValueError(f"RTI step_limit = {self.step_limit} is invalid: expected 0 < limit <= 1 (duty)")
         if not 0 <= self.regularization < 1:
             raise ValueError(f"RTI regularization = {self.regularization} is invalid: expected 0 <= mu < 1")
+        if not (0 <= self.move_damping < 1):
+            raise ValueError(f"RTI move_damping = {self.move_damping} is invalid: expected 0 <= rho < 1 (x mean(diag H))")
         if self.qp_iterations < 1:
             raise ValueError(f"RTI qp_iterations = {self.qp_iterations} is invalid: expected >= 1")
-        for name in ("reference_step", "load_step", "innovation", "startup_region"):
+        for name in ("reference_step", "load_step", "innovation", "startup_region", "reference_region"):
             if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected >= 0 (0: never)")
         if not (0 <= self.duty_resolution < 1):
@@ -338,6 +351,9 @@ class RealTimeIteration:
 
         gradient  g = sum_j (w_j / s_j) J_j' e_j             (exact, of the linearised cost)
         Hessian   H = sum_j (w_j / s_j) J_j' J_j + mu I     (iteratively reweighted least squares)
+
+    plus, with :attr:`RtiSettings.move_damping` rho, the proximal term (rho m / 2) (u_0 + delta_0 - d_prev)^2
+    on the first block (m: mean(diag H) before mu; d_prev: the duty applied at the previous sample),
 
     over the box max(low - u, -r) <= delta <= min(high - u, r) (duty limits and a trust region r,
     :mod:`controllers.box_qp`). The reweighted Hessian is the curvature of the quadratic that touches
@@ -393,8 +409,11 @@ class RealTimeIteration:
         eps = self.settings.smoothing
         return float(np.sqrt(squared + eps * eps) @ self.weights), float(np.sqrt(squared) @ self.weights)
 
-    def model(self, predicted: np.ndarray, jacobian: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Gradient (nb,) and regularised (generalized) Gauss-Newton Hessian (nb, nb) of the smoothed cost."""
+    def model(self, predicted: np.ndarray, jacobian: np.ndarray, target: np.ndarray,
+              first_move: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Gradient (nb,) and regularised (generalized) Gauss-Newton Hessian (nb, nb) of the smoothed cost;
+        ``first_move``: u_0 - d_prev [duty], the current plan's first block less the duty applied last sample
+        (priced with :attr:`RtiSettings.move_damping`)."""
         e = predicted - target
         eps = self.settings.smoothing
         s = np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1] + eps * eps)
@@ -402,15 +421,19 @@ class RealTimeIteration:
         q = jacobian[:, 0, :] * e[:, 0:1] + jacobian[:, 1, :] * e[:, 1:2]  # J_j' e_j, (N, nb)
         gradient = q.T @ c
         hessian = np.einsum("j,jca,jcb->ab", c, jacobian, jacobian)
-        mu = self.settings.regularization * float(np.trace(hessian)) / self.n_blocks + 1e-12
-        hessian[np.diag_indices(self.n_blocks)] += mu
+        mean_diagonal = float(np.trace(hessian)) / self.n_blocks
+        hessian[np.diag_indices(self.n_blocks)] += self.settings.regularization * mean_diagonal + 1e-12
+        if self.settings.move_damping:
+            rho = self.settings.move_damping * mean_diagonal
+            hessian[0, 0] += rho
+            gradient[0] += rho * first_move
         return gradient, hessian
 
     def solve(self, linearize: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
               evaluate: Callable[[np.ndarray], np.ndarray], target: np.ndarray,
-              warm: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+              warm: np.ndarray, applied: float) -> tuple[np.ndarray, float, np.ndarray]:
         """Return the per-step plan (horizon,), its exact eq. 16 cost (NaN where it was not rolled out) and
-        its predicted first state (2,).
+        its predicted first state (2,); ``applied``: the duty applied at the previous sample.
 
         ``linearize(duties)`` -> (states (N, 2), Jacobian (N, 2, blocks)); ``evaluate(duties)`` -> the states
         (len(duties), 2) of a sequence (the plan, or its first step alone)."""
@@ -418,7 +441,7 @@ class RealTimeIteration:
         u = self.shifted(warm)
         predicted, jacobian = linearize(self.expand(u))
         smoothed, exact = self.costs(predicted, target)
-        gradient, hessian = self.model(predicted, jacobian, target)
+        gradient, hessian = self.model(predicted, jacobian, target, u[0] - applied)
         radius = st.step_limit
         self.qp_iterations = self.accepted = 0
         rolled_out = True  # whether `predicted` is u's rollout
@@ -442,7 +465,7 @@ class RealTimeIteration:
                 u, predicted, smoothed, exact = trial, trial_predicted, trial_smoothed, trial_exact
                 self.accepted += 1
                 if not final:
-                    gradient, hessian = self.model(predicted, trial_jacobian, target)
+                    gradient, hessian = self.model(predicted, trial_jacobian, target, u[0] - applied)
             else:
                 radius *= 0.25
         if st.duty_resolution:
@@ -496,6 +519,7 @@ class PredictiveController:
         self._conductance = 1.0 / self.nominal_load  # [S] the load estimate
         self._previous_reference = math.nan
         self._starting = True  # in the start-up region (RtiSettings.startup_region) since the cold start
+        self._stepping = False  # in a reference step's region (RtiSettings.reference_region) since the step
         self._problem = None  # (context, target, disturbance, anchor, warm start) of the last step
         self.last_solver = ""  # "search" or "rti": which optimizer planned the last step
         self.last_fallback = ""  # why the last step used the search with an RTI configured ("" if it did not)
@@ -507,7 +531,8 @@ class PredictiveController:
         """Why this sample needs the search rather than an RTI step from the last plan ("" if it does not):
         no plan yet (a cold start: the search's global candidates find the start-up's bang-bang plan); the
         start-up, until the measured output ``voltage`` first comes within ``startup_region`` volts of the
-        reference (the RTI would follow a model that is poor in that transient, see :class:`RtiSettings`); or,
+        reference (the RTI would follow a model that is poor in that transient, see :class:`RtiSettings`), and
+        likewise after a reference step until it comes within ``reference_region`` volts; or,
         where :class:`RtiSettings` enables them, the measurements show a change one Gauss-Newton step might
         not follow -- the reference moved by more than ``reference_step`` volts, the load-conductance estimate
         by more than the fraction ``load_step``, or the output voltage landed more than ``innovation`` volts
@@ -517,6 +542,8 @@ class PredictiveController:
             return "cold start"
         if self._starting and st.startup_region and abs(reference - voltage) > st.startup_region:
             return "start-up"
+        if self._stepping and st.reference_region and abs(reference - voltage) > st.reference_region:
+            return "reference step"
         if st.reference_step and abs(reference - self._previous_reference) > st.reference_step:
             return "reference step"
         if st.load_step and abs(conductance - previous_conductance) > st.load_step * previous_conductance:
@@ -563,6 +590,7 @@ class PredictiveController:
                                                                      previous_conductance, surprise)
         if fallback not in ("cold start", "start-up"):
             self._starting = False
+        self._stepping = fallback == "reference step"
         self._previous_reference = reference
         sequence, self.best_cost, first, self.last_solver = self.plan(context, target, disturbance, anchor, fallback)
         self._predicted = first - disturbance  # the model's own one-step prediction (the disturbance is added after each step)
@@ -588,7 +616,8 @@ class PredictiveController:
             def evaluate(duties: np.ndarray) -> np.ndarray:
                 return rollout(context, duties[None, :], disturbance)[0]
 
-            sequence, cost, first = self.rti_optimizer.solve(linearized, evaluate, target, self._warm)
+            sequence, cost, first = self.rti_optimizer.solve(linearized, evaluate, target, self._warm,
+                                                             self._previous_duty)
             return sequence, cost, first, "rti"
         predictions = []
 

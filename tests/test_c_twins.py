@@ -465,16 +465,22 @@ def test_circuit_linearizations_match(predictor):
 
 def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     controller = with_rti(PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=23),
-                                               **OPERATING_POINT), RtiSettings(iterations=3, smoothing=0.02))
+                                               **OPERATING_POINT), RtiSettings(iterations=3, smoothing=0.02,
+                                                                                move_damping=0.125))
     twin = native.NativePredictiveController.from_python(controller)
     rti = twin.config.rti
-    assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit) == (1, 3, 0.02, RtiSettings().step_limit)
+    assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit, rti.move_damping) == \
+        (1, 3, 0.02, RtiSettings().step_limit, 0.125)
     assert native.NativePredictiveController.from_python(with_rti(controller, search=True)).rti is None
     config = native.PredictiveConfig()
     ctypes.pointer(config)[0] = twin.config
     config.rti.iterations = 4
     with pytest.raises(ValueError, match="rti iterations: expected 1, 2 or 3"):
         native.NativePredictiveController(config, "bad")
+    config.rti.iterations, config.rti.move_damping = 2, 1.0
+    with pytest.raises(ValueError, match="rti move_damping: expected 0 <= rho < 1"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.move_damping = 0.0
     config.rti.iterations, config.horizon.n_blocks = 2, 9
     config.horizon.blocks[:9] = [1, 1, 1, 1, 1, 1, 1, 1, 15]
     with pytest.raises(ValueError, match="rti: more move blocks than BUCKC_QP_MAX_VARIABLES"):
@@ -590,9 +596,16 @@ def model_1ms() -> NNPlantModel:
 
 def replay_case(name: str, model_1ms):
 
-    rti = name.endswith("-rti")  # the same case with the real-time iteration (and the search as its fallback)
+    from cosim.study.experiments import rti_settings
+
+    # "-rti": the same case with the study's real-time iteration at its rate (and the search as its fallback);
+    # "-rti1": with RtiSettings' defaults (one Gauss-Newton step, undamped: the ablation's one-step variant)
+    if name.endswith("-rti1"):
+        binding, controller, scenarios = _replay_case(name.removesuffix("-rti1"), model_1ms)
+        return binding, with_rti(controller), scenarios
+    rti = name.endswith("-rti")
     binding, controller, scenarios = _replay_case(name.removesuffix("-rti"), model_1ms)
-    return binding, with_rti(controller, search=not rti), scenarios
+    return binding, with_rti(controller, rti_settings(controller.sample_period, "rti"), search=not rti), scenarios
 
 
 def _replay_case(name: str, model_1ms):
@@ -632,7 +645,7 @@ def with_rti(controller: PredictiveController, settings: RtiSettings = RtiSettin
 
 
 SEARCH_REPLAYS = ["nnpc-1ms", "nnpc-13us", "mpc-averaged-13us", "mpc-switched-13us", "mpc-switched-nominal-13us"]
-REPLAYS = SEARCH_REPLAYS + [f"{name}-rti" for name in SEARCH_REPLAYS]
+REPLAYS = SEARCH_REPLAYS + [f"{name}-rti" for name in SEARCH_REPLAYS] + ["nnpc-13us-rti1"]
 PREDICTOR_TYPES = {"nnpc-1ms": "NNPredictor", "nnpc-13us": "NNPredictor", "mpc-averaged-13us": "AveragedModelPredictor",
                    "mpc-switched-13us": "SwitchedModelPredictor", "mpc-switched-nominal-13us": "SwitchedModelPredictor"}
 
@@ -651,8 +664,8 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
     from cosim.master import run
 
     binding, controller, scenarios = replay_case(case, model_1ms)
-    assert type(controller.predictor).__name__ == PREDICTOR_TYPES[case.removesuffix("-rti")]
-    assert (controller.rti is not None) == case.endswith("-rti")
+    assert type(controller.predictor).__name__ == PREDICTOR_TYPES[case.split("-rti")[0]]
+    assert (controller.rti is not None) == ("-rti" in case)
     twin = native.NativePredictiveController.from_python(controller)
     assert isinstance(twin, Controller) and json.dumps(twin.describe())
     recorder = Recorder(controller)
@@ -689,7 +702,7 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
           f"optimizer-path differences {path_differences}")
     assert flips <= 0.01 * samples
     assert path_differences <= flips
-    assert solvers == ({"search", "rti"} if case.endswith("-rti") else {"search"})  # both paths were replayed
+    assert solvers == ({"search", "rti"} if "-rti" in case else {"search"})  # both paths were replayed
 
 
 @pytest.mark.parametrize("optimizer", ["search", "rti"])

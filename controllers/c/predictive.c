@@ -427,13 +427,16 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
             FAIL(BUCKC_ERR_INVALID, "rti step_limit: expected 0 < limit <= 1");
         if (!(r->regularization >= ZERO && r->regularization < ONE))
             FAIL(BUCKC_ERR_INVALID, "rti regularization: expected 0 <= mu < 1");
+        if (!(r->move_damping >= ZERO && r->move_damping < ONE))
+            FAIL(BUCKC_ERR_INVALID, "rti move_damping: expected 0 <= rho < 1");
         if (r->qp_iterations < 1)
             FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
         if (r->line_search != 0 && r->line_search != 1)
             FAIL(BUCKC_ERR_INVALID, "rti line_search: expected 0 or 1");
         if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
             || !(r->innovation >= ZERO && isfinite(r->innovation))
-            || !(r->startup_region >= ZERO && isfinite(r->startup_region)))
+            || !(r->startup_region >= ZERO && isfinite(r->startup_region))
+            || !(r->reference_region >= ZERO && isfinite(r->reference_region)))
             FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
         if (!(r->duty_resolution >= ZERO && r->duty_resolution < ONE))
             FAIL(BUCKC_ERR_INVALID, "rti duty_resolution: expected 0 <= quantum < 1");
@@ -587,12 +590,14 @@ static void rti_costs(const BuckcPredictive *c, const buckc_real *predicted, buc
     *exact = sum_exact;
 }
 
-/* RealTimeIteration.model: the gradient and the reweighted (IRLS) Hessian + mu I of the smoothed cost */
-static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, const buckc_real *jacobian, buckc_real *gradient,
+/* RealTimeIteration.model: the gradient and the reweighted (IRLS) Hessian + mu I of the smoothed cost, with the
+ * first move's proximal term; first_move = u_0 - d_prev */
+static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, const buckc_real *jacobian,
+                      buckc_real first_move, buckc_real *gradient,
                       buckc_real hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES])
 {
     int nb = c->optimizer.n_blocks, horizon = c->optimizer.settings.horizon, j, a, b;
-    buckc_real eps = c->config->rti.smoothing, trace = ZERO, mu;
+    buckc_real eps = c->config->rti.smoothing, trace = ZERO, mean_diagonal, mu;
     for (a = 0; a < nb; ++a) {
         gradient[a] = ZERO;
         for (b = 0; b < nb; ++b)
@@ -610,9 +615,15 @@ static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, con
     }
     for (a = 0; a < nb; ++a)
         trace += hessian[a][a];
-    mu = c->config->rti.regularization * trace / (buckc_real)nb + BUCKC_REAL_LITERAL(1e-12);
+    mean_diagonal = trace / (buckc_real)nb;
+    mu = c->config->rti.regularization * mean_diagonal + BUCKC_REAL_LITERAL(1e-12);
     for (a = 0; a < nb; ++a)
         hessian[a][a] += mu;
+    if (c->config->rti.move_damping > ZERO) {
+        buckc_real rho = c->config->rti.move_damping * mean_diagonal;
+        hessian[0][0] += rho;
+        gradient[0] += rho * first_move;
+    }
 }
 
 static void expand(const BuckcOptimizer *o, const buckc_real *moves, buckc_real *duties)
@@ -646,7 +657,7 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
     expand(o, u, duties);
     linearize(c, duties, predicted, jacobian);
     rti_costs(c, predicted, &smoothed, &exact);
-    rti_model(c, predicted, jacobian, gradient, hessian);
+    rti_model(c, predicted, jacobian, u[0] - state->previous_duty, gradient, hessian);
     state->qp_iterations = state->accepted = 0;
     for (iteration = 0; iteration < st->iterations; ++iteration) {
         buckc_real trial_smoothed, trial_exact;
@@ -683,7 +694,7 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
             exact = trial_exact;
             state->accepted += 1;
             if (!final)
-                rti_model(c, predicted, jacobian, gradient, hessian);
+                rti_model(c, predicted, jacobian, u[0] - state->previous_duty, gradient, hessian);
         } else {
             radius *= BUCKC_REAL_LITERAL(0.25);
         }
@@ -724,6 +735,8 @@ static int fallback_reason(const BuckcPredictive *c, buckc_real reference, buckc
         return BUCKC_FALLBACK_COLD_START;
     if (s->starting && st->startup_region != ZERO && BUCKC_FABS(reference - voltage) > st->startup_region)
         return BUCKC_FALLBACK_STARTUP;
+    if (s->stepping && st->reference_region != ZERO && BUCKC_FABS(reference - voltage) > st->reference_region)
+        return BUCKC_FALLBACK_REFERENCE_STEP;
     if (st->reference_step != ZERO && BUCKC_FABS(reference - s->previous_reference) > st->reference_step)
         return BUCKC_FALLBACK_REFERENCE_STEP;
     if (st->load_step != ZERO && BUCKC_FABS(conductance - previous_conductance) > st->load_step * previous_conductance)
@@ -833,6 +846,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, buckc_r
                                    : BUCKC_FALLBACK_NONE;
     if (fallback != BUCKC_FALLBACK_COLD_START && fallback != BUCKC_FALLBACK_STARTUP)
         s->starting = 0;
+    s->stepping = fallback == BUCKC_FALLBACK_REFERENCE_STEP;
     s->previous_reference = m->reference;
     if (config->rti.enabled && fallback == BUCKC_FALLBACK_NONE) {
         s->best_cost = rti_solve(c, s->warm, sequence, first);

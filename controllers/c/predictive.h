@@ -104,11 +104,13 @@ typedef struct {
     buckc_real smoothing;          /* eps [V] of BUCKC_SQRT(|e|^2 + eps^2) */
     buckc_real step_limit;         /* trust region [duty], 0 < r <= 1 */
     buckc_real regularization;     /* mu = this x mean(diag H) + 1e-12 */
+    buckc_real move_damping;       /* rho: + (rho mean(diag H) / 2)(u_0 - d_prev)^2 in each step's model, 0 <= rho < 1 */
     int qp_iterations;         /* the box QP's active-set iterations, at most */
     buckc_real reference_step;     /* [V] fallback when the reference moves more than this, */
     buckc_real load_step;          /* the load-conductance estimate more than this fraction, */
     buckc_real innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
     buckc_real startup_region;     /* [V] after a cold start, the search until |vref - vo| first falls to this (0: none) */
+    buckc_real reference_region;   /* [V] the same after a reference step (0: the step's sample only) */
     buckc_real duty_resolution;    /* round the plan's blocks to multiples of this (0: not rounded), 0 <= q < 1 */
 } BuckcRtiSettings;
 
@@ -162,6 +164,7 @@ typedef struct {
     buckc_real conductance;                     /* [S] the last load estimate (load_estimate.h) */
     buckc_real previous_reference;              /* [V] the reference of the last sample (NaN before the first) */
     int starting;                           /* in the start-up region since the cold start (RtiSettings.startup_region) */
+    int stepping;                           /* in a reference step's region since the step (RtiSettings.reference_region) */
     /* diagnostics of the last step */
     buckc_real best_cost;                       /* eq. 16 cost of the plan (exact, not smoothed; NaN where not rolled out) */
     int evaluations, passes, best_call, best_row; /* the search's, when it planned */

@@ -22,7 +22,7 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         rti_operation_counts,
     )
     from cosim.study.experiments import default_optimizer, implemented, model_mpc, nnpc, plant_binding
-    from cosim.study.optimizer_ablation import TWO_STEPS, with_rti
+    from cosim.study.optimizer_ablation import ONE_STEP, with_rti
 
     binding = plant_binding("nominal", "switched")
     rows = []
@@ -36,8 +36,8 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                                                                               optimizer=other)]
         if not transient_within_sample(period):
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
-            # the ablation's variant (cosim.study.optimizer_ablation.TWO_STEPS): what a second Gauss-Newton step costs
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti"), **TWO_STEPS))
+            # the ablation's variant (cosim.study.optimizer_ablation.ONE_STEP): what the second Gauss-Newton step costs
+            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, one step)", optimizer="rti"), **ONE_STEP))
         for controller in controllers:
             measurements = record_measurements(binding, implemented(controller), scenario)
             result = replay(controller, measurements, repeats=1 if quick else 3)
