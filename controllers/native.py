@@ -231,7 +231,7 @@ OK, ERR_NULL, ERR_LIMIT, ERR_INVALID, ERR_NO_INDUCTOR_CURRENT, ERR_ILL_CONDITION
 PREDICTOR_NN, PREDICTOR_AVERAGED, PREDICTOR_SWITCHED = 0, 1, 2
 SOLVERS = ("search", "rti")  # BUCKC_SOLVER_...: the names PredictiveController.last_solver uses
 #: BUCKC_FALLBACK_...: the reasons PredictiveController.fallback_reason gives ("" for none)
-FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error", "start-up")
+FALLBACKS = ("", "cold start", "reference step", "load step", "prediction error", "start-up", "large error")
 
 c_double, c_int = ctypes.c_double, ctypes.c_int
 
@@ -434,7 +434,8 @@ class RtiSettingsC(ctypes.Structure):
                 ("step_limit", c_double), ("regularization", c_double), ("move_damping", c_double),
                 ("qp_iterations", c_int),
                 ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
-                ("startup_region", c_double), ("reference_region", c_double), ("duty_resolution", c_double)]
+                ("startup_region", c_double), ("reference_region", c_double),
+                ("error_region", c_double), ("duty_resolution", c_double)]
 
 
 class PredictiveConfig(ctypes.Structure):
@@ -646,6 +647,7 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.innovation = settings.innovation
     c.startup_region = settings.startup_region
     c.reference_region = settings.reference_region
+    c.error_region = settings.error_region
     c.duty_resolution = settings.duty_resolution
     return c
 

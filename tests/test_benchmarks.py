@@ -42,7 +42,7 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "online NNPC (RTI, 4-7-2) 1 ms on a Cortex-M4F (float32, QEMU mps2-an386): cycles per RTI step"):
         assert table["benchmark"].str.startswith(row).any(), row
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
-    assert table["machine"].iloc[0].endswith("cores)")
+    assert " cores), Linux " in table["machine"].iloc[0] and table["machine"].nunique() == 1
     # rerunning one group replaces only its rows; the others keep their values and their command
     assert main(["bench", "--quick", "--only", "plant", "--out", str(tmp_path)]) == 0
     merged = pd.read_csv(tmp_path / "benchmarks-quick.csv")
@@ -54,6 +54,16 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     header = (tmp_path / "benchmarks-quick.md").read_text().splitlines()[2]
     assert header.startswith("Commands: ") and "`buck-cosim bench --only plant --quick` (plant)" in header
     assert "`buck-cosim bench --quick` (master, controllers," in header
+    # a group rerun on another machine: the kept rows keep the machine that measured them, the header names both
+    merged.loc[~plant, "machine"] = "Other CPU (8 cores), Linux 5.0, Python 3.11.0"
+    merged.to_csv(tmp_path / "benchmarks-quick.csv", index=False)
+    assert main(["bench", "--quick", "--only", "plant", "--out", str(tmp_path)]) == 0
+    remerged = pd.read_csv(tmp_path / "benchmarks-quick.csv")
+    assert set(remerged.loc[remerged["group"] != "plant", "machine"]) == {"Other CPU (8 cores), Linux 5.0, Python 3.11.0"}
+    assert set(remerged.loc[remerged["group"] == "plant", "machine"]) == set(table["machine"])
+    machines = (tmp_path / "benchmarks-quick.md").read_text().splitlines()[3]
+    assert machines.startswith(f"Machines: {table['machine'].iloc[0]} (plant); Other CPU (8 cores), Linux 5.0, "
+                               "Python 3.11.0 (master, controllers,")
 
 
 def test_the_trained_models_are_read_beside_the_output_not_from_the_working_directory(tmp_path, monkeypatch):

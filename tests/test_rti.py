@@ -418,6 +418,29 @@ def test_after_a_reference_step_the_search_plans_until_the_output_first_comes_wi
     with pytest.raises(ValueError, match="RTI reference_region = -1.0 is invalid: expected >= 0"):
         RtiSettings(reference_region=-1.0)
 
+
+def test_the_search_plans_every_sample_whose_error_exceeds_the_error_region():
+    """The guard where the model extrapolates: with error_region > 0 any sample more than that many volts off the
+    reference is the search's ("large error"), before and after it the RTI plans; the C twin agrees; 0: never."""
+    predictor = AveragedModelPredictor(PARASITICS, TS)
+    voltages = [12.0, 12.0, 12.3, 12.6, 13.9, 12.4, 11.0, 12.1]
+    run = [Measurement(k * TS, 12.0, v, 2.0, v / 6.0, 48.0) for k, v in enumerate(voltages)]
+    guard = "large error"
+    for region, expected in ((0.5, ["cold start", "", "", guard, guard, "", guard, ""]),
+                             (0.0, ["cold start"] + [""] * 7)):
+        controller = rti_controller(predictor, RtiSettings(startup_region=0.0, error_region=region))
+        twin = NativePredictiveController.from_python(controller)
+        reasons, twin_reasons = [], []
+        for m in run:
+            controller.step(m)
+            twin.step(m)
+            reasons.append(controller.last_fallback)
+            twin_reasons.append(twin.last_fallback)
+            assert controller.last_solver == ("search" if controller.last_fallback else "rti")
+        assert reasons == expected and twin_reasons == expected
+    with pytest.raises(ValueError, match="RTI error_region = -0.5 is invalid: expected >= 0"):
+        RtiSettings(error_region=-0.5)
+
 def test_a_duty_resolution_rounds_the_plan_and_evaluates_the_rounded_plan():
     """With a duty quantum the plan's blocks are multiples of it (within the limits), the first predicted
     state and, with the line search, the exact cost are those of the rounded plan."""

@@ -436,7 +436,8 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
         if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
             || !(r->innovation >= ZERO && isfinite(r->innovation))
             || !(r->startup_region >= ZERO && isfinite(r->startup_region))
-            || !(r->reference_region >= ZERO && isfinite(r->reference_region)))
+            || !(r->reference_region >= ZERO && isfinite(r->reference_region))
+            || !(r->error_region >= ZERO && isfinite(r->error_region)))
             FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
         if (!(r->duty_resolution >= ZERO && r->duty_resolution < ONE))
             FAIL(BUCKC_ERR_INVALID, "rti duty_resolution: expected 0 <= quantum < 1");
@@ -737,6 +738,8 @@ static int fallback_reason(const BuckcPredictive *c, buckc_real reference, buckc
         return BUCKC_FALLBACK_STARTUP;
     if (s->stepping && st->reference_region != ZERO && BUCKC_FABS(reference - voltage) > st->reference_region)
         return BUCKC_FALLBACK_REFERENCE_STEP;
+    if (st->error_region != ZERO && BUCKC_FABS(reference - voltage) > st->error_region)
+        return BUCKC_FALLBACK_LARGE_ERROR;
     if (st->reference_step != ZERO && BUCKC_FABS(reference - s->previous_reference) > st->reference_step)
         return BUCKC_FALLBACK_REFERENCE_STEP;
     if (st->load_step != ZERO && BUCKC_FABS(conductance - previous_conductance) > st->load_step * previous_conductance)

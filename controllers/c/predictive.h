@@ -111,6 +111,7 @@ typedef struct {
     buckc_real innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
     buckc_real startup_region;     /* [V] after a cold start, the search until |vref - vo| first falls to this (0: none) */
     buckc_real reference_region;   /* [V] the same after a reference step (0: the step's sample only) */
+    buckc_real error_region;       /* [V] the search at any sample with |vref - vo| above this (0: never) */
     buckc_real duty_resolution;    /* round the plan's blocks to multiples of this (0: not rounded), 0 <= q < 1 */
 } BuckcRtiSettings;
 
@@ -122,7 +123,8 @@ enum {
     BUCKC_FALLBACK_REFERENCE_STEP = 2,
     BUCKC_FALLBACK_LOAD_STEP = 3,
     BUCKC_FALLBACK_PREDICTION_ERROR = 4,
-    BUCKC_FALLBACK_STARTUP = 5
+    BUCKC_FALLBACK_STARTUP = 5,
+    BUCKC_FALLBACK_LARGE_ERROR = 6
 };
 
 /* ------------------------------------------------------------------ the controller */

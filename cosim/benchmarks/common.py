@@ -21,6 +21,7 @@ class BenchRow:
     extra: dict = field(default_factory=dict)
     group: str = ""  # the BENCHMARKS entry that measured it
     command: str = ""  # the command line that measured it
+    machine: str = ""  # the machine that measured it (suite.machine_label; a merged row keeps its own)
 
 
 def _p99(values) -> float:

@@ -63,7 +63,7 @@ def run_benchmarks(out_dir: Path, quick: bool = False, only: list[str] | None = 
                 continue
             print(f"benchmark: {name} ...", file=sys.stderr)
             for row in function(quick):
-                row.group, row.command = name, command
+                row.group, row.command, row.machine = name, command, machine_label()
                 rows.append(row)
     if only:
         kept = [r for r in _read_rows(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"))
@@ -92,7 +92,8 @@ def _read_rows(path: Path) -> list[BenchRow]:
         met = r.get("meets_target")
         rows.append(BenchRow(str(r["benchmark"]), float(r["median"]), optional(r.get("p99"), float), str(r["unit"]),
                              str(r.get("target", "")), None if met in ("", None) else str(met) == "True",
-                             str(r.get("note", "")), group=r["group"], command=str(r["command"])))
+                             str(r.get("note", "")), group=r["group"], command=str(r["command"]),
+                             machine=str(r.get("machine", ""))))
     return rows
 
 
@@ -109,11 +110,21 @@ def machine_info() -> dict[str, str]:
             "python": platform.python_version()}
 
 
-def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool) -> tuple[Path, Path]:
+def machine_label() -> str:
+    """The machine a row was measured on, as the table's ``machine`` column keeps it: CPU, cores, kernel, Python
+    (the kernel tells two cloud machines with the same CPU label apart; they differed 2x in speed)."""
     machine = machine_info()
+    return f"{machine['cpu']} ({machine['cores']} cores), {machine['system']}, Python {machine['python']}"
+
+
+def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool) -> tuple[Path, Path]:
+    """Write the table; each row keeps the machine that measured it (a group rerun on another machine is
+    named as such in the header, whose ratios hold only within one command's rows)."""
     versions = package_versions()
+    for r in rows:
+        r.machine = r.machine or machine_label()
     frame = pd.DataFrame([{k: v for k, v in asdict(r).items() if k != "extra"} for r in rows])
-    frame["machine"] = f"{machine['cpu']} ({machine['cores']} cores)"
+    machines = list(dict.fromkeys(r.machine for r in rows))
     csv_path = atomic_write(out_dir / ("benchmarks-quick.csv" if quick else "benchmarks.csv"),
                             lambda tmp: frame.to_csv(tmp, index=False))
     commands = list(dict.fromkeys(r.command for r in rows))
@@ -123,7 +134,9 @@ def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool) -> tuple[
         (f"Command: `{commands[0]}`  " if len(commands) == 1 else
          "Commands: " + "; ".join(f"`{c}` ({', '.join(dict.fromkeys(r.group for r in rows if r.command == c))})"
                                   for c in commands) + " -- ratios only within one command's rows  "),
-        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['system']}, Python {machine['python']}  ",
+        (f"Machine: {machines[0]}  " if len(machines) == 1 else
+         "Machines: " + "; ".join(f"{m} ({', '.join(dict.fromkeys(r.group for r in rows if r.machine == m))})"
+                                  for m in machines) + " -- times compare only within one machine  "),
         "Packages: " + ", ".join(f"{k} {v}" for k, v in versions.items() if k != "python"),
         "",
         "Medians over repetitions; p99 where a distribution exists. Ratios are measured within this one run.",
