@@ -272,10 +272,11 @@ def test_move_damping_slows_the_applied_move_but_converges_to_the_same_optimum()
     for rho in (0.0, 0.5):
         optimizer = RealTimeIteration(RtiSettings(iterations=2, smoothing=1e-3, move_damping=rho), settings,
                                       (0.1, 0.6), weights)
+        blocks = optimizer.block_of_step
         plan = np.full(6, 0.1)
         for sample in range(40):
             plan, _, _ = optimizer.solve(
-                lambda d: predictor.linearize(ctx, d, np.zeros(2), optimizer.block_of_step, 3),
+                lambda d, blocks=blocks: predictor.linearize(ctx, d, np.zeros(2), blocks, 3),
                 lambda d: predictor.rollout(ctx, d[None], np.zeros(2))[0], target, plan, plan[0])
             if sample == 0:
                 first_moves.append(abs(plan[0] - 0.1))
