@@ -393,6 +393,21 @@ def test_the_search_plans_the_start_up_until_the_output_first_comes_within_the_r
         RtiSettings(duty_resolution=1.0)
 
 
+def fallback_reasons(predictor, settings: RtiSettings, run: list[Measurement]) -> tuple[list[str], list[str]]:
+    """Why each sample of ``run`` used the search ("" where the RTI planned), by the Python controller and by its
+    C twin fed the same measurements."""
+    controller = rti_controller(predictor, settings)
+    twin = NativePredictiveController.from_python(controller)
+    reasons, twin_reasons = [], []
+    for m in run:
+        controller.step(m)
+        twin.step(m)
+        reasons.append(controller.last_fallback)
+        twin_reasons.append(twin.last_fallback)
+        assert controller.last_solver == ("search" if controller.last_fallback else "rti")
+        assert twin.last_solver == controller.last_solver
+    return reasons, twin_reasons
+
 
 def test_after_a_reference_step_the_search_plans_until_the_output_first_comes_within_the_reference_region():
     """A reference step (> reference_step) is planned by the search, and with reference_region > 0 so are the
@@ -406,16 +421,8 @@ def test_after_a_reference_step_the_search_plans_until_the_output_first_comes_wi
     step, none = "reference step", ""
     for region, expected in ((1.0, ["cold start", none, none, step, step, step, none, none, none, step, step, none]),
                              (0.0, ["cold start", none, none, step, none, none, none, none, none, step, none, none])):
-        controller = rti_controller(predictor, RtiSettings(startup_region=0.0, reference_region=region))
-        twin = NativePredictiveController.from_python(controller)  # the C twin follows the same rule
-        reasons, twin_reasons = [], []
-        for m in run:
-            controller.step(m)
-            twin.step(m)
-            reasons.append(controller.last_fallback)
-            twin_reasons.append(twin.last_fallback)
-            assert controller.last_solver == ("search" if controller.last_fallback else "rti")
-        assert reasons == expected and twin_reasons == expected
+        assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, reference_region=region), run) == \
+            (expected, expected)
     with pytest.raises(ValueError, match="RTI reference_region = -1.0 is invalid: expected >= 0"):
         RtiSettings(reference_region=-1.0)
 
@@ -429,18 +436,11 @@ def test_the_search_plans_every_sample_whose_error_exceeds_the_error_region():
     guard = "large error"
     for region, expected in ((0.5, ["cold start", "", "", guard, guard, "", guard, ""]),
                              (0.0, ["cold start"] + [""] * 7)):
-        controller = rti_controller(predictor, RtiSettings(startup_region=0.0, error_region=region))
-        twin = NativePredictiveController.from_python(controller)
-        reasons, twin_reasons = [], []
-        for m in run:
-            controller.step(m)
-            twin.step(m)
-            reasons.append(controller.last_fallback)
-            twin_reasons.append(twin.last_fallback)
-            assert controller.last_solver == ("search" if controller.last_fallback else "rti")
-        assert reasons == expected and twin_reasons == expected
+        assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, error_region=region), run) == \
+            (expected, expected)
     with pytest.raises(ValueError, match="RTI error_region = -0.5 is invalid: expected >= 0"):
         RtiSettings(error_region=-0.5)
+
 
 def test_a_duty_resolution_rounds_the_plan_and_evaluates_the_rounded_plan():
     """With a duty quantum the plan's blocks are multiples of it (within the limits), the first predicted
