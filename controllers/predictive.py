@@ -23,8 +23,8 @@ blocked duties from the previous solution shifted by one sample, each a small bo
 a kink at zero error; the RTI minimises the smoothed norm sqrt(|e|^2 + eps^2) (eps in volts,
 :attr:`RtiSettings.smoothing`), while the cost it reports -- and the study's comparison -- is always
 the paper's exact one. The search above stays as the reference and as the fallback at a cold start,
-through the start-up's large error and a reference step's transient, and when the measurements show a large
-change (a reference or load step, a prediction error far outside the model's), where one step from the last plan cannot
+through the start-up's large error and a reference step's transient, at any sample far off the reference (a guard
+where the model extrapolates), and when the measurements show a large change (a reference or load step, a prediction error far outside the model's), where one step from the last plan cannot
 reach the new optimum or the model is poor (:meth:`PredictiveController.fallback_reason`).
 
 Offset-free tracking: the model's one-step prediction made at k-1 for the applied duty is
@@ -287,7 +287,8 @@ class RtiSettings:
     # Unlike the Levenberg-Marquardt term, which damps the step from the shifted plan and so lags every transient,
     # it only prices the applied move: it stops the sample-to-sample alternation of the first two 1-sample blocks
     # that a model identified from PI data invites at 13.33 us (a period-2 limit cycle, see
-    # cosim.study.experiments.rti_settings). It is not in eq. 16: the plan cost the ablation reports stays eq. 16's
+    # cosim.study.experiments.SWITCHING_PERIOD_RTI). It is not in eq. 16: the plan cost the ablation reports stays
+    # eq. 16's
     qp_iterations: int = 24  # the box QP's active-set iterations, at most (controllers.box_qp)
     # fall back to the search (besides a cold start) when the reference moves more than reference_step [V], the
     # load-conductance estimate more than the fraction load_step, or the measured vo lands more than innovation [V]
