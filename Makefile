@@ -1,5 +1,5 @@
 # The two commands of the README. Each creates .venv and installs everything it needs.
-.PHONY: reproduce test bench bootstrap docs
+.PHONY: reproduce test bench bootstrap docs every-seed
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -19,3 +19,8 @@ bench: bootstrap
 # The documentation site, built with --strict into site/ (docs/, mkdocs.yml).
 docs: bootstrap
 	NO_MKDOCS_2_WARNING=1 .venv/bin/python -m mkdocs build --strict
+
+# The RTI against the search on every identification seed, both plants, both rates (issue 24's quality targets):
+# results/optimizer-every-seed.csv and .md. One to two hours on two cores; needs make reproduce's results first.
+every-seed: bootstrap
+	nice .venv/bin/python scripts/optimizer_every_seed.py --results results --out results

@@ -8,17 +8,28 @@ workbench imports this module; ``scripts/optimizer_every_seed.py`` runs it.
 
 from __future__ import annotations
 
+import json
+import math
 import re
 from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+import pandas as pd
+
 from controllers.predictive import RtiSettings
-from cosim.study.optimizer_ablation import compare, verdict, with_rti
+from cosim.base.files import atomic_write, atomic_write_text
+from cosim.study.optimizer_ablation import (COST_EXCESS_TARGET, IAE_RATIO_TARGET, OVERSHOOT_POINTS_TARGET, compare,
+                                            summary, verdict, with_rti)
+
+#: the files :func:`write_tables` writes into the results folder
+TABLE_NAME, REPORT_NAME = "optimizer-every-seed.csv", "optimizer-every-seed.md"
 
 
 def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
-               audit: bool = True, log: Callable[[str], None] = print, rti_changes: dict | None = None) -> list[dict]:
+               audit: bool = True, log: Callable[[str], None] = print, rti_changes: dict | None = None,
+               on_row: Callable[[list[dict]], None] | None = None) -> list[dict]:
     """The every-seed evaluation issue 24 asks before the RTI may be the default: :func:`compare` for the NNPC
     identified from every study seed's data on the nominal plants (seed 0: the reproduction's model in
     ``out_dir/models``; the other seeds identified here with the reproduction's recipe and PI, and kept in
@@ -27,7 +38,8 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
     controller; :func:`verdict` of the rows of a pipeline or of all is the table the docs quote
     (``scripts/optimizer_every_seed.py`` prints it). ``rti_changes``: :class:`~controllers.predictive.RtiSettings`
     fields changed from each rate's defaults for the RTI runs (e.g. ``{"iterations": 2}``: a candidate default
-    evaluated before it becomes one)."""
+    evaluated before it becomes one). ``on_row(rows)`` is called with the rows so far after each run (to save them
+    as they come: :func:`write_tables`)."""
     from controllers.nn_model import load_model, save_model
     from cosim.study import envelope, reproduce
     from cosim.study.experiments import model_mpc, network_region, nn_configs, nnpc, scenarios_for
@@ -71,6 +83,8 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
                 for row in compare(binding, make, scenarios, audit=audit):
                     row.update(pipeline=pipeline.tag, seed=seed)
                     rows.append(row)
+                    if on_row is not None:
+                        on_row(rows)
                     log(f"{pipeline.tag:27s} seed {seed} {name:14s} {row['scenario']:14s} IAE {row['iae_search_Vs']:.4g} "
                         f"V s x {row['iae_ratio']:.4f}, eq. 16 x "
                         f"{row['closed_loop_cost_rti_Vs'] / row['closed_loop_cost_search_Vs']:.4f}, overshoot "
@@ -104,3 +118,72 @@ def rti_changes(items: list[str]) -> dict:
                 raise ValueError(f"--rti {item}: expected {'an integer' if kind is int else 'a number'}") from None
     RtiSettings(**changes)  # its own checks (ranges), before any simulation
     return changes
+
+
+def table(rows: list[dict]) -> pd.DataFrame:
+    """One line per run (pipeline, seed, controller, scenario) with :func:`~cosim.study.optimizer_ablation.summary`'s
+    columns; the fallback counts as JSON text."""
+    records = []
+    for r in rows:
+        record = summary(r)
+        record["fallbacks"] = json.dumps(record["fallbacks"], sort_keys=True)
+        records.append(record)
+    frame = pd.DataFrame.from_records(records)
+    first = ["pipeline", "seed", "controller", "scenario"]
+    return frame[first + [c for c in frame.columns if c not in first]]
+
+
+def _spread(values: list[float]) -> str:
+    values = [v for v in values if math.isfinite(v)]
+    if not values:
+        return "--"
+    return f"{min(values):.4f} / {float(np.median(values)):.4f} / {max(values):.4f}"
+
+
+def report(rows: list[dict], complete: bool, command: str) -> str:
+    """The markdown summary of the rows: per pipeline and controller, and over all, the spread of the IAE ratio
+    (min / median / max over seeds and scenarios), the worst start-up overshoot increase, the plan-cost excess
+    pooled over every RTI sample (median, worst), the search's share of the samples, and issue 24's verdict."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["pipeline"], r["controller"]), []).append(r)
+    lines = [f"# The RTI against the search on every seed{'' if complete else ' (INCOMPLETE: the run was stopped)'}",
+             "", f"Command: `{command}`. Per run: `{TABLE_NAME}` (one line per pipeline, seed, controller and scenario).",
+             "Targets for the RTI (issue 24): closed-loop IAE at most "
+             f"{IAE_RATIO_TARGET:g} x the search's on the same model, start-up overshoot at most "
+             f"{OVERSHOOT_POINTS_TARGET:g} points above it, and the eq. 16 cost of the RTI's plan within "
+             f"{100 * COST_EXCESS_TARGET:g} % of the best the search finds for the same problem at the median RTI "
+             "sample (pooled over all RTI samples of the runs; negative: the RTI plans better). IAE ratios are "
+             "min / median / max over the seeds and scenarios.", "",
+             "| pipeline | controller | seeds | runs | IAE RTI / search | start-up overshoot increase, worst "
+             "[points] | plan cost excess median / worst [%] | samples planned by the search [%] | meets |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def line(pipeline: str, controller: str, subset: list[dict]) -> str:
+        v = verdict(subset)
+        seeds = sorted({r["seed"] for r in subset})
+        startup = v["startup_overshoot_increase_points_worst"][0]
+        searched = 100 * sum(r["search_samples"] for r in subset) / max(1, sum(r["samples"] for r in subset))
+        audited = math.isfinite(v["cost_excess_median"][0])
+        meets = all(met for met in (v["iae_ratio_worst"][1], v["startup_overshoot_increase_points_worst"][1],
+                                    v["cost_excess_median"][1] or not audited))
+        cost = (f"{100 * v['cost_excess_median'][0]:+.2f} / {100 * v['cost_excess_worst'][0]:.1f}" if audited
+                else "not audited")
+        return (f"| {pipeline} | {controller} | {', '.join(map(str, seeds))} | {len(subset)} | "
+                f"{_spread([r['iae_ratio'] for r in subset])} | {startup:+.2f} | {cost} | {searched:.1f} | "
+                f"{('yes' if audited else 'yes (IAE, overshoot)') if meets else '**no**'} |")
+
+    for (pipeline, controller), subset in groups.items():
+        lines.append(line(pipeline, controller, subset))
+    if rows:
+        lines.append(line("**all**", "all", rows))
+    return "\n".join(lines) + "\n"
+
+
+def write_tables(out_dir: Path, rows: list[dict], complete: bool, command: str) -> None:
+    """``out_dir/optimizer-every-seed.csv`` and ``.md`` (atomic writes; the markdown says when the rows are
+    incomplete, as after each run while the evaluation goes on)."""
+    out_dir = Path(out_dir)
+    frame = table(rows) if rows else pd.DataFrame()
+    atomic_write(out_dir / TABLE_NAME, lambda tmp: frame.to_csv(tmp, index=False, float_format="%.10g"))
+    atomic_write_text(out_dir / REPORT_NAME, report(rows, complete, command))
