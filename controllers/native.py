@@ -434,8 +434,7 @@ class RtiSettingsC(ctypes.Structure):
                 ("step_limit", c_double), ("regularization", c_double), ("move_damping", c_double),
                 ("qp_iterations", c_int),
                 ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
-                ("startup_region", c_double), ("reference_region", c_double),
-                ("error_region", c_double), ("duty_resolution", c_double)]
+                ("startup_region", c_double), ("error_region", c_double), ("duty_resolution", c_double)]
 
 
 class PredictiveConfig(ctypes.Structure):
@@ -449,7 +448,6 @@ class PredictiveState(ctypes.Structure):
                 ("have_warm", c_int), ("warm", _array(c_double, MAX_HORIZON)), ("bias", _array(c_double, 2)),
                 ("have_predicted", c_int), ("predicted", _array(c_double, 2)), ("previous_duty", c_double),
                 ("conductance", c_double), ("previous_reference", c_double), ("starting", c_int),
-                ("stepping", c_int),
                 ("best_cost", c_double),
                 ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
                 ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
@@ -646,7 +644,6 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.load_step = settings.load_step
     c.innovation = settings.innovation
     c.startup_region = settings.startup_region
-    c.reference_region = settings.reference_region
     c.error_region = settings.error_region
     c.duty_resolution = settings.duty_resolution
     return c

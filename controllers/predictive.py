@@ -307,18 +307,19 @@ class RtiSettings:
     # switched plant, seed 2; +1.4 averaged, +7.3 the mismatched MPC on the mismatch plant): the RTI's plan is
     # better on the model (its eq. 16 cost 15 against the search's 21 at the second sample there) but a model
     # identified from PI data is poor in the start-up's fast transient, and the search's coarse plan overshoots
-    # less. With it, 4-10 samples of each start-up are planned by the search, and none of the rest
+    # less. With it, 4-10 samples of each start-up are planned by the search, and none of the rest. (Under an
+    # error_region at most this wide the guard would plan those samples anyway: this then only names them, so the
+    # fallback counts tell the start-up from the guard.)
     startup_region: float = 1.0
-    # [V] after a reference step (reference_step), the search plans until the measured |vref - vo| first falls to this
-    # (0: the step's sample only). A reference step is a start-up in small: with the step's sample alone, the
-    # two-step damped RTI at 13.33 us overshot the step up by 14-31 points more than the search (mismatch switched
-    # plant, seed 4; 1.02-1.09 x its IAE); the search through the step's transient gives 0.98 x
-    reference_region: float = 0.0
     # [V] the search plans any sample whose measured |vref - vo| exceeds this (0: never) -- a guard, not a transient
     # rule: where the network extrapolates (light loads in DCM, far from its PI data) its tanh units saturate, its
     # Jacobian vanishes and a Gauss-Newton step stays where the shifted plan was, while the search's candidates still
     # tell duties apart. Without it, on the envelope map at 13.33 us, the RTI held the duty while the output rose from
-    # 3 V to 12.9 V (3 V / 100 Ohm / 36 V; the search: 3.00 V), 12 of 150 runs above 4 x the search's IAE
+    # 3 V to 12.9 V (3 V / 100 Ohm / 36 V; the search: 3.00 V), 12 of 150 runs above 4 x the search's IAE. It also
+    # carries a reference step's transient, a start-up in small: with the step's sample alone (reference_step), the
+    # two-step damped RTI at 13.33 us overshot the step up by 14-31 points more than the search (mismatch switched
+    # plant, seed 4; 1.02-1.09 x its IAE); with the search through the transient until within 1 V, 0.98 x. The
+    # guard does that for any step larger than itself, and any other large error alike
     error_region: float = 0.0
     # duty quantum: the plan's blocks are rounded to multiples of it (0: not rounded); at 1 ms the study sets the
     # search's finest step, so both optimizers command duties on the same lattice (a 13-bit DPWM). Without it the
@@ -339,7 +340,7 @@ class RtiSettings:
             raise ValueError(f"RTI move_damping = {self.move_damping} is invalid: expected 0 <= rho < 1 (x mean(diag H))")
         if self.qp_iterations < 1:
             raise ValueError(f"RTI qp_iterations = {self.qp_iterations} is invalid: expected >= 1")
-        for name in ("reference_step", "load_step", "innovation", "startup_region", "reference_region", "error_region"):
+        for name in ("reference_step", "load_step", "innovation", "startup_region", "error_region"):
             if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected >= 0 (0: never)")
         if not (0 <= self.duty_resolution < 1):
@@ -526,7 +527,6 @@ class PredictiveController:
         self._conductance = 1.0 / self.nominal_load  # [S] the load estimate
         self._previous_reference = math.nan
         self._starting = True  # in the start-up region (RtiSettings.startup_region) since the cold start
-        self._stepping = False  # in a reference step's region (RtiSettings.reference_region) since the step
         self._problem = None  # (context, target, disturbance, anchor, warm start) of the last step
         self.last_solver = ""  # "search" or "rti": which optimizer planned the last step
         self.last_fallback = ""  # why the last step used the search with an RTI configured ("" if it did not)
@@ -538,9 +538,8 @@ class PredictiveController:
         """Why this sample needs the search rather than an RTI step from the last plan ("" if it does not):
         no plan yet (a cold start: the search's global candidates find the start-up's bang-bang plan); the
         start-up, until the measured output ``voltage`` first comes within ``startup_region`` volts of the
-        reference (the RTI would follow a model that is poor in that transient, see :class:`RtiSettings`), and
-        likewise after a reference step until it comes within ``reference_region`` volts; at any sample where it
-        is more than ``error_region`` volts off (a guard where the model extrapolates); or,
+        reference (the RTI would follow a model that is poor in that transient, see :class:`RtiSettings`); at any
+        sample where it is more than ``error_region`` volts off (a guard where the model extrapolates); or,
         where :class:`RtiSettings` enables them, the measurements show a change one Gauss-Newton step might
         not follow -- the reference moved by more than ``reference_step`` volts, the load-conductance estimate
         by more than the fraction ``load_step``, or the output voltage landed more than ``innovation`` volts
@@ -550,8 +549,6 @@ class PredictiveController:
             return "cold start"
         if self._starting and st.startup_region and abs(reference - voltage) > st.startup_region:
             return "start-up"
-        if self._stepping and st.reference_region and abs(reference - voltage) > st.reference_region:
-            return "reference step"
         if st.error_region and abs(reference - voltage) > st.error_region:
             return "large error"
         if st.reference_step and abs(reference - self._previous_reference) > st.reference_step:
@@ -600,7 +597,6 @@ class PredictiveController:
                                                                      previous_conductance, surprise)
         if fallback not in ("cold start", "start-up"):
             self._starting = False
-        self._stepping = fallback == "reference step"
         self._previous_reference = reference
         sequence, self.best_cost, first, self.last_solver = self.plan(context, target, disturbance, anchor, fallback)
         self._predicted = first - disturbance  # the model's own one-step prediction (the disturbance is added after each step)

@@ -30,7 +30,7 @@ def main(argv: list[str]) -> int:
     from cosim.study.optimizer_ablation import summary, verdict
     from cosim.study.optimizer_every_seed import every_seed, rti_changes, write_tables
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="optimizer_every_seed.py", description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"))
     parser.add_argument("--cache", type=Path, default=cache_dir() / "every-seed")
     parser.add_argument("--pipelines", default="", help="comma-separated pipeline tags (default: all)")

@@ -189,24 +189,32 @@ def test_the_every_seed_evaluation_takes_rti_settings_by_name_and_type():
             rti_changes([item])
 
 
-@pytest.mark.parametrize("line_search", [True, False])
-def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits(line_search):
-    """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a
-    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout. With
-    the line search the plan's exact cost comes with it; without, it is NaN (not rolled out) and the
-    first predicted state is still the model's."""
+def convex_problem():
+    """The averaged (linear) model on a 6-step horizon of blocks (1, 2, 3) from a context far below the target:
+    (settings, predictor, context, weights, target, eq. 16 cost of a batch of duty sequences)."""
     settings = HorizonSettings(horizon=6, blocks=(1, 2, 3))
     predictor = AveragedModelPredictor(NOMINAL, TS)
     ctx = PredictionContext(history=np.array([[1.0, 9.0, 0.0]]), input_voltage=48.0, load_resistance=6.0,
                             load_conductance=1 / 6.0, load_current=1.5, previous_duty=0.2)
     weights = settings.discount ** np.arange(6)
     target = np.array([2.0, 12.0])
-    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3, line_search=line_search), settings,
-                                  (0.1, 0.6), weights)
 
     def cost(duties):
         e = predictor.rollout(ctx, duties, np.zeros(2)) - target
         return np.sqrt((e * e).sum(axis=2)) @ weights
+
+    return settings, predictor, ctx, weights, target, cost
+
+
+@pytest.mark.parametrize("line_search", [True, False])
+def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respects_the_limits(line_search):
+    """The averaged model is linear: each step's linearisation is exact, so repeated RTI steps from a
+    poor plan reach the search's (refined) optimum; the plan stays in the duty limits throughout. With
+    the line search the plan's exact cost comes with it; without, it is NaN (not rolled out) and the
+    first predicted state is still the model's."""
+    settings, predictor, ctx, weights, target, cost = convex_problem()
+    optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3, line_search=line_search), settings,
+                                  (0.1, 0.6), weights)
 
     def linearize(duties):
         return predictor.linearize(ctx, duties, np.zeros(2), optimizer.block_of_step, 3)
@@ -227,7 +235,6 @@ def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respe
     _, searched = HorizonOptimizer(settings, (0.1, 0.6)).solve(cost, anchor=0.25)
     exact = cost(plan[None])[0]
     assert exact <= searched * 1.001 and exact < previous
-
 
 
 def test_move_damping_adds_a_proximal_term_on_the_first_move_only():
@@ -256,17 +263,7 @@ def test_move_damping_slows_the_applied_move_but_converges_to_the_same_optimum()
     """On the averaged (linear) model from a poor plan: the damped RTI's first applied move is closer to
     the duty applied before, yet over samples (applying each plan's first duty) both reach the search's
     optimum -- at the fixed point u_0 = d_prev and the proximal term vanishes: no steady-state bias."""
-    settings = HorizonSettings(horizon=6, blocks=(1, 2, 3))
-    predictor = AveragedModelPredictor(NOMINAL, TS)
-    ctx = PredictionContext(history=np.array([[1.0, 9.0, 0.0]]), input_voltage=48.0, load_resistance=6.0,
-                            load_conductance=1 / 6.0, load_current=1.5, previous_duty=0.2)
-    weights = settings.discount ** np.arange(6)
-    target = np.array([2.0, 12.0])
-
-    def cost(duties):
-        e = predictor.rollout(ctx, duties, np.zeros(2)) - target
-        return np.sqrt((e * e).sum(axis=2)) @ weights
-
+    settings, predictor, ctx, weights, target, cost = convex_problem()
     _, searched = HorizonOptimizer(settings, (0.1, 0.6)).solve(cost, anchor=0.25)
     first_moves, final = [], []
     for rho in (0.0, 0.5):
@@ -283,6 +280,7 @@ def test_move_damping_slows_the_applied_move_but_converges_to_the_same_optimum()
         final.append(cost(plan[None])[0])
     assert first_moves[1] < 0.8 * first_moves[0]
     assert final[0] <= searched * 1.001 and final[1] <= searched * 1.001
+
 
 def test_an_rti_step_never_plans_worse_than_the_shifted_warm_start():
     """The line search's accept test: whatever the quadratic model says, the plan applied is predicted no
@@ -409,22 +407,23 @@ def fallback_reasons(predictor, settings: RtiSettings, run: list[Measurement]) -
     return reasons, twin_reasons
 
 
-def test_after_a_reference_step_the_search_plans_until_the_output_first_comes_within_the_reference_region():
-    """A reference step (> reference_step) is planned by the search, and with reference_region > 0 so are the
-    samples after it while |vref - vo| > reference_region; once inside, the RTI plans -- also when the error
-    grows again (an overshoot); the next step starts a new region. With 0, the step's sample alone."""
+def test_a_reference_step_is_planned_by_the_search_on_its_sample_only():
+    """A reference change larger than reference_step is the search's ("reference step") on the sample it
+    arrives; the samples after it are the RTI's, however far off the output still is (error_region 0); the
+    C twin agrees. A change of at most reference_step, or reference_step 0, never falls back."""
     predictor = AveragedModelPredictor(PARASITICS, TS)
     settle = [(12.0, 12.0)] * 3
     up = [(15.0, 12.0), (15.0, 12.9), (15.0, 13.6), (15.0, 14.2), (15.0, 16.5), (15.0, 15.0)]
     down = [(12.0, 15.0), (12.0, 13.5), (12.0, 12.5)]
-    run = [Measurement(k * TS, r, v, 2.0, v / 6.0, 48.0) for k, (r, v) in enumerate(settle + up + down)]
+    small = [(12.4, 12.5), (12.4, 12.4)]
+    run = [Measurement(k * TS, r, v, 2.0, v / 6.0, 48.0) for k, (r, v) in enumerate(settle + up + down + small)]
     step, none = "reference step", ""
-    for region, expected in ((1.0, ["cold start", none, none, step, step, step, none, none, none, step, step, none]),
-                             (0.0, ["cold start", none, none, step, none, none, none, none, none, step, none, none])):
-        assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, reference_region=region), run) == \
+    for threshold, expected in ((0.5, ["cold start", none, none, step] + [none] * 5 + [step, none, none, none, none]),
+                                (0.0, ["cold start"] + [none] * 13)):
+        assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, reference_step=threshold), run) == \
             (expected, expected)
-    with pytest.raises(ValueError, match="RTI reference_region = -1.0 is invalid: expected >= 0"):
-        RtiSettings(reference_region=-1.0)
+    with pytest.raises(ValueError, match="RTI reference_step = -1.0 is invalid: expected >= 0"):
+        RtiSettings(reference_step=-1.0)
 
 
 def test_the_search_plans_every_sample_whose_error_exceeds_the_error_region():
@@ -438,6 +437,14 @@ def test_the_search_plans_every_sample_whose_error_exceeds_the_error_region():
                              (0.0, ["cold start"] + [""] * 7)):
         assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, error_region=region), run) == \
             (expected, expected)
+    # a reference step's transient is the guard's while the output is more than error_region off, the overshoot
+    # too, checked before the reference-step rule: every reason is the guard's
+    settle = [(12.0, 12.0)] * 3
+    up = [(15.0, 12.0), (15.0, 12.9), (15.0, 13.6), (15.0, 14.2), (15.0, 16.5), (15.0, 15.0)]
+    down = [(12.0, 15.0), (12.0, 13.5), (12.0, 12.5)]
+    steps = [Measurement(k * TS, r, v, 2.0, v / 6.0, 48.0) for k, (r, v) in enumerate(settle + up + down)]
+    expected = ["cold start", "", "", guard, guard, guard, "", guard, "", guard, guard, ""]
+    assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, error_region=1.0), steps) == (expected, expected)
     with pytest.raises(ValueError, match="RTI error_region = -0.5 is invalid: expected >= 0"):
         RtiSettings(error_region=-0.5)
 

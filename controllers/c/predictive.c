@@ -436,7 +436,6 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
         if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
             || !(r->innovation >= ZERO && isfinite(r->innovation))
             || !(r->startup_region >= ZERO && isfinite(r->startup_region))
-            || !(r->reference_region >= ZERO && isfinite(r->reference_region))
             || !(r->error_region >= ZERO && isfinite(r->error_region)))
             FAIL(BUCKC_ERR_INVALID, "rti fallback thresholds: expected >= 0 (0: never)");
         if (!(r->duty_resolution >= ZERO && r->duty_resolution < ONE))
@@ -736,8 +735,6 @@ static int fallback_reason(const BuckcPredictive *c, buckc_real reference, buckc
         return BUCKC_FALLBACK_COLD_START;
     if (s->starting && st->startup_region != ZERO && BUCKC_FABS(reference - voltage) > st->startup_region)
         return BUCKC_FALLBACK_STARTUP;
-    if (s->stepping && st->reference_region != ZERO && BUCKC_FABS(reference - voltage) > st->reference_region)
-        return BUCKC_FALLBACK_REFERENCE_STEP;
     if (st->error_region != ZERO && BUCKC_FABS(reference - voltage) > st->error_region)
         return BUCKC_FALLBACK_LARGE_ERROR;
     if (st->reference_step != ZERO && BUCKC_FABS(reference - s->previous_reference) > st->reference_step)
@@ -849,7 +846,6 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, buckc_r
                                    : BUCKC_FALLBACK_NONE;
     if (fallback != BUCKC_FALLBACK_COLD_START && fallback != BUCKC_FALLBACK_STARTUP)
         s->starting = 0;
-    s->stepping = fallback == BUCKC_FALLBACK_REFERENCE_STEP;
     s->previous_reference = m->reference;
     if (config->rti.enabled && fallback == BUCKC_FALLBACK_NONE) {
         s->best_cost = rti_solve(c, s->warm, sequence, first);

@@ -110,7 +110,6 @@ typedef struct {
     buckc_real load_step;          /* the load-conductance estimate more than this fraction, */
     buckc_real innovation;         /* or vo lands more than this [V] from the one-step prediction (each 0: never) */
     buckc_real startup_region;     /* [V] after a cold start, the search until |vref - vo| first falls to this (0: none) */
-    buckc_real reference_region;   /* [V] the same after a reference step (0: the step's sample only) */
     buckc_real error_region;       /* [V] the search at any sample with |vref - vo| above this (0: never) */
     buckc_real duty_resolution;    /* round the plan's blocks to multiples of this (0: not rounded), 0 <= q < 1 */
 } BuckcRtiSettings;
@@ -166,7 +165,6 @@ typedef struct {
     buckc_real conductance;                     /* [S] the last load estimate (load_estimate.h) */
     buckc_real previous_reference;              /* [V] the reference of the last sample (NaN before the first) */
     int starting;                           /* in the start-up region since the cold start (RtiSettings.startup_region) */
-    int stepping;                           /* in a reference step's region since the step (RtiSettings.reference_region) */
     /* diagnostics of the last step */
     buckc_real best_cost;                       /* eq. 16 cost of the plan (exact, not smoothed; NaN where not rolled out) */
     int evaluations, passes, best_call, best_row; /* the search's, when it planned */

@@ -161,33 +161,30 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
 OPTIMIZERS = ("rti", "search")
 
 
-def default_optimizer(control_period: float) -> str:
-    """The optimizer of the NNPC and the MPC baselines unless one is asked for: the real-time iteration at both of
-    the study's rates (:func:`rti_settings`), with the search as its fallback. ``optimizer="rti"`` / ``"search"``
-    selects either at any rate.
-
-    Issue 24 makes the RTI the default where it meets its quality targets on every identification seed (IAE within
-    2 % of the search's, start-up overshoot within 0.5 points, the plan's eq. 16 cost within 1 % of the search's at
-    the pooled median). At 1 ms it does (the report's *Ablations*); at 13.33 us it does with
-    :data:`SWITCHING_PERIOD_RTI` (84 runs of :func:`cosim.study.optimizer_every_seed.every_seed`: the NNPC of every
-    seed and the MPC baselines on the three 13.33 us pipelines, docs/guide/controllers.md). The ``control_period``
-    argument stays: the rule is per rate, and a rate where the RTI has not been evaluated is still a decision."""
-    return "rti"
+#: The optimizer of the NNPC and the MPC baselines unless one is asked for: the real-time iteration at both of the
+#: study's rates (:func:`rti_settings`), with the search as its fallback; ``optimizer="rti"`` / ``"search"`` selects
+#: either at any rate. Issue 24 makes the RTI the default where it meets its quality targets on every identification
+#: seed (IAE within 2 % of the search's, start-up overshoot within 0.5 points, the plan's eq. 16 cost within 1 % of
+#: the search's at the pooled median): at 1 ms it does with rti_settings' 1 ms setting, at 13.33 us with
+#: :data:`SWITCHING_PERIOD_RTI` (results/optimizer-every-seed.md, ``make every-seed``: the NNPC of every seed and the
+#: MPC baselines on every pipeline, both rates)
+DEFAULT_OPTIMIZER = "rti"
 
 
 #: the RTI at one switching period (13.33 us): two Gauss-Newton steps without a line search, Levenberg-Marquardt
-#: damping 1e-3, a proximal term 1e-4 on the applied move, the search through the start-up region and through a
-#: reference step's transient (both 1 V), and at any sample more than 0.5 V off the reference. Measured over the 84 runs of the every-seed evaluation
+#: damping 1e-3, a proximal term 1e-4 on the applied move, and the search at any sample more than 0.5 V off the
+#: reference (which carries the start-up's and every reference step's transient; the start-up's first 1 V are
+#: named "start-up", RtiSettings.startup_region). Measured over the 84 runs of the every-seed evaluation at 13.33 us
 #: (scripts/optimizer_every_seed.py --rti ...; the IAE over the search's at worst, the runs above 1.02):
 #: one step 2.80 (6 runs); two steps 1.89 (4); two steps, damping 1e-3: 1.25 (1: a period-2 limit cycle of the first
 #: two 1-sample blocks, which a model identified from PI data predicts to pay, mismatch plant seed 4); with the move
-#: term besides: 1.019 (0, but the step up overshot 14 points more than the search's there); with the reference
-#: region besides: 1.010 (0); with the 0.5 V guard besides (this setting): 1.010 (0), start-up overshoot +0.38 points
-#: at worst, the plan's eq. 16 cost 92 % below the search's at the pooled median. Stronger damping alone (1e-2) lagged
-#: the transients: 1.07 (11 runs). The guard is for the envelope, where the network extrapolates (see
-#: RtiSettings.error_region): without it the reproduction's envelope map had the RTI hold 12.9 V at a 3 V reference
-SWITCHING_PERIOD_RTI = RtiSettings(iterations=2, regularization=1e-3, move_damping=1e-4, reference_region=1.0,
-                                   error_region=0.5)
+#: term besides: 1.019 (0, but the step up overshot 14 points more than the search's there); with the search through
+#: a reference step's transient until within 1 V besides: 1.010 (0); with the 0.5 V guard instead (this setting, which
+#: plans those samples too): 1.010 (0), start-up overshoot +0.38 points at worst, the plan's eq. 16 cost 92 % below
+#: the search's at the pooled median. Stronger damping alone (1e-2) lagged the transients: 1.07 (11 runs). Without
+#: the guard, where the network extrapolates (RtiSettings.error_region), the reproduction's envelope map had the RTI
+#: hold 12.9 V at a 3 V reference. Every seed, both rates: results/optimizer-every-seed.md (make every-seed)
+SWITCHING_PERIOD_RTI = RtiSettings(iterations=2, regularization=1e-3, move_damping=1e-4, error_region=0.5)
 
 
 #: the paper's 3-7-2 NNPC keeps the search at every rate: at 13.33 us its network (one delay, no load input) is a
@@ -201,7 +198,7 @@ PAPER_NNPC_OPTIMIZER = "search"
 def rti_settings(control_period: float, optimizer: str | None = None,
                  duty_limits: tuple[float, float] = (0.0, 1.0)) -> RtiSettings | None:
     """The RTI settings of a predictive controller at ``control_period`` for ``optimizer`` (None:
-    :func:`default_optimizer`), or None for the search alone.
+    :data:`DEFAULT_OPTIMIZER`), or None for the search alone.
 
     Where the transient is shaped within a sample (13.33 us): :data:`SWITCHING_PERIOD_RTI`. At 1 ms (one sample of horizon, one block: a 1-D problem whose
     linearisation costs one network evaluation): two steps with the line search and a trust region of the
@@ -210,7 +207,7 @@ def rti_settings(control_period: float, optimizer: str | None = None,
     RTI's exact optimum and the search's lattice point otherwise decided the IAE ratio of runs whose IAE is
     a few microvolt-seconds (the load change on the ideal averaged plant, whose exact steady duty 0.25 is on
     the search's lattice: 1.3-1408 x the search's IAE unrounded)."""
-    optimizer = default_optimizer(control_period) if optimizer is None else optimizer
+    optimizer = DEFAULT_OPTIMIZER if optimizer is None else optimizer
     if optimizer not in OPTIMIZERS:
         raise ConfigError(f"optimizer {optimizer!r} is unknown: expected one of {', '.join(OPTIMIZERS)}")
     if optimizer == "search":
@@ -248,7 +245,7 @@ NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_in
 
 def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon: int | None = None,
          duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None) -> PredictiveController:
-    """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :func:`default_optimizer`)."""
+    """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`)."""
     return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
                                 duty_limits, name=name, **NOMINAL_OPERATING_POINT,
                                 rti=rti_settings(control_period, optimizer, duty_limits))
@@ -301,7 +298,7 @@ def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
               horizon: int | None = None) -> PredictiveController:
     """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant; ``offset_free=False``
     drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error);
-    ``optimizer``: one of :data:`OPTIMIZERS` (None: :func:`default_optimizer`); ``horizon``: samples
+    ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`); ``horizon``: samples
     (None: the rate's, :func:`horizon_settings`)."""
     settings = horizon_settings(control_period, horizon)
     if not offset_free:
