@@ -21,6 +21,6 @@ docs: bootstrap
 	NO_MKDOCS_2_WARNING=1 .venv/bin/python -m mkdocs build --strict
 
 # The RTI against the search on every identification seed, both plants, both rates (issue 24's quality targets):
-# results/optimizer-every-seed.csv and .md. One to two hours on two cores; needs make reproduce's results first.
+# results/optimizer-every-seed.csv and .md. About three minutes on two cores (the seeds' networks identified once); needs make reproduce's results first.
 every-seed: bootstrap
 	nice .venv/bin/python scripts/optimizer_every_seed.py --results results --out results

@@ -1,13 +1,13 @@
 """The every-seed evaluation of the real-time iteration against the search (issue 24's quality targets).
 
-Runs :func:`cosim.study.optimizer_every_seed.every_seed`: the NNPC of every study seed on the nominal plants and
-the MPC baselines on every pipeline, both rates, each with the search and with the RTI (its C twins, as the
+Runs :func:`cosim.study.optimizer_every_seed.every_seed`: the NNPC of every study seed and the MPC baselines on
+every pipeline of the seed study, both rates, each with the search and with the RTI (its C twins, as the
 study runs them), and prints one line per run and the targets' verdict per pipeline and over all; with --out,
 writes ``optimizer-every-seed.csv`` (one line per run) and ``optimizer-every-seed.md`` (the verdict with the
 spread over seeds) there, after every run (marked incomplete until the last). Needs the reproduction's models
-and PI tunings in RESULTS (``make reproduce``); the seeds' models are identified once and kept in CACHE. Long
-(one to two hours on two cores with the audit, most of it the seeds' identification on a first run): run it
-niced. ``make every-seed`` runs it on everything and writes results/.
+and PI tunings in RESULTS (``make reproduce``); the seeds' models are identified once and kept in CACHE. About
+three minutes on two cores with the audit, the seeds' identification on a first run included; run it niced.
+``make every-seed`` runs it on everything and writes results/.
 
     nice ./.venv/bin/python scripts/optimizer_every_seed.py [--results results] [--cache ~/.cache/buck-cosim/every-seed]
         [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--json FILE] [--out DIR] [--rti FIELD=VALUE ...]

@@ -38,7 +38,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
                audit: bool = True, log: Callable[[str], None] = print, rti_changes: dict | None = None,
                on_row: Callable[[list[dict]], None] | None = None) -> list[dict]:
     """The every-seed evaluation issue 24 asks before the RTI may be the default: :func:`compare` for the NNPC
-    identified from every study seed's data on the nominal plants (seed 0: the reproduction's model in
+    identified from every study seed's data on each pipeline of the seed study (seed 0: the reproduction's model in
     ``out_dir/models``; the other seeds identified here with the reproduction's recipe and PI, and kept in
     ``cache``, so a rerun only simulates), and for the MPC baselines (the oracle and the mismatched model: no
     identification, seed 0) on every pipeline, both rates. Each row carries ``pipeline``, ``seed`` and its
