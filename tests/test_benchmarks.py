@@ -16,7 +16,11 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     assert len(table) >= len(BENCHMARKS)
     measured = ~table["benchmark"].str.contains(": not measured")  # the embedded group without its toolchain
     growth = table["benchmark"].str.contains("resident memory growth")  # may shrink: a difference, not a cost
-    assert (table.loc[measured & ~growth, "median"] > 0).all()
+    # the sweep's overhead per run is a difference too (1-worker sweep / the same runs without dask - 1): on a busy
+    # machine the quick size's few runs measured it at -74 %
+    overhead = table["benchmark"].str.startswith("sweep overhead per run")
+    assert overhead.sum() == 1 and table.loc[overhead, "median"].notna().all()
+    assert (table.loc[measured & ~growth & ~overhead, "median"] > 0).all()
     assert table.loc[growth, "median"].notna().all() and growth.sum() == 2
     assert "| benchmark | median | p99 |" in markdown and "## What profiling changed" in markdown
     for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms",
