@@ -89,12 +89,15 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
     ``evaluations``); an RTI step does a fixed amount of work, counted at the most the code can do except
     for the box QP, whose iterations are read off the step:
 
-    * ``iterations`` linearisations of the NN over the horizon (``nn_model.c``, buckc_nn_sensitivities);
+    * ``iterations`` linearisations of the NN over the horizon (``nn_model.c``, buckc_nn_sensitivities), or with
+      :attr:`~controllers.predictive.RtiSettings.reuse_jacobian` one, and a rollout of each further step's trial
+      over the horizon (:func:`operation_counts`' candidate);
     * without the line search (:attr:`~controllers.predictive.RtiSettings.line_search`) the plan's first
       state (one network evaluation); with it one rollout of the last trial over the horizon, and one more
       where a duty quantum may round the plan;
     * the costs of each evaluated trajectory (4 MACs and two square roots per step), the Gauss-Newton model
-      ``iterations`` times (2 nb^2 + 3 nb MACs, one square root and one division per step), and the box QP
+      ``iterations`` times (nb (nb + 1) + 3 nb MACs -- the Hessian's upper triangle, mirrored -- one square root
+      and one division per step), and the box QP
       (per iteration H x, a Cholesky of at most nb x nb, two triangular solves: 2 nb^2 + nb^3 / 6 MACs and nb
       square roots).
 
@@ -123,10 +126,13 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
         steps_evaluated, trajectories = rollouts * horizon, iterations + rollouts
     else:
         steps_evaluated, trajectories = 1, iterations  # the plan's first state; costs of the linearisations only
-    macs_model = horizon * (2 * nb * nb + 3 * nb)
+    linearizations = 1 if rti.reuse_jacobian else iterations
+    rollouts = iterations - linearizations  # the trials of the steps that reuse the first step's sensitivities
+    macs_rollout = float(operation_counts(controller, np.ones(1))["macs"][0]) - 3 * horizon  # its cost counted below
+    macs_model = horizon * (nb * (nb + 1) + 3 * nb)
     qp = np.asarray(qp_iterations, dtype=float) * (2 * nb * nb + nb ** 3 / 6.0)
-    per_step = (iterations * macs_linearize + steps_evaluated * forward + iterations * macs_model
-                + trajectories * 4 * horizon)
+    per_step = (linearizations * macs_linearize + rollouts * macs_rollout + steps_evaluated * forward
+                + iterations * macs_model + trajectories * 4 * horizon)
     tanh = sum(hidden)
     return {"macs": np.where(rti_steps, per_step + qp, search["macs"]),
             "tanh": np.where(rti_steps, (iterations * horizon + steps_evaluated) * tanh, search["tanh"]),

@@ -430,7 +430,8 @@ class PredictorConfig(ctypes.Structure):
 
 
 class RtiSettingsC(ctypes.Structure):
-    _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("smoothing", c_double),
+    _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("reuse_jacobian", c_int),
+                ("smoothing", c_double),
                 ("step_limit", c_double), ("regularization", c_double), ("move_damping", c_double),
                 ("qp_iterations", c_int),
                 ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
@@ -635,6 +636,7 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.enabled = 1
     c.iterations = settings.iterations
     c.line_search = int(settings.line_search)
+    c.reuse_jacobian = int(settings.reuse_jacobian)
     c.smoothing = settings.smoothing
     c.step_limit = settings.step_limit
     c.regularization = settings.regularization

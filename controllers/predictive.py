@@ -279,6 +279,8 @@ class RtiSettings:
     # out past the first (the step's cost: one linearisation). The reweighted model majorises the linearised cost,
     # and on the study's runs no trial was ever rejected (0 of every 13.33 us RTI step of the evaluation and of the
     # benchmark's mixed scenario), so the rollout bought nothing for a third of the step's time
+    reuse_jacobian: bool = False  # the steps after the first keep the first step's sensitivities and re-evaluate
+    # only the predicted trajectory at the new plan (a rollout: no sensitivities), as a simplified Newton method does
     smoothing: float = 0.05  # eps [V] of the smoothed norm sqrt(|e|^2 + eps^2) that stands in for |e| (eq. 16)
     step_limit: float = 0.25  # trust region: the most a block's duty moves in one step (/4 after a rejected step)
     regularization: float = 1e-6  # Levenberg-Marquardt: mu = this x mean(diag H) (+ 1e-12) added to H's diagonal
@@ -466,6 +468,8 @@ class RealTimeIteration:
                 break
             if final:
                 trial_predicted, trial_jacobian = evaluate(self.expand(trial)), None
+            elif st.reuse_jacobian:
+                trial_predicted, trial_jacobian = evaluate(self.expand(trial)), jacobian
             else:
                 trial_predicted, trial_jacobian = linearize(self.expand(trial))
             trial_smoothed, trial_exact = self.costs(trial_predicted, target)

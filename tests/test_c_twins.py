@@ -483,7 +483,10 @@ def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     config.rti.move_damping, config.rti.error_region = 0.0, -1.0
     with pytest.raises(ValueError, match="rti fallback thresholds: expected >= 0"):
         native.NativePredictiveController(config, "bad")
-    config.rti.error_region = 0.0
+    config.rti.error_region, config.rti.reuse_jacobian = 0.0, 2
+    with pytest.raises(ValueError, match="rti reuse_jacobian: expected 0 or 1"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.reuse_jacobian = 1
     config.rti.iterations, config.horizon.n_blocks = 2, 9
     config.horizon.blocks[:9] = [1, 1, 1, 1, 1, 1, 1, 1, 15]
     with pytest.raises(ValueError, match="rti: more move blocks than BUCKC_QP_MAX_VARIABLES"):

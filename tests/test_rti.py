@@ -237,6 +237,34 @@ def test_rti_converges_to_the_optimum_of_a_convex_problem_over_samples_and_respe
     assert exact <= searched * 1.001 and exact < previous
 
 
+def test_reusing_the_first_jacobian_linearises_once_and_on_a_linear_model_plans_as_full_gauss_newton():
+    """reuse_jacobian: each sample linearises once and evaluates the further steps' trials by rollouts; on the
+    averaged (linear) model the sensitivities do not depend on the plan, so the plans equal the full method's."""
+    settings, predictor, ctx, weights, target, cost = convex_problem()
+    plans, calls = {}, {}
+    for reuse in (False, True):
+        optimizer = RealTimeIteration(RtiSettings(iterations=3, smoothing=1e-3, reuse_jacobian=reuse), settings,
+                                      (0.1, 0.6), weights)
+        counted = {"linearize": 0, "evaluate": 0}
+
+        def linearize(duties, optimizer=optimizer, counted=counted):
+            counted["linearize"] += 1
+            return predictor.linearize(ctx, duties, np.zeros(2), optimizer.block_of_step, 3)
+
+        def evaluate(duties, counted=counted):
+            counted["evaluate"] += 1
+            return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+        plan = np.full(6, 0.1)
+        for _ in range(4):
+            plan, _, _ = optimizer.solve(linearize, evaluate, target, plan, plan[0])
+        plans[reuse], calls[reuse] = plan, counted
+    # per sample: 3 linearisations and the plan's first state, or 1 linearisation, 2 trial rollouts and the first state
+    assert calls[False] == {"linearize": 12, "evaluate": 4} and calls[True] == {"linearize": 4, "evaluate": 12}
+    np.testing.assert_allclose(plans[True], plans[False], rtol=0, atol=1e-12)
+    assert not np.allclose(plans[True], 0.1)
+
+
 def test_move_damping_adds_a_proximal_term_on_the_first_move_only():
     """The quadratic model with move damping rho is the undamped one plus rho m on H[0, 0] and
     rho m (u_0 - d_prev) on g[0], m = mean(diag H) before the Levenberg-Marquardt term; no other entry moves."""

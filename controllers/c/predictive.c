@@ -433,6 +433,8 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
             FAIL(BUCKC_ERR_INVALID, "rti qp_iterations: expected >= 1");
         if (r->line_search != 0 && r->line_search != 1)
             FAIL(BUCKC_ERR_INVALID, "rti line_search: expected 0 or 1");
+        if (r->reuse_jacobian != 0 && r->reuse_jacobian != 1)
+            FAIL(BUCKC_ERR_INVALID, "rti reuse_jacobian: expected 0 or 1");
         if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
             || !(r->innovation >= ZERO && isfinite(r->innovation))
             || !(r->startup_region >= ZERO && isfinite(r->startup_region))
@@ -609,10 +611,13 @@ static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, con
         const buckc_real *j0 = jacobian + (2 * j) * nb, *j1 = jacobian + (2 * j + 1) * nb;
         for (a = 0; a < nb; ++a) {
             gradient[a] += (j0[a] * e0 + j1[a] * e1) * weight;
-            for (b = 0; b < nb; ++b)
+            for (b = a; b < nb; ++b) /* the upper triangle: the lower one is the same products (mirrored below) */
                 hessian[a][b] += weight * (j0[a] * j0[b] + j1[a] * j1[b]);
         }
     }
+    for (a = 1; a < nb; ++a) /* j0[b] j0[a] = j0[a] j0[b] exactly: the full sums, bit for bit */
+        for (b = 0; b < a; ++b)
+            hessian[a][b] = hessian[b][a];
     for (a = 0; a < nb; ++a)
         trace += hessian[a][a];
     mean_diagonal = trace / (buckc_real)nb;
@@ -682,7 +687,7 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
             break;
         }
         expand(o, trial, duties);
-        if (final)
+        if (final || st->reuse_jacobian) /* reused: the first step's sensitivities stay in jacobian */
             predict(c, duties, horizon, trial_predicted);
         else
             linearize(c, duties, trial_predicted, jacobian);
