@@ -36,6 +36,10 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
             # the ablation's variant (cosim.study.optimizer_ablation.ONE_STEP): what the second Gauss-Newton step costs
             controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, one step)", optimizer="rti"), **ONE_STEP))
+            # the option the study does not take (RtiSettings.reuse_jacobian): the second step's trial rolled out with
+            # the first step's sensitivities, not linearised again
+            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, reused Jacobian)", optimizer="rti"),
+                                        reuse_jacobian=True))
         for controller in controllers:
             measurements = record_measurements(binding, implemented(controller), scenario)
             result = replay(controller, measurements, repeats=1 if quick else 3)
