@@ -10,7 +10,7 @@ three minutes on two cores with the audit, the seeds' identification on a first 
 ``make every-seed`` runs it on everything and writes results/.
 
     nice ./.venv/bin/python scripts/optimizer_every_seed.py [--results results] [--cache ~/.cache/buck-cosim/every-seed]
-        [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--json FILE] [--out DIR] [--rti FIELD=VALUE ...]
+        [--pipelines TAG,...] [--seeds 0,1,...] [--no-audit] [--out DIR] [--rti FIELD=VALUE ...]
 
 Exit codes: 0 done, 2 bad arguments (one line, before any simulation).
 """
@@ -20,14 +20,13 @@ from __future__ import annotations
 import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
-    from cosim.study.optimizer_ablation import summary, verdict
+    from cosim.study.optimizer_ablation import verdict
     from cosim.study.optimizer_every_seed import every_seed, rti_changes, write_tables
 
     parser = argparse.ArgumentParser(prog="optimizer_every_seed.py", description=__doc__.splitlines()[0])
@@ -36,7 +35,6 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--pipelines", default="", help="comma-separated pipeline tags (default: all)")
     parser.add_argument("--seeds", default="", help="comma-separated seeds (default: the study's)")
     parser.add_argument("--no-audit", action="store_true", help="skip the per-sample search (no plan-cost excess)")
-    parser.add_argument("--json", type=Path, help="write the rows (without their per-sample arrays) here")
     parser.add_argument("--out", type=Path, help="write optimizer-every-seed.csv and .md into this folder (after every "
                                                  "run; the .md says incomplete until the last)")
     parser.add_argument("--rti", action="append", default=[], metavar="FIELD=VALUE",
@@ -69,9 +67,6 @@ def main(argv: list[str]) -> int:
         write_tables(args.out, rows, complete=True, command=command.strip())
     for key, (value, met) in verdict(rows).items():
         print(f"all: {key} = {value:.4g} ({'met' if met else 'NOT met'})")
-    if args.json:
-        args.json.write_text(json.dumps([{**summary(r), "pipeline": r["pipeline"], "seed": r["seed"]} for r in rows],
-                                        indent=1) + "\n")
     return 0
 
 
