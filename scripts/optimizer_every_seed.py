@@ -30,8 +30,10 @@ def main(argv: list[str]) -> int:
     from cosim.study.optimizer_every_seed import every_seed, rti_changes, write_tables
 
     parser = argparse.ArgumentParser(prog="optimizer_every_seed.py", description=__doc__.splitlines()[0])
-    parser.add_argument("--results", type=Path, default=Path("results"))
-    parser.add_argument("--cache", type=Path, default=cache_dir() / "every-seed")
+    parser.add_argument("--results", type=Path, default=Path("results"),
+                        help="the reproduction's results folder: its models/ and PI tunings (default: results)")
+    parser.add_argument("--cache", type=Path, default=cache_dir() / "every-seed",
+                        help="where the seeds' identified networks are kept between runs")
     parser.add_argument("--pipelines", default="", help="comma-separated pipeline tags (default: all)")
     parser.add_argument("--seeds", default="", help="comma-separated seeds (default: the study's)")
     parser.add_argument("--no-audit", action="store_true", help="skip the per-sample search (no plan-cost excess)")
