@@ -26,6 +26,7 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms",
                 "controller compute per step, MPC-mismatched, 13.33 us", "data collection, 500 samples",
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
+                "reproduction time with the RTI / with the search (same run)",
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per RTI step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per RTI step: tanh calls",
                 "NNPC (search) 13.33 us per step: tanh calls", "C step, NNPC-explicit, 13.33 us",

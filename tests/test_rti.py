@@ -549,3 +549,54 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     assert targets["iae_ratio_worst"] == (row["iae_ratio"], row["iae_ratio"] <= 1.02)
     assert targets["startup_overshoot_increase_points_worst"] == (row["overshoot_difference_points"],
                                                                   row["overshoot_difference_points"] <= 0.5)
+
+
+def test_default_optimizer_switches_the_controllers_without_one_and_restores_the_default():
+    """The reproduction's measurement switch (``reproduce(optimizer=...)``): inside it the NNPC and the MPC baselines
+    built without an optimizer take the one named; one given keeps its own; the default comes back afterwards, also
+    after an error; an unknown name is refused by name before anything changes."""
+    from cosim.base.errors import ConfigError
+    from cosim.study import experiments
+    from cosim.study.experiments import SWITCHING_PERIOD_RTI, default_optimizer, model_mpc, nnpc
+
+    model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
+    assert nnpc(model, TS).rti == SWITCHING_PERIOD_RTI
+    with default_optimizer("search"):
+        assert nnpc(model, TS).rti is None and model_mpc(NOMINAL, TS, "MPC").rti is None
+        assert nnpc(model, TS, optimizer="rti").rti == SWITCHING_PERIOD_RTI  # its own optimizer
+    assert nnpc(model, TS).rti == SWITCHING_PERIOD_RTI and experiments.DEFAULT_OPTIMIZER == "rti"
+    with pytest.raises(RuntimeError), default_optimizer("search"):
+        raise RuntimeError("a failing reproduction")
+    assert experiments.DEFAULT_OPTIMIZER == "rti"
+    with pytest.raises(ConfigError, match=r"^optimizer 'gradient' is unknown: expected one of rti, search$"):
+        with default_optimizer("gradient"):
+            pass
+    assert experiments.DEFAULT_OPTIMIZER == "rti"
+
+
+def test_reproduce_refuses_an_unknown_optimizer_before_any_work(tmp_path):
+    from cosim.base.errors import ConfigError
+    from cosim.study.reproduce import reproduce
+
+    with pytest.raises(ConfigError, match=r"^optimizer 'grid' is unknown: expected one of rti, search$"):
+        reproduce(tmp_path / "out", optimizer="grid")
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_reproductions_workers_take_the_default_optimizer_it_is_given():
+    """``reproduce(optimizer=...)`` sets its workers' default with a worker plugin (a restarted worker too); checked
+    on a one-worker LocalCluster on loopback."""
+    from cosim.study.cluster import dask_client
+    from cosim.study.reproduce import _default_optimizer_plugin
+
+    def worker_default():
+        from cosim.study import experiments
+
+        return experiments.DEFAULT_OPTIMIZER
+
+    with dask_client(workers=1) as client:
+        assert list(client.run(worker_default).values()) == ["rti"]
+        client.register_plugin(_default_optimizer_plugin("search"))
+        assert list(client.run(worker_default).values()) == ["search"]
+        client.restart(timeout=60)
+        assert list(client.run(worker_default).values()) == ["search"]

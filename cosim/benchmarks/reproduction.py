@@ -60,3 +60,32 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
                 rows.append(BenchRow(f"NNPC IAE / PI IAE, {scenario}, {pipeline}", ratio, None, "ratio", target,
                                      ratio <= 0.6 if target else None))
     return rows
+
+
+def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
+    """Issue 24's "make reproduce with the new optimizer <= 0.5 x its time with the old one, in one bench run": the
+    reproduction (C controllers, 2 workers, into a temporary folder) with the RTI as the predictive controllers'
+    default and again with the search as their default (``reproduce(optimizer=...)``), one after the other."""
+    import tempfile
+    from dataclasses import replace
+
+    from cosim.study.reproduce import FULL, QUICK, reproduce
+
+    profile = replace(QUICK, pipelines=("nominal-averaged__1ms",), seeds=(0,), drift=False,
+                      ablations=False) if quick else FULL
+    times = {}
+    for optimizer in ("rti", "search"):
+        with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
+            start = time.perf_counter()
+            reproduce(Path(tmp), workers=2, profile=profile, optimizer=optimizer)
+            times[optimizer] = time.perf_counter() - start
+    scope = ", smoke profile: one 1 ms pipeline of --quick" if quick else ""
+    ratio = times["rti"] / times["search"]
+    return [BenchRow(f"end-to-end reproduction, the RTI the predictive controllers' default (as make reproduce){scope}",
+                     times["rti"], None, "s"),
+            BenchRow(f"end-to-end reproduction, the search the predictive controllers' default{scope}",
+                     times["search"], None, "s",
+                     note="controllers given an optimizer of their own keep it either way: the optimizer ablation's "
+                          "pairs, the paper's 3-7-2 NNPC (the search), the distillation's expert (the search)"),
+            BenchRow("reproduction time with the RTI / with the search (same run)", ratio, None, "ratio", "<= 0.5",
+                     ratio <= 0.5, "issue 24's target; the runs of both are the same jobs, seeds and sizes")]

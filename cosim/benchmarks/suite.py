@@ -24,7 +24,7 @@ from cosim.benchmarks.inference import bench_inference
 from cosim.benchmarks.master import bench_master
 from cosim.benchmarks.numeric_env import bench_numeric_env
 from cosim.benchmarks.plant import bench_plant
-from cosim.benchmarks.reproduction import bench_reproduction
+from cosim.benchmarks.reproduction import bench_reproduction, bench_reproduction_optimizer
 from cosim.benchmarks.soak import bench_soak
 from cosim.benchmarks.subjects import reading_models_from
 from cosim.benchmarks.sweep import bench_sweep
@@ -44,6 +44,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "numeric-env": bench_numeric_env,
     "inference": bench_inference,
     "reproduction": bench_reproduction,
+    "reproduction-optimizer": bench_reproduction_optimizer,
     "sweep": bench_sweep,
     "soak": bench_soak,
 }

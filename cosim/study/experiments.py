@@ -9,6 +9,7 @@ come from :mod:`cosim.study.vocabulary`.
 from __future__ import annotations
 
 import copy
+from contextlib import contextmanager
 from dataclasses import replace
 
 from controllers.adaptation import AdaptationSettings, AdaptiveNNPC
@@ -171,6 +172,27 @@ OPTIMIZERS = ("rti", "search")
 DEFAULT_OPTIMIZER = "rti"
 
 
+def check_optimizer(optimizer: str) -> str:
+    if optimizer not in OPTIMIZERS:
+        raise ConfigError(f"optimizer {optimizer!r} is unknown: expected one of {', '.join(OPTIMIZERS)}")
+    return optimizer
+
+
+@contextmanager
+def default_optimizer(optimizer: str):
+    """Within it, every predictive controller built without an ``optimizer`` of its own takes ``optimizer`` instead of
+    :data:`DEFAULT_OPTIMIZER` (this process only: :func:`cosim.study.reproduce.reproduce` sets its workers too).
+    A measurement switch -- the benchmark group ``reproduction-optimizer`` times the reproduction with each -- not
+    a study setting: controllers given an optimizer (the ablation's, the paper's NNPC, the distillation's expert)
+    keep theirs, and the report's prose describes the default."""
+    global DEFAULT_OPTIMIZER
+    before, DEFAULT_OPTIMIZER = DEFAULT_OPTIMIZER, check_optimizer(optimizer)
+    try:
+        yield
+    finally:
+        DEFAULT_OPTIMIZER = before
+
+
 #: the RTI at one switching period (13.33 us): two Gauss-Newton steps without a line search, Levenberg-Marquardt
 #: damping 1e-3, a proximal term 1e-4 on the applied move, and the search at any sample more than 0.5 V off the
 #: reference (which carries the start-up's and every reference step's transient; the start-up's first 1 V are
@@ -213,9 +235,7 @@ def rti_settings(control_period: float, optimizer: str | None = None,
     RTI's exact optimum and the search's lattice point otherwise decided the IAE ratio of runs whose IAE is
     a few microvolt-seconds (the load change on the ideal averaged plant, whose exact steady duty 0.25 is on
     the search's lattice: 1.3-1408 x the search's IAE unrounded)."""
-    optimizer = DEFAULT_OPTIMIZER if optimizer is None else optimizer
-    if optimizer not in OPTIMIZERS:
-        raise ConfigError(f"optimizer {optimizer!r} is unknown: expected one of {', '.join(OPTIMIZERS)}")
+    optimizer = check_optimizer(DEFAULT_OPTIMIZER if optimizer is None else optimizer)
     if optimizer == "search":
         return None
     if not transient_within_sample(control_period):

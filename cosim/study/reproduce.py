@@ -50,7 +50,9 @@ from cosim.study.envelope_identification import coverage
 from cosim.study.experiments import (
     PAPER_NNPC_OPTIMIZER,
     adaptive_nnpc,
+    check_optimizer,
     collection_settings,
+    default_optimizer,
     default_region,
     implemented,
     model_mpc,
@@ -677,8 +679,25 @@ def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_fil
 SOURCE_PRIORITY, STUDY_PRIORITY = 100, -10
 
 
+def _default_optimizer_plugin(optimizer: str):
+    """A dask worker plugin that makes ``optimizer`` the default on every worker of the reproduction's cluster
+    (set up on each, restarted ones too), as :func:`default_optimizer` does in this process."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class DefaultOptimizer(WorkerPlugin):
+        name = "buck-cosim-default-optimizer"
+
+        def setup(self, worker) -> None:
+            from cosim.study import experiments
+
+            experiments.DEFAULT_OPTIMIZER = optimizer
+
+    return DefaultOptimizer()
+
+
 def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
-                    implementation: str, workers: int, resume: bool, study_wanted: bool, map_wanted: bool = False):
+                    implementation: str, workers: int, resume: bool, study_wanted: bool, map_wanted: bool = False,
+                    optimizer: str | None = None):
     """The reproduction as dask tasks on a LocalCluster: the PI tunings first (every job of a plant
     and rate needs its gains), then the jobs (longest first, so the workers finish together; a job
     that depends on another is submitted when that one finishes), and the tolerance study's tasks as
@@ -689,6 +708,8 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
     from cosim.study.cluster import dask_client
 
     with dask_client(workers=max(1, workers), worker_saturation=1.0) as client:
+        if optimizer is not None:
+            client.register_plugin(_default_optimizer_plugin(optimizer))
         tuned = {client.submit(_guarded, _tune_job, (p, out_dir, profile), pure=False,
                                key=f"buck-cosim-tuning-{p.tag}"): p for p in tunings}
         for future in as_completed(list(tuned), loop=client.loop):
@@ -792,7 +813,8 @@ def _study_timing(study, counts) -> dict | None:
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
               implementation: str = "c",
               profile: Profile = FULL, binding_file: str | None = None,
-              control_periods: tuple[float, ...] = (), controller_files: tuple[str, ...] = ()) -> Path:
+              control_periods: tuple[float, ...] = (), controller_files: tuple[str, ...] = (),
+              optimizer: str | None = None) -> Path:
     """Run every job and write ``REPORT.md``; returns the report path.
 
     With ``binding_file``, the pipeline runs on that external plant at ``control_periods``
@@ -800,8 +822,23 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     ``implementation``: the controllers' C twins ("c", equivalent at every sample and faster) or
     their Python references ("python"). ``controller_files``: controller FMUs / controller-binding
     files run next to the built-in controllers in every pipeline at their sample period (checked
-    before any work starts).
+    before any work starts). ``optimizer`` (Python API only, a measurement switch): the default optimizer of
+    the predictive controllers that have none of their own, here and on every worker
+    (:func:`cosim.study.experiments.default_optimizer`; None: the study's, the RTI) -- the benchmark group
+    ``reproduction-optimizer`` times the reproduction with "rti" and with "search"; the report's prose
+    describes the default.
     """
+    if optimizer is None:
+        return _reproduce(out_dir, workers, resume, seed, implementation, profile, binding_file, control_periods,
+                          controller_files)
+    with default_optimizer(check_optimizer(optimizer)):
+        return _reproduce(out_dir, workers, resume, seed, implementation, profile, binding_file, control_periods,
+                          controller_files, optimizer)
+
+
+def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementation: str, profile: Profile,
+               binding_file: str | None, control_periods: tuple[float, ...], controller_files: tuple[str, ...],
+               optimizer: str | None = None) -> Path:
     from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
@@ -839,7 +876,8 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     if todo or study_wanted or map_wanted:
         try:
             study, study_counts, envelope_map, map_execution = _run_on_cluster(
-                todo, tunings, outputs, out_dir, profile, implementation, workers, resume, study_wanted, map_wanted)
+                todo, tunings, outputs, out_dir, profile, implementation, workers, resume, study_wanted, map_wanted,
+                optimizer)
         finally:
             remove_temporary_files(out_dir)  # what unfinished writes left, once the workers are gone
     map_started = time.perf_counter()
