@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _c_and_python_step_us, _p99, per_sample_median
+from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _c_and_python_step_us, _p99, per_sample_median_row
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
 from cosim.study.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, transient_within_sample
 
@@ -61,16 +61,10 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                     f"{note + '; ' if note else ''}the search planned the other {fallbacks} (the cold start and the "
                     f"fallback rule: start-up region, reference steps): p50 {float(np.median(search_us)):.4g} us, max "
                     f"{float(np.max(search_us)):.4g} us -- the next row is every step"))
-                typical = per_sample_median(per_pass)[result.rti]
-                typical_p99 = _p99(typical)
-                rows.append(BenchRow(
-                    f"C RTI step, {controller.name}, {label}, each sample's median over the {len(per_pass)} passes "
-                    f"(the same {int(result.rti.sum())} samples; the operating system's interruptions left out)",
-                    float(np.median(typical)), typical_p99, "us", f"p99 <= {limit:.3g} us" if online else "",
-                    typical_p99 <= limit if online else None,
-                    "the step's own cost on these inputs, its data's worst case at p99; the row above is every pass's "
-                    "steps as timed, with the interrupts and preemptions of a non-real-time OS "
-                    "(cosim.benchmarks.common.per_sample_median)"))
+                rows.append(per_sample_median_row(
+                    f"C RTI step, {controller.name}, {label}", per_pass, result.rti, limit if online else None,
+                    "the row above is every pass's steps as timed, with the interrupts and preemptions of a "
+                    "non-real-time OS"))
                 note += (f"{'; ' if note else ''}every step, the search's {fallbacks} included "
                          f"({100 * fallbacks / len(measurements):.2g} % of the samples: the p99 is theirs at 1 % or more)")
             rows.append(BenchRow(f"C step, {controller.name}, {label} ({len(measurements)} replayed samples, "

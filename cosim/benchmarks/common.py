@@ -42,6 +42,20 @@ def per_sample_median(per_pass: np.ndarray) -> np.ndarray:
     return np.median(np.asarray(per_pass, dtype=float), axis=0)
 
 
+def per_sample_median_row(benchmark: str, per_pass: np.ndarray, planned: np.ndarray, limit_us: float | None,
+                          note: str = "") -> BenchRow:
+    """The row of the ``planned`` samples' per-sample medians (:func:`per_sample_median`, ``per_pass`` in us), with
+    the target p99 <= ``limit_us`` (None: no target) -- beside a row of the same steps as timed."""
+    typical = per_sample_median(per_pass)[planned]
+    p99 = _p99(typical)
+    return BenchRow(f"{benchmark}, each sample's median over the {len(per_pass)} passes (the same "
+                    f"{int(np.count_nonzero(planned))} samples; the operating system's interruptions left out)",
+                    float(np.median(typical)), p99, "us", f"p99 <= {limit_us:.3g} us" if limit_us is not None else "",
+                    p99 <= limit_us if limit_us is not None else None,
+                    "the step's own cost on these inputs, its data's worst case at p99"
+                    f"{'; ' + note if note else ''} (cosim.benchmarks.common.per_sample_median)")
+
+
 def _median_time(function, repeats: int) -> float:
     samples = []
     for _ in range(repeats):

@@ -1,4 +1,5 @@
-"""Group reproduction: end to end, and the quality ratios of that very run."""
+"""Groups reproduction (end to end with the C and the Python controllers, and the quality ratios of that very run)
+and reproduction-optimizer (end to end with the RTI and with the search as the predictive controllers' default)."""
 
 from __future__ import annotations
 
@@ -10,30 +11,47 @@ import pandas as pd
 from cosim.benchmarks.common import BenchRow
 from cosim.study.vocabulary import MPC_ORACLE, NNPC, PAPER_PERIOD, PI
 
+#: what --quick names in the rows: the suite's smoke test runs one 1 ms pipeline of the quick profile
+SMOKE_SCOPE = ", smoke profile: one 1 ms pipeline of --quick"
 
-def bench_reproduction(quick: bool) -> list[BenchRow]:
-    import tempfile
+
+def _profile(quick: bool):
+    """The reproduction's profile for a bench run: the full one, or with --quick (the suite's smoke test) one 1 ms
+    pipeline of the quick profile, no seed jobs, ablations or drift study (the rows exist and are computed; the
+    numbers mean nothing)."""
     from dataclasses import replace
 
-    from cosim.base.labels import period_label
-    from cosim.study.reproduce import FULL, QUICK, reproduce
+    from cosim.study.reproduce import FULL, QUICK
 
-    # --quick is the suite's smoke test: one 1 ms pipeline of the quick profile, no seed jobs,
-    # ablations or drift study (the rows exist and are computed; the numbers mean nothing)
-    profile = replace(QUICK, pipelines=("nominal-averaged__1ms",), seeds=(0,), drift=False,
-                      ablations=False) if quick else FULL
-    times = {}
-    for implementation in ("python", "c"):  # the same reproduction, controllers in Python and in C
-        with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
-            start = time.perf_counter()
-            reproduce(Path(tmp), workers=2, profile=profile, implementation=implementation)
-            times[implementation] = time.perf_counter() - start
-            if implementation == "c":
-                metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv")
+    return replace(QUICK, pipelines=("nominal-averaged__1ms",), seeds=(0,), drift=False,
+                   ablations=False) if quick else FULL
+
+
+def _timed_reproduction(quick: bool, read_metrics: bool = False, **options) -> tuple[float, pd.DataFrame | None]:
+    """Seconds of one whole reproduction (2 workers, into a temporary folder, ``options`` to ``reproduce``), and its
+    metrics table if asked for (read before the folder goes)."""
+    import tempfile
+
+    from cosim.study.reproduce import reproduce
+
+    with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
+        start = time.perf_counter()
+        reproduce(Path(tmp), workers=2, profile=_profile(quick), **options)
+        elapsed = time.perf_counter() - start
+        metrics = pd.read_csv(Path(tmp) / "metrics" / "metrics_all.csv") if read_metrics else None
+    return elapsed, metrics
+
+
+def bench_reproduction(quick: bool) -> list[BenchRow]:
+    from cosim.base.labels import period_label
+
+    # the same reproduction, controllers in Python and in C
+    times = {"python": _timed_reproduction(quick, implementation="python")[0]}
+    times["c"], metrics = _timed_reproduction(quick, read_metrics=True, implementation="c")
     elapsed = times["c"]
     ratio = times["c"] / times["python"]
     command = "buck-cosim reproduce"
-    scope = ", smoke profile: one 1 ms pipeline of --quick" if quick else ""
+    scope = SMOKE_SCOPE if quick else ""
     rows = [BenchRow(f"end-to-end reproduction ({command}{scope}), 2 workers, controllers as their C twins (the "
                      "default)", elapsed, None, "s", "<= 120 s on 2 cores", elapsed <= 120.0),
             BenchRow(f"end-to-end reproduction ({command} --implementation python{scope}), 2 workers",
@@ -66,20 +84,8 @@ def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
     """Issue 24's "make reproduce with the new optimizer <= 0.5 x its time with the old one, in one bench run": the
     reproduction (C controllers, 2 workers, into a temporary folder) with the RTI as the predictive controllers'
     default and again with the search as their default (``reproduce(optimizer=...)``), one after the other."""
-    import tempfile
-    from dataclasses import replace
-
-    from cosim.study.reproduce import FULL, QUICK, reproduce
-
-    profile = replace(QUICK, pipelines=("nominal-averaged__1ms",), seeds=(0,), drift=False,
-                      ablations=False) if quick else FULL
-    times = {}
-    for optimizer in ("rti", "search"):
-        with tempfile.TemporaryDirectory(prefix="buck-bench-") as tmp:
-            start = time.perf_counter()
-            reproduce(Path(tmp), workers=2, profile=profile, optimizer=optimizer)
-            times[optimizer] = time.perf_counter() - start
-    scope = ", smoke profile: one 1 ms pipeline of --quick" if quick else ""
+    times = {optimizer: _timed_reproduction(quick, optimizer=optimizer)[0] for optimizer in ("rti", "search")}
+    scope = SMOKE_SCOPE if quick else ""
     ratio = times["rti"] / times["search"]
     return [BenchRow(f"end-to-end reproduction, the RTI the predictive controllers' default (as make reproduce){scope}",
                      times["rti"], None, "s"),
