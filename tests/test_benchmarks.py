@@ -44,7 +44,7 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "plant doStep, averaged DCM at d = 1e-07", "averaged DCM cost spread over d",
                 "soak: worker resident memory growth", "soak: the workbench's own process",
                 "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the",
-                "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the same",
+                "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the RTI samples, each sample's median",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else
                 "NNPC-explicit 13.33 us on a Cortex-M4F (float32, QEMU mps2-an386): max cycles per step",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _p99, per_sample_median
+from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _p99, per_sample_median_row
 from cosim.benchmarks.subjects import _mixed_scenario, _nn_model
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
@@ -89,12 +89,7 @@ def _adaptive_c_step_rows(model, origin: str, samples: int) -> list[BenchRow]:
                      f"NN: {origin}; mismatch switched plant, {len(us)} passes; the search planned the other "
                      f"{int((~rti).sum())} (cold start, start-up region, reference steps): p50 "
                      f"{float(np.median(searched)):.4g} us, max {float(np.max(searched)):.4g} us")]
-    typical = per_sample_median(us)[rti]
-    rows.append(BenchRow(f"{name}: the same {int(rti.sum())} samples, each one's median over the {len(us)} passes "
-                         "(the operating system's interruptions left out)",
-                         float(np.median(typical)), _p99(typical), "us", "p99 <= 13.3 us", _p99(typical) <= 13.3,
-                         "the step's own cost on these inputs, its data's worst case at p99 "
-                         "(cosim.benchmarks.common.per_sample_median)"))
+    rows.append(per_sample_median_row(f"{name}: the RTI samples", us, rti, 13.3))
     if updated.any():
         rows.append(BenchRow(f"{name}: the {int(updated.sum())} RTI samples with an RLS update",
                              float(np.median(learned)), _p99(learned), "us",
