@@ -35,47 +35,14 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         if quick:
             scenario = replace_scenario(scenario, 0.0003)
         rti = nnpc(model, period, NNPC, optimizer="rti")
-        costs: list[float] = []
-
-        class Costed:  # the C RTI, keeping each plan's eq. 16 cost
-            name, sample_period, duty_limits = rti.name, rti.sample_period, rti.duty_limits
-
-            def __init__(self):
-                self.twin = implemented(rti)
-
-            def reset(self):
-                self.twin.reset()
-
-            def step(self, m):
-                duty = self.twin.step(m)
-                cost = self.twin.best_cost  # NaN where the RTI did not roll its plan out: evaluated here
-                costs.append(cost if np.isfinite(cost) else self.twin.cost(self.twin.plan_sequence)[0])
-                return duty
-
-            def describe(self):
-                return self.twin.describe()
-
-        result_rti = simulate(binding, Costed(), scenario, record_period=period)
+        twin = PlanCosts(implemented(rti), _rti_plan_cost)
+        result_rti = simulate(binding, twin, scenario, record_period=period)
         measurements = record_measurements(binding, implemented(rti), scenario)
         timed = replay(rti, measurements, repeats=1 if quick else 3)
         peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
-        peer_costs: list[float] = []
-
-        class CostedPeer:
-            name, sample_period, duty_limits = peer.name, peer.sample_period, peer.duty_limits
-
-            def reset(self):
-                peer.reset()
-
-            def step(self, m):
-                duty = peer.step(m)
-                peer_costs.append(peer.best_cost)
-                return duty
-
-            def describe(self):
-                return peer.describe()
-
-        result_peer = simulate(binding, CostedPeer(), scenario, record_period=period)
+        costed_peer = PlanCosts(peer, lambda solver: solver.best_cost)
+        result_peer = simulate(binding, costed_peer, scenario, record_period=period)
+        costs, peer_costs = twin.costs, costed_peer.costs
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
         c_ns = timed.ns * 1e-3
         iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
@@ -99,6 +66,35 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
                           f"{peer.smoothing} V), the cost is the exact eq. 16 of its plan"),
         ]
     return rows
+
+
+class PlanCosts:
+    """A controller in the closed loop, keeping after each step ``plan_cost(controller)``: the eq. 16 cost of the
+    plan it applied (``costs``, one per step since the last reset)."""
+
+    def __init__(self, controller, plan_cost):
+        self.controller, self.plan_cost = controller, plan_cost
+        self.name, self.sample_period, self.duty_limits = (controller.name, controller.sample_period,
+                                                           controller.duty_limits)
+        self.costs: list[float] = []
+
+    def reset(self):
+        self.controller.reset()
+        self.costs = []
+
+    def step(self, m):
+        duty = self.controller.step(m)
+        self.costs.append(self.plan_cost(self.controller))
+        return duty
+
+    def describe(self):
+        return self.controller.describe()
+
+
+def _rti_plan_cost(twin) -> float:
+    """The C RTI's plan cost: NaN where it did not roll its plan out (no line search), evaluated then."""
+    cost = twin.best_cost
+    return cost if np.isfinite(cost) else twin.cost(twin.plan_sequence)[0]
 
 
 def replace_scenario(scenario, duration: float):

@@ -134,8 +134,8 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
             model = calibrated(CORTEX_M4F, tanh_cycles, forward, layer_macs, counts["tanh"])
             for what, value, committed, how in (
                     ("multiply-accumulate", model.mac, CORTEX_M4F.mac,
-                     f"the explicit NNPC's forward pass ({forward:.0f} cycles a step: {layer_macs} layer MACs, "
-                     f"{counts['tanh']:.0f} tanh) less its tanh at the probe's {tanh_cycles:.1f}, per MAC"),
+                     (f"the explicit NNPC's forward pass ({forward:.0f} cycles a step: {layer_macs} layer MACs, "
+                      f"{counts['tanh']:.0f} tanh) less its tanh at the probe's {tanh_cycles:.1f}, per MAC")),
                     ("tanh", model.tanh, CORTEX_M4F.tanh, "the tanh probe's median (above)")):
                 rows.append(BenchRow(f"cost model calibrated on the Cortex-M4F: cycles per {what}", value, None,
                                      "cycles", f"controllers/cost_model.py's {committed:g} within 5 %",

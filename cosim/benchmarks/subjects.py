@@ -12,7 +12,6 @@ from pathlib import Path
 from cosim.study.vocabulary import SWITCHING_PERIOD, transient_within_sample
 from plant_fmu.table_ii import TABLE_II
 
-
 #: where the reproduction's trained models are looked for (:func:`reading_models_from` sets it: ``OUT/models``
 #: or ``--models``); a group finds none there and trains or distils its own
 _models_dir: Path = Path("results") / "models"

@@ -153,10 +153,11 @@ def write_benchmarks(rows: list[BenchRow], out_dir: Path, quick: bool) -> tuple[
     if notes:
         lines += ["", "Notes:", ""] + [f"- {r.benchmark}: {r.note}" for r in notes]
     lines += ["", "## What profiling changed", "",
-              "The end-to-end reproduction is dominated by the predictive controllers at one switching period "
-              "(a 23-step horizon, thousands of samples). cProfile showed the time in the NN rollout, the "
-              "optimizer's array set-up and the model discretisation; the rows above measure each fix "
-              "against the code path it replaced, in this run:",
+              ("When this profiling was done, before the real-time iteration (issue 24), the end-to-end "
+               "reproduction was dominated by the predictive controllers' search at one switching period (a "
+               "23-step horizon, thousands of samples; where its time goes now: timings.md, written by make "
+               "reproduce). cProfile showed the time in the NN rollout, the optimizer's array set-up and the model "
+               "discretisation; the rows above measure each fix against the code path it replaced, in this run:"),
               "",
               "- NN inference in numpy with the normalisation folded into the weights, not torch "
               "(`speed-up of numpy over torch`);",
