@@ -14,7 +14,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     estimation: cosim/study/dompc_peer.py), each in closed loop on the nominal switched plant FMU through the
     paper's start-up and load change at 13.33 us: time per step (the C RTI's by the C harness replaying its
     own closed loop's measurements; do-mpc's solve timed in-process), IAE and the eq. 16 cost of the plans."""
-    from cosim.benchmark_harness import record_measurements, replay
+    from cosim.benchmark_harness import Recorder, replay
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.study.dompc_peer import DoMpcNnpc
@@ -35,14 +35,14 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         if quick:
             scenario = replace_scenario(scenario, 0.0003)
         rti = nnpc(model, period, NNPC, optimizer="rti")
-        twin = PlanCosts(implemented(rti), _rti_plan_cost)
-        result_rti = simulate(binding, twin, scenario, record_period=period)
-        measurements = record_measurements(binding, implemented(rti), scenario)
+        twin = Recorder(PlanCosts(implemented(rti), _rti_plan_cost))  # one closed loop: its costs and the
+        result_rti = simulate(binding, twin, scenario, record_period=period)  # measurements the harness replays
+        measurements = np.array(twin.rows, dtype=float)
         timed = replay(rti, measurements, repeats=1 if quick else 3)
         peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
         costed_peer = PlanCosts(peer, lambda solver: solver.best_cost)
         result_peer = simulate(binding, costed_peer, scenario, record_period=period)
-        costs, peer_costs = twin.costs, costed_peer.costs
+        costs, peer_costs = twin.inner.costs, costed_peer.costs
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
         c_ns = timed.ns * 1e-3
         iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
