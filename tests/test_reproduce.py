@@ -201,6 +201,24 @@ def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):
     assert "timings" not in summary
 
 
+def test_the_1ms_compute_target_reads_the_c_twins_benchmark_row_not_the_python_references(tmp_path):
+    """The workbench runs the C twin by default: the timing target takes its row's p99, whichever row comes
+    first in the table, and says so; the Python reference's row stays in the benchmark table beside it."""
+    from cosim.study.targets import TimingTargets
+
+    rows = [("controller compute per step, NNPC, 1 ms, Python reference (3000 samples, ...)", 206.0, 302.0),
+            ("controller compute per step, NNPC, 1 ms, C twin (3000 samples, ...)", 2.9, 11.5)]
+    pd.DataFrame(rows, columns=["benchmark", "median", "p99"]).to_csv(tmp_path / "benchmarks.csv", index=False)
+    metrics = pd.DataFrame({"controller": ["NNPC"], "pipeline": ["nominal-switched__1ms"], "controller_p99_us": [18.0]})
+    row = TimingTargets(metrics, 500.0, tmp_path).frame().iloc[0]
+    assert row["target"] == "NNPC compute per step p99 <= 100 us at 1 ms"
+    assert row["measured"] == "worst run p99 18 us; benchmark suite: p99 12 us" and row["met"] == "yes"
+    assert "C twin" in row["note"]
+    pd.DataFrame(rows[:1], columns=["benchmark", "median", "p99"]).to_csv(tmp_path / "benchmarks.csv", index=False)
+    row = TimingTargets(metrics, 500.0, tmp_path).frame().iloc[0]  # no C twin row: the runs' own p99 decides
+    assert row["measured"] == "worst run p99 18 us" and row["met"] == "yes"
+
+
 def test_a_second_reproduction_writes_the_same_bytes(reproduction, controller_fmu, tmp_path):
     """Everything committed from results/ is byte-identical when the reproduction runs again
     (the wall-clock files aside): tuned gains, models, pipeline summaries, metrics, targets,

@@ -13,7 +13,7 @@ from pathlib import Path
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MIN_SAMPLES
-from cosim.study.vocabulary import PLANT_VARIANTS, SENSORS
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, IMPLEMENTATIONS, PLANT_VARIANTS, SENSORS
 
 DEFAULT_RESULTS = Path("results")
 
@@ -188,7 +188,7 @@ def _add_plant_options(parser) -> None:
 
 
 def _add_implementation_option(parser) -> None:
-    parser.add_argument("--implementation", choices=["c", "python"], default="c",
+    parser.add_argument("--implementation", choices=list(IMPLEMENTATIONS), default=DEFAULT_IMPLEMENTATION,
                         help="run the PI and predictive controllers as their C twins (controllers/c: the same duty "
                              "at every sample, several times faster) or as the Python references (default: c)")
 

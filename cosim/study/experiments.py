@@ -34,6 +34,7 @@ from cosim.study.vocabulary import (
     ENVELOPE_REFERENCES,
     ENVELOPE_SUPPLIES,
     FAST_RATE_COMPRESSION,
+    IMPLEMENTATIONS,
     LC_PERIOD,
     PLANT_VARIANTS,
     SENSORS,
@@ -243,11 +244,6 @@ def rti_settings(control_period: float, optimizer: str | None = None,
     quantum = HorizonOptimizer(horizon_settings(control_period), duty_limits).warm_step
     return RtiSettings(iterations=2, line_search=True, step_limit=1.0, reference_step=0.0, startup_region=0.0,
                        duty_resolution=quantum)
-
-
-#: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every
-#: sample; the default, several times faster for the predictive controllers) or the Python reference
-IMPLEMENTATIONS = ("c", "python")
 
 
 def implemented(controller, implementation: str = "c"):

@@ -9,7 +9,8 @@ typing them again:
   mismatch-study circuit, the sensor choices, and :func:`plant_tag` (how files and tables name a
   built-in plant);
 * **controllers** -- the command-line keys and the names runs carry, with their plot styles;
-* **time compression** -- how the paper's scenarios are shortened at the fast rate.
+* **time compression** -- how the paper's scenarios are shortened at the fast rate;
+* **implementations** -- a controller's C twin or its Python reference.
 
 Labels of periods (``1ms``, ``13.33 µs``) are the core's (:mod:`cosim.base.labels`): run files are
 named with them outside the study too.
@@ -231,3 +232,14 @@ COLLECTION_REGIONS = ("paper", "envelope")
 #: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
 ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
 ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
+
+
+# ---------------------------------------------------------------------------------------------
+# Implementations
+
+#: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every sample; the
+#: default, several times faster for the predictive controllers) or the Python reference
+IMPLEMENTATIONS = ("c", "python")
+DEFAULT_IMPLEMENTATION = "c"
+#: how tables and benchmark rows name each implementation
+IMPLEMENTATION_NAMES = {"c": "C twin", "python": "Python reference"}

@@ -68,7 +68,7 @@ from cosim.base.errors import ConfigError
 from cosim.base.toml_files import TomlLocator, parse_toml
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS
 from cosim.scenarios import Scenario, load_scenario
-from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD, PLANT_VARIANTS, SENSORS
+from cosim.study.vocabulary import CONTROLLERS, IMPLEMENTATIONS, PAPER_PERIOD, PLANT_VARIANTS, SENSORS
 
 SHIPPED_DIR = Path(__file__).parent / "studies"
 TOP_KEYS = {"name", "description", "plant", "parameters", "operating_point", "samples", "seed", "scenarios",
@@ -101,7 +101,6 @@ PERIOD_MATCH = 1e-9
 SPEC_METRICS = tuple(m for m in METRIC_COLUMNS if m not in WALLCLOCK_METRICS)
 #: signed metrics: a threshold bounds their magnitude
 SIGNED_METRICS = ("steady_state_error_V", "steady_state_error_pct")
-IMPLEMENTATIONS = ("c", "python")
 MAX_RUNS = 1_000_000
 NAME = re.compile(r"[A-Za-z0-9_.-]+")
 
