@@ -156,27 +156,47 @@ def raw_slave_factory(buck_fmu):
 # ------------------------------------------------------------------ the Cortex-M4F tests (marker: embedded)
 
 
+#: the lines saying which tests were deselected and why (pytest_terminal_summary prints them)
+_DESELECTED = pytest.StashKey[list]()
+
+
 def _deselect(config, items, marker: str, problem: str | None, what: str) -> None:
-    """Deselect the tests marked ``marker`` when ``problem`` says why they cannot run here, in one line."""
+    """Deselect the tests marked ``marker`` when ``problem`` says why they cannot run here (one line, kept
+    for the summary)."""
     marked = [item for item in items if item.get_closest_marker(marker)]
     if not marked or problem is None:
         return
     items[:] = [item for item in items if not item.get_closest_marker(marker)]
     config.hook.pytest_deselected(items=marked)
-    reporter = config.pluginmanager.get_plugin("terminalreporter")
-    if reporter is not None:
-        reporter.write_line(f"{len(marked)} {what} deselected: {problem}")
+    config.stash.setdefault(_DESELECTED, []).append(f"{len(marked)} {what} deselected: {problem}")
+
+
+def _missing_tools() -> list[tuple[str, str, str | None]]:
+    """(marker, what, why it cannot run here or None) of each kind of test that needs a tool."""
+    from cosim.benchmark_harness import cpu_emulation
+    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+
+    return [("embedded", "embedded tests", toolchain_problem()),
+            ("emulated", "emulated-CPU tests", cpu_emulation.problem())]
 
 
 def pytest_collection_modifyitems(config, items):
     """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
-    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``; each in one line."""
-    from cosim.benchmark_harness import cpu_emulation
-    from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``."""
+    if any(item.get_closest_marker("embedded") or item.get_closest_marker("emulated") for item in items):
+        for marker, what, problem in _missing_tools():
+            _deselect(config, items, marker, problem, what)
 
-    if any(item.get_closest_marker("embedded") for item in items):
-        _deselect(config, items, "embedded", toolchain_problem(), "embedded tests")
-    _deselect(config, items, "emulated", cpu_emulation.problem(), "emulated-CPU tests")
+
+def pytest_terminal_summary(terminalreporter, config):
+    """One line per kind of test deselected for a missing tool, saying which tool. Under pytest-xdist (``make
+    test``) the workers collect and their output goes nowhere, so its controller says it from the tools alone."""
+    if config.pluginmanager.hasplugin("dsession"):  # pytest-xdist's controller
+        lines = [f"{what} deselected: {problem}" for _, what, problem in _missing_tools() if problem]
+    else:
+        lines = config.stash.get(_DESELECTED, [])
+    for line in lines:
+        terminalreporter.write_line(line)
 
 
 CORPUS = Path(__file__).parent / "corpus"
@@ -244,10 +264,11 @@ def faulty_binding(fmu: Path, kind: int | None = None) -> str:
 # ------------------------------------------------------------------ the command line, as a user runs it
 
 
-def cli(*args, cwd=None, timeout=600) -> subprocess.CompletedProcess:
-    """Run ``buck-cosim --no-progress ARGS`` in a subprocess (no stdin), its output captured as text."""
+def cli(*args, cwd=None, timeout=600, env=None) -> subprocess.CompletedProcess:
+    """Run ``buck-cosim --no-progress ARGS`` in a subprocess (no stdin), its output captured as text; ``env``:
+    its environment (default: this process's)."""
     return subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", *args], capture_output=True,
-                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout)
+                          text=True, cwd=cwd, stdin=subprocess.DEVNULL, timeout=timeout, env=env)
 
 
 def one_line_error(done: subprocess.CompletedProcess, code: int, message: str) -> str:

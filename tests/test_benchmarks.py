@@ -55,6 +55,10 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     compute = table[table["benchmark"].str.startswith("controller compute per step, NNPC, 1 ms, ")]
     assert len(compute) == 2 and (compute["target"] == "p99 <= 100 us").all()
     assert (compute["meets_target"].astype(bool) == (compute["p99"] <= 100)).all(), compute[["benchmark", "p99"]]
+    # and they time two different steps: the C twin's (ctypes call included) far below numpy's on the same problem
+    c_twin, python = (compute.loc[compute["benchmark"].str.contains(name), "median"].item()
+                      for name in ("C twin", "Python reference"))
+    assert 10 * c_twin < python, (c_twin, python)
     assert table["command"].iloc[0] == "buck-cosim bench --quick"
     assert " cores), Linux " in table["machine"].iloc[0] and table["machine"].nunique() == 1
     # rerunning one group replaces only its rows; the others keep their values and their command

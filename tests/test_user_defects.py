@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -239,10 +238,6 @@ def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
 # ------------------------------------------------------------------ 9. a crashing FMU
 
 
-def _extracted_fmu_folders() -> set[str]:
-    return {p.name for p in Path(tempfile.gettempdir()).glob("buck-cosim-fmu-*")}
-
-
 def test_a_crashing_fmu_ends_the_run_not_the_workbench(tmp_path, faulty_fmu):
     """A plant FMU that dereferences NULL: isolated (the default for binding files) the run ends with
     exit 3 and one line naming the FMU and the time, the rows before the crash are written and
@@ -250,15 +245,16 @@ def test_a_crashing_fmu_ends_the_run_not_the_workbench(tmp_path, faulty_fmu):
     whole process with it -- the reason isolation is the default for external FMUs."""
     binding = tmp_path / "crash.toml"
     binding.write_text(faulty_binding(faulty_fmu, 4))
-    before = _extracted_fmu_folders()
+    private_tmp = tmp_path / "tmp"  # the run's own temporary folder: another test's plants extract theirs elsewhere
+    private_tmp.mkdir()
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
-                       "--out", str(tmp_path / "out")), 3,
+                       "--out", str(tmp_path / "out"), env={**os.environ, "TMPDIR": str(private_tmp)}), 3,
                    f"binding file {binding}: the FMU crashed the plant process (signal SIGSEGV) while stepping at "
                    "t = 0.0104 s")
     run = read_run(tmp_path / "out" / "runs" / "startup__pi__bound-crash__1ms.parquet")
     assert run.complete is False and "SIGSEGV" in run.error
     assert 0.0099 < run.frame["time"].max() < 0.0104 and len(run.frame) > 90
-    assert _extracted_fmu_folders() <= before
+    assert not list(private_tmp.glob("buck-cosim-fmu-*"))  # the extracted FMU is deleted
     crashed = cli("run", "startup", "--plant", str(binding), "--no-isolate", "--kp", "0", "--ki", "14",
                   "--record-period", "1e-4", "--out", str(tmp_path / "in-process"))
     assert crashed.returncode == -signal.SIGSEGV  # no message, no rows: what isolation prevents

@@ -7,7 +7,6 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow, _p99
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
-from cosim.study.targets import NNPC_P99_TARGET_US, controller_compute_benchmark
 from cosim.study.vocabulary import (
     IMPLEMENTATIONS,
     MISMATCH,
@@ -28,6 +27,7 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
     from cosim.fmi.plant import open_plant
     from cosim.master import run
     from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
+    from cosim.study.targets import NNPC_P99_TARGET_US, controller_compute_benchmark
 
     rows = []
     binding = plant_binding("nominal", "switched")
