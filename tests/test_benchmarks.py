@@ -23,7 +23,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
     assert (table.loc[measured & ~growth & ~overhead, "median"] > 0).all()
     assert table.loc[growth, "median"].notna().all() and growth.sum() == 2
     assert "| benchmark | median | p99 |" in markdown and "## What profiling changed" in markdown
-    for row in ("plant doStep, switched mode", "master overhead ratio", "controller compute per step, NNPC, 1 ms, C twin",
+    for row in ("plant doStep, switched mode", "master overhead ratio",
+                "controller compute per step, NNPC, 1 ms, C twin",
                 "controller compute per step, NNPC, 1 ms, Python reference",
                 "controller compute per step, MPC-mismatched, 13.33 us, C twin", "data collection, 500 samples",
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",

@@ -190,8 +190,8 @@ def _add_plant_options(parser) -> None:
 def _add_implementation_option(parser) -> None:
     parser.add_argument("--implementation", choices=list(IMPLEMENTATIONS), default=DEFAULT_IMPLEMENTATION,
                         help="run the PI and predictive controllers as their C twins (controllers/c: the same duty "
-                             "at every sample; the predictive ones 100-400 x faster per step with the RTI, the PI about "
-                             "as cheap: its ctypes call) or as the Python references (default: %(default)s)")
+                             "at every sample; the predictive ones 100-400 x faster per step with the RTI, the PI "
+                             "about as cheap: its ctypes call) or as the Python references (default: %(default)s)")
 
 
 def _add_pi_and_duty_options(parser, gains_default: str) -> None:

@@ -28,6 +28,7 @@ from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from cosim.study.data_collection import CollectionSettings
 from cosim.study.vocabulary import (
     COLLECTION_REGIONS,
+    DEFAULT_IMPLEMENTATION,
     ENVELOPE_DITHER,
     ENVELOPE_DITHER_HOLD,
     ENVELOPE_LOADS,
@@ -246,7 +247,7 @@ def rti_settings(control_period: float, optimizer: str | None = None,
                        duty_resolution=quantum)
 
 
-def implemented(controller, implementation: str = "c"):
+def implemented(controller, implementation: str = DEFAULT_IMPLEMENTATION):
     """``controller`` as it should run: its C twin for ``"c"`` (PI and predictive controllers;
     others as they are), itself for ``"python"``."""
     if implementation not in IMPLEMENTATIONS:

@@ -28,6 +28,7 @@ from cosim.study.claims import target_row
 from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
 from cosim.study.experiments import explicit_nnpc
 from cosim.study.vocabulary import (
+    DEFAULT_IMPLEMENTATION,
     NNPC,
     NNPC_EXPLICIT,
     SWITCHING_PERIOD,
@@ -83,8 +84,8 @@ def policy_path(out_dir: Path, tag: str) -> Path:
     return Path(out_dir) / "models" / f"{tag}__nnpc-explicit.pt"
 
 
-def in_pipeline(pipeline, binding, model, pi, out_dir: Path, profile, seed: int, implementation: str = "c",
-                timings: dict | None = None, log=None) -> list:
+def in_pipeline(pipeline, binding, model, pi, out_dir: Path, profile, seed: int,
+                implementation: str = DEFAULT_IMPLEMENTATION, timings: dict | None = None, log=None) -> list:
     """The reproduction's hook, once per pipeline: at one switching period, distill the pipeline's
     NNPC (``model``) into an explicit policy and return it as a controller to run beside the others
     (an empty list at 1 ms)."""

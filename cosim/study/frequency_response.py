@@ -31,14 +31,15 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError
 from cosim.base.files import atomic_write, atomic_write_text, json_text
 from cosim.scenarios import Scenario, ScenarioEvent
 from cosim.study.sweeps import dataset
 from cosim.study.sweeps.designs import build, design, injected_recipe
 from cosim.study.sweeps.plan import PlannedRun, batch_key
-from cosim.base.digests import canonical, digest
 from cosim.study.sweeps.recipes import PlantRecipe
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 INJECTIONS = ("duty", "reference", "load")
 #: default amplitudes: duty [1], reference [V], load [relative change of the load conductance]
@@ -201,7 +202,8 @@ def _runs(points, plant: PlantRecipe, recipes, scenarios) -> list[PlannedRun]:
 
 
 def measure(binding, entry, control_period: float, settings: ResponseSettings, out_dir: Path, *, client=None,
-            implementation: str = "c", progress: bool = False, record_period: float | None = None) -> pd.DataFrame:
+            implementation: str = DEFAULT_IMPLEMENTATION, progress: bool = False,
+            record_period: float | None = None) -> pd.DataFrame:
     """Measure one controller's response (module docstring); returns the points table (also written)."""
     from cosim.study.controller_factory import true_parameters
     from cosim.study.sweeps.execute import SweepExecution, execute

@@ -40,6 +40,7 @@ from cosim.study.vocabulary import (
     CLOSED_LOOP_ITERATIONS,
     CLOSED_LOOP_SAMPLES,
     CLOSED_LOOP_SEED_OFFSET,
+    DEFAULT_IMPLEMENTATION,
     MULTI_STEP_ITERATIONS,
     MULTI_STEP_STRIDE,
     ONE_STEP_ITERATIONS,
@@ -66,7 +67,7 @@ class Recipe:
     closed_loop_samples: int = CLOSED_LOOP_SAMPLES  # per round
     closed_loop_dither: float = CLOSED_LOOP_DITHER  # duty dither on the NNPC in those rounds
     closed_loop_iterations: int = CLOSED_LOOP_ITERATIONS  # of the refinement after each round, at most
-    implementation: str = "c"  # the NNPC in the rounds: its C twin (same duties, faster) or Python
+    implementation: str = DEFAULT_IMPLEMENTATION  # the NNPC in the rounds: its C twin (same duties, faster) or Python
     multi_step_iterations: int = MULTI_STEP_ITERATIONS  # at most, per simulation-error stage
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cosim.study.vocabulary import MPC_ORACLE, SWITCHING_PERIOD
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, MPC_ORACLE, SWITCHING_PERIOD
 
 #: the longer horizon measured [samples at 1/fsw]: the longest the C twin holds (BUCKC_MAX_HORIZON), 1.4 LC ringing
 #: periods against the study's one (23 samples)
@@ -52,7 +52,7 @@ def _overshoot_of_mean(result, scenario) -> float:
     return 100.0 * max(0.0, float(np.max(mean - final))) / final  # the load step: above r, of r
 
 
-def oracle(binding, horizon: int | None = None, implementation: str = "c"):
+def oracle(binding, horizon: int | None = None, implementation: str = DEFAULT_IMPLEMENTATION):
     """The oracle MPC on ``binding`` (its own circuit), with ``horizon`` samples (None: the study's)."""
     from cosim.study.controller_factory import true_parameters
     from cosim.study.experiments import horizon_settings, implemented, model_mpc

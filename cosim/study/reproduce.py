@@ -47,6 +47,7 @@ from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 from cosim.study import classical_design, envelope, explicit, frequency_response, optimizer_ablation, tolerance_study
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import collect, save_samples
+from cosim.study.design_cache import data_file, model_file, pi_file
 from cosim.study.envelope_identification import coverage
 from cosim.study.experiments import (
     PAPER_NNPC_OPTIMIZER,
@@ -64,7 +65,6 @@ from cosim.study.experiments import (
     scenarios_for,
     small_network,
 )
-from cosim.study.design_cache import data_file, model_file, pi_file
 from cosim.study.identification import (
     ONE_STEP,
     Recipe,
@@ -82,6 +82,7 @@ from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
     CLOSED_LOOP_SAMPLES,
     CONTROLLER_STYLES,
+    DEFAULT_IMPLEMENTATION,
     DRIFT_CAPACITANCE_FACTOR,
     DRIFT_RESISTANCE_FACTOR,
     DRIFT_SCENARIO,
@@ -294,7 +295,8 @@ def _scenarios(pipeline: Pipeline, binding, profile: Profile) -> list:
 
 
 def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
-                 implementation: str = "c", controller_files: tuple[str, ...] = ()) -> PipelineOutput:
+                 implementation: str = DEFAULT_IMPLEMENTATION,
+                 controller_files: tuple[str, ...] = ()) -> PipelineOutput:
     import torch
 
     from controllers.nn_model import save_model, train
@@ -443,7 +445,8 @@ def _identification_ablation(identified, binding, period, seed, batch, out_dir, 
 ABLATION_RUNS = (NNPC_SMALL_ONE_STEP, NNPC_CLOSED_LOOP)
 
 
-def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int, implementation: str = "c") -> PipelineOutput:
+def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
+             implementation: str = DEFAULT_IMPLEMENTATION) -> PipelineOutput:
     """The NNPC identified from seed ``seed``'s data (same PI, same recipe) and run on the paper's scenarios."""
     import torch
 
@@ -505,7 +508,7 @@ def drift_names(seed: int, first: bool) -> tuple[str, str, str]:
     return names if first else tuple(seed_variant(name, seed) for name in names)
 
 
-def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = "c",
+def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = DEFAULT_IMPLEMENTATION,
               reuse: bool = False, first: bool = True) -> PipelineOutput:
     """The drift study for one seed: the NNPC identified on the mismatch-study plant from that seed's
     data, without and with online adaptation, and one identified offline on the drifted plant (same
@@ -603,7 +606,7 @@ def _finish(output: PipelineOutput, out_dir: Path) -> PipelineOutput:
     return output
 
 
-def run_job(job: Job, out_dir: Path, profile: Profile, implementation: str = "c") -> PipelineOutput:
+def run_job(job: Job, out_dir: Path, profile: Profile, implementation: str = DEFAULT_IMPLEMENTATION) -> PipelineOutput:
     if job.kind == "pipeline":
         return run_pipeline(job.pipeline, out_dir, profile, job.seed, implementation, job.controllers)
     if job.kind == "seed":
@@ -811,7 +814,7 @@ def _study_timing(study, counts) -> dict | None:
 
 
 def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = False, seed: int = 0,
-              implementation: str = "c",
+              implementation: str = DEFAULT_IMPLEMENTATION,
               profile: Profile = FULL, binding_file: str | None = None,
               control_periods: tuple[float, ...] = (), controller_files: tuple[str, ...] = (),
               optimizer: str | None = None) -> Path:

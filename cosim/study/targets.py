@@ -50,7 +50,8 @@ def benchmark_p99(out_dir: Path) -> float | None:
         return None
     try:
         table = pd.read_csv(path)
-        row = table[table["benchmark"].str.startswith(controller_compute_benchmark(NNPC, "1 ms", DEFAULT_IMPLEMENTATION))]
+        name = controller_compute_benchmark(NNPC, "1 ms", DEFAULT_IMPLEMENTATION)
+        row = table[table["benchmark"].str.startswith(name)]
         return float(row["p99"].iloc[0]) if len(row) else None
     except (OSError, ValueError, KeyError):
         return None

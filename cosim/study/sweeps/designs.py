@@ -21,13 +21,13 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 from controllers.predictors import CircuitParameters
+from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError, ModelFileError
 from cosim.fmi.binding import PlantBinding
-from cosim.base.digests import canonical, digest
 from cosim.study.design_cache import model_file
 from cosim.study.sweeps.recipes import ControllerRecipe
 from cosim.study.sweeps.spec import ControllerEntry
-from cosim.study.vocabulary import NOMINAL
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, NOMINAL
 
 
 def _json(settings: dict) -> str:
@@ -294,7 +294,7 @@ def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):
 
 
 def injected_recipe(inner: ControllerRecipe, name: str, frequency: float, amplitude: float, point: str, start: float,
-                    samples: int, implementation: str = "c") -> ControllerRecipe:
+                    samples: int, implementation: str = DEFAULT_IMPLEMENTATION) -> ControllerRecipe:
     """A recipe of ``inner`` with a sine injected (:class:`controllers.injection.InjectedController`): one
     point of a frequency response (:mod:`cosim.study.frequency_response`)."""
     settings = {"inner": {"kind": inner.kind, "name": inner.name, "settings_json": inner.settings_json},
@@ -319,8 +319,8 @@ def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
     and its sample period against the sweep's control period."""
     from cosim.fmi.binding import RoleMap
     from cosim.fmi.controller import ControllerBinding, FmuController, builtin_controller_binding
-    from cosim.study.sweeps.spec import PERIOD_MATCH
     from cosim.study.sweeps.process_files import process_file
+    from cosim.study.sweeps.spec import PERIOD_MATCH
 
     s = recipe.settings
     path = process_file(s["fmu"], recipe.blob, recipe.blob_digest)
@@ -375,7 +375,7 @@ def design(entries, binding: PlantBinding, period: float, work_dir: Path, progre
     return recipes
 
 
-def build(recipe: ControllerRecipe, binding: PlantBinding, implementation: str = "c"):
+def build(recipe: ControllerRecipe, binding: PlantBinding, implementation: str = DEFAULT_IMPLEMENTATION):
     """The controller a recipe describes, as it runs (its C twin unless ``implementation`` is python)."""
     from cosim.study.experiments import implemented
 

@@ -68,7 +68,14 @@ from cosim.base.errors import ConfigError
 from cosim.base.toml_files import TomlLocator, parse_toml
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS
 from cosim.scenarios import Scenario, load_scenario
-from cosim.study.vocabulary import CONTROLLERS, IMPLEMENTATIONS, PAPER_PERIOD, PLANT_VARIANTS, SENSORS
+from cosim.study.vocabulary import (
+    CONTROLLERS,
+    DEFAULT_IMPLEMENTATION,
+    IMPLEMENTATIONS,
+    PAPER_PERIOD,
+    PLANT_VARIANTS,
+    SENSORS,
+)
 
 SHIPPED_DIR = Path(__file__).parent / "studies"
 TOP_KEYS = {"name", "description", "plant", "parameters", "operating_point", "samples", "seed", "scenarios",
@@ -232,7 +239,7 @@ class SweepSpec:
     record_period: float = 1e-5  # [s]
     keep_traces: bool = False
     batch_size: int | None = None
-    implementation: str = "c"
+    implementation: str = DEFAULT_IMPLEMENTATION
     thresholds: tuple[Threshold, ...] = ()
     path: Path | None = None
     places: dict = field(default_factory=dict, compare=False)  # key -> file:line, for later checks

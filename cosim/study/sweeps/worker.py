@@ -34,6 +34,7 @@ from cosim.study.sweeps.designs import build
 from cosim.study.sweeps.plan import PlannedRun, at_operating_point
 from cosim.study.sweeps.process_files import process_file
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 OK, FAILED = "ok", "failed"
 DETERMINISTIC_METRICS = tuple(m for m in METRIC_COLUMNS if m not in WALLCLOCK_METRICS)
@@ -42,7 +43,7 @@ DETERMINISTIC_METRICS = tuple(m for m in METRIC_COLUMNS if m not in WALLCLOCK_ME
 @dataclass(frozen=True)
 class RunSettings:
     record_period: float  # [s]
-    implementation: str = "c"
+    implementation: str = DEFAULT_IMPLEMENTATION
     keep_traces: bool = False
 
 
