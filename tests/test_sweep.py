@@ -420,24 +420,31 @@ def _alive(pid: int) -> bool:
     return Path(f"/proc/{pid}").exists() and "Z" not in (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1][:3])
 
 
-def _free_port() -> int:
-    import socket
+def _dask_cluster(folder: Path) -> tuple[str, list[subprocess.Popen]]:
+    """``dask scheduler`` and one ``dask worker`` on the loopback interface, each in its own session; the
+    scheduler's address. The scheduler picks its own port (0) and writes it to a scheduler file in ``folder``:
+    a port probed free here could be taken by another process (make test runs two) before the scheduler binds it."""
+    import json
 
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _dask_cluster(port: int) -> list[subprocess.Popen]:
-    """``dask scheduler`` and one ``dask worker`` on the loopback interface, each in its own session."""
     dask = str(Path(sys.executable).with_name("dask"))
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "stdin": subprocess.DEVNULL,
              "start_new_session": True}
-    scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
-                                 **quiet)
-    worker = subprocess.Popen([dask, "worker", f"tcp://127.0.0.1:{port}", "--nworkers", "1", "--nthreads", "1",
-                               "--no-dashboard", "--host", "127.0.0.1"], **quiet)
-    return [scheduler, worker]
+    folder.mkdir(parents=True, exist_ok=True)
+    file = folder / "scheduler.json"
+    scheduler = subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                  "--scheduler-file", str(file)], **quiet)
+    address, deadline = None, time.time() + 60
+    while address is None:
+        try:
+            address = json.loads(file.read_text())["address"]
+        except (OSError, ValueError, KeyError):  # not written yet, or half-written
+            if time.time() > deadline or scheduler.poll() is not None:
+                _stop([scheduler])
+                raise RuntimeError(f"the dask scheduler wrote no address to {file} within 60 s") from None
+            time.sleep(0.05)
+    worker = subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                               "--host", "127.0.0.1"], **quiet)
+    return address, [scheduler, worker]
 
 
 def _stop(processes: list[subprocess.Popen]) -> None:
@@ -475,11 +482,11 @@ def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on
     a new scheduler runs exactly the rest: every run in the dataset once, none computed twice."""
     path = long_startup_sweep(tmp_path, duration=0.02, samples=24)
     out = tmp_path / "out"
-    port = _free_port()
-    cluster = _dask_cluster(port)
+    address, cluster = _dask_cluster(tmp_path / "cluster")
+    assert address.startswith("tcp://127.0.0.1:")
     try:
         sweep = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
-                                  str(out), "--scheduler", f"tcp://127.0.0.1:{port}", "--scheduler-timeout", "60"],
+                                  str(out), "--scheduler", address, "--scheduler-timeout", "60"],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
         deadline = time.time() + 180
         while not list((out / "dataset").rglob("part-*.parquet")) and time.time() < deadline and sweep.poll() is None:
@@ -494,19 +501,18 @@ def test_a_scheduler_that_dies_mid_sweep_keeps_every_part_and_resume_finishes_on
     assert [line for line in lines if line.startswith("error:")] == lines[-1:] and "Traceback" not in err, err
     kept = dataset.done_run_ids(out)
     assert 1 <= len(kept) < 24
-    assert lines[-1].startswith(f"error: sweep stopped: the dask scheduler (the cluster at tcp://127.0.0.1:{port} "
+    assert lines[-1].startswith(f"error: sweep stopped: the dask scheduler (the cluster at {address} "
                                 f"(1 worker(s))) went away; {len(kept)} of 24 runs are in {out}/dataset (every part "
                                 "complete); start a scheduler and workers again and run the same command with "
                                 f"--resume (--scheduler ADDRESS for a new address) to finish the other {24 - len(kept)}")
     assert (dataset.read_rows(out)["status"] == "ok").all()  # the cancelled tasks left no rows
     no_temporary_files(out)
     before = {p: p.stat().st_mtime_ns for p in (out / "dataset").rglob("part-*.parquet")}
-    port = _free_port()
-    cluster = _dask_cluster(port)
+    address, cluster = _dask_cluster(tmp_path / "new-cluster")
     try:
         done = subprocess.run([sys.executable, "-m", "cosim.cli", "--no-progress", "sweep", str(path), "--out",
-                               str(out), "--resume", "--scheduler", f"tcp://127.0.0.1:{port}", "--scheduler-timeout",
-                               "60"], capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
+                               str(out), "--resume", "--scheduler", address, "--scheduler-timeout", "60"],
+                              capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
     finally:
         _stop(cluster)
     assert done.returncode == 0, done.stderr
