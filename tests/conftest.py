@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 # isort: off
@@ -171,28 +172,29 @@ def _deselect(config, items, marker: str, problem: str | None, what: str) -> Non
     config.stash.setdefault(_DESELECTED, []).append(f"{len(marked)} {what} deselected: {problem}")
 
 
-def _missing_tools() -> list[tuple[str, str, str | None]]:
-    """(marker, what, why it cannot run here or None) of each kind of test that needs a tool."""
+def _tool_checks() -> list[tuple[str, str, Callable[[], str | None]]]:
+    """(marker, what, the check saying why such tests cannot run here or None) of each kind of test that needs
+    a tool; a check runs only where its tests are (the toolchain's runs the cross compiler)."""
     from cosim.benchmark_harness import cpu_emulation
     from cosim.benchmark_harness.cortex_m4 import toolchain_problem
 
-    return [("embedded", "embedded tests", toolchain_problem()),
-            ("emulated", "emulated-CPU tests", cpu_emulation.problem())]
+    return [("embedded", "embedded tests", toolchain_problem),
+            ("emulated", "emulated-CPU tests", cpu_emulation.problem)]
 
 
 def pytest_collection_modifyitems(config, items):
     """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
     marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``."""
-    if any(item.get_closest_marker("embedded") or item.get_closest_marker("emulated") for item in items):
-        for marker, what, problem in _missing_tools():
-            _deselect(config, items, marker, problem, what)
+    for marker, what, check in _tool_checks():
+        if any(item.get_closest_marker(marker) for item in items):
+            _deselect(config, items, marker, check(), what)
 
 
 def pytest_terminal_summary(terminalreporter, config):
     """One line per kind of test deselected for a missing tool, saying which tool. Under pytest-xdist (``make
     test``) the workers collect and their output goes nowhere, so its controller says it from the tools alone."""
     if config.pluginmanager.hasplugin("dsession"):  # pytest-xdist's controller
-        lines = [f"{what} deselected: {problem}" for _, what, problem in _missing_tools() if problem]
+        lines = [f"{what} deselected: {problem}" for _, what, check in _tool_checks() if (problem := check())]
     else:
         lines = config.stash.get(_DESELECTED, [])
     for line in lines:

@@ -31,7 +31,7 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
 
     rows = []
     binding = plant_binding("nominal", "switched")
-    for period, label in ((PAPER_PERIOD, "1 ms"), (SWITCHING_PERIOD, "13.33 us")):
+    for period in (PAPER_PERIOD, SWITCHING_PERIOD):
         samples = 60 if quick else (3000 if transient_within_sample(period) else 1500)
         scenario = _mixed_scenario(period, samples)
         model, origin = _nn_model("nnpc", period, quick)
@@ -48,7 +48,7 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
                     if controller.name == NNPC and transient_within_sample(period):
                         target, met = f"p99 <= {NNPC_P99_TARGET_US:g} us", p99 * 1e6 <= NNPC_P99_TARGET_US
                     rows.append(BenchRow(
-                        f"{controller_compute_benchmark(controller.name, label, implementation)} ({len(times)} "
+                        f"{controller_compute_benchmark(controller.name, period, implementation)} ({len(times)} "
                         f"samples, {100 * median / period:.2g} % / {100 * p99 / period:.2g} % of the period at "
                         f"p50 / p99)", median * 1e6, p99 * 1e6, "us", target, met,
                         f"NN: {origin}" if controller.name == NNPC else ""))

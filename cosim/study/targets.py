@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from cosim.base.labels import period_label
+from cosim.base.labels import period_label, period_text
 from cosim.study.claims import TARGET_COLUMNS, target_row
 from cosim.study.envelope import target_rows as envelope_target_rows
 from cosim.study.explicit import target_rows as explicit_target_rows
@@ -35,11 +35,12 @@ REPRODUCTION_TARGET_S = 120.0  # [s] on 2 cores
 TEN_STEP_RMSE_TARGET_MV = 150.0  # [mV] held-out open-loop vo error after 10 samples at one switching period
 
 
-def controller_compute_benchmark(controller: str, period: str, implementation: str) -> str:
+def controller_compute_benchmark(controller: str, period: float, implementation: str) -> str:
     """The name (its start: the row adds its sample counts) of the benchmark row that times ``controller``'s
-    step in the co-simulation loop at ``period`` (the suite's rate text: "1 ms", "13.33 us") in
-    ``implementation`` ("c" or "python")."""
-    return f"controller compute per step, {controller}, {period}, {IMPLEMENTATION_NAMES[implementation]}"
+    step in the co-simulation loop at ``period`` [s] in ``implementation`` ("c" or "python"); the period as
+    the benchmark table writes rates, in ASCII ("1 ms", "13.33 us")."""
+    rate = period_text(period).replace("µs", "us")
+    return f"controller compute per step, {controller}, {rate}, {IMPLEMENTATION_NAMES[implementation]}"
 
 
 def benchmark_p99(out_dir: Path) -> float | None:
@@ -50,7 +51,7 @@ def benchmark_p99(out_dir: Path) -> float | None:
         return None
     try:
         table = pd.read_csv(path)
-        name = controller_compute_benchmark(NNPC, "1 ms", DEFAULT_IMPLEMENTATION)
+        name = controller_compute_benchmark(NNPC, PAPER_PERIOD, DEFAULT_IMPLEMENTATION)
         row = table[table["benchmark"].str.startswith(name)]
         return float(row["p99"].iloc[0]) if len(row) else None
     except (OSError, ValueError, KeyError):

@@ -238,7 +238,7 @@ ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
 # Implementations
 
 #: how a controller runs: its C twin (controllers/c, equivalent to the Python reference at every sample; the
-#: default, several times faster for the predictive controllers) or the Python reference
+#: default, far faster for the predictive controllers: results/benchmarks.md) or the Python reference
 IMPLEMENTATIONS = ("c", "python")
 DEFAULT_IMPLEMENTATION = "c"
 #: how tables and benchmark rows name each implementation
