@@ -1,7 +1,8 @@
 """How the workbench names things in file names and in prose: the one definition of each label.
 
 * :func:`period_label` -- a control period in file names: ``1ms``, ``13p33us``;
-* :func:`period_text` -- the same period in tables, titles and text: ``1 ms``, ``13.33 µs``;
+* :func:`period_text` -- the same period in tables, titles and text: ``1 ms``, ``13.33 µs`` (``13.33 us`` in
+  ASCII, the benchmark table's);
 * :func:`slug` -- any label reduced to lower-case letters, digits and dashes for file names.
 """
 
@@ -24,9 +25,12 @@ def period_label(period: float) -> str:
     return f"{ms}ms" if ms is not None else f"{period * 1e6:.4g}us".replace(".", "p")
 
 
-def period_text(period: float) -> str:
-    """A control period [s] as text: ``1 ms``, ``2.5 ms``, ``13.33 µs``."""
-    return f"{period * 1e3:.4g} ms" if period >= 1e-3 else f"{period * 1e6:.4g} µs"
+def period_text(period: float, ascii_only: bool = False) -> str:
+    """A control period [s] as text: ``1 ms``, ``2.5 ms``, ``13.33 µs`` (``13.33 us`` with ``ascii_only``, as the
+    benchmark table names its rows)."""
+    if period >= 1e-3:
+        return f"{period * 1e3:.4g} ms"
+    return f"{period * 1e6:.4g} {'us' if ascii_only else 'µs'}"
 
 
 def slug(text: str) -> str:

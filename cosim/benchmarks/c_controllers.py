@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cosim.base.labels import period_text
 from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _c_and_python_step_us, _p99, per_sample_median_row
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
 from cosim.study.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, transient_within_sample
@@ -26,7 +27,8 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
 
     binding = plant_binding("nominal", "switched")
     rows = []
-    for period, label in ((PAPER_PERIOD, "1 ms"), (SWITCHING_PERIOD, "13.33 us")):
+    for period in (PAPER_PERIOD, SWITCHING_PERIOD):
+        label = period_text(period, ascii_only=True)
         samples = 40 if quick else (3000 if transient_within_sample(period) else 600)
         scenario = _mixed_scenario(period, samples)
         model, origin = _nn_model("nnpc", period, quick)

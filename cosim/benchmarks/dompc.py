@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow, _p99
 from cosim.benchmarks.subjects import _nn_model
 from cosim.study.vocabulary import NNPC, SWITCHING_PERIOD
@@ -46,7 +47,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
         c_ns = timed.ns * 1e-3
         iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
-        label = f"{scenario.name}, 13.33 us, nominal switched plant"
+        label = f"{scenario.name}, {period_text(period, ascii_only=True)}, nominal switched plant"
         rows += [
             BenchRow(f"C RTI NNPC step, {label} ({len(measurements)} samples)", float(np.median(c_ns)),
                      _p99(c_ns), "us", note=f"NN: {origin}; every step, the {int(np.count_nonzero(~timed.rti))} the "

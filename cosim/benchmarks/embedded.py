@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi, _explicit_policy, _mixed_scenario
 from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
@@ -64,7 +65,8 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
     problem = toolchain_problem()
     if problem:
         return [BenchRow("Cortex-M4F measurements (QEMU mps2-an386): not measured", math.nan, None, "", note=problem)]
-    period, label = SWITCHING_PERIOD, "13.33 us"
+    period = SWITCHING_PERIOD
+    label = period_text(period, ascii_only=True)
     budget, slow_budget = CLOCK_HZ * period, CLOCK_HZ * PAPER_PERIOD
     binding = plant_binding("nominal", "switched")
     samples = 40 if quick else 600
@@ -100,11 +102,12 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
             BenchRow(f"{name}: cycles per step from the executed instruction mix (p99 column: max)",
                      float(np.median(run.cycles)), worst, "cycles", note=table),
             BenchRow(f"{name}: max cycles per step + {ISR_ALLOWANCE:.0f}-cycle ISR allowance, 170 MHz", worst
-                     + ISR_ALLOWANCE, None, "cycles", f"<= {budget:.0f} (13.33 us)", worst + ISR_ALLOWANCE <= budget,
+                     + ISR_ALLOWANCE, None, "cycles", f"<= {budget:.0f} ({label})", worst + ISR_ALLOWANCE <= budget,
                      f"{(worst + ISR_ALLOWANCE) / budget:.3g} x the switching period; library functions (libm) "
                      f"take {library:.0f} cycles per step on average"),
             BenchRow(f"{name}: the same against a 1 ms sample", worst + ISR_ALLOWANCE, None, "cycles",
-                     f"<= {slow_budget:.0f} (1 ms)", worst + ISR_ALLOWANCE <= slow_budget,
+                     f"<= {slow_budget:.0f} ({period_text(PAPER_PERIOD, ascii_only=True)})",
+                     worst + ISR_ALLOWANCE <= slow_budget,
                      f"{(worst + ISR_ALLOWANCE) / slow_budget:.3g} x the 1 ms sample"),
             BenchRow(f"{name}: flash the controller adds (code, configuration, library functions)", size.flash,
                      None, "bytes", "<= 16384" if targeted else "", size.flash <= 16384 if targeted else None,
@@ -198,7 +201,7 @@ def _online_nnpc_rows(period: float, quick: bool) -> list[BenchRow]:
     from cosim.study.experiments import nnpc
     from cosim.study.vocabulary import NNPC
 
-    label = "1 ms" if period == PAPER_PERIOD else "13.33 us"
+    label = period_text(period, ascii_only=True)
     model, origin = _nn_model("nnpc", period, quick)
     # --quick (the suite's smoke test): a 4-step horizon at 13.33 us, so the traced cold-start search is small
     horizon = 4 if quick and period == SWITCHING_PERIOD else None
@@ -223,11 +226,11 @@ def _online_nnpc_rows(period: float, quick: bool) -> list[BenchRow]:
     predicted = cortex_m4f_cycles({k: v[rti] for k, v in counts.items()}) - CORTEX_M4F.interrupt
     arch = "-".join(str(w) for w in (model.config.n_inputs, *model.config.hidden, 2))
 
-    def own(rate: float, cycles_budget: float, text: str):
+    def own(rate: float, cycles_budget: float):
         """(target, met): a target against the controller's own rate's budget, none against the other's."""
         if rate != period:
             return "", None
-        return f"<= {cycles_budget:.0f} ({text})", worst + ISR_ALLOWANCE <= cycles_budget
+        return f"<= {cycles_budget:.0f} ({period_text(rate, ascii_only=True)})", worst + ISR_ALLOWANCE <= cycles_budget
     name = f"online NNPC (RTI, {arch}) {label} on a Cortex-M4F (float32, QEMU mps2-an386)"
     note = (f"NN: {origin}; the {int(rti.sum())} of {n} replayed samples the RTI planned (the search planned the "
             f"other {int((~rti).sum())}: the cold start)")
@@ -248,10 +251,10 @@ def _online_nnpc_rows(period: float, quick: bool) -> list[BenchRow]:
                       f"{np.median(run.cycles_low[rti]):.0f} / max {run.cycles_low[rti].max():.0f}; where they go: "
                       f"{split}"),
         BenchRow(f"{name}: max cycles per RTI step + {ISR_ALLOWANCE:.0f}-cycle ISR allowance, 170 MHz, against a "
-                 "13.33 us period", worst + ISR_ALLOWANCE, None, "cycles", *own(SWITCHING_PERIOD, budget, "13.33 us"),
+                 "13.33 us period", worst + ISR_ALLOWANCE, None, "cycles", *own(SWITCHING_PERIOD, budget),
                  f"{(worst + ISR_ALLOWANCE) / budget:.3g} x the switching period"),
         BenchRow(f"{name}: the same against a 1 ms sample", worst + ISR_ALLOWANCE, None, "cycles",
-                 *own(PAPER_PERIOD, slow_budget, "1 ms"), f"{(worst + ISR_ALLOWANCE) / slow_budget:.3g} x the 1 ms "
+                 *own(PAPER_PERIOD, slow_budget), f"{(worst + ISR_ALLOWANCE) / slow_budget:.3g} x the 1 ms "
                  "sample"),
         BenchRow(f"{name}: cycles of the search's fallback step (the cold start)", float(search.max()), None,
                  "cycles", note=f"{search.max() / CLOCK_HZ * 1e3:.3g} ms at 170 MHz ({search.max() / budget:.3g} x the "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow, _c_and_python_step_us
 from cosim.benchmarks.subjects import _explicit_policy, _mixed_scenario, _nn_model
 from cosim.study.vocabulary import NNPC, SWITCHING_PERIOD
@@ -23,7 +24,8 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
     from cosim.study.experiments import explicit_nnpc, implemented, nnpc, plant_binding
     from cosim.study.vocabulary import NNPC_EXPLICIT
 
-    period, label = SWITCHING_PERIOD, "13.33 us"
+    period = SWITCHING_PERIOD
+    label = period_text(period, ascii_only=True)
     binding = plant_binding("nominal", "switched")
     policy, origin = _explicit_policy(quick)
     controller = explicit_nnpc(policy, NNPC_EXPLICIT)

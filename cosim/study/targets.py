@@ -39,7 +39,7 @@ def controller_compute_benchmark(controller: str, period: float, implementation:
     """The name (its start: the row adds its sample counts) of the benchmark row that times ``controller``'s
     step in the co-simulation loop at ``period`` [s] in ``implementation`` ("c" or "python"); the period as
     the benchmark table writes rates, in ASCII ("1 ms", "13.33 us")."""
-    rate = period_text(period).replace("µs", "us")
+    rate = period_text(period, ascii_only=True)
     return f"controller compute per step, {controller}, {rate}, {IMPLEMENTATION_NAMES[implementation]}"
 
 
