@@ -3,6 +3,7 @@ that run it (the workbench's master, fmpy's SSP simulation, libcosim)."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import zipfile
@@ -329,19 +330,33 @@ def bad_archives(loops, work) -> dict[str, tuple[Path, str]]:
                         "component 'controller' names resources/PI.fmu, which the archive does not contain"),
         "parameter set missing": (_rewrite(good, work / "no-ssv.ssp", {"resources/plant.ssv": None}),
                                   "names resources/plant.ssv, which the archive does not contain"),
+        "stop time before the start": (_rewrite(good, work / "negative-stop.ssp", {"SystemStructure.ssd": re.sub(
+            'stopTime="[^"]*"', 'stopTime="-1"', ssd).encode()}),
+            "DefaultExperiment stopTime = -1 s: expected 0.021 s, the end of the embedded scenario 'ref_step'"),
+        "stop time short of the scenario": (_rewrite(good, work / "short-stop.ssp", {
+            "SystemStructure.ssd": re.sub('stopTime="[^"]*"', 'stopTime="0.01"', ssd).encode()}),
+            "DefaultExperiment stopTime = 0.01 s: expected 0.021 s"),
+        "start time not zero": (_rewrite(good, work / "late-start.ssp", {"SystemStructure.ssd": ssd.replace(
+            'startTime="0.0"', 'startTime="0.005"').encode()}), "DefaultExperiment startTime = 0.005 s: expected 0"),
+        "communication step zero": (_rewrite(good, work / "zero-step.ssp", {"SystemStructure.ssd": ssd.replace(
+            'communicationStep="', 'communicationStep="0" was="').encode()}),
+            "communicationStep = 0 s: expected a time > 0"),
     }
 
 
 @pytest.mark.parametrize("case", ["not a zip", "truncated", "malformed ssd", "not ssp 1.0",
                                   "connection to a missing connector", "connector naming a missing variable",
-                                  "FMU missing", "parameter set missing"])
+                                  "FMU missing", "parameter set missing", "stop time before the start",
+                                  "stop time short of the scenario", "start time not zero",
+                                  "communication step zero"])
 def test_a_bad_archive_is_refused_in_one_line(bad_archives, case):
     path, message = bad_archives[case]
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         read_ssp(path)
 
 
-@pytest.mark.parametrize("case", ["truncated", "connection to a missing connector", "FMU missing"])
+@pytest.mark.parametrize("case", ["truncated", "connection to a missing connector", "FMU missing",
+                                  "stop time before the start"])
 def test_run_ssp_refuses_a_bad_archive_with_exit_2_and_writes_nothing(bad_archives, case, tmp_path):
     path, message = bad_archives[case]
     result = cli("run-ssp", str(path), "--engine", "fmpy", "--out", str(tmp_path / "out"))

@@ -454,6 +454,33 @@ def _float(text: str | None, what: str, where: str) -> float:
     return value
 
 
+def _positive(text: str | None, what: str, where: str) -> float:
+    value = _float(text, what, where)
+    if value <= 0:
+        raise SspError(f"{where}: {what} = {text} s: expected a time > 0")
+    return value
+
+
+def _check_experiment(start_time: float, stop_time: float, step: float, control_period: float, scenario: Scenario,
+                      where: str) -> None:
+    """The DefaultExperiment every engine runs: from rest at t = 0 to the end of the embedded scenario (its settle
+    time and duration at the archive's control period, as export-ssp writes it). The workbench engine runs the
+    scenario's own timeline; fmpy and libcosim run startTime..stopTime: an archive whose experiment differs from
+    the scenario would give three engines three different runs."""
+    if start_time != 0.0:
+        raise SspError(f"{where}: DefaultExperiment startTime = {start_time:g} s: expected 0 (the loop starts at rest "
+                       "at t = 0, the scenario's settle time first)")
+    try:
+        end = plan_timeline(scenario, control_period, step).end
+    except ConfigError as error:
+        raise SspError(f"{where}: {error}") from None
+    if not math.isclose(stop_time, end, rel_tol=1e-9, abs_tol=1e-12):
+        raise SspError(f"{where}: DefaultExperiment stopTime = {stop_time:g} s: expected {end:.9g} s, the end of the "
+                       f"embedded scenario {scenario.name!r} (its settle time and {scenario.duration:g} s at control "
+                       f"period {control_period:.6g} s) -- to run another length, export the archive again with "
+                       "another scenario")
+
+
 def _typed(element, where: str):
     """(type, value) of an ssv:Real/Integer/Boolean/String element."""
     kind = etree.QName(element).localname
@@ -598,12 +625,15 @@ def _read_loop(archive: zipfile.ZipFile, path: Path) -> Loop:
         if mapping.variable not in plant_variables:
             raise SspError(f"{where}: the plant role {role!r} names {mapping.variable!r}, which is not a connector "
                            "of the component 'plant'")
+    start_time = _float(experiment.get("startTime", "0"), "startTime", where)
+    stop_time = _float(experiment.get("stopTime"), "stopTime", where)
+    step = _positive(step_element.get("communicationStep"), "communicationStep", where)
+    control_period = _positive(ours.get("controlPeriod"), "controlPeriod", where)
+    settle = _float(ours.get("settle"), "settle", where)
+    _check_experiment(start_time, stop_time, step, control_period, scenario, where)
     return Loop(name=root.get("name"), components=components, connections=tuple(connections),
-                start_time=_float(experiment.get("startTime", "0"), "startTime", where),
-                stop_time=_float(experiment.get("stopTime"), "stopTime", where),
-                step=_float(step_element.get("communicationStep"), "communicationStep", where),
-                control_period=_float(ours.get("controlPeriod"), "controlPeriod", where),
-                settle=_float(ours.get("settle"), "settle", where), scenario=scenario, plant_roles=roles,
+                start_time=start_time, stop_time=stop_time, step=step, control_period=control_period,
+                settle=settle, scenario=scenario, plant_roles=roles,
                 plant_label=ours.get("plantLabel", "plant"), plant_tag=ours.get("plantTag", "ssp-plant"),
                 plant_binding_file=ours.get("plantBindingFile"), archive=path)
 
