@@ -58,8 +58,10 @@ def bench_reproduction(quick: bool) -> list[BenchRow]:
                      times["python"], None, "s"),
             BenchRow("reproduction time with the C controllers / with the Python controllers (same run)", ratio, None,
                      "ratio", "<= 0.4", ratio <= 0.4,
-                     "the NN predictive controllers at one switching period dominate both: ~1 ms per step in C, "
-                     "~1.8 ms in Python (tanh calls: about 7 per network evaluation, thousands per step)")]
+                     "with the real-time iteration the predictive controllers' default, the controllers are a small "
+                     "part of either run, whose time goes mostly to what both share: the identification and "
+                     "distillation trainings (torch; stages per job: timings.md; per-step costs: group "
+                     "c-controllers)")]
     for pipeline in sorted(set(metrics["pipeline"]), key=lambda p: (("13p33us" in p), p)):
         if not pipeline.startswith("nominal"):
             continue
