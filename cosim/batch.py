@@ -19,7 +19,7 @@ from cosim.base.files import atomic_write
 from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
-from cosim.master import RunFailed, check_plant_supports, run_checked
+from cosim.master import RunFailed, check_plant_supports, check_set_up, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, metrics_table
 from cosim.plots import Styles, plot_scenario
 from cosim.results import RunResult, write_parquet, write_run
@@ -49,6 +49,11 @@ class Batch:
         object.__setattr__(self, "scenarios", tuple(self.scenarios))
         for scenario in self.scenarios:
             check_plant_supports(self.binding, scenario)
+
+    def check_plant(self, interface: str | None = None) -> None:
+        """Refuse, before any work, what the plant FMU itself refuses: the binding's parameters or a scenario's
+        first inputs at its set-up, a value of a scenario's parameter events (:func:`cosim.master.preflight`)."""
+        check_set_up(self.binding, self.scenarios, interface)
 
     def check_rates(self, control_period: float, record_period: float) -> None:
         """Refuse, before any work, periods that no run of the batch could use (too many instants,

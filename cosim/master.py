@@ -120,6 +120,62 @@ def run_checked(plant: FmuPlant, controller: Controller, scenario: Scenario, *, 
     return _Run(plant, controller, scenario, plan, seed, extra_metadata, stream_to).execute(progress)
 
 
+def start_inputs(scenario: Scenario) -> dict[str, float]:
+    """The plant's inputs at t = 0 by role (workbench units): duty 0, the scenario's first load and supply."""
+    return {"duty_cycle": 0.0, "input_voltage": scenario.schedule("input_voltage")[0][1],
+            "load_resistance": scenario.schedule("load_resistance")[0][1]}
+
+
+def _parameter_events(scenario: Scenario) -> list[tuple[float, dict, str | None, int]]:
+    """(scenario time [s], values, where in its file, index in events) of each tunable-parameter event."""
+    return [(e.time, dict(e.parameters), e.where, i) for i, e in enumerate(scenario.events) if e.parameters]
+
+
+def refuse_parameter_events(plant: FmuPlant, scenario: Scenario) -> None:
+    """Try ``scenario``'s parameter events on the FMU itself (its own checks), so a value it refuses -- e.g. a
+    capacitance of 0 -- is a :class:`ConfigError` naming the event before any step."""
+    events = _parameter_events(scenario)
+    if not events:
+        return
+    refused = plant.trial_parameters([values for _, values, _, _ in events])
+    if refused is not None:
+        position, message = refused
+        _, values, where, index = events[position]
+        raise ConfigError(f"{where or scenario.name}: events[{index}].parameters ({', '.join(values)}): the plant "
+                          f"FMU refuses the value: {message}")
+
+
+def preflight(plant: FmuPlant, scenario: Scenario) -> None:
+    """Ask the plant, before any run, what a run's start asks of it: the scenario's parameter events tried on the
+    FMU, then the set-up -- the binding's parameters and the scenario's first inputs, initialised at t = 0. A
+    refusal is a :class:`ConfigError`; one of the binding's ``[parameters]`` values is named at its line of the
+    binding file (:func:`cosim.fmi.binding_file.refused_parameter`). The instance is reset by the next
+    initialisation, so the batch's runs use it as if it were fresh."""
+    refuse_parameter_events(plant, scenario)
+    inputs = start_inputs(scenario)
+    values = [inputs[r] for r in plant.input_roles]
+    try:
+        plant.initialize(values, start_time=0.0)
+    except ConfigError as error:
+        from cosim.fmi.binding_file import refused_parameter
+
+        located = refused_parameter(plant, values)
+        if located is None:
+            raise
+        place, name, value = located
+        detail = str(error).removeprefix(f"{plant.binding.origin}: ")
+        raise ConfigError(f"{place}: parameters.{name} = {value!r}: the plant FMU refuses its set-up with this value "
+                          f"({detail})") from None
+
+
+def check_set_up(binding: PlantBinding, scenarios, interface: str | None = None) -> None:
+    """:func:`preflight` of each of ``scenarios`` on one instance of ``binding``'s plant, opened for the check
+    (``interface`` as the runs will use it): everything the plant itself can refuse, refused before any run."""
+    with open_plant(binding, interface=interface) as plant:
+        for scenario in scenarios:
+            preflight(plant, scenario)
+
+
 class _Run:
     """One run of :func:`run`, step by step."""
 
@@ -132,8 +188,7 @@ class _Run:
         self.i_vo = self._index(roles, "measured_output_voltage", "output_voltage")
         self.i_il = self._index(roles, "measured_inductor_current", "inductor_current")
         self.i_io = self._index(roles, "measured_load_current", "load_current")
-        self.inputs = {"duty_cycle": 0.0, "input_voltage": self.schedules[2][0][1],
-                       "load_resistance": self.schedules[1][0][1]}
+        self.inputs = start_inputs(scenario)
         # after a duty change alone, outputs need re-reading only if the FMU declares a feedthrough
         self.duty_feedthrough = plant.feedthrough.get("duty_cycle", True)
         self.details = run_details(scenario=scenario, controller=controller, plant=plant,
@@ -144,8 +199,8 @@ class _Run:
         self.stream = RunStream(stream_to) if stream_to is not None else None
         self.stream_to = stream_to
         # tunable-parameter events in plant time, applied in order (the timeline has an EVENT instant for each)
-        self.parameter_events = [(plan.settle + e.time, dict(e.parameters), e.where, i)
-                                 for i, e in enumerate(scenario.events) if e.parameters]
+        self.parameter_events = [(plan.settle + time, values, where, i)
+                                 for time, values, where, i in _parameter_events(scenario)]
         self.next_parameter_event = 0
         self.t = 0.0  # plant time reached [s]
         self.duty = 0.0  # in effect
@@ -160,14 +215,7 @@ class _Run:
         """Initialise the plant at rest with the first inputs (a refusal is a configuration
         error) and reset the controller. Parameter events are first tried on the FMU itself, so a
         value it refuses (e.g. a capacitance of 0) stops the run before its first step."""
-        if self.parameter_events:
-            refused = self.plant.trial_parameters([values for _, values, _, _ in self.parameter_events])
-            if refused is not None:
-                position, message = refused
-                _, values, where, index = self.parameter_events[position]
-                names = ", ".join(values)
-                raise ConfigError(f"{where or self.scenario.name}: events[{index}].parameters ({names}): the plant "
-                                  f"FMU refuses the value: {message}")
+        refuse_parameter_events(self.plant, self.scenario)
         self.plant.initialize([self.inputs[r] for r in self.plant.input_roles], start_time=0.0)
         self.controller.reset()
         self.next_parameter_event = 0

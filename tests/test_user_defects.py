@@ -195,6 +195,48 @@ def test_a_wrongly_typed_binding_parameter_is_refused_with_its_line_when_the_fil
         load_binding(tmp_path / "faulty.toml")  # before any FMU is opened
 
 
+def _built_in_plant_binding(fmu: Path, parameters: str) -> str:
+    """A binding file for the workbench's own plant FMU, its [parameters] table last (from line 12; its keys from line 13)."""
+    roles = "".join(f'[roles.{role}]\nvariable = "{role}"\n' for role in
+                    ("duty_cycle", "output_voltage", "inductor_current", "load_resistance", "input_voltage"))
+    return f'fmu = "{fmu}"\n{roles}[parameters]\n{parameters}'
+
+
+def test_a_binding_parameter_the_fmu_refuses_is_named_at_its_line_before_any_tuning_or_run(tmp_path, buck_fmu):
+    binding = tmp_path / "plant.toml"
+    binding.write_text(_built_in_plant_binding(buck_fmu, "capacitance = 4.7e-6\ninductance = -1\n"))
+    message = ("plant.toml:14: parameters.inductance = -1: the plant FMU refuses its set-up with this value "
+               "(fmi2SetReal failed (error) at t = 0 s: fmi2SetReal: inductance = -1 H is invalid")
+    for command in (["run", "startup", "--plant", str(binding), "--out", str(tmp_path / "out")],  # gains: tuned
+                    ["tune-pi", "--plant", str(binding), "--out", str(tmp_path / "pi.json")],
+                    ["inspect", str(binding)]):
+        one_line_error(cli(*command), 2, message)
+    assert not (tmp_path / "out" / "tuning").exists() and not (tmp_path / "out" / "runs").exists()
+    assert not (tmp_path / "pi.json").exists()
+
+
+def test_a_refused_parameter_event_stops_the_batch_before_its_first_run(tmp_path):
+    (tmp_path / "zero_c.toml").write_text('name = "zero_c"\nduration = 0.03\n[initial]\nreference = 12.0\n'
+                                          '[[events]]\ntime = 0.01\nparameters = { capacitance = 0.0 }\n')
+    one_line_error(cli("run", "startup", str(tmp_path / "zero_c.toml"), "--kp", "0", "--ki", "14",
+                       "--out", str(tmp_path / "out")), 2,
+                   "zero_c.toml:7: events[0].parameters (capacitance): the plant FMU refuses the value: "
+                   "fmi2SetReal: capacitance = 0 F is invalid")
+    assert not (tmp_path / "out" / "runs").exists()  # not even the start-up, which comes first, was run
+
+
+def test_a_pi_tuning_that_no_gains_can_run_is_refused_not_returned(tmp_path, faulty_fmu):
+    from cosim.base.errors import PlantError
+    from cosim.fmi.binding_file import load_binding
+    from cosim.study.pi_tuning import tune_pi
+
+    (tmp_path / "faulty.toml").write_text(faulty_binding(faulty_fmu, 3))  # NaN outputs at 10.3 ms, whatever the duty
+    with pytest.raises(PlantError, match=r"faulty.toml: the PI cannot be tuned on this plant: no gains of the search "
+                                         r"ran it through the tuning scenarios \(the first failure: plant output "
+                                         r"became non-finite at t = 0.0103"):
+        tune_pi(load_binding(tmp_path / "faulty.toml"), 1e-3, quick=True)
+
+
 def test_a_huge_settle_is_refused_naming_the_file_and_the_key(tmp_path):
     (tmp_path / "huge.toml").write_text('name = "huge"\nduration = 0.03\nsettle = 1e6\n[initial]\nreference = 12.0\n')
     one_line_error(cli("run", str(tmp_path / "huge.toml"), "--kp", "0", "--ki", "14", "--out", str(tmp_path)), 2,

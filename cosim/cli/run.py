@@ -51,6 +51,7 @@ def cmd_run(args) -> int:
     args.controller = args.controller or ["pi"]
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
     batch.check_rates(args.control_period, args.record_period)
+    batch.check_plant(args.interface)
     # the batch is checked: now the (possibly long) tuning and training
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
@@ -92,10 +93,13 @@ def cmd_inspect(args) -> int:
     output_file(args.draft_binding)  # a folder or an unwritable place is refused before anything is read
     if Path(args.fmu).suffix.lower() == ".toml":  # a binding file: its FMU, and the binding checked against it
         from cosim.fmi.binding_file import load_binding
+        from cosim.master import check_set_up
+        from cosim.scenarios import load_scenario
 
         if args.draft_binding:
             raise ConfigError(f"--draft-binding drafts a binding for an FMU; {args.fmu} is a binding already")
         binding = load_binding(args.fmu)  # every check, and a warning line if units contradict roles
+        check_set_up(binding, [load_scenario("startup")])  # its parameters on the FMU, set up as a start-up run's
         print(describe_fmu(binding.fmu_path))
         roles = [f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
                  + (f" + {m.offset:g}" if m.offset else "") for role, m in binding.roles.items()]

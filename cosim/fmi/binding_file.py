@@ -45,7 +45,7 @@ import re
 import sys
 from pathlib import Path
 
-from cosim.base.errors import ConfigError, FmuArchiveError
+from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.base.files import atomic_write_text
 from cosim.base.labels import did_you_mean
 from cosim.base.toml_files import TomlLocator, parse_toml, where
@@ -273,6 +273,41 @@ def read_binding_text(path: str | Path, what: str = "binding file") -> tuple[str
         return path.read_text(encoding="utf-8"), path.resolve()
     except (OSError, UnicodeDecodeError) as error:
         raise ConfigError(f"{path}: cannot read {what} ({error})") from None
+
+
+def refused_parameter(plant, inputs) -> tuple[str, str, object] | None:
+    """Which of ``plant``'s binding ``[parameters]`` values its FMU refuses at the set-up, after a refused
+    :meth:`~cosim.fmi.plant_fmi2.FmuPlant.initialize` (``inputs``: the ones it was given): each value is tried alone
+    on the FMU's own defaults (fmi2Reset first: a refused set-up may leave it in initialisation mode). Returns
+    (``file:line`` of the key, its name, its value), or None -- no binding file, no parameters, or none refused
+    alone (then the combination or the inputs are refused, as the FMU's message says). The binding's parameters
+    are restored and the instance reset either way."""
+    binding = plant.binding
+    if binding.source is None or not binding.parameters:
+        return None
+    found = None
+    try:
+        for name, value in binding.parameters.items():
+            plant.reset()
+            plant.replace_parameters({name: value})
+            try:
+                plant.initialize(inputs, start_time=0.0)
+            except ConfigError:
+                found = name, value
+                break
+    except WorkbenchError:  # the FMU cannot be reset or re-initialised: no location, its own message stands
+        return None
+    finally:
+        plant.replace_parameters(binding.parameters)
+    try:
+        plant.reset()
+    except WorkbenchError:
+        pass
+    if found is None:
+        return None
+    text, path = read_binding_text(binding.source)
+    _, loc = parse_toml(text, path, TOP_KEYS)
+    return where(path, loc, found[0], "parameters"), found[0], found[1]
 
 
 def load_binding(path: str | Path) -> PlantBinding:

@@ -22,11 +22,11 @@ import numpy as np
 from scipy.optimize import minimize
 
 from controllers.pi import PIController
-from cosim.base.errors import WorkbenchError
+from cosim.base.errors import ConfigError, PlantError, WorkbenchError
 from cosim.base.files import json_text
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
-from cosim.master import run
+from cosim.master import preflight, run
 from cosim.metrics import run_metrics
 from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
 from cosim.study.design_cache import DesignKey, announce, design_key, stale_reason
@@ -124,6 +124,7 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     design = pi_design(binding, control_period, record_period=record_period, input_voltage=input_voltage, quick=quick)
     scenarios = _tuning_scenarios()
     evaluations = 0
+    failures: list[str] = []  # the runs that failed, as their errors say
     worst: dict[tuple[float, float], float] = {}
 
     bar = None
@@ -135,6 +136,8 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     started = None
 
     with open_plant(binding) as plant:
+        for scenario in scenarios:  # what the plant refuses whatever the gains, refused before the search
+            preflight(plant, scenario)
 
         def cost(params: np.ndarray) -> float:
             nonlocal evaluations, started
@@ -147,9 +150,12 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
             for scenario in scenarios:
                 try:
                     metrics = run_metrics(run(plant, controller, scenario, record_period=record_period))
-                except WorkbenchError:
+                except ConfigError:
+                    raise  # the plant refused its set-up (a binding parameter, an input): no gains can change that
+                except WorkbenchError as error:
                     if plant.fatal:
                         raise  # the FMU is unusable: no later evaluation could succeed
+                    failures.append(str(error))
                     return 1e6  # these gains drove the plant into a failure: a very bad score
                 if not math.isfinite(metrics["ise_V2s"]):
                     return 1e6
@@ -174,12 +180,23 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
                                    "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
     if bar is not None:
         bar.close()
+    _refuse_if_nothing_ran(evaluations, failures, binding)
     best = result.x if result.fun <= min(scores) else start
     best_cost = float(min(result.fun, min(scores)))
     a, b = float(best[0]), float(best[1])
     return PITuning(kp=a / input_voltage, ki=b / (control_period * input_voltage), control_period=control_period,
                     cost=best_cost, worst_overshoot_pct=float(worst.get((a, b), math.nan)),
                     evaluations=evaluations, plant=binding.label, design=design.describe())
+
+
+def _refuse_if_nothing_ran(evaluations: int, failures: list[str], binding: PlantBinding) -> None:
+    """A tuning none of whose gains ran the plant to the end has no result: refuse it, naming the first failure,
+    rather than return the search's start as if it were tuned."""
+    if evaluations == 0:
+        why = (f"the first failure: {failures[0].removeprefix(binding.origin + ': ')}" if failures
+               else "their metrics were not finite")
+        raise PlantError(f"{binding.origin}: the PI cannot be tuned on this plant: no gains of the search ran it "
+                         f"through the tuning scenarios ({why})")
 
 
 #: the envelope PI's operating points: (reference [V], load [Ohm], supply [V]) -- the envelope's corners in
@@ -213,6 +230,7 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELO
         raise ValueError(f"aggregate {aggregate!r} is unknown: expected one of {', '.join(ENVELOPE_AGGREGATES)}")
     scenarios = [(r, envelope_scenario(r, load, vs)) for r, load, vs in points]
     evaluations = 0
+    failures: list[str] = []  # the runs that failed, as their errors say
     worst: dict[tuple[float, float], float] = {}
     bar = None
     if progress:
@@ -220,6 +238,8 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELO
 
         bar = tqdm(desc=f"tuning the envelope PI @ {control_period * 1e6:.4g} us", unit="eval", leave=False)
     with open_plant(binding) as plant:
+        for _, scenario in scenarios:  # what the plant refuses whatever the gains, refused before the search
+            preflight(plant, scenario)
 
         def cost(params: np.ndarray) -> float:
             nonlocal evaluations
@@ -230,9 +250,12 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELO
             for reference, scenario in scenarios:
                 try:
                     metrics = run_metrics(run(plant, controller, scenario, record_period=record_period))
-                except WorkbenchError:
+                except ConfigError:
+                    raise  # the plant refused its set-up: no gains can change that
+                except WorkbenchError as error:
                     if plant.fatal:
                         raise
+                    failures.append(str(error))
                     return 1e6
                 if not math.isfinite(metrics["ise_V2s"]):
                     return 1e6
@@ -255,6 +278,7 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELO
                                    "initial_simplex": [start, start * [1.0, 1.3] + [0.02, 0.0], start * [1.0, 0.8]]})
     if bar is not None:
         bar.close()
+    _refuse_if_nothing_ran(evaluations, failures, binding)
     best = result.x if result.fun <= min(scores) else start
     a, b = float(best[0]), float(best[1])
     method = METHOD_ENVELOPE.format(aggregate=aggregate, points=", ".join(f"({r:g}, {R:g}, {v:g})" for r, R, v in points))
