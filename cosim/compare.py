@@ -3,7 +3,7 @@ Python controller's ``write_run`` -- in one figure, with their metrics side by s
 (``buck-cosim plot`` and ``buck-cosim compare``).
 
 A run is read from its ``.parquet`` or its ``.csv`` (with the ``.json`` beside it) by
-:func:`cosim.results.read_run`; every file is read and checked before anything is drawn. Runs that
+:func:`cosim.results.read_run_file`; every file is read and checked before anything is drawn. Runs that
 share a controller name are told apart by the folder (and file) they come from.
 """
 
@@ -16,7 +16,7 @@ import pandas as pd
 from cosim.base.errors import ConfigError
 from cosim.metrics import metrics_table
 from cosim.plots import Styles, plot_scenario
-from cosim.results import RunResult, read_run
+from cosim.results import RunResult, read_run_file
 
 
 def load_runs(paths: list[str | Path]) -> list[RunResult]:
@@ -27,25 +27,7 @@ def load_runs(paths: list[str | Path]) -> list[RunResult]:
     results = []
     for text in paths:
         path = Path(text)
-        if path.is_dir():
-            raise ConfigError(f"run file {path} is a folder: expected a run's .parquet or .csv (e.g. "
-                              f"{path}/runs/<run>.parquet)")
-        if not path.is_file():
-            raise ConfigError(f"run file {path} does not exist")
-        if path.suffix not in (".parquet", ".csv"):
-            raise ConfigError(f"run file {path} is not a run: expected a .parquet, or a .csv with its .json")
-        if path.suffix == ".csv" and not path.with_suffix(".json").is_file():
-            raise ConfigError(f"run file {path} has no {path.with_suffix('.json').name} beside it (the run's "
-                              "metadata: scenario, controller, rates)")
-        try:
-            result = read_run(path)
-        except Exception as error:  # not a table, or not one of ours
-            raise ConfigError(f"{path}: cannot read run ({str(error).splitlines()[0] if str(error) else error})") \
-                from None
-        missing = [c for c in ("time", "reference", "output_voltage", "duty_cycle") if c not in result.frame.columns]
-        if missing or not result.details.get("format"):
-            raise ConfigError(f"{path}: not a workbench run (" + (f"no column {', '.join(missing)}" if missing else
-                                                                  "no run metadata") + ")")
+        result = read_run_file(path)
         if result.streamed or not len(result.frame):
             raise ConfigError(f"{path}: the run has no rows to draw")
         results.append(result)

@@ -39,6 +39,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from cosim.base.digests import file_sha256
+from cosim.base.errors import ConfigError
 from cosim.base.files import atomic_write, atomic_write_json, json_text, temporary_name
 from cosim.fmi.binding import parameter_values
 from cosim.recorder import BOOLEAN_COLUMNS, COLUMNS, DESCRIPTIONS, UNITS, WALLCLOCK_COLUMNS
@@ -285,6 +286,33 @@ class RunStream:
         os.replace(self._tmp_timing, self._timing_path)
         atomic_write_json(self.path.with_suffix(".json"), meta)
         return self.path
+
+
+def read_run_file(path: str | Path) -> RunResult:
+    """:func:`read_run` of a file a user names, checked first: a folder, a missing file, another suffix, a CSV
+    without its JSON metadata beside it, a file that is not a table or not a workbench run are each one
+    :class:`ConfigError` line naming the file (``plot``, ``compare`` and ``export`` read runs this way)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"run file {path} is a folder: expected a run's .parquet or .csv (e.g. "
+                          f"{path}/runs/<run>.parquet)")
+    if not path.is_file():
+        raise ConfigError(f"run file {path} does not exist")
+    if path.suffix not in (".parquet", ".csv"):
+        raise ConfigError(f"run file {path} is not a run: expected a .parquet, or a .csv with its .json")
+    if path.suffix == ".csv" and not path.with_suffix(".json").is_file():
+        raise ConfigError(f"run file {path} has no {path.with_suffix('.json').name} beside it (the run's "
+                          "metadata: scenario, controller, rates)")
+    try:
+        result = read_run(path)
+    except Exception as error:  # not a table, or not one of ours
+        raise ConfigError(f"{path}: cannot read run ({str(error).splitlines()[0] if str(error) else error})") \
+            from None
+    missing = [c for c in ("time", "reference", "output_voltage", "duty_cycle") if c not in result.frame.columns]
+    if missing or not result.details.get("format"):
+        raise ConfigError(f"{path}: not a workbench run (" + (f"no column {', '.join(missing)}" if missing else
+                                                              "no run metadata") + ")")
+    return result
 
 
 def read_run(path: Path) -> RunResult:

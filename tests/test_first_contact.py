@@ -558,7 +558,8 @@ def test_plot_and_compare_overlay_runs_from_different_folders_and_formats(tmp_pa
     ("csv", "has no x.json beside it"),
     ("folder", "is a folder: expected a run's .parquet or .csv"),
 ])
-def test_plot_mistakes_are_one_line_errors(tmp_path, make, message):
+@pytest.mark.parametrize("command", [("plot",), ("export",)])
+def test_run_file_mistakes_are_the_same_one_line_errors_for_plot_and_export(tmp_path, make, message, command):
     from conftest import cli, one_line_error
 
     name = {"csv": "x.csv", "folder": "runs", None: "nothere.parquet"}[make]
@@ -566,7 +567,9 @@ def test_plot_mistakes_are_one_line_errors(tmp_path, make, message):
         (tmp_path / "x.csv").write_text("time,output_voltage\n0,1\n")
     elif make == "folder":
         (tmp_path / "runs").mkdir()
-    one_line_error(cli("plot", name, "--out", "fig", cwd=tmp_path), 2, message)
+    options = ("--out", "fig") if command == ("plot",) else ("--to", "parquet", "--out", "exported")
+    one_line_error(cli(*command, name, *options, cwd=tmp_path), 2, message)
+    assert not (tmp_path / "fig").exists() and not (tmp_path / "exported").exists()
 
 
 def test_the_run_figure_is_public_api(open_loop_switched, tmp_path):

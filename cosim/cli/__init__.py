@@ -2,7 +2,7 @@
 
 Every user mistake ends in one line ``error: ...`` on stderr and a non-zero exit code:
 2 bad input or configuration, 3 a plant or controller fault during a run, 4 the FMU build
-failed, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in every case.
+failed, 5 a sweep's dask scheduler went away, 130 interrupted (Ctrl-C or SIGTERM). Completed runs are kept on disk in every case.
 
 One module per command group (run, export, design, studies, bench), each with its commands and
 their parsers; the options several commands share are in :mod:`cosim.cli.options`. The parser
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="buck-cosim",
         description="FMU co-simulation workbench for a 48 V -> 12 V buck converter: PI, NNPC and MPC controllers "
-                    "driving an FMI 2.0 plant through fmpy. Units: seconds, volts, amperes, ohms.")
+                    "driving an FMI 2.0 or 3.0 plant through fmpy. Units: seconds, volts, amperes, ohms.")
     parser.add_argument("--no-progress", dest="progress", action="store_false",
                         help="hide progress bars (shown by default on long runs)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -16,7 +16,6 @@ from cosim.cli.options import (
     _check_duty_limits,
     _plant_binding,
     bounded,
-    input_file,
     output_dir,
     output_file,
     parse_period,
@@ -121,13 +120,10 @@ def cmd_inspect(args) -> int:
 
 def cmd_export(args) -> int:
     from cosim.base.files import atomic_write, atomic_write_json
-    from cosim.results import read_run, write_parquet
+    from cosim.results import read_run_file, write_parquet
 
-    source = input_file(args.run_file, "run file")
-    try:
-        result = read_run(source)
-    except (ValueError, OSError) as error:
-        raise ConfigError(f"{source}: cannot read run ({error})") from None
+    source = Path(args.run_file)
+    result = read_run_file(source)
     out_dir = output_dir(args.out) if args.out else source.parent
     frame = result.frame.drop(columns=["controller_compute_time"], errors="ignore")
     if args.to == "csv":

@@ -173,9 +173,9 @@ def add_frequency_response_parser(sub) -> None:
     p.add_argument("--amplitude", type=float, default=None,
                    help="injection amplitude: duty [1] (default 0.01), reference [V] (0.1), load [relative "
                         "conductance change] (0.05)")
-    p.add_argument("--reference", type=float, default=12.0, metavar="V", help="operating point: reference [V]")
-    p.add_argument("--load", type=float, default=6.0, metavar="OHM", help="operating point: load [Ohm]")
-    p.add_argument("--input-voltage", type=float, default=48.0, metavar="V", help="operating point: supply [V]")
+    p.add_argument("--reference", type=float, default=12.0, metavar="V", help="operating point: reference [V] (default 12)")
+    p.add_argument("--load", type=float, default=6.0, metavar="OHM", help="operating point: load [Ohm] (default 6)")
+    p.add_argument("--input-voltage", type=float, default=48.0, metavar="V", help="operating point: supply [V] (default 48)")
     p.add_argument("--settle", type=float, default=15e-3, metavar="SECONDS",
                    help="closed loop from rest before the injection starts [s] (default: 0.015)")
     p.add_argument("--workers", type=int, metavar="N", help="local dask workers (default: one per core)")
