@@ -368,7 +368,7 @@ def test_a_pythonfmu_pi_under_other_names_matches_the_built_in_pi(python_pi_fmu,
                                                  r"but 'Dpct' has causality output"),
     (("Kp = 0.0015", 'Kp = "fast"'), r"pi.toml:15: parameter 'Kp' is Real in PythonPI.fmu, got 'fast'"),
     (('label = "PI (pythonfmu)"', 'label = "PI"\nsample_period = 1.5e-3'),
-     r"sample_period = 0.0015 s is not a whole multiple of the FMU's own sample period 0.001 s"),
+     r"pi.toml:3: sample_period = 0.0015 s is not a whole multiple of the FMU's own sample period 0.001 s"),
     (('label = "PI (pythonfmu)"', 'label = "PI"\nduty_limits = [0.5, 0.2]'), r"pi.toml:3: duty_limits = \[0.5, 0.2\] is invalid: expected 0 <= min < max <= 1"),
     (("[roles.sample_period]\nvariable = \"Ts\"\n", ""), r"no sample period: give sample_period"),
 ])
@@ -378,6 +378,18 @@ def test_controller_binding_mistakes_name_file_key_and_line(python_pi_fmu, tmp_p
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")
                        if "roles." in message else message):
         FmuController(load_controller_binding(path))
+
+
+def test_a_parameter_the_controller_fmu_refuses_is_named_at_its_line(fmus, tmp_path):
+    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("reference", "measured_output_voltage", "duty_cycle"))
+    path = tmp_path / "c.toml"
+    path.write_text(f'fmu = "{fmus["pi"]}"\nsample_period = 1e-3\n{roles}[parameters]\nki = 15.6\nkp = -1\n')
+    with pytest.raises(ConfigError, match=r"c.toml:11: parameters.kp = -1: the controller FMU refuses its set-up with "
+                                          r"this value \(fmi2ExitInitializationMode failed\): .*kp, ki: expected "
+                                          r"finite values >= 0"):
+        FmuController(load_controller_binding(path))
+    path.write_text(path.read_text().replace("kp = -1", "kp = 0.0015"))  # the same file, a value it takes
+    assert FmuController(load_controller_binding(path)).sample_period == 1e-3
 
 
 # ------------------------------------------------------------------ the command line
@@ -424,3 +436,15 @@ def test_a_controller_fmu_without_the_role_names_needs_a_binding_file(python_pi_
     with pytest.raises(ConfigError, match="has no variable 'reference': a controller FMU without the workbench's "
                                           "role names needs a controller-binding file"):
         builtin_controller_binding(python_pi_fmu)
+
+
+def test_a_sample_period_the_fmus_unbound_own_contradicts_is_warned_of(fmus, tmp_path, capsys):
+    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("reference", "measured_output_voltage", "duty_cycle"))
+    path = tmp_path / "c.toml"
+    for period, warned in ((2e-3, True), (1e-3, False)):  # the exported PI's own sample_period starts at 1 ms
+        path.write_text(f'fmu = "{fmus["pi"]}"\nsample_period = {period}\n{roles}')
+        load_controller_binding(path)
+        err = capsys.readouterr().err
+        assert (err == f"warning: {path}:2: sample_period = {period:g} s, but the FMU's parameter 'sample_period' "
+                       "starts at 0.001 s and is not bound ([roles.sample_period]): the FMU may compute with its own "
+                       "period while the master steps it at this one\n") if warned else err == ""

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import sys
 from collections import deque
 from ctypes import c_double, c_uint
 from dataclasses import dataclass, field
@@ -125,6 +126,28 @@ def builtin_controller_binding(fmu_path: str | Path) -> ControllerBinding:
     return ControllerBinding(Path(fmu_path).resolve(), {r: RoleMap(r) for r in CONTROLLER_ROLES if r in names})
 
 
+def own_sample_period(binding: ControllerBinding, model_description) -> float | None:
+    """The sample period [s] the FMU starts with in the parameter bound to the ``sample_period`` role (its
+    start value, mapped by the role's scale and offset), or None (no such role, or no start value)."""
+    mapping = binding.roles.get("sample_period")
+    if mapping is None:
+        return None
+    start = {v.name: v for v in model_description.modelVariables}[mapping.variable].start
+    return None if start is None else (float(start) - mapping.offset) / mapping.scale
+
+
+def sample_period_problem(period: float | None, own: float | None) -> str | None:
+    """Why a binding's ``sample_period`` cannot drive an FMU whose own sample period is ``own`` (None: fine):
+    it must be a whole multiple of it, or the master would step the FMU past its sample instants."""
+    if period is None or own is None:
+        return None
+    ratio = period / own
+    if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
+        return (f"sample_period = {period:.6g} s is not a whole multiple of the FMU's own sample period {own:.6g} s: "
+                "the master would step the FMU past its sample instants")
+    return None
+
+
 def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     """Parse and check a controller-binding file's text (``path`` locates the FMU and names errors)."""
     data, loc = parse_toml(text, path, TOP_KEYS)
@@ -159,6 +182,15 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     checked = checked_fmu_of(fmu_path, path, loc)
     binding = ControllerBinding(fmu_path, roles, period, limits, parameters, path, label)
     check_against(binding, checked, loc, CONTROLLER_INPUT_ROLES + CONTROLLER_PARAMETER_ROLES)
+    problem = sample_period_problem(period, own_sample_period(binding, checked.model_description))
+    if problem:
+        raise ConfigError(f"{where(path, loc, 'sample_period')}: {problem}")
+    unbound = {v.name: v for v in checked.model_description.modelVariables}.get("sample_period")
+    if period is not None and "sample_period" not in roles and unbound is not None \
+            and unbound.causality == "parameter" and unbound.start is not None and float(unbound.start) != period:
+        print(f"warning: {where(path, loc, 'sample_period')}: sample_period = {period:.6g} s, but the FMU's parameter "
+              f"'sample_period' starts at {float(unbound.start):.6g} s and is not bound ([roles.sample_period]): the "
+              "FMU may compute with its own period while the master steps it at this one", file=sys.stderr)
     if "co-simulation" not in checked.interfaces:
         raise ConfigError(f"{where(path, loc, 'fmu')}: {fmu_path.name} offers no co-simulation for this platform "
                           "(a controller FMU is stepped with fmi2DoStep / fmi3DoStep)")
@@ -218,7 +250,7 @@ class FmuController:
         self.name = name or binding.label or md.modelName
         self.log: deque[tuple[str, str]] = deque(maxlen=100)
         variables = {v.name: v for v in md.modelVariables}
-        self.sample_period = self._sample_period(binding, variables)
+        self.sample_period = self._sample_period(binding)
         self.duty_limits = self._duty_limits(binding, variables)
         self.input_roles = tuple(r for r in CONTROLLER_INPUT_ROLES if r in roles)
         self._fields = tuple(_MEASUREMENT_FIELDS[r] for r in self.input_roles)
@@ -256,23 +288,15 @@ class FmuController:
         dll = self._fmu.dll
         self._set_real, self._get_real, self._do_step = dll.fmi2SetReal, dll.fmi2GetReal, dll.fmi2DoStep
 
-    def _sample_period(self, binding: ControllerBinding, variables) -> float:
-        own = None
-        if "sample_period" in binding.roles:
-            mapping = binding.roles["sample_period"]
-            start = variables[mapping.variable].start
-            if start is not None:
-                own = (float(start) - mapping.offset) / mapping.scale
+    def _sample_period(self, binding: ControllerBinding) -> float:
+        own = own_sample_period(binding, self.model_description)
         period = binding.sample_period if binding.sample_period is not None else own
         if period is None or not (period > 0 and math.isfinite(period)):
             raise ConfigError(f"{binding.origin}: the controller FMU declares no valid sample period "
                               f"(got {period!r}): give sample_period in a controller-binding file")
-        if own is not None and binding.sample_period is not None:
-            ratio = binding.sample_period / own
-            if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
-                raise ConfigError(f"{binding.origin}: sample_period = {binding.sample_period:.6g} s is not a whole "
-                                  f"multiple of the FMU's own sample period {own:.6g} s: the master would step the "
-                                  "FMU past its sample instants")
+        problem = sample_period_problem(binding.sample_period, own)
+        if problem:
+            raise ConfigError(f"{binding.origin}: {problem}")
         return period
 
     @staticmethod
@@ -309,9 +333,43 @@ class FmuController:
             self._initialize(0.0)
             self._fmu.reset()
         except FMICallException as error:
-            raise ConfigError(f"{self.binding.origin}: the controller FMU refuses its set-up ({error.function} "
-                              f"failed){self._last_log()}") from None
+            refusal = f"({error.function} failed){self._last_log()}"
+            located = self._refused_parameter()
+            if located is not None:
+                place, name, value = located
+                raise ConfigError(f"{place}: parameters.{name} = {value!r}: the controller FMU refuses its set-up "
+                                  f"with this value {refusal}") from None
+            raise ConfigError(f"{self.binding.origin}: the controller FMU refuses its set-up {refusal}") from None
         self._initialized = False
+
+    def _refused_parameter(self) -> tuple[str, str, object] | None:
+        """After a refused set-up: which of the binding file's ``[parameters]`` values the FMU refuses alone
+        (fmi2Reset, then each value on the FMU's defaults), as (``file:line`` of its key, name, value); None when
+        there is no binding file or no single value is refused (the FMU's message stands). The binding's
+        parameters are restored and the instance reset either way."""
+        binding = self.binding
+        if binding.source is None or not binding.parameters:
+            return None
+        md, resolved, found = self.model_description, self._parameters, None
+        try:
+            for name, value in binding.parameters.items():
+                self._fmu.reset()
+                self._parameters = resolve_parameters({name: value}, md, binding.fmu_path.name)
+                try:
+                    self._initialize(0.0)
+                except FMICallException:
+                    found = name, value
+                    break
+            self._fmu.reset()
+        except FMICallException:  # the FMU cannot be reset: no location
+            return None
+        finally:
+            self._parameters = resolved
+        if found is None:
+            return None
+        text, path = read_binding_text(binding.source, "controller binding file")
+        _, loc = parse_toml(text, path, TOP_KEYS)
+        return where(path, loc, found[0], "parameters"), found[0], found[1]
 
     # ------------------------------------------------------------------ the controller protocol
     def reset(self) -> None:
