@@ -240,9 +240,11 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
                     key_places=places)
 
 
-def _check_reachable(initial: dict, events: list[tuple[int, "ScenarioEvent"]], path, loc) -> None:
-    """Refuse a reference a buck converter cannot reach: above the input voltage in effect.
-    ``events`` are (index in the file, event) in time order."""
+def reference_above_supply(initial: dict, events) -> tuple[float, float, float, int | None, "ScenarioEvent | None"] | None:
+    """The first instant a buck converter cannot follow: the reference above the input voltage in effect, as
+    (time [s], reference [V], input voltage [V], the event's index, the event) -- index and event None at t = 0 --
+    or None. ``events`` are (index, event) in time order. The one rule: scenario files are checked with it when
+    read, and a sweep's runs as its operating-point axes move them."""
     reference, supply = initial["reference"], initial["input_voltage"]
     points = [(0.0, None, None)] + [(event.time, index, event) for index, event in events]
     for time, index, event in points:
@@ -250,13 +252,28 @@ def _check_reachable(initial: dict, events: list[tuple[int, "ScenarioEvent"]], p
             reference = event.changes.get("reference", reference)
             supply = event.changes.get("input_voltage", supply)
         if reference > supply:
-            if event is None:
-                place = _where(path, loc, "reference", "initial")
-            else:
-                key = "reference" if "reference" in event.changes else "input_voltage"
-                place = _where(path, loc, key, "events", index)
-            raise ConfigError(f"{place}: the reference {reference:g} V at t = {time:g} s exceeds the input voltage "
-                              f"{supply:g} V in effect then: a buck converter's output cannot exceed its input")
+            return time, reference, supply, index, event
+    return None
+
+
+def unreachable_text(time: float, reference: float, supply: float) -> str:
+    """How a message says :func:`reference_above_supply`'s finding."""
+    return (f"the reference {reference:g} V at t = {time:g} s exceeds the input voltage {supply:g} V in effect then: "
+            "a buck converter's output cannot exceed its input")
+
+
+def _check_reachable(initial: dict, events: list[tuple[int, "ScenarioEvent"]], path, loc) -> None:
+    """Refuse a reference a buck converter cannot reach (:func:`reference_above_supply`), at its line."""
+    found = reference_above_supply(initial, events)
+    if found is None:
+        return
+    time, reference, supply, index, event = found
+    if event is None:
+        place = _where(path, loc, "reference", "initial")
+    else:
+        key = "reference" if "reference" in event.changes else "input_voltage"
+        place = _where(path, loc, key, "events", index)
+    raise ConfigError(f"{place}: {unreachable_text(time, reference, supply)}")
 
 
 def _parameters(table, path, loc, label, index) -> dict[str, float]:

@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from conftest import faulty_binding, no_temporary_files
+from conftest import cli, faulty_binding, no_temporary_files
+from conftest import one_line_error as cli_one_line_error
 
 from cosim.base.errors import ConfigError
 from cosim.cli import main
@@ -229,6 +230,126 @@ def test_values_outside_the_fmu_bounds_and_unknown_parameters_are_refused_before
         line = one_line_error(capsys, code, 2, more)
         assert message in line.replace(str(tmp_path) + "/", ""), line
         assert not (out / "dataset").exists() and not (out / "tuning").exists() and not (out / "sweep.json").exists()
+
+
+def nothing_ran(out: Path) -> None:
+    """No cluster work, no design, no dataset: the output folder holds nothing (or does not exist)."""
+    assert not out.exists() or not any(out.iterdir()), sorted(out.rglob("*"))
+
+
+def plan_error(path: Path) -> str:
+    with pytest.raises(ConfigError) as caught:
+        SweepPlan(load_sweep(path))
+    text = str(caught.value)
+    assert "\n" not in text, text
+    return text.replace(str(path.parent) + "/", "")
+
+
+def test_a_control_period_too_long_for_a_scenario_is_refused_before_any_work(tmp_path):
+    """The check ``run --control-period`` makes (too few controller samples in a scenario's recorded time),
+    made on the sweep file before a cluster starts -- not found by the runs failing on the workers."""
+    path = sweep_file(tmp_path, f"""\
+        name = "mini"
+        scenarios = ["startup", "load_change"]
+        samples = 2
+        control_period = 0.05
+        record_period = 1e-5
+        controllers = [{{ kind = "pi", {PI_GAINS} }}]
+        [parameters]
+        inductance = {{ tolerance = 0.2 }}
+        """)
+    out = tmp_path / "out"
+    done = cli("sweep", str(path), "--out", str(out), "--workers", "1")
+    line = cli_one_line_error(done, 2, "scenario startup records 0.03 s, which holds 1 controller sample(s) at control "
+                                       "period 0.05 s: expected at least 2 (a shorter control period or a longer "
+                                       "duration)")
+    assert line.startswith(f"error: {path}:4: control_period = 0.05 s: "), line
+    assert "cosim/scenarios/startup.toml:4: scenario startup" in line, line  # the scenario's own file and line
+    nothing_ran(out)
+    assert done.stdout == ""
+    # the same check names the key that is at fault: a record period too fine for a scenario ...
+    path.write_text(path.read_text().replace("control_period = 0.05", "control_period = 1e-3")
+                    .replace("record_period = 1e-5", "record_period = 1e-10"))
+    assert plan_error(path).startswith("study.toml:5: record_period = 1e-10 s: ")
+    # ... a controller's own settle time (the runs of that controller only) ...
+    path.write_text(path.read_text().replace("record_period = 1e-10", "record_period = 1e-5")
+                    .replace("control_period = 1e-3", "control_period = 1e-5")
+                    .replace(" }]", f' }}, {{ kind = "pi", name = "slow", settle = 2000.0, {PI_GAINS} }}]'))
+    text = plan_error(path)
+    assert text.startswith("study.toml:4: control_period = 1e-05 s with controllers[1].settle = 2000 s: ") and \
+        "scenario startup's settle 2000 s and duration 0.03 s" in text and "the limit is 2e+08" in text, text
+    # ... and the default control period against a scenario file of the user's
+    (tmp_path / "short.toml").write_text('name = "short"\nduration = 0.0009\n[initial]\nreference = 12.0\n')
+    path = sweep_file(tmp_path, 'scenarios = ["short.toml"]\ncontrollers = ["pi"]\n')
+    assert plan_error(path) == ("study.toml: control_period = 0.001 s (the default): short.toml:2: scenario short "
+                                "records 0.0009 s, which holds 1 controller sample(s) at control period 0.001 s: "
+                                "expected at least 2 (a shorter control period or a longer duration)")
+
+
+def test_a_reference_above_the_input_voltage_is_refused_before_any_work(tmp_path):
+    """The scenario file's check ("exceeds the input voltage"), made on every run the sweep plans: each
+    scenario as the operating-point axes move it."""
+    path = sweep_file(tmp_path, f"""\
+        scenarios = ["startup"]
+        controllers = [{{ kind = "pi", {PI_GAINS} }}]
+        [operating_point]
+        reference = {{ values = [60.0] }}
+        """)
+    out = tmp_path / "out"
+    done = cli("sweep", str(path), "--out", str(out), "--workers", "1")
+    line = cli_one_line_error(done, 2, "")
+    assert line == (f"error: {path}:4: operating_point.reference: 1 of 1 values in scenario startup put the reference "
+                    "above the input voltage (e.g. the reference 60 V at t = 0 s exceeds the input voltage 48 V in "
+                    "effect then: a buck converter's output cannot exceed its input): expected a reference <= the "
+                    "input voltage"), line
+    nothing_ran(out)
+    assert done.stdout == ""
+
+    def study(axes: str, scenarios: str = '"startup"', samples: str = "") -> Path:
+        return sweep_file(tmp_path, f'scenarios = [{scenarios}]\ncontrollers = ["pi"]\n{samples}[operating_point]\n{axes}')
+
+    # a reference axis against a supply axis: every pair the full factorial draws, the reference's line named
+    text = plan_error(study("reference = { values = [10.0, 20.0, 40.0] }\ninput_voltage = { values = [24.0, 36.0, 48.0] }\n"))
+    assert text.startswith("study.toml:4: operating_point.reference with operating_point.input_voltage (study.toml:5): "
+                           "2 of 9 (reference, input voltage) pairs in scenario startup put the reference above the "
+                           "input voltage (e.g. the reference 40 V at t = 0 s exceeds the input voltage 24 V"), text
+    SweepPlan(load_sweep(study("reference = { values = [10.0, 20.0, 24.0] }\ninput_voltage = { values = [24.0, 48.0] }\n")))
+    # later in the run: the reference step of reference_up scales with the axis (12 -> 15 V becomes 40 -> 50 V) ...
+    text = plan_error(study("reference = { values = [12.0, 40.0] }\n", '"startup", "reference_up"'))
+    assert text.startswith("study.toml:4: operating_point.reference: 1 of 2 values in scenario reference_up put the "
+                           "reference above the input voltage (e.g. the reference 50 V at t = 0.005 s exceeds the input "
+                           "voltage 48 V in effect then: a buck converter's output cannot exceed its input)"), text
+    # ... but not anchored at its final value (32 -> 40 V)
+    SweepPlan(load_sweep(study('reference = { values = [12.0, 40.0], anchor = "final" }\n', '"startup", "reference_up"')))
+    # a random supply axis alone, run by run: exactly the draws below the scenario's 12 V
+    path = study('input_voltage = { distribution = "uniform", low = 10.0, high = 48.0 }\n', samples="samples = 50\n")
+    drawn = load_sweep(path).axes[0].draw(0, 50)
+    text = plan_error(path)
+    assert text.startswith(f"study.toml:5: operating_point.input_voltage: {int((drawn < 12.0).sum())} of 50 values in "
+                           "scenario startup put the reference above the input voltage"), text
+    assert (drawn < 12.0).sum() > 0
+
+
+def test_a_binding_value_the_fmu_refuses_is_refused_before_any_cluster_starts(tmp_path, buck_fmu):
+    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("duty_cycle", "output_voltage", "inductor_current"))
+    (tmp_path / "plant.toml").write_text(f'fmu = "{buck_fmu}"\n{roles}[parameters]\ninductance = -1\n')
+    path = sweep_file(tmp_path, 'scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 2\n[plant]\n'
+                                'binding = "plant.toml"\n[parameters]\ncapacitance = { tolerance = 0.2 }\n')
+    out = tmp_path / "out"
+    done = cli("sweep", str(path), "--out", str(out), "--workers", "1")
+    cli_one_line_error(done, 2, "plant.toml:9: parameters.inductance = -1: the plant FMU refuses its set-up with this "
+                                "value (fmi2SetReal failed (error) at t = 0 s: fmi2SetReal: inductance = -1 H is invalid")
+    nothing_ran(out)
+
+
+def test_a_folder_given_as_the_sweep_file_is_called_a_folder(tmp_path):
+    folder = tmp_path / "d.toml"
+    folder.mkdir()
+    out = tmp_path / "out"
+    done = cli("sweep", str(folder), "--out", str(out))
+    line = cli_one_line_error(done, 2, "")
+    assert line == f"error: sweep file {folder} is a folder: expected a file", line  # as run, export, ... say it
+    assert not out.exists() and done.stdout == ""
 
 
 def test_an_unreachable_or_malformed_scheduler_is_refused_before_any_work(tmp_path, capsys):

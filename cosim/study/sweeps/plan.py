@@ -3,7 +3,9 @@
 Checked here, before anything runs: every ``[parameters]`` axis names a parameter the FMU has
 (causality parameter, of a type the values fit), a relative tolerance has a nominal value to be
 relative to, every value lies within the FMU's declared min/max, an operating-point axis has its
-role in the binding, and every scenario's events have the roles they need.
+role in the binding, every scenario's events have the roles they need, the control and record
+periods suit every scenario (as ``buck-cosim run`` checks them), and no planned run puts the
+reference above the input voltage in effect (as a scenario file is checked when read).
 
 Each run's id is a SHA-256 of its full spec -- the plant (FMU bytes, roles, nominal parameters),
 every swept value, the scenario's content, the controller's recipe (gains, model bytes), the
@@ -24,7 +26,7 @@ from cosim.base.errors import ConfigError
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
 from cosim.master import check_plant_supports
-from cosim.scenarios import Scenario
+from cosim.scenarios import Scenario, reference_above_supply, unreachable_text
 from cosim.base.digests import canonical, digest
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
 from cosim.study.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
@@ -159,6 +161,33 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
     return infos
 
 
+def check_rates(spec: SweepSpec, binding: PlantBinding) -> None:
+    """The sweep's control and record periods against every scenario, with each controller's own settle
+    time: the check ``buck-cosim run`` makes (:meth:`cosim.batch.Batch.check_rates`: enough controller
+    samples in the recorded time, not too many instants), before any work rather than in every run on a
+    worker. The message names the sweep's key and line, then the scenario's own cause."""
+    from cosim.batch import Batch
+    from cosim.timeline import plan_timeline
+
+    settles: dict[float | None, int] = {}  # a settle time the runs use (None: the scenarios' own) -> its controller
+    for index, controller in enumerate(spec.controllers):
+        settles.setdefault(controller.settle, index)
+    for settle, index in settles.items():
+        for scenario in spec.scenarios:
+            run_as = scenario if settle is None else replace(scenario, settle=settle)
+            try:
+                Batch(binding, (run_as,)).check_rates(spec.control_period, spec.record_period)
+            except ConfigError as error:
+                try:  # the control period alone, at the fewest instants a record period can give
+                    plan_timeline(run_as, spec.control_period, run_as.duration)
+                    key, value = "record_period", spec.record_period
+                except ConfigError:
+                    key, value = "control_period", spec.control_period
+                given = "" if key in spec.places else " (the default)"
+                own = "" if settle is None else f" with controllers[{index}].settle = {settle:g} s"
+                raise ConfigError(f"{spec.place(key)}: {key} = {value:.6g} s{given}{own}: {error}") from None
+
+
 def anchor_value(scenario: Scenario, signal: str, anchor: str = "initial") -> float:
     """The value of ``signal`` an operating-point axis sets: its initial one, or its final one (after the
     scenario's last change of it)."""
@@ -194,6 +223,7 @@ class SweepPlan:
         self.spec = spec
         self.binding = binding or nominal_binding(spec)
         self.axes = check_axes(spec, self.binding)
+        check_rates(spec, self.binding)
         oracle = next((c for c in spec.controllers if c.kind == "mpc-oracle"), None)
         if oracle is not None and any(a.group == "parameters" for a in spec.axes):
             raise ConfigError(f"{oracle.place}: mpc-oracle knows the nominal plant's circuit only, and [parameters] "
@@ -204,6 +234,7 @@ class SweepPlan:
         draws = {a.key: a.draw(spec.seed, spec.samples) for a in spec.random_axes}
         self._draws = draws
         self._check_bounds()
+        self._check_reachable()
 
     @property
     def scenarios(self) -> dict[str, Scenario]:
@@ -232,14 +263,18 @@ class SweepPlan:
             (parameters if info.axis.group == "parameters" else operating)[info.axis.name] = value
         return parameters, operating
 
+    def _column(self, info: AxisInfo, scenario: Scenario) -> np.ndarray:
+        """An axis's value in every run of a scenario (one controller), ordered grid point, sample."""
+        return np.array([self._values(info, scenario, p, s) for p in range(len(self._points))
+                         for s in range(self.spec.samples)], dtype=float)
+
     def _check_bounds(self) -> None:
         """Every value within the FMU's declared min/max, a supply and a load > 0, before any run."""
         for info in self.axes:
             operating = info.axis.group == "operating_point"
             unit = f" {info.unit}" if info.unit else ""
             for scenario in self.spec.scenarios if operating else self.spec.scenarios[:1]:
-                values = np.array([self._values(info, scenario, p, s) for p in range(len(self._points))
-                                   for s in range(self.spec.samples)], dtype=float)
+                values = self._column(info, scenario)
                 if operating:
                     low, bad, bound = 0.0, values <= 0, "0 (a supply or a load must be > 0)"
                 else:
@@ -255,6 +290,40 @@ class SweepPlan:
                     raise ConfigError(f"{info.axis.place}: {info.axis.key}: {int((values > info.maximum).sum())} of "
                                       f"{len(values)} values exceed the FMU's maximum {info.maximum:g}{unit} (largest "
                                       f"{values.max():.4g}{unit})")
+
+    def _check_reachable(self) -> None:
+        """No planned run puts the reference above the input voltage in effect, at t = 0 or after any event:
+        each run's scenario as the worker will run it (:func:`at_operating_point`), checked by the rule scenario
+        files are checked by when read (:func:`cosim.scenarios.reference_above_supply`)."""
+        swept = {i.axis.name: i for i in self.axes if i.axis.group == "operating_point"
+                 and i.axis.name in ("reference", "input_voltage")}
+        if not swept:
+            return
+        anchors = tuple((a.name, a.anchor) for a in self.spec.axes
+                        if a.group == "operating_point" and a.anchor != "initial")
+        count = len(self._points) * self.spec.samples
+        for scenario in self.spec.scenarios:
+            bad, first = 0, None
+            for point in range(len(self._points)):
+                for sample in range(self.spec.samples):
+                    _, operating = self.values(scenario, point, sample)
+                    try:
+                        moved = at_operating_point(scenario, operating, anchors)
+                    except ZeroDivisionError:  # a zero anchor: not this check's to judge (the runs say it)
+                        continue
+                    found = reference_above_supply(moved.initial, list(enumerate(moved.events)))
+                    if found is not None:
+                        bad += 1
+                        first = first or found
+            if first is None:
+                continue
+            axis = (swept.get("reference") or swept["input_voltage"]).axis
+            what = (f"{axis.key} with operating_point.input_voltage ({swept['input_voltage'].axis.place}): {bad} of "
+                    f"{count} (reference, input voltage) pairs") if len(swept) == 2 else \
+                f"{axis.key}: {bad} of {count} values"
+            raise ConfigError(f"{axis.place}: {what} in scenario {scenario.name} put the reference above the input "
+                              f"voltage (e.g. {unreachable_text(*first[:3])}): expected a reference <= the input "
+                              "voltage")
 
     # ------------------------------------------------------------------ runs
     def runs(self, controllers: list[ControllerRecipe], implementation: str | None = None) -> list[PlannedRun]:

@@ -403,6 +403,9 @@ def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
         scenarios.append(scenario)
 
     control_period = r.period(data.get("control_period", PAPER_PERIOD), "control_period", r.at("control_period"))
+    for key in ("control_period", "record_period"):  # for the plan's check of the periods against the scenarios
+        if key in data:
+            places[key] = r.at(key)
     controllers = _controllers(r, data, base, control_period)
     record_period = r.period(data.get("record_period", 1e-5), "record_period", r.at("record_period"))
     keep_traces = data.get("keep_traces", False)
@@ -682,6 +685,8 @@ def load_sweep(name_or_path: str | Path) -> SweepSpec:
     path = Path(name_or_path)
     if not path.is_file() and not str(name_or_path).endswith(".toml") and (SHIPPED_DIR / f"{name_or_path}.toml").is_file():
         path = SHIPPED_DIR / f"{name_or_path}.toml"
+    if path.is_dir():  # the wording of every command's file arguments (cosim.cli.options.input_file)
+        raise ConfigError(f"sweep file {path} is a folder: expected a file")
     if not path.is_file():
         shipped = ", ".join(shipped_studies()) or "none"
         raise ConfigError(f"sweep file {name_or_path} does not exist (shipped studies: {shipped})")

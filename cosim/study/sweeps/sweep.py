@@ -23,6 +23,7 @@ from pathlib import Path
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.files import atomic_write_text, remove_temporary_files
 from cosim.fmi.archive import check_fmu
+from cosim.master import check_set_up
 from cosim.study.sweeps import dataset
 from cosim.study.sweeps.designs import describe, design
 from cosim.study.sweeps.execute import SweepExecution, execute
@@ -183,6 +184,7 @@ def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | N
     spec = spec if isinstance(spec, SweepSpec) else load_sweep(spec)
     out_dir = Path(out_dir)
     plan = SweepPlan(spec)
+    check_set_up(plan.binding, spec.scenarios)  # what the FMU refuses (binding parameters, events), before any cluster
     if check_output(plan, out_dir, resume):  # this sweep, complete: nothing to run, no cluster
         recipes = design(spec.controllers, plan.binding, spec.control_period, out_dir, progress)
         prepared = PreparedSweep(plan, out_dir, recipes, progress)
