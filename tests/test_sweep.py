@@ -342,6 +342,22 @@ def test_a_binding_value_the_fmu_refuses_is_refused_before_any_cluster_starts(tm
     nothing_ran(out)
 
 
+def test_an_axis_anchored_where_the_scenario_is_zero_is_refused_before_any_work(tmp_path):
+    (tmp_path / "from_zero.toml").write_text('name = "from_zero"\nduration = 0.03\n[initial]\nreference = 0.0\n'
+                                             '[[events]]\ntime = 0.01\nreference = 12.0\n')
+    axis = "reference = {{ values = [10.0, 12.0]{} }}\n"
+    path = sweep_file(tmp_path, 'scenarios = ["from_zero.toml"]\ncontrollers = ["pi"]\n[operating_point]\n'
+                      + axis.format(""))
+    assert plan_error(path) == ("study.toml:4: operating_point.reference: scenario from_zero's initial reference is 0, "
+                                "which the axis cannot scale (it multiplies the scenario's reference by value / "
+                                "anchored value): expected a scenario whose anchored value is not 0, or the other anchor")
+    path.write_text(path.read_text().replace(axis.format(""), axis.format(', anchor = "final"')))
+    plan = SweepPlan(load_sweep(path))  # anchored at its final 12 V: 0 -> 10 V and 0 -> 12 V
+    scenario = plan.spec.scenarios[0]
+    moved = at_operating_point(scenario, plan.values(scenario, 0, 0)[1], (("reference", "final"),))
+    assert moved.initial["reference"] == 0.0 and moved.events[0].changes["reference"] == 10.0
+
+
 def test_a_folder_given_as_the_sweep_file_is_called_a_folder(tmp_path):
     folder = tmp_path / "d.toml"
     folder.mkdir()

@@ -233,6 +233,7 @@ class SweepPlan:
         self._points = list(itertools.product(*(a.values for a in spec.grid_axes))) or [()]
         draws = {a.key: a.draw(spec.seed, spec.samples) for a in spec.random_axes}
         self._draws = draws
+        self._check_anchors()
         self._check_bounds()
         self._check_reachable()
 
@@ -291,6 +292,19 @@ class SweepPlan:
                                       f"{len(values)} values exceed the FMU's maximum {info.maximum:g}{unit} (largest "
                                       f"{values.max():.4g}{unit})")
 
+    def _check_anchors(self) -> None:
+        """An operating-point axis scales each scenario's values of its signal by value / anchor
+        (:func:`at_operating_point`): a scenario whose anchored value is 0 (a reference at rest) cannot be moved."""
+        for info in self.axes:
+            if info.axis.group != "operating_point":
+                continue
+            for scenario in self.spec.scenarios:
+                if anchor_value(scenario, info.axis.name, info.axis.anchor) == 0:
+                    raise ConfigError(f"{info.axis.place}: {info.axis.key}: scenario {scenario.name}'s {info.axis.anchor} "
+                                      f"{info.axis.name} is 0, which the axis cannot scale (it multiplies the scenario's "
+                                      f"{info.axis.name} by value / anchored value): expected a scenario whose anchored "
+                                      "value is not 0, or the other anchor")
+
     def _check_reachable(self) -> None:
         """No planned run puts the reference above the input voltage in effect, at t = 0 or after any event:
         each run's scenario as the worker will run it (:func:`at_operating_point`), checked by the rule scenario
@@ -307,10 +321,7 @@ class SweepPlan:
             for point in range(len(self._points)):
                 for sample in range(self.spec.samples):
                     _, operating = self.values(scenario, point, sample)
-                    try:
-                        moved = at_operating_point(scenario, operating, anchors)
-                    except ZeroDivisionError:  # a zero anchor: not this check's to judge (the runs say it)
-                        continue
+                    moved = at_operating_point(scenario, operating, anchors)  # anchors are not 0 (_check_anchors)
                     found = reference_above_supply(moved.initial, list(enumerate(moved.events)))
                     if found is not None:
                         bad += 1
