@@ -148,24 +148,51 @@ def refuse_parameter_events(plant: FmuPlant, scenario: Scenario) -> None:
 def preflight(plant: FmuPlant, scenario: Scenario) -> None:
     """Ask the plant, before any run, what a run's start asks of it: the scenario's parameter events tried on the
     FMU, then the set-up -- the binding's parameters and the scenario's first inputs, initialised at t = 0. A
-    refusal is a :class:`ConfigError`; one of the binding's ``[parameters]`` values is named at its line of the
-    binding file (:func:`cosim.fmi.binding_file.refused_parameter`). The instance is reset by the next
-    initialisation, so the batch's runs use it as if it were fresh."""
+    refusal is a :class:`ConfigError` naming what is refused where it can be told apart
+    (:func:`cosim.fmi.binding_file.locate_refusal`): one ``[parameters]`` value at its line of the binding file,
+    their combination, or the scenario's first inputs. The next initialisation resets the instance, so the runs
+    that follow see it as if it were fresh."""
     refuse_parameter_events(plant, scenario)
     inputs = start_inputs(scenario)
     values = [inputs[r] for r in plant.input_roles]
     try:
         plant.initialize(values, start_time=0.0)
     except ConfigError as error:
-        from cosim.fmi.binding_file import refused_parameter
+        raise ConfigError(_refusal_text(plant, scenario, inputs, values, error)) from None
 
-        located = refused_parameter(plant, values)
-        if located is None:
-            raise
-        place, name, value = located
-        detail = str(error).removeprefix(f"{plant.binding.origin}: ")
-        raise ConfigError(f"{place}: parameters.{name} = {value!r}: the plant FMU refuses its set-up with this value "
-                          f"({detail})") from None
+
+def _refusal_text(plant: FmuPlant, scenario: Scenario, inputs: dict, values: list[float], error: ConfigError) -> str:
+    """The message of a refused :func:`preflight` set-up, naming the refused part."""
+    from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, locate_refusal
+
+    binding = plant.binding
+    detail = str(error).removeprefix(f"{binding.origin}: ")
+
+    def try_set_up(parameters) -> bool:
+        plant.replace_parameters(parameters)
+        try:
+            plant.initialize(values, start_time=0.0)
+        except ConfigError:
+            return False
+        return True
+
+    try:
+        refusal = locate_refusal(binding, try_set_up)
+    except WorkbenchError:  # the FMU cannot be set up again: its first message stands
+        refusal = None
+    finally:
+        plant.replace_parameters(binding.parameters)
+    first = ", ".join(f"{role} = {inputs[role]:g}" for role in plant.input_roles)
+    if refusal is None or refusal.kind == REST:
+        return (f"{scenario.place('initial')}: the plant FMU ({binding.origin}) refuses its set-up at the start of "
+                f"scenario {scenario.name} ({first}){', even without the binding parameters' if refusal else ''} "
+                f"({detail})")
+    if refusal.kind == PARAMETER:
+        return (f"{refusal.place}: parameters.{refusal.name} = {refusal.value!r}: the plant FMU refuses its set-up "
+                f"with this value ({detail})")
+    assert refusal.kind == TOGETHER
+    return (f"{refusal.place}: the plant FMU refuses its set-up with these [parameters] together, though with each "
+            f"alone ({detail})")
 
 
 def check_set_up(binding: PlantBinding, scenarios, interface: str | None = None) -> None:

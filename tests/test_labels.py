@@ -23,10 +23,6 @@ def test_a_period_has_one_file_label_one_text_and_its_ascii_form(period, label, 
     assert period_text(period, ascii_only=True).isascii()
 
 
-def test_the_switching_period_is_one_pwm_period_of_75_khz():
-    assert SWITCHING_PERIOD == pytest.approx(1 / 75e3, rel=1e-3)
-
-
 def test_the_compute_target_row_is_named_as_the_benchmark_writes_its_rates():
     assert controller_compute_benchmark(NNPC, PAPER_PERIOD, "c") == "controller compute per step, NNPC, 1 ms, C twin"
     assert controller_compute_benchmark(NNPC, SWITCHING_PERIOD, "python") == \

@@ -341,6 +341,8 @@ def bad_archives(loops, work) -> dict[str, tuple[Path, str]]:
         "communication step zero": (_rewrite(good, work / "zero-step.ssp", {"SystemStructure.ssd": ssd.replace(
             'communicationStep="', 'communicationStep="0" was="').encode()}),
             "communicationStep = 0 s: expected a time > 0"),
+        "settle edited": (_rewrite(good, work / "settle.ssp", {"SystemStructure.ssd": re.sub(
+            'settle="[^"]*"', 'settle="0.004"', ssd).encode()}), "the buck-cosim annotation's settle = 0.004 s: expected"),
     }
 
 
@@ -348,7 +350,7 @@ def bad_archives(loops, work) -> dict[str, tuple[Path, str]]:
                                   "connection to a missing connector", "connector naming a missing variable",
                                   "FMU missing", "parameter set missing", "stop time before the start",
                                   "stop time short of the scenario", "start time not zero",
-                                  "communication step zero"])
+                                  "communication step zero", "settle edited"])
 def test_a_bad_archive_is_refused_in_one_line(bad_archives, case):
     path, message = bad_archives[case]
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):

@@ -119,7 +119,7 @@ def test_random_bytes_and_folders_are_named_for_what_they_are(tmp_path):
         load_model(tmp_path / "noise.pt")
     with pytest.raises(ModelFileError, match=r"is a folder: expected a .pt file"):
         load_model(tmp_path)
-    one_line_error(cli("export", str(tmp_path), "--to", "csv"), 2, "is a folder: expected a file")
+    one_line_error(cli("export", str(tmp_path), "--to", "csv"), 2, "is a folder: expected a run's .parquet or .csv")
     one_line_error(cli("run", str(tmp_path), "--kp", "0", "--ki", "14", "--out", str(tmp_path / "o")), 2,
                    "is a folder: expected a scenario file")
     one_line_error(cli("run", "startup", "--plant", str(tmp_path), "--kp", "0", "--ki", "14"), 2,
@@ -213,6 +213,52 @@ def test_a_binding_parameter_the_fmu_refuses_is_named_at_its_line_before_any_tun
         one_line_error(cli(*command), 2, message)
     assert not (tmp_path / "out" / "tuning").exists() and not (tmp_path / "out" / "runs").exists()
     assert not (tmp_path / "pi.json").exists()
+
+
+def test_a_refused_set_up_is_told_apart_one_value_their_combination_or_the_rest(tmp_path, buck_fmu):
+    """locate_refusal, with an FMU that refuses Rload < 0 in its inputs, inductance < 0 alone, and inductance above
+    1 mH together with capacitance above 1 mF (the try_set_up below plays it)."""
+    from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, load_binding, locate_refusal
+
+    def fmu(refuse_inputs=False):
+        def try_set_up(parameters):
+            tried.append(dict(parameters))
+            together = parameters.get("inductance", 0) > 1e-3 and parameters.get("capacitance", 0) > 1e-3
+            return not (refuse_inputs or parameters.get("inductance", 0) < 0 or together)
+        return try_set_up
+
+    path = tmp_path / "plant.toml"
+    for values, refuse_inputs, expected in (
+            ("capacitance = 4.7e-6\ninductance = -1\n", False, (PARAMETER, ":14", "inductance", -1)),
+            ("capacitance = 2e-3\ninductance = 2e-3\n", False, (TOGETHER, ":12", "", None)),
+            ("capacitance = 4.7e-6\n", True, (REST, "", "", None))):
+        path.write_text(_built_in_plant_binding(buck_fmu, values))
+        tried = []
+        refusal = locate_refusal(load_binding(path), fmu(refuse_inputs))
+        assert (refusal.kind, refusal.place[len(str(path)):], refusal.name, refusal.value) == expected
+        assert tried[0] == {}  # first without any binding value: the inputs or the FMU's defaults are not blamed on one
+    path.write_text(_built_in_plant_binding(buck_fmu, ""))
+    assert locate_refusal(load_binding(path), fmu(refuse_inputs=True)) is None  # no binding value to locate
+
+
+def test_refused_first_inputs_are_named_as_the_scenarios_not_a_binding_value(tmp_path, buck_fmu):
+    from dataclasses import replace
+
+    from cosim.base.errors import ConfigError
+    from cosim.fmi.binding_file import load_binding
+    from cosim.master import check_set_up
+    from cosim.scenarios import load_scenario
+
+    (tmp_path / "plant.toml").write_text(_built_in_plant_binding(buck_fmu, "capacitance = 4.7e-6\n"))
+    startup = load_scenario("startup")
+    refused = replace(startup, initial={**startup.initial, "load_resistance": -1.0})  # past the file's own checks
+    with pytest.raises(ConfigError) as caught:
+        check_set_up(replace(load_binding(tmp_path / "plant.toml"), isolate=False), [startup, refused])
+    assert str(caught.value) == (
+        f"{startup.place('initial')}: the plant FMU (binding file {tmp_path / 'plant.toml'}) refuses its set-up at the "
+        "start of scenario startup (duty_cycle = 0, input_voltage = 48, load_resistance = -1), even without the binding "
+        "parameters (fmi2SetReal failed (error) at t = 0 s: fmi2SetReal: load_resistance = -1 Ohm is invalid: "
+        "expected a finite value > 0)")
 
 
 def test_a_refused_parameter_event_stops_the_batch_before_its_first_run(tmp_path):

@@ -43,9 +43,11 @@ from __future__ import annotations
 import math
 import re
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Mapping
 
-from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
+from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
 from cosim.base.labels import did_you_mean
 from cosim.base.toml_files import TomlLocator, parse_toml, where
@@ -275,39 +277,37 @@ def read_binding_text(path: str | Path, what: str = "binding file") -> tuple[str
         raise ConfigError(f"{path}: cannot read {what} ({error})") from None
 
 
-def refused_parameter(plant, inputs) -> tuple[str, str, object] | None:
-    """Which of ``plant``'s binding ``[parameters]`` values its FMU refuses at the set-up, after a refused
-    :meth:`~cosim.fmi.plant_fmi2.FmuPlant.initialize` (``inputs``: the ones it was given): each value is tried alone
-    on the FMU's own defaults (fmi2Reset first: a refused set-up may leave it in initialisation mode). Returns
-    (``file:line`` of the key, its name, its value), or None -- no binding file, no parameters, or none refused
-    alone (then the combination or the inputs are refused, as the FMU's message says). The binding's parameters
-    are restored and the instance reset either way."""
-    binding = plant.binding
+@dataclass(frozen=True)
+class Refusal:
+    """Which part of a refused set-up the FMU refuses (:func:`locate_refusal`)."""
+
+    kind: str  # PARAMETER: one [parameters] value alone; TOGETHER: only their combination; REST: the set-up without any
+    place: str = ""  # file:line of the value's key (PARAMETER) or of the [parameters] table (TOGETHER)
+    name: str = ""
+    value: object = None
+
+
+PARAMETER, TOGETHER, REST = "parameter", "together", "rest"
+
+
+def locate_refusal(binding, try_set_up: Callable[[Mapping[str, object]], bool], top_keys: set[str] = TOP_KEYS
+                   ) -> Refusal | None:
+    """After an FMU refused its set-up with ``binding``'s ``[parameters]``: which part it refuses. ``try_set_up``
+    sets the FMU up afresh with exactly the given binding parameters (the FMU's own defaults for the rest) and
+    says whether it was accepted. First without any (refused: REST -- the inputs or the FMU's defaults, not the
+    binding), then each value alone (the first refused: PARAMETER, at its line of the binding file), else TOGETHER.
+    None without a binding file or parameters. Plant and controller bindings alike (``top_keys``: the file kind's
+    keys); the caller restores its own parameters."""
     if binding.source is None or not binding.parameters:
         return None
-    found = None
-    try:
-        for name, value in binding.parameters.items():
-            plant.reset()
-            plant.replace_parameters({name: value})
-            try:
-                plant.initialize(inputs, start_time=0.0)
-            except ConfigError:
-                found = name, value
-                break
-    except WorkbenchError:  # the FMU cannot be reset or re-initialised: no location, its own message stands
-        return None
-    finally:
-        plant.replace_parameters(binding.parameters)
-    try:
-        plant.reset()
-    except WorkbenchError:
-        pass
-    if found is None:
-        return None
+    if not try_set_up({}):
+        return Refusal(REST)
     text, path = read_binding_text(binding.source)
-    _, loc = parse_toml(text, path, TOP_KEYS)
-    return where(path, loc, found[0], "parameters"), found[0], found[1]
+    _, loc = parse_toml(text, path, top_keys)
+    for name, value in binding.parameters.items():
+        if not try_set_up({name: value}):
+            return Refusal(PARAMETER, where(path, loc, name, "parameters"), name, value)
+    return Refusal(TOGETHER, where(path, loc, None, "parameters"))
 
 
 def load_binding(path: str | Path) -> PlantBinding:

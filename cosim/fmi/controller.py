@@ -65,10 +65,13 @@ from cosim.base.toml_files import parse_toml, where
 from cosim.fmi.archive import CheckedFmu, check_fmu
 from cosim.fmi.binding import BindingMismatch, RoleMap, apply_parameters, resolve_parameters, resolve_roles
 from cosim.fmi.binding_file import (
+    PARAMETER,
+    TOGETHER,
     _number,
     check_against,
     checked_fmu_of,
     fmu_path_of,
+    locate_refusal,
     parse_parameters,
     parse_roles,
     read_binding_text,
@@ -141,11 +144,23 @@ def sample_period_problem(period: float | None, own: float | None) -> str | None
     it must be a whole multiple of it, or the master would step the FMU past its sample instants."""
     if period is None or own is None:
         return None
+    if not (own > 0 and math.isfinite(own)):
+        return (f"the FMU's own sample period (its sample_period parameter's start value) is {own:g} s: expected a "
+                "finite value > 0")
     ratio = period / own
     if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
         return (f"sample_period = {period:.6g} s is not a whole multiple of the FMU's own sample period {own:.6g} s: "
                 "the master would step the FMU past its sample instants")
     return None
+
+
+_WARNED: set[str] = set()  # the warning lines this process has printed (a file may be read more than once)
+
+
+def _warn_once(line: str) -> None:
+    if line not in _WARNED:
+        _WARNED.add(line)
+        print(line, file=sys.stderr)
 
 
 def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
@@ -184,13 +199,16 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     check_against(binding, checked, loc, CONTROLLER_INPUT_ROLES + CONTROLLER_PARAMETER_ROLES)
     problem = sample_period_problem(period, own_sample_period(binding, checked.model_description))
     if problem:
-        raise ConfigError(f"{where(path, loc, 'sample_period')}: {problem}")
+        key = "sample_period" if "sample_period" in data else "variable"
+        raise ConfigError(f"{where(path, loc, key, None if key == 'sample_period' else 'roles.sample_period')}: "
+                          f"{problem}")
     unbound = {v.name: v for v in checked.model_description.modelVariables}.get("sample_period")
     if period is not None and "sample_period" not in roles and unbound is not None \
             and unbound.causality == "parameter" and unbound.start is not None and float(unbound.start) != period:
-        print(f"warning: {where(path, loc, 'sample_period')}: sample_period = {period:.6g} s, but the FMU's parameter "
-              f"'sample_period' starts at {float(unbound.start):.6g} s and is not bound ([roles.sample_period]): the "
-              "FMU may compute with its own period while the master steps it at this one", file=sys.stderr)
+        _warn_once(f"warning: {where(path, loc, 'sample_period')}: sample_period = {period:.6g} s, but the FMU's "
+                   f"parameter 'sample_period' starts at {float(unbound.start):.6g} s and is not bound "
+                   "([roles.sample_period]): the FMU may compute with its own period while the master steps it at "
+                   "this one")
     if "co-simulation" not in checked.interfaces:
         raise ConfigError(f"{where(path, loc, 'fmu')}: {fmu_path.name} offers no co-simulation for this platform "
                           "(a controller FMU is stepped with fmi2DoStep / fmi3DoStep)")
@@ -334,42 +352,39 @@ class FmuController:
             self._fmu.reset()
         except FMICallException as error:
             refusal = f"({error.function} failed){self._last_log()}"
-            located = self._refused_parameter()
-            if located is not None:
-                place, name, value = located
-                raise ConfigError(f"{place}: parameters.{name} = {value!r}: the controller FMU refuses its set-up "
-                                  f"with this value {refusal}") from None
-            raise ConfigError(f"{self.binding.origin}: the controller FMU refuses its set-up {refusal}") from None
+            located = self._locate_refusal()
+            if located is not None and located.kind == PARAMETER:
+                raise ConfigError(f"{located.place}: parameters.{located.name} = {located.value!r}: the controller FMU "
+                                  f"refuses its set-up with this value {refusal}") from None
+            if located is not None and located.kind == TOGETHER:
+                raise ConfigError(f"{located.place}: the controller FMU refuses its set-up with these [parameters] "
+                                  f"together, though with each alone {refusal}") from None
+            raise ConfigError(f"{self.binding.origin}: the controller FMU refuses its set-up "
+                              f"{'even without the binding parameters ' if located else ''}{refusal}") from None
         self._initialized = False
 
-    def _refused_parameter(self) -> tuple[str, str, object] | None:
-        """After a refused set-up: which of the binding file's ``[parameters]`` values the FMU refuses alone
-        (fmi2Reset, then each value on the FMU's defaults), as (``file:line`` of its key, name, value); None when
-        there is no binding file or no single value is refused (the FMU's message stands). The binding's
-        parameters are restored and the instance reset either way."""
-        binding = self.binding
-        if binding.source is None or not binding.parameters:
-            return None
-        md, resolved, found = self.model_description, self._parameters, None
-        try:
-            for name, value in binding.parameters.items():
-                self._fmu.reset()
-                self._parameters = resolve_parameters({name: value}, md, binding.fmu_path.name)
-                try:
-                    self._initialize(0.0)
-                except FMICallException:
-                    found = name, value
-                    break
+    def _locate_refusal(self):
+        """After a refused set-up: which part the FMU refuses (:func:`cosim.fmi.binding_file.locate_refusal`), the
+        binding's parameters restored and the instance reset afterwards; None if the FMU cannot be reset."""
+        md, resolved = self.model_description, self._parameters
+
+        def try_set_up(parameters) -> bool:
             self._fmu.reset()
+            self._parameters = resolve_parameters(parameters, md, self.binding.fmu_path.name)
+            try:
+                self._initialize(0.0)
+            except FMICallException:
+                return False
+            return True
+
+        try:
+            located = locate_refusal(self.binding, try_set_up, TOP_KEYS)
+            self._fmu.reset()
+            return located
         except FMICallException:  # the FMU cannot be reset: no location
             return None
         finally:
             self._parameters = resolved
-        if found is None:
-            return None
-        text, path = read_binding_text(binding.source, "controller binding file")
-        _, loc = parse_toml(text, path, TOP_KEYS)
-        return where(path, loc, found[0], "parameters"), found[0], found[1]
 
     # ------------------------------------------------------------------ the controller protocol
     def reset(self) -> None:

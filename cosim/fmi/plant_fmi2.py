@@ -210,6 +210,11 @@ class FmuPlant:
             # failing before the first step means the set-up was refused: a parameter, start value
             # or input the FMU does not accept (its log message names it) -- a configuration error
             failure = self._fail(error.function, error.status, at=start_time)
+            if not self._fatal:  # back to instantiated (a refusal may leave it in initialisation mode): reusable
+                try:
+                    self._fmu.reset()
+                except FMICallException:
+                    pass
             raise ConfigError(str(failure)) from None
         self.time = start_time
         self._initialized = True

@@ -461,19 +461,24 @@ def _positive(text: str | None, what: str, where: str) -> float:
     return value
 
 
-def _check_experiment(start_time: float, stop_time: float, step: float, control_period: float, scenario: Scenario,
-                      where: str) -> None:
+def _check_experiment(start_time: float, stop_time: float, step: float, control_period: float, settle: float,
+                      scenario: Scenario, where: str) -> None:
     """The DefaultExperiment every engine runs: from rest at t = 0 to the end of the embedded scenario (its settle
-    time and duration at the archive's control period, as export-ssp writes it). The workbench engine runs the
-    scenario's own timeline; fmpy and libcosim run startTime..stopTime: an archive whose experiment differs from
-    the scenario would give three engines three different runs."""
+    time and duration at the archive's control period, as export-ssp writes it), and the annotation's settle time
+    the scenario's. The workbench engine runs the scenario's own timeline; fmpy and libcosim run
+    startTime..stopTime and keep the rows from the annotated settle time on: an archive whose experiment differs
+    from the scenario would give three engines three different runs."""
     if start_time != 0.0:
         raise SspError(f"{where}: DefaultExperiment startTime = {start_time:g} s: expected 0 (the loop starts at rest "
                        "at t = 0, the scenario's settle time first)")
     try:
-        end = plan_timeline(scenario, control_period, step).end
+        plan = plan_timeline(scenario, control_period, step)
     except ConfigError as error:
         raise SspError(f"{where}: {error}") from None
+    end = plan.end
+    if not math.isclose(settle, plan.settle, rel_tol=1e-9, abs_tol=1e-12):
+        raise SspError(f"{where}: the buck-cosim annotation's settle = {settle:g} s: expected {plan.settle:.9g} s, the "
+                       f"embedded scenario {scenario.name!r}'s settle time at control period {control_period:.6g} s")
     if not math.isclose(stop_time, end, rel_tol=1e-9, abs_tol=1e-12):
         raise SspError(f"{where}: DefaultExperiment stopTime = {stop_time:g} s: expected {end:.9g} s, the end of the "
                        f"embedded scenario {scenario.name!r} (its settle time and {scenario.duration:g} s at control "
@@ -630,7 +635,7 @@ def _read_loop(archive: zipfile.ZipFile, path: Path) -> Loop:
     step = _positive(step_element.get("communicationStep"), "communicationStep", where)
     control_period = _positive(ours.get("controlPeriod"), "controlPeriod", where)
     settle = _float(ours.get("settle"), "settle", where)
-    _check_experiment(start_time, stop_time, step, control_period, scenario, where)
+    _check_experiment(start_time, stop_time, step, control_period, settle, scenario, where)
     return Loop(name=root.get("name"), components=components, connections=tuple(connections),
                 start_time=start_time, stop_time=stop_time, step=step, control_period=control_period,
                 settle=settle, scenario=scenario, plant_roles=roles,

@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario, reference_above_supply, unreachable_text
-from cosim.base.digests import canonical, digest
 from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
 from cosim.study.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 
@@ -161,12 +161,12 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
     return infos
 
 
-def check_rates(spec: SweepSpec, binding: PlantBinding) -> None:
+def check_rates(spec: SweepSpec) -> None:
     """The sweep's control and record periods against every scenario, with each controller's own settle
     time: the check ``buck-cosim run`` makes (:meth:`cosim.batch.Batch.check_rates`: enough controller
-    samples in the recorded time, not too many instants), before any work rather than in every run on a
-    worker. The message names the sweep's key and line, then the scenario's own cause."""
-    from cosim.batch import Batch
+    samples in the recorded time, not too many instants: :func:`cosim.timeline.plan_timeline`), before any work
+    rather than in every run on a worker. The message names the sweep's key and line, then the scenario's own
+    cause."""
     from cosim.timeline import plan_timeline
 
     settles: dict[float | None, int] = {}  # a settle time the runs use (None: the scenarios' own) -> its controller
@@ -176,7 +176,7 @@ def check_rates(spec: SweepSpec, binding: PlantBinding) -> None:
         for scenario in spec.scenarios:
             run_as = scenario if settle is None else replace(scenario, settle=settle)
             try:
-                Batch(binding, (run_as,)).check_rates(spec.control_period, spec.record_period)
+                plan_timeline(run_as, spec.control_period, spec.record_period)
             except ConfigError as error:
                 try:  # the control period alone, at the fewest instants a record period can give
                     plan_timeline(run_as, spec.control_period, run_as.duration)
@@ -223,7 +223,7 @@ class SweepPlan:
         self.spec = spec
         self.binding = binding or nominal_binding(spec)
         self.axes = check_axes(spec, self.binding)
-        check_rates(spec, self.binding)
+        check_rates(spec)
         oracle = next((c for c in spec.controllers if c.kind == "mpc-oracle"), None)
         if oracle is not None and any(a.group == "parameters" for a in spec.axes):
             raise ConfigError(f"{oracle.place}: mpc-oracle knows the nominal plant's circuit only, and [parameters] "
@@ -299,11 +299,12 @@ class SweepPlan:
             if info.axis.group != "operating_point":
                 continue
             for scenario in self.spec.scenarios:
-                if anchor_value(scenario, info.axis.name, info.axis.anchor) == 0:
-                    raise ConfigError(f"{info.axis.place}: {info.axis.key}: scenario {scenario.name}'s {info.axis.anchor} "
-                                      f"{info.axis.name} is 0, which the axis cannot scale (it multiplies the scenario's "
-                                      f"{info.axis.name} by value / anchored value): expected a scenario whose anchored "
-                                      "value is not 0, or the other anchor")
+                axis = info.axis
+                if anchor_value(scenario, axis.name, axis.anchor) == 0:
+                    raise ConfigError(f"{axis.place}: {axis.key}: scenario {scenario.name}'s {axis.anchor} {axis.name} "
+                                      f"is 0, which the axis cannot scale (it multiplies the scenario's {axis.name} by "
+                                      "value / anchored value): expected a scenario whose anchored value is not 0, or "
+                                      "the other anchor")
 
     def _check_reachable(self) -> None:
         """No planned run puts the reference above the input voltage in effect, at t = 0 or after any event:
