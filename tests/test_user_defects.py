@@ -209,10 +209,12 @@ def test_a_binding_parameter_the_fmu_refuses_is_named_at_its_line_before_any_tun
                "(fmi2SetReal failed (error) at t = 0 s: fmi2SetReal: inductance = -1 H is invalid")
     for command in (["run", "startup", "--plant", str(binding), "--out", str(tmp_path / "out")],  # gains: tuned
                     ["tune-pi", "--plant", str(binding), "--out", str(tmp_path / "pi.json")],
+                    ["collect-data", "--plant", str(binding), "--work-dir", str(tmp_path / "out"), "--out",
+                     str(tmp_path / "d.parquet")],
                     ["inspect", str(binding)]):
         one_line_error(cli(*command), 2, message)
     assert not (tmp_path / "out" / "tuning").exists() and not (tmp_path / "out" / "runs").exists()
-    assert not (tmp_path / "pi.json").exists()
+    assert not (tmp_path / "pi.json").exists() and not (tmp_path / "d.parquet").exists()
 
 
 def test_a_refused_set_up_is_told_apart_one_value_their_combination_or_the_rest(tmp_path, buck_fmu):

@@ -48,6 +48,8 @@ def cmd_tune_pi(args) -> int:
 
 
 def cmd_collect(args) -> int:
+    from cosim.master import check_set_up
+    from cosim.scenarios import load_scenario
     from cosim.study.controller_factory import tuned_pi
     from cosim.study.data_collection import collect, save_samples
     from cosim.study.experiments import collection_settings
@@ -57,6 +59,7 @@ def cmd_collect(args) -> int:
     settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation, args.region)
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
+    check_set_up(binding, [load_scenario("startup")])  # what the FMU refuses, even where the PI tuning is cached
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
     save_samples(data, Path(args.out))
