@@ -182,22 +182,12 @@ def _tool_checks() -> list[tuple[str, str, Callable[[], str | None]]]:
             ("emulated", "emulated-CPU tests", cpu_emulation.problem)]
 
 
-#: the test files that take longest (minutes each on two cores), longest first: collected first, so that
-#: ``make test``'s two processes (pytest-xdist, ``--dist loadfile``: whole files, handed out in collection order)
-#: start them at once instead of ending on one of them while the other process idles
-LONGEST_FILES = ("test_reliability.py", "test_reproduce.py", "test_benchmarks.py", "test_sweep.py",
-                 "test_numeric_env.py")
-
-
 def pytest_collection_modifyitems(config, items):
     """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
-    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``. The longest files
-    first (:data:`LONGEST_FILES`), every file's tests in their order."""
+    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``."""
     for marker, what, check in _tool_checks():
         if any(item.get_closest_marker(marker) for item in items):
             _deselect(config, items, marker, check(), what)
-    rank = {name: position for position, name in enumerate(LONGEST_FILES)}
-    items[:] = sorted(items, key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest as collected
 
 
 def pytest_terminal_summary(terminalreporter, config):
