@@ -175,6 +175,34 @@ def test_the_fmi3_plant_equals_the_fmi2_plant_run_by_run(buck_fmu3, mode, interf
     assert numeric_difference(runs[0].frame, runs[1].frame) <= 1e-12
 
 
+@pytest.mark.parametrize("interface", ["co-simulation", "model-exchange"])
+def test_an_fmi3_plant_refuses_a_binding_value_at_its_line_before_any_run_and_stays_usable(tmp_path, buck_fmu3,
+                                                                                          interface):
+    """The pre-run set-up (cosim.master.preflight) through the FMI 3.0 glue: the refused [parameters] value is
+    named at its line; on the same instance, after that refusal and its location's retries, a run gives exactly
+    the run of a fresh instance."""
+    from cosim.fmi.plant import open_plant
+    from cosim.master import check_set_up, preflight, run
+
+    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("duty_cycle", "output_voltage", "inductor_current",
+                                                                  "load_resistance", "input_voltage"))
+    text = f'fmu = "{buck_fmu3}"\ninterface = "{interface}"\nisolate = false\n{roles}[parameters]\n'
+    (tmp_path / "bad.toml").write_text(text + "capacitance = 4.7e-6\ninductance = -1\n")
+    with pytest.raises(ConfigError, match=r"bad.toml:16: parameters.inductance = -1: the plant FMU refuses its "
+                                          r"set-up with this value \(fmi3SetFloat64 failed"):
+        check_set_up(load_binding(tmp_path / "bad.toml"), [load_scenario("startup")])
+    (tmp_path / "good.toml").write_text(text + "capacitance = 4.7e-6\n")
+    good = load_binding(tmp_path / "good.toml")
+    startup = load_scenario("startup")
+    refused = replace(startup, initial={**startup.initial, "load_resistance": -1.0})
+    with open_plant(good) as plant:
+        with pytest.raises(ConfigError, match="refuses its set-up at the start of scenario startup"):
+            preflight(plant, refused)
+        after = run(plant, pi(), startup)
+    fresh = simulate(good, pi(), startup)
+    assert after.frame.drop(columns="controller_compute_time").equals(fresh.frame.drop(columns="controller_compute_time"))
+
+
 def test_an_fmi3_plant_state_restores(buck_fmu3):
     from cosim.fmi.plant import open_plant
 
