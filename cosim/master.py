@@ -26,6 +26,7 @@ import numpy as np
 from controllers.base import Controller, Measurement
 from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.binding import PlantBinding
+from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, locate_refusal
 from cosim.fmi.plant import open_plant
 from cosim.fmi.plant_fmi2 import FmuPlant
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
@@ -163,8 +164,6 @@ def preflight(plant: FmuPlant, scenario: Scenario) -> None:
 
 def _refusal_text(plant: FmuPlant, scenario: Scenario, inputs: dict, values: list[float], error: ConfigError) -> str:
     """The message of a refused :func:`preflight` set-up, naming the refused part."""
-    from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, locate_refusal
-
     binding = plant.binding
     detail = str(error).removeprefix(f"{binding.origin}: ")
 

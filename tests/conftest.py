@@ -1,5 +1,6 @@
 """Shared fixtures: the built plant FMU and a minimal raw-fmpy co-simulation driver for plant tests;
-the faulty plant's binding file and the command-line helpers of the tests of failures."""
+the faulty plant's binding file, binding files for FMUs with the role names, and the command-line helpers of the
+tests of failures."""
 
 from __future__ import annotations
 
@@ -261,6 +262,26 @@ def faulty_binding(fmu: Path, kind: int | None = None) -> str:
     bound); without ``kind`` it leaves fault_kind to the FMU's default or to a sweep. fault_kind is on line 9,
     fault_time on the last line."""
     return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n")
+
+
+#: the roles the workbench's own plant FMU names its variables after (a binding file binds each to itself)
+PLANT_ROLES = ("duty_cycle", "output_voltage", "inductor_current", "load_resistance", "input_voltage")
+#: the same for a controller FMU the workbench exported (``buck-cosim export-controller``)
+CONTROLLER_ROLES = ("reference", "measured_output_voltage", "duty_cycle")
+
+
+def role_named_binding(fmu, roles: tuple[str, ...] = PLANT_ROLES, parameters: str | None = None, **keys) -> str:
+    """The text of a binding file for an FMU whose variables carry the workbench's role names (its own plant FMU,
+    an exported controller FMU): line 1 ``fmu``, then a line per ``keys`` item in order (strings quoted, booleans
+    as TOML's, numbers as Python writes them), two lines per role (``[roles.R]``, ``variable = "R"``), then, where
+    ``parameters`` is given, ``[parameters]`` and that text. With k keys and r roles ``[parameters]`` is on line
+    2 + k + 2 r and its first key on the next."""
+    def value(item):
+        return f'"{item}"' if isinstance(item, (str, Path)) else str(item).lower() if isinstance(item, bool) else repr(item)
+
+    text = f'fmu = "{fmu}"\n' + "".join(f"{key} = {value(item)}\n" for key, item in keys.items())
+    text += "".join(f'[roles.{role}]\nvariable = "{role}"\n' for role in roles)
+    return text if parameters is None else f"{text}[parameters]\n{parameters}"
 
 
 # ------------------------------------------------------------------ the command line, as a user runs it

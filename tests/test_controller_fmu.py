@@ -12,7 +12,7 @@ import fmpy
 import fmpy.validation
 import numpy as np
 import pytest
-from conftest import cli, raw_callbacks
+from conftest import CONTROLLER_ROLES, cli, raw_callbacks, role_named_binding
 from fmpy.fmi2 import FMU2Slave
 
 from controllers.pi import PIController
@@ -381,9 +381,8 @@ def test_controller_binding_mistakes_name_file_key_and_line(python_pi_fmu, tmp_p
 
 
 def test_a_parameter_the_controller_fmu_refuses_is_named_at_its_line(fmus, tmp_path):
-    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("reference", "measured_output_voltage", "duty_cycle"))
     path = tmp_path / "c.toml"
-    path.write_text(f'fmu = "{fmus["pi"]}"\nsample_period = 1e-3\n{roles}[parameters]\nki = 15.6\nkp = -1\n')
+    path.write_text(role_named_binding(fmus["pi"], CONTROLLER_ROLES, "ki = 15.6\nkp = -1\n", sample_period=1e-3))
     with pytest.raises(ConfigError, match=r"c.toml:11: parameters.kp = -1: the controller FMU refuses its set-up with "
                                           r"this value \(fmi2ExitInitializationMode failed\): .*kp, ki: expected "
                                           r"finite values >= 0"):
@@ -439,10 +438,9 @@ def test_a_controller_fmu_without_the_role_names_needs_a_binding_file(python_pi_
 
 
 def test_a_sample_period_the_fmus_unbound_own_contradicts_is_warned_of(fmus, tmp_path, capsys):
-    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("reference", "measured_output_voltage", "duty_cycle"))
     path = tmp_path / "c.toml"
     for period, warned in ((2e-3, True), (1e-3, False)):  # the exported PI's own sample_period starts at 1 ms
-        path.write_text(f'fmu = "{fmus["pi"]}"\nsample_period = {period}\n{roles}')
+        path.write_text(role_named_binding(fmus["pi"], CONTROLLER_ROLES, sample_period=period))
         load_controller_binding(path)
         err = capsys.readouterr().err
         assert (err == f"warning: {path}:2: sample_period = {period:g} s, but the FMU's parameter 'sample_period' "

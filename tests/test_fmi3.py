@@ -12,7 +12,7 @@ from pathlib import Path
 import fmpy
 import numpy as np
 import pytest
-from conftest import CORPUS, cli, faulty_binding, no_temporary_files, one_line_error
+from conftest import CORPUS, cli, faulty_binding, no_temporary_files, one_line_error, role_named_binding
 from fmpy.validation import validate_fmu
 
 from cosim.base.errors import ConfigError, FmuArchiveError, PlantError
@@ -184,9 +184,7 @@ def test_an_fmi3_plant_refuses_a_binding_value_at_its_line_before_any_run_and_st
     from cosim.fmi.plant import open_plant
     from cosim.master import check_set_up, preflight, run
 
-    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("duty_cycle", "output_voltage", "inductor_current",
-                                                                  "load_resistance", "input_voltage"))
-    text = f'fmu = "{buck_fmu3}"\ninterface = "{interface}"\nisolate = false\n{roles}[parameters]\n'
+    text = role_named_binding(buck_fmu3, parameters="", interface=interface, isolate=False)
     (tmp_path / "bad.toml").write_text(text + "capacitance = 4.7e-6\ninductance = -1\n")
     with pytest.raises(ConfigError, match=r"bad.toml:16: parameters.inductance = -1: the plant FMU refuses its "
                                           r"set-up with this value \(fmi3SetFloat64 failed"):

@@ -13,23 +13,9 @@ from dataclasses import replace
 
 import pyarrow.parquet as pq
 import pytest
-from conftest import cli, faulty_binding, no_temporary_files, one_line_error
+from conftest import cli, faulty_binding, no_temporary_files, one_line_error, role_named_binding
 
 from cosim.results import read_run
-
-BUILTIN = """\
-fmu = "{fmu}"
-[roles.duty_cycle]
-variable = "duty_cycle"
-[roles.output_voltage]
-variable = "output_voltage"
-[roles.inductor_current]
-variable = "inductor_current"
-[roles.load_resistance]
-variable = "load_resistance"
-[parameters]
-{parameters}
-"""
 
 def ends_in_one_line_error(done, code: int, message: str) -> None:
     """Progress lines may come first; the failure itself is one ``error:`` line, and the last."""
@@ -50,7 +36,7 @@ def ends_in_one_line_error(done, code: int, message: str) -> None:
 ])
 def test_non_physical_plant_parameters_are_refused(tmp_path, buck_fmu, parameters, message):
     binding = tmp_path / "plant.toml"
-    binding.write_text(BUILTIN.format(fmu=buck_fmu, parameters=parameters))
+    binding.write_text(role_named_binding(buck_fmu, parameters=parameters))
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--out", str(tmp_path)),
                    2, message)
 
@@ -71,7 +57,7 @@ def test_scenario_mistakes_via_the_command_line(tmp_path, text, message):
 
 def test_a_period_the_fmu_cannot_honour_is_refused(tmp_path, fixed_step_fmu):
     binding = tmp_path / "plant.toml"
-    binding.write_text(BUILTIN.format(fmu=fixed_step_fmu, parameters=""))
+    binding.write_text(role_named_binding(fixed_step_fmu, parameters=""))
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period",
                        "3e-4", "--out", str(tmp_path / "a")), 2,
                    "the FMU cannot change its communication step size, but control period 0.001 s, record period "

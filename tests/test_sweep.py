@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from conftest import cli, faulty_binding, no_temporary_files
+from conftest import CONTROLLER_ROLES, cli, faulty_binding, no_temporary_files, role_named_binding
 from conftest import one_line_error as cli_one_line_error
 
 from cosim.base.errors import ConfigError
@@ -331,8 +331,8 @@ def test_a_reference_above_the_input_voltage_is_refused_before_any_work(tmp_path
 
 
 def test_a_binding_value_the_fmu_refuses_is_refused_before_any_cluster_starts(tmp_path, buck_fmu):
-    roles = "".join(f'[roles.{r}]\nvariable = "{r}"\n' for r in ("duty_cycle", "output_voltage", "inductor_current"))
-    (tmp_path / "plant.toml").write_text(f'fmu = "{buck_fmu}"\n{roles}[parameters]\ninductance = -1\n')
+    (tmp_path / "plant.toml").write_text(role_named_binding(buck_fmu, ("duty_cycle", "output_voltage", "inductor_current"),
+                                                            parameters="inductance = -1\n"))
     path = sweep_file(tmp_path, 'scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = 2\n[plant]\n'
                                 'binding = "plant.toml"\n[parameters]\ncapacitance = { tolerance = 0.2 }\n')
     out = tmp_path / "out"
@@ -858,18 +858,11 @@ def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty
 
 
 PI_KP, PI_KI = 0.0015, 15.6
-BOUND_PI = """\
-fmu = "{fmu}"
-label = "PI (bound)"
-[roles.reference]
-variable = "reference"
-[roles.measured_output_voltage]
-variable = "measured_output_voltage"
-[roles.duty_cycle]
-variable = "duty_cycle"
-[roles.sample_period]
-variable = "sample_period"
-"""
+
+
+def bound_pi(fmu: str) -> str:
+    """A controller-binding file for the exported PI ``fmu``, its sample period bound to the FMU's own."""
+    return role_named_binding(fmu, CONTROLLER_ROLES + ("sample_period",), label="PI (bound)")
 
 
 @pytest.fixture(scope="module")
@@ -887,7 +880,7 @@ def fmu_study(folder: Path, fmu: Path, extra: str = "", controllers: str | None 
 
     if fmu.parent != folder:
         shutil.copy(fmu, folder / fmu.name)
-    (folder / "bound.toml").write_text(BOUND_PI.format(fmu=fmu.name))
+    (folder / "bound.toml").write_text(bound_pi(fmu.name))
     controllers = controllers if controllers is not None else f"""
         [[controllers]]
         kind = "pi"
@@ -1014,7 +1007,7 @@ def test_controller_fmu_mistakes_name_file_key_and_line(tmp_path, pi_fmu, buck_f
     shutil.copy(pi_fmu, tmp_path / "my_pi.fmu")
     shutil.copy(buck_fmu, tmp_path / "plant.fmu")
     (tmp_path / "plain.fmu").write_text("not a zip archive\n")
-    (tmp_path / "wrong.toml").write_text(BOUND_PI.format(fmu="my_pi.fmu").replace('variable = "reference"',
+    (tmp_path / "wrong.toml").write_text(bound_pi("my_pi.fmu").replace('variable = "reference"',
                                                                                    'variable = "Vref"'))
     path = sweep_file(tmp_path, 'scenarios = ["startup"]\n' + controllers)
     with pytest.raises(ConfigError) as caught:

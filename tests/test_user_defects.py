@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import cli, faulty_binding, one_line_error
+from conftest import cli, faulty_binding, one_line_error, role_named_binding
 
 from controllers.nn_model import NNConfig, TrainingSettings, _checksum, load_model, save_model, train
 from cosim.base.errors import ModelFileError
@@ -195,16 +195,9 @@ def test_a_wrongly_typed_binding_parameter_is_refused_with_its_line_when_the_fil
         load_binding(tmp_path / "faulty.toml")  # before any FMU is opened
 
 
-def _built_in_plant_binding(fmu: Path, parameters: str) -> str:
-    """A binding file for the workbench's own plant FMU, its [parameters] table last (from line 12; its keys from line 13)."""
-    roles = "".join(f'[roles.{role}]\nvariable = "{role}"\n' for role in
-                    ("duty_cycle", "output_voltage", "inductor_current", "load_resistance", "input_voltage"))
-    return f'fmu = "{fmu}"\n{roles}[parameters]\n{parameters}'
-
-
 def test_a_binding_parameter_the_fmu_refuses_is_named_at_its_line_before_any_tuning_or_run(tmp_path, buck_fmu):
     binding = tmp_path / "plant.toml"
-    binding.write_text(_built_in_plant_binding(buck_fmu, "capacitance = 4.7e-6\ninductance = -1\n"))
+    binding.write_text(role_named_binding(buck_fmu, parameters="capacitance = 4.7e-6\ninductance = -1\n"))
     message = ("plant.toml:14: parameters.inductance = -1: the plant FMU refuses its set-up with this value "
                "(fmi2SetReal failed (error) at t = 0 s: fmi2SetReal: inductance = -1 H is invalid")
     for command in (["run", "startup", "--plant", str(binding), "--out", str(tmp_path / "out")],  # gains: tuned
@@ -234,12 +227,12 @@ def test_a_refused_set_up_is_told_apart_one_value_their_combination_or_the_rest(
             ("capacitance = 4.7e-6\ninductance = -1\n", False, (PARAMETER, ":14", "inductance", -1)),
             ("capacitance = 2e-3\ninductance = 2e-3\n", False, (TOGETHER, ":12", "", None)),
             ("capacitance = 4.7e-6\n", True, (REST, "", "", None))):
-        path.write_text(_built_in_plant_binding(buck_fmu, values))
+        path.write_text(role_named_binding(buck_fmu, parameters=values))
         tried = []
         refusal = locate_refusal(load_binding(path), fmu(refuse_inputs))
         assert (refusal.kind, refusal.place[len(str(path)):], refusal.name, refusal.value) == expected
         assert tried[0] == {}  # first without any binding value: the inputs or the FMU's defaults are not blamed on one
-    path.write_text(_built_in_plant_binding(buck_fmu, ""))
+    path.write_text(role_named_binding(buck_fmu, parameters=""))
     assert locate_refusal(load_binding(path), fmu(refuse_inputs=True)) is None  # no binding value to locate
 
 
@@ -251,7 +244,7 @@ def test_refused_first_inputs_are_named_as_the_scenarios_not_a_binding_value(tmp
     from cosim.master import check_set_up
     from cosim.scenarios import load_scenario
 
-    (tmp_path / "plant.toml").write_text(_built_in_plant_binding(buck_fmu, "capacitance = 4.7e-6\n"))
+    (tmp_path / "plant.toml").write_text(role_named_binding(buck_fmu, parameters="capacitance = 4.7e-6\n"))
     startup = load_scenario("startup")
     refused = replace(startup, initial={**startup.initial, "load_resistance": -1.0})  # past the file's own checks
     with pytest.raises(ConfigError) as caught:

@@ -135,8 +135,13 @@ def own_sample_period(binding: ControllerBinding, model_description) -> float | 
     mapping = binding.roles.get("sample_period")
     if mapping is None:
         return None
-    start = {v.name: v for v in model_description.modelVariables}[mapping.variable].start
+    start = _variable(model_description, mapping.variable).start
     return None if start is None else (float(start) - mapping.offset) / mapping.scale
+
+
+def _variable(model_description, name: str):
+    """The model variable called ``name`` in ``model_description``, or None."""
+    return next((variable for variable in model_description.modelVariables if variable.name == name), None)
 
 
 def sample_period_problem(period: float | None, own: float | None) -> str | None:
@@ -202,7 +207,7 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
         key = "sample_period" if "sample_period" in data else "variable"
         raise ConfigError(f"{where(path, loc, key, None if key == 'sample_period' else 'roles.sample_period')}: "
                           f"{problem}")
-    unbound = {v.name: v for v in checked.model_description.modelVariables}.get("sample_period")
+    unbound = _variable(checked.model_description, "sample_period")
     if period is not None and "sample_period" not in roles and unbound is not None \
             and unbound.causality == "parameter" and unbound.start is not None and float(unbound.start) != period:
         _warn_once(f"warning: {where(path, loc, 'sample_period')}: sample_period = {period:.6g} s, but the FMU's "
