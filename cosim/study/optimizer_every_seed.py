@@ -47,10 +47,8 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
     fields changed from each rate's defaults for the RTI runs (e.g. ``{"iterations": 2}``: a candidate default
     evaluated before it becomes one). ``on_row(rows)`` is called with the rows so far after each run (to save them
     as they come: :func:`write_tables`)."""
-    from controllers.nn_model import load_model, save_model
-    from cosim.study import envelope, reproduce
-    from cosim.study.experiments import model_mpc, network_region, nn_configs, nnpc, scenarios_for
-    from cosim.study.identification import identify
+    from cosim.study import reproduce
+    from cosim.study.experiments import model_mpc, nnpc, scenarios_for
     from cosim.study.vocabulary import MISMATCH, MPC_MISMATCHED, MPC_NOMINAL, MPC_ORACLE, NNPC, NOMINAL, PLANT_VARIANTS
 
     rows: list[dict] = []
@@ -61,21 +59,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
         scenarios = scenarios_for(period)
         study_seeds = reproduce.FULL.seeds if pipeline.seed_study else (0,)
         for seed in [s for s in study_seeds if seeds is None or s in seeds]:
-            config = nn_configs(period)["nnpc"]
-            if seed == 0:
-                path = out_dir / "models" / f"{pipeline.tag}__nnpc.pt"
-            elif pipeline.tag == envelope.pipeline_tag(envelope.MAP_PLANT, envelope.SWITCHING_PERIOD):
-                path = envelope.seed_model_path(out_dir, seed)  # the reproduction's seed job wrote it
-            else:  # named by the network and its data region, so a cache of another recipe is not taken for it
-                region = network_region("nnpc", period)
-                path = cache / f"{pipeline.tag}__seed{seed}__nnpc__{re.sub(r'[^A-Za-z0-9]+', '_', config.label)}__{region}.pt"
-                if not path.is_file():
-                    pi = reproduce._tuned(pipeline, out_dir, reproduce.FULL)
-                    identified = identify(binding, pi.controller(), period, config, seed,
-                                          reproduce._recipe(reproduce.FULL))
-                    cache.mkdir(parents=True, exist_ok=True)
-                    save_model(identified.model, path)
-            model = load_model(path, expect_period=period, expect_config=config)
+            model = seed_model(pipeline, seed, out_dir, cache)
             makers = {NNPC: lambda optimizer, model=model: nnpc(model, period, NNPC, optimizer=optimizer)}
             if seed == 0:
                 wrong, wrong_name = (NOMINAL, MPC_NOMINAL) if pipeline.variant == "mismatch" else (MISMATCH,
@@ -102,6 +86,35 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
                                                                        if r["pipeline"] == pipeline.tag]).items()}
         log(f"{pipeline.tag}: {verdict_line}")
     return rows
+
+
+def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
+    """The NNPC network of ``pipeline`` (a :class:`cosim.study.reproduce.Pipeline`) identified from study seed
+    ``seed``'s data: seed 0 the reproduction's (``out_dir/models``), the envelope map's plant's other seeds the
+    reproduction's seed jobs' files; any other identified here with the reproduction's recipe and tuned PI and kept
+    in ``cache`` under a name holding the network and its data region (a cache of another recipe is not taken for it),
+    so a rerun only loads it."""
+    from controllers.nn_model import load_model, save_model
+    from cosim.study import envelope, reproduce
+    from cosim.study.experiments import network_region, nn_configs
+    from cosim.study.identification import identify
+
+    period = pipeline.control_period
+    config = nn_configs(period)["nnpc"]
+    if seed == 0:
+        path = out_dir / "models" / f"{pipeline.tag}__nnpc.pt"
+    elif pipeline.tag == envelope.pipeline_tag(envelope.MAP_PLANT, envelope.SWITCHING_PERIOD):
+        path = envelope.seed_model_path(out_dir, seed)  # the reproduction's seed job wrote it
+    else:
+        region = network_region("nnpc", period)
+        path = cache / f"{pipeline.tag}__seed{seed}__nnpc__{re.sub(r'[^A-Za-z0-9]+', '_', config.label)}__{region}.pt"
+        if not path.is_file():
+            pi = reproduce._tuned(pipeline, out_dir, reproduce.FULL)
+            identified = identify(pipeline.binding(), pi.controller(), period, config, seed,
+                                  reproduce._recipe(reproduce.FULL))
+            cache.mkdir(parents=True, exist_ok=True)
+            save_model(identified.model, path)
+    return load_model(path, expect_period=period, expect_config=config)
 
 
 def rti_changes(items: list[str]) -> dict:
