@@ -55,7 +55,8 @@ def main(argv: list[str]) -> int:
         seeds = []
         for text in args.seeds.split(","):
             if not text.strip().isdigit() or int(text) not in study_seeds:
-                parser.error(f"--seeds: {text!r} is not a study seed (expected some of {', '.join(map(str, study_seeds))})")
+                parser.error(f"--seeds: {text!r} is not a study seed (expected some of "
+                             f"{', '.join(map(str, study_seeds))})")
             seeds.append(int(text))
         seeds = tuple(seeds)
     if args.workers is not None and args.workers < 1:

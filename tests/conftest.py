@@ -277,7 +277,9 @@ def role_named_binding(fmu, roles: tuple[str, ...] = PLANT_ROLES, parameters: st
     ``parameters`` is given, ``[parameters]`` and that text. With k keys and r roles ``[parameters]`` is on line
     2 + k + 2 r and its first key on the next."""
     def value(item):
-        return f'"{item}"' if isinstance(item, (str, Path)) else str(item).lower() if isinstance(item, bool) else repr(item)
+        if isinstance(item, (str, Path)):
+            return f'"{item}"'
+        return str(item).lower() if isinstance(item, bool) else repr(item)
 
     text = f'fmu = "{fmu}"\n' + "".join(f"{key} = {value(item)}\n" for key, item in keys.items())
     text += "".join(f'[roles.{role}]\nvariable = "{role}"\n' for role in roles)
@@ -302,6 +304,25 @@ def one_line_error(done: subprocess.CompletedProcess, code: int, message: str) -
     assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in done.stderr, done.stderr
     assert message in lines[0], lines[0]
     return lines[0]
+
+
+def script(name: str):
+    """The module of ``scripts/<name>.py`` (the project's scripts are not a package), imported once."""
+    import importlib
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.pop(0)
+
+
+def script_refusal(name: str, argv: list[str], capsys) -> tuple[int, str]:
+    """Run ``scripts/<name>.py ARGV`` in this process, expecting argparse's refusal: its exit code and the last
+    line it wrote to stderr."""
+    with pytest.raises(SystemExit) as stopped:
+        script(name).main(argv)
+    return stopped.value.code, capsys.readouterr().err.strip().splitlines()[-1]
 
 
 def no_temporary_files(folder: Path) -> None:

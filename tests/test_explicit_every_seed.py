@@ -4,12 +4,12 @@ verdict over seeds, the command's checks, seed 0 against the committed reproduct
 from __future__ import annotations
 
 import shutil
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
 import pytest
+from conftest import script, script_refusal
 
 from cosim.base.errors import ConfigError
 from cosim.study import explicit_every_seed as ees
@@ -49,14 +49,7 @@ def test_a_target_holds_only_for_every_seed_and_the_spread_is_over_the_seeds(tmp
 
 
 def run_script(argv, capsys):
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import explicit_every_seed
-    finally:
-        sys.path.pop(0)
-    with pytest.raises(SystemExit) as stopped:
-        explicit_every_seed.main(argv)
-    return stopped.value.code, capsys.readouterr().err.strip().splitlines()[-1]
+    return script_refusal("explicit_every_seed", argv, capsys)
 
 
 def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp_path, capsys):
@@ -69,17 +62,14 @@ def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp
     assert run_script(["--results", str(tmp_path)], capsys) == (
         2, f"explicit_every_seed.py: error: --results {tmp_path}: no models/nominal-averaged__13p33us__nnpc.pt there "
            "(run make reproduce first)")
-    assert run_script(["--workers", "0"], capsys) == (2, "explicit_every_seed.py: error: --workers 0: expected at least 1")
+    assert run_script(["--workers", "0"], capsys) == (
+        2, "explicit_every_seed.py: error: --workers 0: expected at least 1")
 
 
 def test_seed_0_is_the_committed_reproductions_explicit_and_online_nnpc(tmp_path):
     """Seed 0 takes the reproduction's policy: its four runs give the committed metrics of NNPC and NNPC-explicit
     (the same C twins, plant and record period), so the every-seed table extends the report rather than redoing it."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import explicit_every_seed
-    finally:
-        sys.path.pop(0)
+    explicit_every_seed = script("explicit_every_seed")
     assert explicit_every_seed.main(["--results", str(ROOT / "results"), "--pipelines", FAST, "--seeds", "0",
                                      "--workers", "1", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path)]) == 0
     rows = pd.read_csv(tmp_path / ees.TABLE_NAME)
@@ -91,7 +81,8 @@ def test_seed_0_is_the_committed_reproductions_explicit_and_online_nnpc(tmp_path
                 ("NNPC-explicit", r.iae_explicit_Vs, r.overshoot_explicit_pct, r.steady_state_error_explicit_pct)):
             expected = committed.loc[(r.scenario, controller)]
             assert (iae, overshoot, error) == pytest.approx(
-                (expected["iae_Vs"], expected["overshoot_pct"], expected["steady_state_error_pct"]), rel=1e-9, abs=1e-12)
+                (expected["iae_Vs"], expected["overshoot_pct"], expected["steady_state_error_pct"]),
+                rel=1e-9, abs=1e-12)
     assert "INCOMPLETE" not in (tmp_path / ees.REPORT_NAME).read_text()
 
 

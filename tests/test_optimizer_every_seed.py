@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pytest
+from conftest import script, script_refusal
 
 from cosim.study.optimizer_every_seed import REPORT_NAME, TABLE_NAME, report, table, write_tables
 
@@ -63,14 +62,7 @@ def test_an_unfinished_or_unaudited_evaluation_says_so():
 
 
 def run_script(argv, capsys):
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import optimizer_every_seed
-    finally:
-        sys.path.pop(0)
-    with pytest.raises(SystemExit) as stopped:
-        optimizer_every_seed.main(argv)
-    return stopped.value.code, capsys.readouterr().err.strip().splitlines()[-1]
+    return script_refusal("optimizer_every_seed", argv, capsys)
 
 
 def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp_path, capsys):
@@ -88,11 +80,7 @@ def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp
 def test_one_pipeline_of_the_committed_results_evaluates_and_meets_the_targets(tmp_path):
     """The committed reproduction's 1 ms averaged-plant models, seed 0, audited: 12 runs (the NNPC and both MPC
     baselines, four scenarios), written as they come and complete at the end."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import optimizer_every_seed
-    finally:
-        sys.path.pop(0)
+    optimizer_every_seed = script("optimizer_every_seed")
     assert optimizer_every_seed.main(["--results", str(ROOT / "results"), "--pipelines", "nominal-averaged__1ms",
                                       "--seeds", "0", "--out", str(tmp_path)]) == 0
     csv = pd.read_csv(tmp_path / TABLE_NAME)
