@@ -22,7 +22,7 @@ def row(seed, scenario, ratio, overshoot=1.0, error=0.01, online_overshoot=0.5):
     return {"pipeline": "p", "seed": seed, "scenario": scenario, "iae_online_Vs": 1e-3, "iae_explicit_Vs": 1e-3 * ratio,
             "iae_ratio": ratio, "overshoot_online_pct": online_overshoot, "overshoot_explicit_pct": overshoot,
             "steady_state_error_online_pct": 0.0, "steady_state_error_explicit_pct": error,
-            "settling_time_online_ms": 0.1, "settling_time_explicit_ms": 0.1, "policy": "cache"}
+            "settling_time_online_ms": 0.1, "settling_time_explicit_ms": 0.1, "policy": "distilled here"}
 
 
 def test_a_target_holds_only_for_every_seed_and_the_spread_is_over_the_seeds(tmp_path):

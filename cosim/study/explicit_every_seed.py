@@ -108,8 +108,9 @@ def check_results(out_dir: Path, pipelines: list) -> None:
 
 def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict], dict]:
     """One (pipeline, seed) of :func:`every_seed`, as a dask task: the seed's NNPC (identified if not cached), its
-    policy, and both on the paper's scenarios (their C twins, as the reproduction runs them). The rows, and the
-    job's wall-clock seconds (not written to the tables)."""
+    policy, and both on the paper's scenarios (their C twins, as the reproduction runs them). The rows (``policy``:
+    "reproduction" for seed 0's file, else "distilled here"), and for the log the job's wall-clock seconds and
+    where the policy came from this time ("reproduction", "cache" or "distilled")."""
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.study.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
@@ -121,6 +122,8 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict
     period, binding = pipeline.control_period, pipeline.binding()
     model = seed_model(pipeline, seed, Path(out_dir), Path(cache))
     policy, origin = seed_policy(pipeline, seed, model, Path(out_dir), Path(cache), log=None)
+    # the table names the policy's recipe, not whether this run took it from the cache (the same bytes on a rerun)
+    recipe = "reproduction" if origin == "reproduction" else "distilled here"
     rows = []
     for scenario in scenarios_for(period):
         online, explicit = (run_metrics(simulate(binding, implemented(controller), scenario,
@@ -134,8 +137,8 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict
                      "steady_state_error_online_pct": online["steady_state_error_pct"],
                      "steady_state_error_explicit_pct": explicit["steady_state_error_pct"],
                      "settling_time_online_ms": online["settling_time_ms"],
-                     "settling_time_explicit_ms": explicit["settling_time_ms"], "policy": origin})
-    return rows, {"seconds": time.perf_counter() - start}
+                     "settling_time_explicit_ms": explicit["settling_time_ms"], "policy": recipe})
+    return rows, {"seconds": time.perf_counter() - start, "origin": origin}
 
 
 def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
@@ -165,7 +168,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
             done[(tag, seed)] = rows
             worst = max(rows, key=lambda r: r["iae_ratio"])
             startup = next((r for r in rows if r["scenario"] == "startup"), None)
-            log(f"[{len(done)}/{len(jobs)}] {tag} seed {seed} (policy: {rows[0]['policy']}, {info['seconds']:.0f} s): "
+            log(f"[{len(done)}/{len(jobs)}] {tag} seed {seed} (policy: {info['origin']}, {info['seconds']:.0f} s): "
                 f"worst IAE explicit / online {worst['iae_ratio']:.3f} ({worst['scenario']})"
                 + (f", start-up overshoot {startup['overshoot_explicit_pct']:.2f} % (online "
                    f"{startup['overshoot_online_pct']:.2f} %)" if startup else ""))
