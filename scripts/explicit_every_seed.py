@@ -3,10 +3,10 @@
 
 Runs :func:`cosim.study.explicit_every_seed.every_seed`: for each pipeline at one switching period and each study
 seed, the NNPC identified from that seed's data and the explicit NNPC distilled from it (seed 0: the reproduction's
-policy; the others distilled here with the reproduction's budget, about a minute per plant and seed on one core, and
-kept in CACHE), both on the paper's four scenarios; prints a line per (pipeline, seed) and writes, with --out,
-``explicit-every-seed.csv`` (one line per run) and ``explicit-every-seed.md`` (each target over the seeds, with
-the spread) after every job (marked incomplete until the last). Needs the reproduction's results in RESULTS
+policy; the others distilled here with the reproduction's budget -- about a minute per plant and seed on an idle core
+(55-65 s in results/timings.md), about 2.5 min on a shared one -- and kept in CACHE), both on the paper's four
+scenarios; prints a line per (pipeline, seed) and writes, with --out, ``explicit-every-seed.csv`` (one line per
+run) and ``explicit-every-seed.md`` (each target over the seeds, with the spread) after every job (marked incomplete until the last). Needs the reproduction's results in RESULTS
 (``make reproduce``). About 16 minutes on two cores on a first run (twelve distillations), under a minute after.
 ``make every-seed`` runs it and writes results/.
 
@@ -28,7 +28,7 @@ from pathlib import Path
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
     from cosim.base.errors import ConfigError
-    from cosim.study.explicit_every_seed import REPORT_NAME, every_seed, fast_pipelines, seeds_of, verdict, write_tables
+    from cosim.study.explicit_every_seed import REPORT_NAME, every_seed, fast_pipelines, verdict, write_tables
 
     parser = argparse.ArgumentParser(prog="explicit_every_seed.py", description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"),
@@ -49,7 +49,7 @@ def main(argv: list[str]) -> int:
         if tag not in tags:
             parser.error(f"--pipelines: {tag!r} is not a pipeline of the reproduction at one switching period "
                          f"(expected one of {', '.join(tags)})")
-    study_seeds = sorted({s for p in fast_pipelines() for s in seeds_of(p)})
+    study_seeds = sorted({s for p in fast_pipelines() for s in p.study_seeds})
     seeds = None
     if args.seeds:
         seeds = []

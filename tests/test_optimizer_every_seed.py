@@ -89,3 +89,12 @@ def test_one_pipeline_of_the_committed_results_evaluates_and_meets_the_targets(t
     text = (tmp_path / REPORT_NAME).read_text()
     assert "INCOMPLETE" not in text
     assert text.splitlines()[-1].startswith("| **all** | all | 0 | 12 |") and text.splitlines()[-1].endswith("| yes |")
+
+
+def test_every_built_in_pipeline_is_evaluated_on_every_study_seed_and_an_external_plant_on_seed_0():
+    from cosim.study.reproduce import FULL, PIPELINES, Pipeline
+
+    assert FULL.seeds == (0, 1, 2, 3, 4)
+    assert {p.study_seeds for p in PIPELINES} == {FULL.seeds}
+    external = Pipeline("bound", "switched", 1e-3, binding_file=str(ROOT / "no-such-binding.toml"))
+    assert external.study_seeds == (0,)

@@ -48,13 +48,6 @@ def fast_pipelines(tags: list[str] | None = None) -> list:
             and (tags is None or p.tag in tags)]
 
 
-def seeds_of(pipeline) -> tuple[int, ...]:
-    """The identification seeds of ``pipeline`` (the study's on the built-in plants)."""
-    from cosim.study import reproduce
-
-    return reproduce.FULL.seeds if pipeline.seed_study else (0,)
-
-
 def cached_policy_path(cache: Path, tag: str, seed: int, expert: str) -> Path:
     """Where a seed's policy is kept: named by its pipeline, seed and expert network (a retrained NNPC is not
     taken for the one a cached policy imitates)."""
@@ -152,7 +145,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
 
     from cosim.study.cluster import dask_client
 
-    jobs = [(p.tag, seed) for p in fast_pipelines(pipelines) for seed in seeds_of(p) if seeds is None or seed in seeds]
+    jobs = [(p.tag, seed) for p in fast_pipelines(pipelines) for seed in p.study_seeds if seeds is None or seed in seeds]
     check_results(Path(out_dir), [p for p in fast_pipelines(pipelines)])
     done: dict[tuple[str, int], list[dict]] = {}
 

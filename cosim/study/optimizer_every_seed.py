@@ -57,8 +57,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
             continue
         period, binding = pipeline.control_period, pipeline.binding()
         scenarios = scenarios_for(period)
-        study_seeds = reproduce.FULL.seeds if pipeline.seed_study else (0,)
-        for seed in [s for s in study_seeds if seeds is None or s in seeds]:
+        for seed in [s for s in pipeline.study_seeds if seeds is None or s in seeds]:
             model = seed_model(pipeline, seed, out_dir, cache)
             makers = {NNPC: lambda optimizer, model=model: nnpc(model, period, NNPC, optimizer=optimizer)}
             if seed == 0:

@@ -169,6 +169,12 @@ class Pipeline:
         return self.variant in ("nominal", "mismatch")
 
     @property
+    def study_seeds(self) -> tuple[int, ...]:
+        """The identification seeds of this pipeline's networks: the full profile's on the built-in plants, seed 0
+        only on an external plant (what the every-seed evaluations iterate over)."""
+        return FULL.seeds if self.seed_study else (0,)
+
+    @property
     def identification_ablation(self) -> bool:
         return self.variant == "nominal" and self.mode == "switched" and not transient_within_sample(self.control_period)
 
