@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
 import pandas as pd
 
@@ -21,10 +21,12 @@ from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import RunFailed, check_plant_supports, check_set_up, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, metrics_table
-from cosim.plots import Styles, plot_scenario
 from cosim.results import RunResult, write_parquet, write_run
 from cosim.scenarios import Scenario
 from cosim.timeline import plan_timeline
+
+if TYPE_CHECKING:  # matplotlib (1 s to import) loads when a figure is drawn, so a refused batch answers at once
+    from cosim.plots import Styles
 
 
 def run_stem(scenario: Scenario, controller: Controller, plant_tag: str) -> str:
@@ -110,6 +112,8 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
                     on_run(result)
             results.extend(per_scenario)
             if figures and not stream:
+                from cosim.plots import plot_scenario
+
                 files.extend(plot_scenario(per_scenario, out_dir / "figures" / figure_stem(scenario, binding,
                                                                                            controllers[0].sample_period),
                                            styles=styles))

@@ -15,7 +15,8 @@ from controllers.base import Measurement
 from controllers.nn_model import load_model
 from cosim.benchmark_harness import record_measurements, replay
 from cosim.benchmarks.subjects import _mixed_scenario
-from cosim.study.experiments import adaptive_nnpc, plant_binding
+from cosim.study.experiments import adaptive_nnpc
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"

@@ -21,7 +21,8 @@ from cosim.benchmark_harness import (
     record_measurements,
     replay,
 )
-from cosim.study.experiments import implemented, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import implemented, nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 
 FIXTURES = Path(__file__).parent / "fixtures"
 

@@ -593,7 +593,8 @@ def fast_scenarios():
 def model_1ms() -> NNPlantModel:
     """The workbench's 1 ms network, identified quickly (800 samples, 100 L-BFGS iterations)."""
     from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs, plant_binding
+    from cosim.study.experiments import collection_settings, nn_configs
+    from cosim.study.plants import plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
                    collection_settings(1e-3, samples=800, seed=3))
@@ -621,7 +622,8 @@ def replay_case(name: str, model_1ms):
 
 def _replay_case(name: str, model_1ms):
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-    from cosim.study.experiments import model_mpc, nnpc, plant_binding
+    from cosim.study.experiments import model_mpc, nnpc
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import MISMATCH
 
     if name == "nnpc-1ms":  # the paper's scenarios and random references and loads (dead-beat moves repeat)
@@ -724,7 +726,8 @@ def test_native_nnpc_drives_the_plant_like_the_python_one(rate, optimizer, model
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import nnpc, plant_binding
+    from cosim.study.experiments import nnpc
+    from cosim.study.plants import plant_binding
 
     if rate == "1ms":
         binding, controller = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3, optimizer=optimizer)
@@ -785,7 +788,8 @@ def test_adaptive_nnpc_on_the_c_twin_drives_the_plant_like_on_the_python_one(opt
     config); with a parameter event in the run, both learn the same weights and give the same duties."""
     from cosim.master import simulate
     from cosim.scenarios import parse_scenario
-    from cosim.study.experiments import adaptive_nnpc, plant_binding
+    from cosim.study.experiments import adaptive_nnpc
+    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     scenario = parse_scenario("""
@@ -835,7 +839,8 @@ def test_mpc_without_the_disturbance_estimate_twin_keeps_the_model_error():
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import model_mpc, plant_binding
+    from cosim.study.experiments import model_mpc
+    from cosim.study.plants import plant_binding
 
     binding = plant_binding("mismatch", "switched")
     controller = model_mpc(NOMINAL, TS, "MPC-nominal (no disturbance estimate)", binding=binding, offset_free=False)

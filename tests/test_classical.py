@@ -35,7 +35,7 @@ from cosim.study.classical_design import (
     design_type_iii,
     targets_for,
 )
-from cosim.study.experiments import plant_binding
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import MISMATCH, NOMINAL, SWITCHING_PERIOD
 
 TS = SWITCHING_PERIOD

@@ -21,7 +21,8 @@ from cosim.fmi.controller import FmuController, builtin_controller_binding, load
 from cosim.fmi.controller_export import MODEL_DIR, VARIABLES, export_controller
 from cosim.master import simulate
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study.experiments import nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -259,8 +260,8 @@ def test_a_refused_call_leaves_the_instance_usable(fmus):
     after initialisation, a call in the wrong state) returns fmi2Error and changes nothing; a step whose
     sample cannot be computed returns fmi2Discard at fmi2LastSuccessfulTime (stepFailed); either way the
     instance can still be terminated and freed, and after a refusal the run goes on."""
-    from fmpy.fmi2 import fmi2LastSuccessfulTime
     from fmpy.fmi1 import FMICallException
+    from fmpy.fmi2 import fmi2LastSuccessfulTime
 
     python = PIController(0.0015, 15.6, 1e-3, duty_limits=(0.0, 0.95))
     from controllers.base import Measurement

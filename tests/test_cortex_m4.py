@@ -17,7 +17,8 @@ from controllers.explicit_policy import load_policy
 from controllers.pi import PIController
 from cosim.benchmark_harness import cortex_m4, record_measurements
 from cosim.benchmark_harness.cortex_m4 import CYCLE_TABLE, CYCLE_TABLE_LOW, count_steps
-from cosim.study.experiments import explicit_nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import explicit_nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"

@@ -116,7 +116,8 @@ def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth(
     samples each, a quarter of its samples in DCM; the paper's region fills the 8 cells of 4-10 Ohm at 48 V and
     never reaches DCM."""
     from cosim.study.envelope_identification import MIN_CELL_SAMPLES, coverage
-    from cosim.study.experiments import collection_settings, plant_binding
+    from cosim.study.experiments import collection_settings
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")

@@ -49,7 +49,8 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
     from cosim.study.dompc_peer import DoMpcNnpc
-    from cosim.study.experiments import NOMINAL_OPERATING_POINT, horizon_settings, nnpc, plant_binding
+    from cosim.study.experiments import NOMINAL_OPERATING_POINT, horizon_settings, nnpc
+    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
     peer = DoMpcNnpc(model, SWITCHING_PERIOD, horizon_settings(SWITCHING_PERIOD), **NOMINAL_OPERATING_POINT)

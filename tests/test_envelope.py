@@ -96,7 +96,7 @@ def test_the_map_has_the_delay_free_current_mode_row_from_its_own_design_file(tm
 
     from cosim.study.classical_design import design_current_mode_no_delay, targets_for, write_design
     from cosim.study.envelope import best_classical, controllers_of, pipeline_files, target_rows
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.sweeps.designs import build, design
     from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, NOMINAL, SWITCHING_PERIOD
 
@@ -156,7 +156,8 @@ def test_a_given_network_runs_on_the_map_with_the_inputs_it_was_trained_for(tmp_
     from pathlib import Path
 
     from controllers.base import Measurement
-    from cosim.study.experiments import nn_configs, plant_binding
+    from cosim.study.experiments import nn_configs
+    from cosim.study.plants import plant_binding
     from cosim.study.sweeps.designs import build, design
     from cosim.study.sweeps.spec import ControllerEntry
     from cosim.study.vocabulary import SWITCHING_PERIOD

@@ -28,7 +28,8 @@ from cosim.cli import build_parser, main
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
-from cosim.study.experiments import explicit_nnpc, implemented, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"

@@ -23,7 +23,8 @@ from controllers.pi import PIController
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-from cosim.study.experiments import explicit_nnpc, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import explicit_nnpc, nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import NOMINAL, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"

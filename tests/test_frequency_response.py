@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 from conftest import cli, one_line_error
 
-from cosim.study.experiments import plant_binding
 from cosim.study.frequency_response import ResponseSettings, interpolated_margins, measure, plan_points
+from cosim.study.plants import plant_binding
 from cosim.study.sweeps.spec import ControllerEntry
 from cosim.study.vocabulary import SWITCHING_PERIOD
 

@@ -56,6 +56,18 @@ def test_scenario_mistakes_via_the_command_line(tmp_path, text, message):
                    2, message)
 
 
+def test_a_refused_run_is_answered_before_torch_or_matplotlib_load(tmp_path):
+    """The checks of ``run`` (scenario, plant, rates) come before the controllers' and figures' libraries are
+    imported: a typo is answered in about a second, not after the 3-5 s torch and matplotlib take to load."""
+    (tmp_path / "bad.toml").write_text('name = "x"\nduration = -0.02\n[initial]\nreference = 12.0\n')
+    probe = ("import sys; from cosim.cli import main; "
+             "code = main(['--no-progress', 'run', 'bad.toml', '--kp', '0', '--ki', '14', '--out', 'out']); "
+             "print(code, sorted(m for m in ('torch', 'matplotlib', 'scipy.optimize') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert "bad.toml:2: duration = -0.02 s is invalid" in done.stderr, done.stderr
+    assert done.stdout.split("\n")[0] == "2 []", done.stdout
+
+
 def test_a_period_the_fmu_cannot_honour_is_refused(tmp_path, fixed_step_fmu):
     binding = tmp_path / "plant.toml"
     binding.write_text(role_named_binding(fixed_step_fmu, parameters=""))
@@ -211,7 +223,7 @@ def test_sigterm_during_a_run_keeps_the_rows_marked_incomplete(tmp_path):
 
 def test_sigterm_during_data_collection_writes_no_data_file(tmp_path):
     from cosim.study.controller_factory import tuned_pi
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached, so the run goes straight to collecting
     process = _start("collect-data", "--samples", "20000000", "--work-dir", str(tmp_path), "--out",

@@ -522,8 +522,9 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     """The study's comparison on a short start-up and load change at 13.33 us (the fixture's NNPC on the
     mismatch switched plant): both runs exist, the audit compared every RTI sample with the search."""
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import nnpc, plant_binding
+    from cosim.study.experiments import nnpc
     from cosim.study.optimizer_ablation import compare, report_lines, verdict
+    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     scenarios = [replace(load_scenario("startup"), duration=0.0008)]

@@ -25,7 +25,8 @@ from cosim.scenarios import load_scenario, parse_scenario
 from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp
 from cosim.ssp.scenario_source import OUTPUTS, scenario_fmu, scenario_toml, settle_time
-from cosim.study.experiments import implemented, plant_binding, scenarios_for
+from cosim.study.experiments import implemented, scenarios_for
+from cosim.study.plants import plant_binding
 
 # ------------------------------------------------------------------ the scenario FMU
 

@@ -52,7 +52,7 @@ def cluster():
 def nn_model(tmp_path_factory) -> Path:
     """An NNPC model identified on the nominal switched plant (small data: the sweep tests need one, not a good one)."""
     from cosim.study.controller_factory import trained_model
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import pipeline_tag, plant_tag
 
     folder = tmp_path_factory.mktemp("nn")

@@ -296,7 +296,7 @@ def test_the_fmus_own_exception_text_is_in_the_message(tmp_path, faulty_fmu):
 
 def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
     from cosim.study.controller_factory import tuned_pi
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached: the command goes straight to collecting
     private_tmp = tmp_path / "tmp"  # where fmpy extracts the plant FMU: a folder appears once collecting starts

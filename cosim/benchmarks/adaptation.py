@@ -19,7 +19,8 @@ def bench_adaptation(quick: bool) -> list[BenchRow]:
     from controllers.adaptation import AdaptiveNNPC
     from cosim.fmi.plant import open_plant
     from cosim.master import run
-    from cosim.study.experiments import adaptive_nnpc, implemented, plant_binding
+    from cosim.study.experiments import adaptive_nnpc, implemented
+    from cosim.study.plants import plant_binding
 
     period = SWITCHING_PERIOD
     samples = 60 if quick else 1500
@@ -74,7 +75,8 @@ def _adaptive_c_step_rows(model, origin: str, samples: int) -> list[BenchRow]:
     the drifted plant (the drift study's mismatch plant) at 13.33 us; issue 24's target is on the samples the RTI
     planned, the search's fallback samples reported apart, as the c-controllers group does."""
     from cosim.benchmark_harness import record_measurements, replay
-    from cosim.study.experiments import adaptive_nnpc, implemented, plant_binding
+    from cosim.study.experiments import adaptive_nnpc, implemented
+    from cosim.study.plants import plant_binding
 
     period = SWITCHING_PERIOD
     adaptive = adaptive_nnpc(model, period, optimizer="rti")

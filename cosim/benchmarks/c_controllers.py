@@ -22,8 +22,9 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         replay,
         rti_operation_counts,
     )
-    from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
+    from cosim.study.experiments import implemented, model_mpc, nnpc
     from cosim.study.optimizer_ablation import ONE_STEP, with_rti
+    from cosim.study.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
     rows = []

@@ -26,7 +26,8 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
     p99 target at 1 ms is on both implementations' rows; the reproduction's timing target reads the C twin's."""
     from cosim.fmi.plant import open_plant
     from cosim.master import run
-    from cosim.study.experiments import implemented, model_mpc, nnpc, plant_binding
+    from cosim.study.experiments import implemented, model_mpc, nnpc
+    from cosim.study.plants import plant_binding
     from cosim.study.targets import NNPC_P99_TARGET_US, controller_compute_benchmark
 
     rows = []

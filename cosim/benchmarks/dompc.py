@@ -24,9 +24,9 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         horizon_settings,
         implemented,
         nnpc,
-        plant_binding,
         scenarios_for,
     )
+    from cosim.study.plants import plant_binding
 
     period = SWITCHING_PERIOD
     binding = plant_binding("nominal", "switched")

@@ -23,7 +23,8 @@ def _embedded_controllers(quick: bool):
         policy_operation_counts,
     )
     from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-    from cosim.study.experiments import explicit_nnpc, plant_binding
+    from cosim.study.experiments import explicit_nnpc
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import NNPC_EXPLICIT, NOMINAL
 
     policy, origin = _explicit_policy(quick)
@@ -59,7 +60,7 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
         measure_tanh,
         toolchain_problem,
     )
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import NNPC_EXPLICIT
 
     problem = toolchain_problem()
@@ -167,7 +168,7 @@ def _online_nnpc_replay(controller, period: float, samples: int) -> np.ndarray:
     RTI plans every sample but the cold start, reference steps included, so the scenario is kept whole."""
     from controllers.native import native_twin
     from cosim.benchmark_harness import record_measurements
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
     if controller.rti.reference_step == 0.0:

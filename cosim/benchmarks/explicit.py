@@ -21,7 +21,8 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
         record_measurements,
         replay,
     )
-    from cosim.study.experiments import explicit_nnpc, implemented, nnpc, plant_binding
+    from cosim.study.experiments import explicit_nnpc, implemented, nnpc
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import NNPC_EXPLICIT
 
     period = SWITCHING_PERIOD

@@ -57,7 +57,7 @@ def _train(data: Path, out: Path, native: bool, line_search: str, iterations: in
 def bench_numeric_env(quick: bool) -> list[BenchRow]:
     from cosim.benchmark_harness import cpu_emulation
     from cosim.study.data_collection import CollectionSettings, collect
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
 
     samples, iterations, repeats = (2000, 50, 1) if quick else (10_000, 200, 3)
     configurations = {"pinned kernels, exact line search (the workbench)": (False, "exact"),

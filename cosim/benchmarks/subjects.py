@@ -86,7 +86,8 @@ def _nn_model(name: str, period: float, quick: bool):
     from controllers.nn_model import TrainingSettings, load_model, train
     from cosim.base.errors import ModelFileError
     from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs, plant_binding
+    from cosim.study.experiments import collection_settings, nn_configs
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import pipeline_tag, plant_tag
 
     config = nn_configs(period)[name]
@@ -110,7 +111,7 @@ def _explicit_policy(quick: bool):
     from controllers.explicit_policy import load_policy
     from cosim.base.errors import ModelFileError
     from cosim.study.distillation import SMALL_DISTILLATION, distill
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import pipeline_tag
 
     path = _models_dir / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"

@@ -12,7 +12,8 @@ from cosim.study.vocabulary import PAPER_PERIOD
 def bench_training(quick: bool) -> list[BenchRow]:
     from controllers.nn_model import TrainingSettings, train
     from cosim.study.data_collection import CollectionSettings, collect
-    from cosim.study.experiments import nn_configs, plant_binding
+    from cosim.study.experiments import nn_configs
+    from cosim.study.plants import plant_binding
 
     samples = 500 if quick else 10_000
     start = time.perf_counter()

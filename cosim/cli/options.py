@@ -135,7 +135,7 @@ def _plant_binding(args):
 
         binding = load_binding(args.plant)
     else:
-        from cosim.study.experiments import plant_binding
+        from cosim.study.plants import plant_binding
 
         binding = plant_binding(args.variant, args.mode, args.sensor)
     isolate = getattr(args, "isolate", None)

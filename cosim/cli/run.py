@@ -41,9 +41,6 @@ def cmd_scenarios(args) -> int:
 def cmd_run(args) -> int:
     from cosim.batch import Batch, run_batch, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-    from cosim.study.controller_factory import make_controllers
-    from cosim.study.experiments import implemented
-    from cosim.study.vocabulary import CONTROLLER_STYLES
 
     _check_duty_limits(args)
     out_dir = output_dir(args.out)
@@ -51,7 +48,12 @@ def cmd_run(args) -> int:
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
     batch.check_rates(args.control_period, args.record_period)
     batch.check_plant(args.interface)
-    # the batch is checked: now the (possibly long) tuning and training
+    # the batch is checked: now the (possibly long) tuning and training. Imported here, not above: torch takes
+    # seconds to load, and a refused scenario, binding or rate is answered without it
+    from cosim.study.controller_factory import make_controllers
+    from cosim.study.experiments import implemented
+    from cosim.study.vocabulary import CONTROLLER_STYLES
+
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,

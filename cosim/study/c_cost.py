@@ -18,7 +18,8 @@ from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_coun
 from controllers.nn_model import load_model
 from cosim.base.labels import period_text
 from cosim.master import simulate
-from cosim.study.experiments import implemented, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import implemented, nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import NNPC, pipeline_tag, plant_tag
 
 

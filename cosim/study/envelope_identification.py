@@ -210,7 +210,8 @@ def compare(results: Path, folder: Path, seeds=(0, 1), samples: int = 10_000, wo
     import torch
 
     from cosim.study import envelope
-    from cosim.study.experiments import horizon_settings, plant_binding
+    from cosim.study.experiments import horizon_settings
+    from cosim.study.plants import plant_binding
     from cosim.study.sweeps.spec import ControllerEntry
     from cosim.study.vocabulary import NNPC
 

@@ -23,7 +23,7 @@ from controllers.predictors import (
     ripple_free_horizon,
 )
 from cosim.base.errors import ConfigError
-from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding, RoleMap, builtin_binding
+from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from cosim.study.data_collection import CollectionSettings
 from cosim.study.vocabulary import (
@@ -37,10 +37,7 @@ from cosim.study.vocabulary import (
     FAST_RATE_COMPRESSION,
     IMPLEMENTATIONS,
     LC_PERIOD,
-    PLANT_VARIANTS,
-    SENSORS,
     identification_dither,
-    plant_tag,
     transient_within_sample,
 )
 from plant_fmu.table_ii import TABLE_II
@@ -121,33 +118,6 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
     return replace(settings, reference_range=ENVELOPE_REFERENCES, load_range=ENVELOPE_LOADS,
                    input_voltage_range=ENVELOPE_SUPPLIES, dither="am-prbs", dither_hold=ENVELOPE_DITHER_HOLD,
                    excitation=excitation if excitation is not None else ENVELOPE_DITHER)
-
-
-def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBinding:
-    """The built-in FMU as the nominal or the mismatch-study plant, averaged or switched.
-
-    ``sensor``: "average" -- controllers read the mean over the last PWM period (an averaging
-    ADC: no ripple error, half a period of lag); "synchronous" -- a point sample at the carrier's
-    peak with centre-aligned PWM, i.e. mid off-time, where iL equals its mean (no lag, but vo is at
-    its ripple crest).
-    """
-    if variant not in PLANT_VARIANTS:
-        raise ConfigError(f"plant variant {variant!r} is unknown: expected one of {', '.join(PLANT_VARIANTS)}")
-    if sensor not in SENSORS:
-        raise ConfigError(f"sensor {sensor!r} is unknown: expected one of {', '.join(SENSORS)}")
-    p = PLANT_VARIANTS[variant]
-    parameters = {"inductance": p.inductance, "capacitance": p.capacitance,
-                  "inductor_resistance": p.inductor_resistance, "switch_on_resistance": p.switch_on_resistance,
-                  "diode_forward_voltage": p.diode_forward_voltage, "capacitor_esr": p.capacitor_esr}
-    binding = builtin_binding(mode, parameters)
-    if sensor == "synchronous":
-        roles = dict(binding.roles)
-        roles["measured_output_voltage"] = RoleMap("output_voltage")
-        roles["measured_inductor_current"] = RoleMap("inductor_current")
-        roles["measured_load_current"] = RoleMap("load_current")
-        binding = replace(binding, roles=roles, parameters={**binding.parameters, "pwm_carrier": 1})
-    suffix = "" if sensor == "average" else ", synchronous sampling"
-    return replace(binding, label=f"BuckConverter ({variant}, {mode}{suffix})", tag_override=plant_tag(variant, mode, sensor))
 
 
 def horizon_settings(control_period: float, horizon: int | None = None) -> HorizonSettings:

@@ -25,7 +25,7 @@ def designs():
     """The two current-mode designs on the nominal switched plant at 1/fsw: (with the delay, without)."""
     from cosim.study.classical_design import design_current_mode, design_current_mode_no_delay, targets_for
     from cosim.study.controller_factory import true_parameters
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")
@@ -38,7 +38,8 @@ def nominal(controllers) -> pd.DataFrame:
     """The paper's four scenarios at 12 V / 6 Ohm / 48 V on the switched plant for each controller (C twins)."""
     from cosim.master import simulate
     from cosim.metrics import run_metrics
-    from cosim.study.experiments import implemented, plant_binding, scenarios_for
+    from cosim.study.experiments import implemented, scenarios_for
+    from cosim.study.plants import plant_binding
     from cosim.study.vocabulary import SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")

@@ -70,7 +70,7 @@ def diagnose(results: Path, settle: float | None = None) -> pd.DataFrame:
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.study import envelope
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
     from cosim.study.sweeps.plan import at_operating_point
 
     steps = envelope.load_steps(results)

@@ -61,7 +61,6 @@ from cosim.study.experiments import (
     network_region,
     nn_configs,
     nnpc,
-    plant_binding,
     scenarios_for,
     small_network,
 )
@@ -74,6 +73,7 @@ from cosim.study.identification import (
     write_identification_figure,
 )
 from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
+from cosim.study.plants import plant_binding
 from cosim.study.report import write_report
 from cosim.study.ssp_agreement import append_to_report
 from cosim.study.summaries import transient_and_steady_iae

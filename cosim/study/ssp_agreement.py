@@ -46,7 +46,8 @@ from cosim.metrics import metrics_table
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import export_ssp
-from cosim.study.experiments import implemented, nnpc, plant_binding, scenarios_for
+from cosim.study.experiments import implemented, nnpc, scenarios_for
+from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD, pipeline_tag
 
 PLANT_MODES = ("averaged", "switched")

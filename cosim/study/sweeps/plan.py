@@ -84,7 +84,7 @@ def nominal_binding(spec: SweepSpec) -> PlantBinding:
         from cosim.fmi.binding_file import load_binding
 
         return load_binding(spec.plant.binding)
-    from cosim.study.experiments import plant_binding
+    from cosim.study.plants import plant_binding
 
     return plant_binding(spec.plant.variant, spec.plant.mode, spec.plant.sensor)
 
