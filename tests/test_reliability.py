@@ -253,23 +253,6 @@ def test_sigterm_during_training_writes_no_model_file(tmp_path):
     no_temporary_files(tmp_path)
 
 
-def test_sigterm_during_reproduction_keeps_finished_pipelines_and_resume_completes(tmp_path):
-    out = tmp_path / "results"
-    process = _start("reproduce", "--quick", "--out", str(out))
-    deadline = time.time() + 120
-    while not list((out / "pipelines").glob("*.json")) and time.time() < deadline:
-        time.sleep(0.2)  # interrupt once a pipeline has finished and others still run
-    code, err = _terminate_after(process, 0.0)
-    assert code == 130 and "Traceback" not in err
-    no_temporary_files(out)
-    finished = sorted(p.stem for p in (out / "pipelines").glob("*.json") if not p.name.endswith(".timings.json"))
-    assert 1 <= len(finished) < 4
-    done = cli("reproduce", "--quick", "--resume", "--out", str(out))
-    assert done.returncode == 0, done.stderr
-    assert done.stderr.count("finished earlier, kept (--resume)") == len(finished)
-    assert (out / "REPORT.md").is_file()
-
-
 def test_a_failing_pipeline_stops_a_parallel_reproduction(tmp_path, faulty_fmu):
     binding = tmp_path / "faulty.toml"
     binding.write_text(faulty_binding(faulty_fmu, 2))

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pandas as pd
 import pytest
+from conftest import no_temporary_files
 
 from cosim.cli import main
 from cosim.study.reproduce import QUICK
@@ -219,12 +224,35 @@ def test_the_1ms_compute_target_reads_the_c_twins_benchmark_row_not_the_python_r
     assert row["measured"] == "worst run p99 18 us" and row["met"] == "yes"
 
 
-def test_a_second_reproduction_writes_the_same_bytes(reproduction, controller_fmu, tmp_path):
-    """Everything committed from results/ is byte-identical when the reproduction runs again
-    (the wall-clock files aside): tuned gains, models, pipeline summaries, metrics, targets,
-    figures and the report."""
+def test_an_interrupted_and_resumed_reproduction_writes_the_same_bytes_as_one_run_through(reproduction, controller_fmu,
+                                                                                          tmp_path, capsys):
+    """A second reproduction, stopped by SIGTERM once a pipeline has finished and others still run, keeps the
+    finished pipelines (exit 130, one line, nothing half-written); ``--resume`` completes it, and everything committed
+    from results/ is then byte-identical to the fixture's uninterrupted run (the wall-clock files aside): tuned gains,
+    models, pipeline summaries, metrics, targets, figures and the report. (One test for both properties: each on its
+    own cost a quick reproduction of its own.)"""
     again = tmp_path / "again"
-    assert main(["--no-progress", "reproduce", "--quick", "--out", str(again), "--controller", str(controller_fmu)]) == 0
+    process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "reproduce", "--quick", "--out",
+                                str(again), "--controller", str(controller_fmu)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
+    deadline = time.monotonic() + 600  # a loaded machine: the first pipeline of a quick reproduction took 60-120 s
+
+    def finished() -> list[str]:
+        return sorted(p.stem for p in (again / "pipelines").glob("*.json") if not p.name.endswith(".timings.json"))
+
+    while not finished() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)  # interrupt once a pipeline has finished and others still run
+    assert process.poll() is None, "the reproduction ended before the interrupt"
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130 and "Traceback" not in err, err
+    no_temporary_files(again)
+    kept = finished()
+    jobs = 2 * len(QUICK.pipelines) + 2  # the pipelines, seed 1 of each, the drift study for seeds 0 and 1
+    assert 1 <= len(kept) < jobs, kept
+    assert main(["--no-progress", "reproduce", "--quick", "--resume", "--out", str(again), "--controller",
+                 str(controller_fmu)]) == 0
+    assert capsys.readouterr().err.count("finished earlier, kept (--resume)") == len(kept)
     committed = [p.relative_to(again) for p in sorted(again.rglob("*")) if p.is_file()
                  and p.parts[len(again.parts)] not in ("data", "runs")
                  and not p.name.startswith("timings.") and ".timing" not in p.name and p.suffix != ".svg"]
