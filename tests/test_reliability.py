@@ -282,6 +282,15 @@ def test_a_worker_that_dies_ends_a_parallel_reproduction_with_an_error(tmp_path,
     (["tune-pi", "--out", "."], "output file . is a folder"),
     (["train", "small.parquet", "--control-period", "1e-3", "--out", "m.pt"],
      "small.parquet: 50 samples are too few to train on"),
+    # a file named for another format than the one written: refused, saying what is written
+    (["collect-data", "--out", "d.csv"],
+     "--out d.csv is invalid: expected a file name ending in .parquet (the samples are written as Parquet, with their "
+     "metadata)"),
+    (["tune-pi", "--out", "gains.txt"], "--out gains.txt is invalid: expected a file name ending in .json"),
+    (["train", "small.parquet", "--out", "m.onnx"],
+     "--out m.onnx is invalid: expected a file name ending in .pt or .pth (the model is written as a torch archive)"),
+    (["distill", "--model", "none.pt", "--out", "policy.bin"],
+     "--out policy.bin is invalid: expected a file name ending in .pt or .pth"),
 ])
 def test_output_and_size_mistakes_are_caught_before_the_work(tmp_path, args, message):
     import numpy as np
@@ -293,6 +302,20 @@ def test_output_and_size_mistakes_are_caught_before_the_work(tmp_path, args, mes
     write_parquet(pd.DataFrame({"measured_inductor_current": np.zeros(50), "measured_output_voltage": np.zeros(50),
                                 "duty_cycle": np.zeros(50)}), {}, tmp_path / "small.parquet")
     one_line_error(cli(*args, cwd=tmp_path), 2, message)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "small.parquet"]  # nothing written
+
+
+def test_an_output_file_may_end_in_any_of_its_formats_endings_in_either_case(tmp_path):
+    from cosim.base.errors import ConfigError
+    from cosim.cli.options import output_file
+
+    for name in ("m.pt", "m.pth", "m.PTH"):
+        assert output_file(str(tmp_path / name), (".pt", ".pth")) == tmp_path / name
+    assert output_file(str(tmp_path / "anything.bin")) == tmp_path / "anything.bin"  # no endings given: any name
+    with pytest.raises(ConfigError, match=r"^--out \S+m\.pt\.bak is invalid: expected a file name ending in \.pt or "
+                                          r"\.pth$"):
+        output_file(str(tmp_path / "m.pt.bak"), (".pt", ".pth"))
+    assert not list(tmp_path.iterdir())
 
 
 # ------------------------------------------------------------------------------------------ determinism

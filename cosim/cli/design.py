@@ -30,12 +30,15 @@ from cosim.study.vocabulary import (
     TRANSIENT_WITHIN_SAMPLE_PERIOD,
 )
 
+#: what a model or policy file written by train or distill may be named (torch's archive, by its usual endings)
+MODEL_SUFFIXES = (".pt", ".pth")
+
 
 def cmd_tune_pi(args) -> int:
     from cosim.base.files import atomic_write_text
     from cosim.study.pi_tuning import tune_pi
 
-    output_file(args.out)
+    output_file(args.out, (".json",), "the gains are written as JSON")
     binding = _plant_binding(args)
     tuning = tune_pi(binding, args.control_period, progress=args.progress)
     print(f"Kp = {tuning.kp:.6g} 1/V, Ki = {tuning.ki:.6g} 1/(V s) at Ts = {args.control_period * 1e6:.4g} us "
@@ -54,7 +57,7 @@ def cmd_collect(args) -> int:
     from cosim.study.data_collection import collect, save_samples
     from cosim.study.experiments import collection_settings
 
-    output_file(args.out)
+    output_file(args.out, (".parquet",), "the samples are written as Parquet, with their metadata")
     work_dir = cache_dir(args.work_dir)
     settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation, args.region)
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
@@ -79,7 +82,7 @@ def cmd_train(args) -> int:
                                     multi_step_stride=args.multi_step_stride)
     except ValueError as error:
         raise ConfigError(str(error)) from None
-    output_file(args.out)
+    output_file(args.out, MODEL_SUFFIXES, "the model is written as a torch archive")
     needed = ["measured_inductor_current", "measured_output_voltage", "duty_cycle", *extra_columns(config)]
 
     def samples(name: str):
@@ -146,7 +149,7 @@ def cmd_distill(args) -> int:
     settings = replace(FULL_DISTILLATION, rounds=args.rounds, episodes=args.episodes, samples=args.samples,
                        seed=args.seed, policy=policy_config)
     settings.check()
-    output_file(args.out)
+    output_file(args.out, MODEL_SUFFIXES, "the policy is written as a torch archive")
     source = input_file(args.model, "model file", "train one with buck-cosim train")
     model = load_model(source, expect_period=args.control_period)
     period = args.control_period or model.metadata.get("control_period_s")
@@ -204,7 +207,8 @@ def add_collect_data_parser(sub) -> None:
     p.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                    help="where tuned PI gains are cached, created only when they are (default: results/runs-cli, "
                         "relative to the current folder)")
-    p.add_argument("--out", required=True, metavar="DATA.parquet", help="output file")
+    p.add_argument("--out", required=True, metavar="DATA.parquet",
+                   help="the samples file to write: Parquet with the collection's metadata (the name must end in .parquet)")
     p.set_defaults(func=cmd_collect)
 
 
@@ -239,7 +243,8 @@ def add_train_parser(sub) -> None:
     p.add_argument("--init", metavar="MODEL.pt",
                    help="refine this model (same network): keep its normalisation, skip the one-step stage")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
-    p.add_argument("--out", required=True, metavar="MODEL.pt", help="output model file")
+    p.add_argument("--out", required=True, metavar="MODEL.pt",
+                   help="the model file to write: a torch archive (the name must end in .pt or .pth)")
     p.set_defaults(func=cmd_train)
 
 
@@ -256,7 +261,8 @@ def add_distill_parser(sub) -> None:
     p.add_argument("--control-period", type=parse_period, metavar="SECONDS",
                    help="sample period in s, e.g. 1/75e3 (default: the model's); the model must have been trained "
                         "at it")
-    p.add_argument("--out", required=True, metavar="POLICY.pt", help="the policy file to write")
+    p.add_argument("--out", required=True, metavar="POLICY.pt",
+                   help="the policy file to write: a torch archive (the name must end in .pt or .pth)")
     p.add_argument("--rounds", type=bounded(int, 0, 50), default=6,
                    help="DAgger rounds after the first, expert-driven one (default: %(default)s, as make reproduce)")
     p.add_argument("--episodes", type=bounded(int, 1, 1000), default=8,
@@ -283,5 +289,5 @@ def add_tune_pi_parser(sub) -> None:
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3)")
-    p.add_argument("--out", metavar="FILE.json", help="write the gains as JSON")
+    p.add_argument("--out", metavar="FILE.json", help="write the gains as JSON (the name must end in .json)")
     p.set_defaults(func=cmd_tune_pi)

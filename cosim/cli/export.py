@@ -45,9 +45,7 @@ def _export_controller_fmu(controller, out: Path, precision: str = "float64", fm
 
 
 def cmd_export_controller(args) -> int:
-    out = output_file(args.out)
-    if out.suffix.lower() != ".fmu":
-        raise ConfigError(f"--out {out} is invalid: expected a file name ending in .fmu")
+    out = output_file(args.out, (".fmu",))
     _check_duty_limits(args)
     if args.cortex_m4:
         from cosim.benchmark_harness.cortex_m4 import toolchain_problem
@@ -91,9 +89,7 @@ def cmd_export_ssp(args) -> int:
     from cosim.ssp.package import export_ssp
     from cosim.timeline import plan_timeline
 
-    out = output_file(args.out)
-    if out.suffix.lower() != ".ssp":
-        raise ConfigError(f"--out {out} is invalid: expected a file name ending in .ssp")
+    out = output_file(args.out, (".ssp",))
     _check_duty_limits(args)
     scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
