@@ -34,12 +34,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from controllers.base import Measurement
 from controllers.load_estimate import estimate_conductance
-from controllers.nn_model import ACTIVATIONS, NNPlantModel
+from controllers.nn_config import ACTIVATIONS
+
+if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained or read
+    from controllers.nn_model import NNPlantModel
 
 
 @dataclass(frozen=True)
@@ -106,7 +110,7 @@ class AdaptiveNNPC:
         self.duty_limits = inner.duty_limits
         self._weights, self._biases = output_layer(inner)
         self._hidden_layers = [(w.copy(), b.copy()) for w, b in zip(model._weights[:-1], model._biases[:-1])]
-        self._activation = ACTIVATIONS[model.config.activation][1]
+        self._activation = ACTIVATIONS[model.config.activation]
         self._offline = np.vstack([self._weights, self._biases[None, :]]).copy()  # theta (h + 1, 2)
         self._offline_norm = np.linalg.norm(self._offline, axis=0)
         self._scale = 1.0 / np.asarray(model.output_std, dtype=float) ** 2  # error weights per output

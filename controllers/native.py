@@ -39,6 +39,7 @@ import sys
 import sysconfig
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,7 +47,7 @@ from controllers.base import Measurement, check_duty_limits, check_sample_period
 from controllers.compensator import CompensatorController
 from controllers.current_mode import CurrentModeController
 from controllers.explicit_policy import N_FEATURES, ExplicitPolicyController
-from controllers.nn_model import ACTIVATIONS, EXTRA_SIGNALS, NNPlantModel
+from controllers.nn_config import ACTIVATIONS, EXTRA_SIGNALS
 from controllers.pi import PIController, check_gains
 from controllers.predictive import PredictiveController
 from controllers.predictors import (
@@ -58,6 +59,9 @@ from controllers.predictors import (
     PredictionContext,
     SwitchedModelPredictor,
 )
+
+if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained or read
+    from controllers.nn_model import NNPlantModel
 
 SOURCE_DIR = Path(__file__).parent / "c"
 FLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-ffp-contract=off")

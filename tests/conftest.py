@@ -349,7 +349,8 @@ def fixed_step_fmu(tmp_path_factory, buck_fmu) -> Path:
 @pytest.fixture(scope="session")
 def nnpc_1ms():
     """The workbench's 1 ms NNPC on a network identified quickly (800 samples, 100 iterations)."""
-    from controllers.nn_model import TrainingSettings, train
+    from controllers.nn_config import TrainingSettings
+    from controllers.nn_model import train
     from controllers.pi import PIController
     from cosim.study.data_collection import collect
     from cosim.study.experiments import collection_settings, nn_configs, nnpc

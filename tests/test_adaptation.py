@@ -15,7 +15,8 @@ import torch
 
 from controllers.adaptation import AdaptationSettings, AdaptiveNNPC
 from controllers.base import Measurement
-from controllers.nn_model import NNConfig, NNPlantModel, PlantNetwork
+from controllers.nn_config import NNConfig
+from controllers.nn_model import NNPlantModel, PlantNetwork
 
 CONFIG = NNConfig(hidden=(6,), delays=2, extra_signals=("load_conductance",))
 LOAD = 6.0

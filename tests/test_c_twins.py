@@ -27,7 +27,8 @@ from conftest import random_model
 
 from controllers import native
 from controllers.base import Controller, Measurement
-from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, load_model, train
+from controllers.nn_config import NNConfig, TrainingSettings
+from controllers.nn_model import NNPlantModel, load_model, train
 from controllers.pi import PIController
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, RtiSettings
 from controllers.predictors import (

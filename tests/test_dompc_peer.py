@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from conftest import random_model
 
-from controllers.nn_model import NNConfig, load_model
+from controllers.nn_config import NNConfig
+from controllers.nn_model import load_model
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"

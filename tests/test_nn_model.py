@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 import torch
 
-from controllers.nn_model import NNConfig, TrainingSettings, build_dataset, load_model, save_model, train
+from controllers.nn_config import NNConfig, TrainingSettings
+from controllers.nn_model import build_dataset, load_model, save_model, train
 from cosim.base.errors import ModelFileError
 
 PHI = np.array([[0.9, -0.05], [0.3, 0.8]])  # a stable linear "plant", sampled
@@ -233,3 +234,22 @@ def test_the_10_step_report_feeds_the_recorded_load(switched_data):
 def test_invalid_training_settings_are_refused(kwargs):
     with pytest.raises(ValueError):
         TrainingSettings(**kwargs)
+
+
+def test_the_configuration_module_is_torch_free_and_names_the_activations_the_network_builds():
+    """controllers/nn_config.py is what commands check their arguments against before torch loads: it must not
+    import torch; the torch layers (nn_model.TORCH_ACTIVATIONS) are the same activations, in the order the C twins
+    number them (native.py passes list(ACTIVATIONS).index)."""
+    import subprocess
+    import sys
+
+    from controllers.nn_config import ACTIVATIONS
+    from controllers.nn_model import TORCH_ACTIVATIONS
+
+    probe = "import sys, controllers.nn_config; print('torch' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "False", done.stdout + done.stderr
+    assert list(TORCH_ACTIVATIONS) == list(ACTIVATIONS) == ["tanh", "relu", "sigmoid"]
+    z = np.linspace(-4.0, 4.0, 81)
+    for name, layer in TORCH_ACTIVATIONS.items():  # the numpy evaluation and the trained layer agree
+        assert np.allclose(ACTIVATIONS[name](z), layer()(torch.from_numpy(z)).numpy(), rtol=0, atol=1e-15), name

@@ -56,16 +56,34 @@ def test_scenario_mistakes_via_the_command_line(tmp_path, text, message):
                    2, message)
 
 
-def test_a_refused_run_is_answered_before_torch_or_matplotlib_load(tmp_path):
-    """The checks of ``run`` (scenario, plant, rates) come before the controllers' and figures' libraries are
-    imported: a typo is answered in about a second, not after the 3-5 s torch and matplotlib take to load."""
+@pytest.mark.parametrize("args,message", [
+    (["run", "bad.toml", "--kp", "0", "--ki", "14", "--out", "out"], "bad.toml:2: duration = -0.02 s is invalid"),
+    (["train", "data.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
+    (["train", "missing.parquet", "--out", "m.pt"], "missing.parquet"),
+    (["collect-data", "--plant", "missing.toml", "--out", "d.parquet"], "missing.toml"),
+])
+def test_a_refused_command_is_answered_before_torch_or_matplotlib_load(tmp_path, args, message):
+    """The checks of ``run``, ``train`` and ``collect-data`` (scenario, plant, rates, network, files) come before the
+    controllers', the network's and the figures' libraries are imported: a typo is answered in about a second, not
+    after the 2-5 s torch and matplotlib take to load (controllers/nn_config.py holds what train checks)."""
     (tmp_path / "bad.toml").write_text('name = "x"\nduration = -0.02\n[initial]\nreference = 12.0\n')
     probe = ("import sys; from cosim.cli import main; "
-             "code = main(['--no-progress', 'run', 'bad.toml', '--kp', '0', '--ki', '14', '--out', 'out']); "
+             f"code = main(['--no-progress', *{args!r}]); "
              "print(code, sorted(m for m in ('torch', 'matplotlib', 'scipy.optimize') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, timeout=120)
-    assert "bad.toml:2: duration = -0.02 s is invalid" in done.stderr, done.stderr
+    assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert done.stdout.split("\n")[0] == "2 []", done.stdout
+
+
+def test_a_pi_run_loads_no_torch(tmp_path):
+    """A PI-only run needs no network: torch (seconds to load) stays out of it (and matplotlib, without figures)."""
+    probe = ("import sys; from cosim.cli import main; "
+             "code = main(['--no-progress', 'run', 'startup', '--kp', '0.01', '--ki', '14', '--out', 'out', "
+             "'--no-figures']); "
+             "print(code, sorted(m for m in ('torch', 'matplotlib') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert done.stdout.strip().splitlines()[-1] == "0 []", done.stdout + done.stderr
+    assert (tmp_path / "out" / "runs" / "startup__pi__nominal-averaged__1ms.parquet").is_file()
 
 
 def test_a_period_the_fmu_cannot_honour_is_refused(tmp_path, fixed_step_fmu):
@@ -84,7 +102,8 @@ def test_a_model_file_for_other_inputs_is_refused(tmp_path):
     import numpy as np
     import pandas as pd
 
-    from controllers.nn_model import NNConfig, TrainingSettings, save_model, train
+    from controllers.nn_config import NNConfig, TrainingSettings
+    from controllers.nn_model import save_model, train
 
     n = 300
     frame = pd.DataFrame({"measured_inductor_current": np.linspace(0, 2, n), "measured_output_voltage":

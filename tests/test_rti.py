@@ -15,7 +15,8 @@ from conftest import random_model
 from controllers.base import Measurement
 from controllers.box_qp import MAX_VARIABLES, solve_box_qp
 from controllers.native import NativePredictiveController
-from controllers.nn_model import NNConfig, load_model
+from controllers.nn_config import NNConfig
+from controllers.nn_model import load_model
 from controllers.predictive import (
     HorizonOptimizer,
     HorizonSettings,

@@ -19,7 +19,8 @@ import pytest
 import torch
 from conftest import cli, faulty_binding, one_line_error, role_named_binding
 
-from controllers.nn_model import NNConfig, TrainingSettings, _checksum, load_model, save_model, train
+from controllers.nn_config import NNConfig, TrainingSettings
+from controllers.nn_model import _checksum, load_model, save_model, train
 from cosim.base.errors import ModelFileError
 from cosim.results import read_run, write_parquet
 

@@ -75,7 +75,7 @@ int buckc_nn_check(const BuckcNnConfig *config, const char **what)
     return BUCKC_OK;
 }
 
-/* nn_model.ACTIVATIONS' numpy functions */
+/* nn_config.ACTIVATIONS' numpy functions */
 static buckc_real activate(int activation, buckc_real z)
 {
     const buckc_real zero = BUCKC_REAL_LITERAL(0.0), half = BUCKC_REAL_LITERAL(0.5);

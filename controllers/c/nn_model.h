@@ -41,7 +41,7 @@
 
 /* NNConfig.activation */
 enum { BUCKC_ACTIVATION_TANH = 0, BUCKC_ACTIVATION_RELU = 1, BUCKC_ACTIVATION_SIGMOID = 2 };
-/* nn_model.EXTRA_SIGNALS, as the NNPredictor computes them from its PredictionContext */
+/* nn_config.EXTRA_SIGNALS, as the NNPredictor computes them from its PredictionContext */
 enum {
     BUCKC_EXTRA_LOAD_CONDUCTANCE = 0, /* 1 / load_resistance */
     BUCKC_EXTRA_LOAD_CURRENT = 1,     /* load_current (NaN without a load-current sensor) */

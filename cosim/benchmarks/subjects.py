@@ -83,7 +83,8 @@ def _mixed_scenario(period: float, samples: int):
 
 def _nn_model(name: str, period: float, quick: bool):
     """The reproduction's model if the models folder (:data:`_models_dir`) has it, else one trained here."""
-    from controllers.nn_model import TrainingSettings, load_model, train
+    from controllers.nn_config import TrainingSettings
+    from controllers.nn_model import load_model, train
     from cosim.base.errors import ModelFileError
     from cosim.study.data_collection import collect
     from cosim.study.experiments import collection_settings, nn_configs

@@ -10,7 +10,8 @@ from cosim.study.vocabulary import PAPER_PERIOD
 
 
 def bench_training(quick: bool) -> list[BenchRow]:
-    from controllers.nn_model import TrainingSettings, train
+    from controllers.nn_config import TrainingSettings
+    from controllers.nn_model import train
     from cosim.study.data_collection import CollectionSettings, collect
     from cosim.study.experiments import nn_configs
     from cosim.study.plants import plant_binding

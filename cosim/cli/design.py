@@ -53,7 +53,6 @@ def cmd_tune_pi(args) -> int:
 def cmd_collect(args) -> int:
     from cosim.master import check_set_up
     from cosim.scenarios import load_scenario
-    from cosim.study.controller_factory import tuned_pi
     from cosim.study.data_collection import collect, save_samples
     from cosim.study.experiments import collection_settings
 
@@ -63,6 +62,8 @@ def cmd_collect(args) -> int:
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
     check_set_up(binding, [load_scenario("startup")])  # what the FMU refuses, even where the PI tuning is cached
+    from cosim.study.controller_factory import tuned_pi  # scipy.optimize: after the checks
+
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
     save_samples(data, Path(args.out))
@@ -71,7 +72,7 @@ def cmd_collect(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from controllers.nn_model import NNConfig, TrainingSettings, extra_columns, load_model, save_model, train
+    from controllers.nn_config import NNConfig, TrainingSettings, extra_columns
     from cosim.results import read_parquet
 
     try:  # arguments first, before any file is read
@@ -114,6 +115,8 @@ def cmd_train(args) -> int:
             raise ConfigError(f"{other} was collected at a control period of {other_period:.6g} s, "
                               f"{source} at {period:.6g} s: train on data of one rate")
         extra.append(more)
+    from controllers.nn_model import load_model, save_model, train  # torch: after every check of the arguments
+
     initial = load_model(Path(args.init), expect_period=period, expect_config=config) if args.init else None
     try:
         model = train(frame, config, settings, progress=args.progress, extra_frames=extra, initial=initial,

@@ -8,8 +8,9 @@ import math
 import sys
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from controllers.nn_model import NNPlantModel, TrainingSettings, load_model, save_model, train
+from controllers.nn_config import TrainingSettings
 from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError, ModelFileError
 from cosim.base.labels import did_you_mean, period_text
@@ -26,6 +27,9 @@ from cosim.study.experiments import (
     nn_configs,
     nnpc,
 )
+
+if TYPE_CHECKING:  # torch loads with the NN model's module: only where a network is trained or read (seconds)
+    from controllers.nn_model import NNPlantModel
 from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
 from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
 from cosim.study.vocabulary import (
@@ -89,6 +93,8 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     by the recipe of :mod:`cosim.study.identification` (PI data, one-step and simulation-error
     training, NNPC-in-the-loop data at fast rates), the paper's network by one-step training on the
     PI data. The data file and the held-out RMSE are printed."""
+    from controllers.nn_model import load_model, save_model, train
+
     config = nn_configs(period)[name]
     if model_path:
         return load_model(Path(model_path), expect_period=period)
@@ -224,6 +230,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     if policy_path and "nnpc-explicit" not in names:
         raise ConfigError("--policy gives the explicit NNPC's policy: add --controller nnpc-explicit (or drop --policy)")
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
+    if model_path:
+        from controllers.nn_model import load_model
+
     given = load_model(Path(model_path), expect_period=period) if model_path else None
     if policy_path:
         from controllers.explicit_policy import load_policy

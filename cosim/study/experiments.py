@@ -11,9 +11,10 @@ from __future__ import annotations
 import copy
 from contextlib import contextmanager
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from controllers.adaptation import AdaptationSettings, AdaptiveNNPC
-from controllers.nn_model import NNConfig, NNPlantModel
+from controllers.nn_config import NNConfig
 from controllers.predictive import HorizonOptimizer, HorizonSettings, PredictiveController, RtiSettings
 from controllers.predictors import (
     AveragedModelPredictor,
@@ -41,6 +42,9 @@ from cosim.study.vocabulary import (
     transient_within_sample,
 )
 from plant_fmu.table_ii import TABLE_II
+
+if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained or read
+    from controllers.nn_model import NNPlantModel
 
 #: the paper's network: [iL, vc, d](k-1) -> [iL, vc](k), 7 tanh neurons
 PAPER_NN = NNConfig()

@@ -27,10 +27,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from controllers.nn_model import NNConfig, NNPlantModel, TrainingSettings, train
+from controllers.nn_config import NNConfig, TrainingSettings
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import CollectionSettings, collect
 from cosim.study.design_cache import DesignKey, design_key
@@ -45,6 +46,9 @@ from cosim.study.vocabulary import (
     MULTI_STEP_STRIDE,
     ONE_STEP_ITERATIONS,
 )
+
+if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained
+    from controllers.nn_model import NNPlantModel
 
 #: the stages an :class:`Identified` keeps, in order
 ONE_STEP, MULTI_STEP, CLOSED_LOOP = "one-step", "multi-step", "closed-loop"
@@ -104,6 +108,8 @@ def identify(binding: PlantBinding, pi_controller, control_period: float, config
     ``data``: PI data collected already, with ``collection`` (default: ``collection_settings(period, samples,
     seed)``, the rate's recipe); the model's metadata records those settings.
     """
+    from controllers.nn_model import train
+
     settings = collection if collection is not None else collection_settings(control_period, recipe.samples, seed)
     if data is None:
         data = collect(binding, pi_controller, settings, progress=progress)
@@ -140,6 +146,8 @@ def closed_loop_round(identified: Identified, binding: PlantBinding, control_per
     """One NNPC-in-the-loop round on top of ``identified``: collect ``recipe.closed_loop_samples``
     with its NNPC driving the plant (seeded dither, new random references and loads), refine the
     simulation-error stage on the PI and every round's data; returns the extended identification."""
+    from controllers.nn_model import train
+
     r = len(identified.closed_loop) + 1
     training = training_settings(control_period, seed, recipe.multi_step_iterations)
     loop = implemented(nnpc(identified.model, control_period), recipe.implementation)

@@ -416,7 +416,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
 
 
 def _paper_training(seed: int):
-    from controllers.nn_model import TrainingSettings
+    from controllers.nn_config import TrainingSettings
 
     return TrainingSettings(seed=seed)  # the paper's network keeps the paper's (one-step) training
 
@@ -426,7 +426,8 @@ def _identification_ablation(identified, binding, period, seed, batch, out_dir, 
     """The earlier 7-hidden network with one-step training (the workbench's NNPC before this study),
     the NNPC's network after its one-step stage, and the NNPC refined on a round of data with itself
     in the loop, all from the same data; named with the seed unless it is seed 0."""
-    from controllers.nn_model import TrainingSettings, train
+    from controllers.nn_config import TrainingSettings
+    from controllers.nn_model import train
 
     def named(name):
         return name if seed == 0 else seed_variant(name, seed)
