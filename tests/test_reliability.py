@@ -61,11 +61,13 @@ def test_scenario_mistakes_via_the_command_line(tmp_path, text, message):
     (["train", "data.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
     (["train", "missing.parquet", "--out", "m.pt"], "missing.parquet"),
     (["collect-data", "--plant", "missing.toml", "--out", "d.parquet"], "missing.toml"),
+    (["reproduce", "--plant", "missing.toml", "--out", "r"], "missing.toml"),
 ])
 def test_a_refused_command_is_answered_before_torch_or_matplotlib_load(tmp_path, args, message):
-    """The checks of ``run``, ``train`` and ``collect-data`` (scenario, plant, rates, network, files) come before the
-    controllers', the network's and the figures' libraries are imported: a typo is answered in about a second, not
-    after the 2-5 s torch and matplotlib take to load (controllers/nn_config.py holds what train checks)."""
+    """The checks of ``run``, ``train``, ``collect-data`` and ``reproduce --plant`` (scenario, plant, rates, network,
+    files) come before the controllers', the network's and the figures' libraries are imported: a typo is answered in
+    about a second, not after the 2-5 s torch and matplotlib take to load (controllers/nn_config.py holds what train
+    checks)."""
     (tmp_path / "bad.toml").write_text('name = "x"\nduration = -0.02\n[initial]\nreference = 12.0\n')
     probe = ("import sys; from cosim.cli import main; "
              f"code = main(['--no-progress', *{args!r}]); "

@@ -20,8 +20,6 @@ from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD
 
 
 def cmd_reproduce(args) -> int:
-    from cosim.study.reproduce import FULL, QUICK, reproduce
-
     output_dir(args.out)
     if args.control_period and not args.plant:
         raise ConfigError("--control-period applies to reproduce --plant only (the built-in study runs at 1 ms and "
@@ -35,6 +33,8 @@ def cmd_reproduce(args) -> int:
         for period in args.control_period or (PAPER_PERIOD,):
             scenarios = [s for s in scenarios_for(period) if s.required_roles() <= set(binding.roles)]
             Batch(binding, scenarios).check_rates(period, 1e-5)
+    from cosim.study.reproduce import FULL, QUICK, reproduce  # the whole study (torch, scipy): after the checks
+
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,
               implementation=args.implementation,
               profile=QUICK if args.quick else FULL, binding_file=args.plant,
