@@ -25,6 +25,10 @@ MAX_INSTANTS = 200_000_000  # a sanity limit; memory stays bounded below it (win
 #: a run whose recorded part holds fewer controller samples than this is refused: with one sample
 #: (a control period as long as the scenario) the controller acts once and the rest is open loop
 MIN_CONTROL_SAMPLES = 2
+#: the shortest control or record period accepted [s]: 100 ns, far below any digital controller's sample period (one
+#: switching period of the paper's converter is 13.3 us). A shorter one is almost surely a unit slip (ns for us) and
+#: would make tens of millions of steps that fill the memory before anything is written.
+MIN_PERIOD = 1e-7
 WINDOW_INSTANTS = 16_384  # instants generated at a time
 WHOLE_TIMELINE_LIMIT = 5_000_000  # build_timeline() refuses more (the master itself iterates windows)
 
@@ -97,11 +101,19 @@ class TimelinePlan:
             yield self.window(k0, k0 + step)
 
 
+def period_too_short(what: str) -> str:
+    """The refusal of a period below :data:`MIN_PERIOD`, ``what`` naming it and its value."""
+    return (f"{what} is invalid: expected >= {MIN_PERIOD:g} s (one switching period of the paper's converter is "
+            "13.3 us): was it given in another unit?")
+
+
 def plan_timeline(scenario: Scenario, control_period: float, record_period: float) -> TimelinePlan:
     """Validate the periods and lay out the grids of a run (see :class:`TimelinePlan`)."""
     for label, value in (("control period", control_period), ("record period", record_period)):
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{label} = {value} s is invalid: expected a finite value > 0")
+        if value < MIN_PERIOD:
+            raise ConfigError(period_too_short(f"{label} = {value:.6g} s"))
     settle = math.ceil(scenario.settle / control_period - 1e-9) * control_period
     end = settle + scenario.duration
     expected = end / control_period + scenario.duration / record_period

@@ -166,6 +166,20 @@ def test_invalid_periods_are_refused():
         build_timeline(scenario(duration=100.0), 1e-3, 1e-7)
 
 
+def test_a_period_below_100_ns_is_taken_for_a_unit_slip():
+    """1e-9 s for 1 us would make 3e7 steps of a 30 ms scenario (gigabytes before anything is written): refused, the
+    message asking about the unit; 100 ns itself is accepted."""
+    from cosim.timeline import plan_timeline
+
+    with pytest.raises(ConfigError, match=r"^control period = 1e-09 s is invalid: expected >= 1e-07 s \(one switching "
+                                          r"period of the paper's converter is 13.3 us\): was it given in another unit\?$"):
+        build_timeline(scenario(), 1e-9, 1e-5)
+    with pytest.raises(ConfigError, match=r"^record period = 5e-08 s is invalid: expected >= 1e-07 s"):
+        build_timeline(scenario(), 1e-3, 5e-8)
+    plan = plan_timeline(scenario(), 1e-3, 1e-7)
+    assert plan.record_count == round(scenario().duration / 1e-7) + 1
+
+
 def test_controller_returning_nan_stops_the_run_and_keeps_the_rows(averaged):
     probe = Probe(duty=lambda k: 0.25 if k < 3 else math.nan)
     with pytest.raises(RunFailed, match=r"controller probe returned duty cycle nan at t = 0.003 s") as info:

@@ -14,6 +14,7 @@ from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MIN_SAMPLES
 from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, IMPLEMENTATIONS, PLANT_VARIANTS, SENSORS
+from cosim.timeline import MIN_PERIOD, period_too_short
 
 DEFAULT_RESULTS = Path("results")
 
@@ -83,7 +84,8 @@ def output_file(text: str | None, suffixes: tuple[str, ...] = (), what: str = ""
 
 
 def parse_period(text: str) -> float:
-    """A period in seconds: ``1e-3``, ``0.001`` or a fraction such as ``1/75e3``."""
+    """A period in seconds: ``1e-3``, ``0.001`` or a fraction such as ``1/75e3``; at least
+    :data:`cosim.timeline.MIN_PERIOD` (100 ns: a shorter one is taken for a unit slip)."""
     try:
         if "/" in text:
             numerator, denominator = text.split("/", 1)
@@ -94,6 +96,8 @@ def parse_period(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r} is not a period in seconds (e.g. 1e-3 or 1/75e3)") from None
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"period {text} s is invalid: expected a finite value > 0")
+    if value < MIN_PERIOD:
+        raise argparse.ArgumentTypeError(period_too_short(f"period {text} s"))
     return value
 
 
