@@ -89,6 +89,11 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["train", "d.parquet", "--seed", str(2**32), "--out", "m.pt"], "argument --seed: seed 4294967296 is out of range"),
     (["train", ".", "--out", "m.pt"], "error: data file . is a folder: expected a file"),
     (["reproduce", "--workers", "0"], "argument --workers: 0 is invalid: expected a whole number >= 1"),
+    (["frequency-response", "--workers", "-1", "--out", "fr"], "argument --workers: -1 is invalid: expected a whole "
+                                                               "number >= 1"),
+    (["tune-pi", "--plant", "p.toml", "--mode", "switched"],
+     "error: --mode switched chooses a built-in plant, but --plant p.toml drives an external FMU, whose binding file "
+     "chooses the model: drop --mode"),
     (["inspect", "README.md"], "is not a zip archive"),
     (["export", "missing.parquet", "--to", "csv"], "error: run file missing.parquet does not exist"),
     (["frobnicate"], "error: buck-cosim: argument COMMAND: invalid choice"),

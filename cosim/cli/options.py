@@ -142,14 +142,20 @@ def bounded(kind=float, low: float | None = None, high: float | None = None, *, 
 def _plant_binding(args):
     from dataclasses import replace
 
+    built_in = {option: getattr(args, option[2:], None) for option in BUILT_IN_PLANT_OPTIONS}
     if getattr(args, "plant", None):
         from cosim.fmi.binding_file import load_binding
 
+        given = next((f"{option} {value}" for option, value in built_in.items() if value is not None), None)
+        if given:  # the binding file chooses the plant: the option would be dropped silently
+            raise ConfigError(f"{given} chooses a built-in plant, but --plant {args.plant} drives an external FMU, "
+                              f"whose binding file chooses the model: drop {given.split()[0]}")
         binding = load_binding(args.plant)
     else:
         from cosim.study.plants import plant_binding
 
-        binding = plant_binding(args.variant, args.mode, args.sensor)
+        variant, mode, sensor = (value or BUILT_IN_PLANT_OPTIONS[option] for option, value in built_in.items())
+        binding = plant_binding(variant, mode, sensor)
     isolate = getattr(args, "isolate", None)
     binding = binding if isolate is None else replace(binding, isolate=isolate)
     limits = {key: value for key, value in (("step_timeout", getattr(args, "step_timeout", None)),
@@ -167,19 +173,25 @@ def _check_duty_limits(args) -> None:
         raise ConfigError(f"duty limits ({args.duty_min}, {args.duty_max}) are invalid: expected 0 <= min < max <= 1")
 
 
+#: the options that choose the built-in plant, with their defaults (None in the parser: an option given with --plant
+#: is refused, not dropped)
+BUILT_IN_PLANT_OPTIONS = {"--variant": "nominal", "--mode": "averaged", "--sensor": "average"}
+
+
 def _add_plant_options(parser) -> None:
-    parser.add_argument("--mode", choices=list(PLANT_MODE_CODES), default="averaged",
+    parser.add_argument("--mode", choices=list(PLANT_MODE_CODES), default=None,
                         help="built-in plant: averaged model (eq. 3, with DCM) or switched (PWM, ideal switch and "
                              "diode) (default: averaged)")
-    parser.add_argument("--variant", choices=list(PLANT_VARIANTS), default="nominal",
+    parser.add_argument("--variant", choices=list(PLANT_VARIANTS), default=None,
                         help="built-in plant parameters: Table II, or L +20 %%, C -20 %% with parasitics "
                              "(default: nominal)")
-    parser.add_argument("--sensor", choices=list(SENSORS), default="average",
+    parser.add_argument("--sensor", choices=list(SENSORS), default=None,
                         help="what controllers measure: the mean over the last PWM period (default), or a point "
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
-                             "(--mode/--variant/--sensor then do not apply; docs/guide/external-plants.md)")
+                             "(--mode/--variant/--sensor, which choose the built-in one, are refused with it; "
+                             "docs/guide/external-plants.md)")
     isolation = parser.add_mutually_exclusive_group()
     isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                            help="step the plant FMU in a child process: a crash inside it ends the run with an error "

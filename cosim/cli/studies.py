@@ -178,7 +178,7 @@ def add_frequency_response_parser(sub) -> None:
     p.add_argument("--input-voltage", type=float, default=48.0, metavar="V", help="operating point: supply [V] (default 48)")
     p.add_argument("--settle", type=float, default=15e-3, metavar="SECONDS",
                    help="closed loop from rest before the injection starts [s] (default: 0.015)")
-    p.add_argument("--workers", type=int, metavar="N", help="local dask workers (default: one per core)")
+    p.add_argument("--workers", type=bounded(int, 1), metavar="N", help="local dask workers (default: one per core)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     _add_plant_options(p)
     _add_implementation_option(p)
