@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Callable, Iterable
 import pandas as pd
 
 from controllers.base import Controller
-from cosim.base.errors import RunInterrupted
+from cosim.base.errors import ConfigError, RunInterrupted
 from cosim.base.files import atomic_write
 from cosim.base.labels import period_label, slug
 from cosim.fmi.binding import PlantBinding
@@ -49,7 +49,15 @@ class Batch:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scenarios", tuple(self.scenarios))
-        for scenario in self.scenarios:
+        named: dict[str, Scenario] = {}
+        for scenario in self.scenarios:  # the files of a run are named after its scenario: two of one name would clash
+            other = named.setdefault(scenario.name, scenario)
+            if other is not scenario:
+                where = scenario.source or scenario.name
+                raise ConfigError(
+                    f"scenario {where} is given twice" if where == (other.source or other.name) else
+                    f"{scenario.place('name')}: scenario name {scenario.name!r} is the name of {other.place('name')} "
+                    "too: the runs' files are named after it, so one would overwrite the other -- rename one")
             check_plant_supports(self.binding, scenario)
 
     def check_plant(self, interface: str | None = None) -> None:
@@ -89,6 +97,14 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
     plant_tag = binding.tag
     controllers = list(controllers)
     results: list[RunResult] = []
+    stems: dict[str, str] = {}
+    for controller in controllers:  # the runs' files are named after the controllers' slugs: two alike would clash
+        other = stems.get(slug(controller.name))
+        if other is not None:
+            raise ConfigError(f"controller {controller.name} is given twice" if other == controller.name else
+                              f"controllers {other!r} and {controller.name!r} would write the same run files "
+                              f"({slug(controller.name)}): name them apart")
+        stems[slug(controller.name)] = controller.name
     files: list[Path] = []
     with open_plant(binding, interface=interface) as plant:
         for scenario in batch.scenarios:

@@ -56,6 +56,33 @@ def test_scenario_mistakes_via_the_command_line(tmp_path, text, message):
                    2, message)
 
 
+def test_runs_whose_files_would_overwrite_each_other_are_refused_before_any_run(tmp_path):
+    """A run's files are named after its scenario and its controller: a scenario of another file with the same name,
+    a scenario or a controller given twice would overwrite runs (the table showed both, the folder one), so the
+    batch refuses them, naming both places."""
+    from controllers.pi import PIController
+    from cosim.base.errors import ConfigError
+    from cosim.batch import Batch, run_batch
+    from cosim.scenarios import load_scenario
+    from cosim.study.plants import plant_binding
+
+    shipped = load_scenario("startup")
+    (tmp_path / "mine.toml").write_text(shipped.source.read_text().replace("load_resistance = 6.0",
+                                                                           "load_resistance = 10.0"))
+    binding = plant_binding("nominal", "averaged")
+    with pytest.raises(ConfigError, match=rf"^\S*mine.toml:\d+: scenario name 'startup' is the name of "
+                                          rf"\S*startup.toml:\d+ too: the runs' files are named after it"):
+        Batch(binding, [shipped, load_scenario(str(tmp_path / "mine.toml"))])
+    with pytest.raises(ConfigError, match=r"^scenario \S*startup.toml is given twice$"):
+        Batch(binding, [shipped, load_scenario("startup")])
+    pi = [PIController(0.01, 14.0, 1e-3), PIController(0.02, 14.0, 1e-3)]
+    with pytest.raises(ConfigError, match=r"^controller PI is given twice$"):
+        run_batch(Batch(binding, [shipped]), pi, tmp_path / "out")
+    assert not (tmp_path / "out" / "runs").exists()
+    one_line_error(cli("run", "startup", str(tmp_path / "mine.toml"), "--kp", "0.01", "--ki", "14", "--out",
+                       str(tmp_path / "cli")), 2, "scenario name 'startup' is the name of")
+
+
 @pytest.mark.parametrize("args,message", [
     (["run", "bad.toml", "--kp", "0", "--ki", "14", "--out", "out"], "bad.toml:2: duration = -0.02 s is invalid"),
     (["train", "data.parquet", "--activation", "swish", "--out", "m.pt"], "activation 'swish' is unknown"),
