@@ -10,6 +10,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import cli, one_line_error
 
 from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.cli import main
@@ -132,6 +133,16 @@ def test_draft_binding_guesses_roles_from_names_and_units(python_buck_fmu, buck_
     draft = load_binding(tmp_path / "draft.toml")  # a draft of our own FMU loads as it is
     assert draft.roles["inductor_current"].variable == "inductor_current"
     assert draft.roles["duty_cycle"].variable == "duty_cycle"
+    # a binding edited by hand is never replaced by a new draft, and a draft is named as the TOML it is
+    edited = (tmp_path / "draft.toml").read_text().replace("label =", "# my edit\nlabel =")
+    (tmp_path / "draft.toml").write_text(edited)
+    one_line_error(cli("inspect", str(tmp_path / "Buck.fmu"), "--draft-binding", str(tmp_path / "draft.toml")), 2,
+                   f"--draft-binding {tmp_path / 'draft.toml'} exists: a draft never replaces a file")
+    assert (tmp_path / "draft.toml").read_text() == edited
+    one_line_error(cli("inspect", str(tmp_path / "Buck.fmu"), "--draft-binding", str(tmp_path / "draft.json")), 2,
+                   "--draft-binding " + str(tmp_path / "draft.json") + " is invalid: expected a file name ending in "
+                   ".toml (a plant-binding file is TOML)")
+    assert not (tmp_path / "draft.json").exists()
 
 
 # ------------------------------------------------------------------------------------------ refusals

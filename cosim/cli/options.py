@@ -64,12 +64,12 @@ def input_file(text: str, what: str, hint: str = "") -> Path:
     return path
 
 
-def output_file(text: str | None, suffixes: tuple[str, ...] = (), what: str = "") -> Path | None:
+def output_file(text: str | None, suffixes: tuple[str, ...] = (), what: str = "", option: str = "--out") -> Path | None:
     """A file a result goes to: its folder must be creatable and writable, and it must not be a folder.
 
     ``suffixes`` (e.g. ``(".parquet",)``): the endings its name may have, case aside -- where a command writes one
     format, a file named for another (samples written as Parquet into ``data.csv``) would be a silent surprise, so
-    the name is refused, saying what is written (``what``)."""
+    the name is refused, saying what is written (``what``); ``option`` names the option in the message."""
     if text is None:
         return None
     path = Path(text)
@@ -77,7 +77,7 @@ def output_file(text: str | None, suffixes: tuple[str, ...] = (), what: str = ""
         raise ConfigError(f"output file {path} is a folder: expected a file name")
     if suffixes and path.suffix.lower() not in suffixes:
         endings = " or ".join(suffixes)
-        raise ConfigError(f"--out {path} is invalid: expected a file name ending in {endings}"
+        raise ConfigError(f"{option} {path} is invalid: expected a file name ending in {endings}"
                           + (f" ({what})" if what else ""))
     output_dir(str(path.parent))
     return path

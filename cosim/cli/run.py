@@ -91,7 +91,11 @@ def _warn_implausible(output, binding) -> None:
 def cmd_inspect(args) -> int:
     from cosim.fmi.inspect import describe_fmu
 
-    output_file(args.draft_binding)  # a folder or an unwritable place is refused before anything is read
+    # a folder, an unwritable place, a name for another format or an existing file is refused before anything is read
+    draft = output_file(args.draft_binding, (".toml",), "a plant-binding file is TOML", option="--draft-binding")
+    if draft is not None and draft.exists():
+        raise ConfigError(f"--draft-binding {draft} exists: a draft never replaces a file (a binding edited by hand "
+                          "would be lost): remove it or give another name")
     if Path(args.fmu).suffix.lower() == ".toml":  # a binding file: its FMU, and the binding checked against it
         from cosim.fmi.binding_file import load_binding
         from cosim.master import check_set_up
@@ -219,7 +223,8 @@ def add_inspect_parser(sub) -> None:
                                    "unit the FMU declares contradicts a role or its scale).")
     p.add_argument("fmu", metavar="FMU|BINDING.toml", help="path to a .fmu file, or a plant-binding file")
     p.add_argument("--draft-binding", metavar="OUT.toml",
-                   help="also write a draft plant-binding file, roles guessed from names and units")
+                   help="also write a draft plant-binding file, roles guessed from names and units (a new .toml "
+                        "file: an existing one is never replaced)")
     p.set_defaults(func=cmd_inspect)
 
 
