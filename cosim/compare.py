@@ -53,7 +53,7 @@ def run_labels(results: list[RunResult], paths: list[str | Path]) -> list[str]:
 
 def overlay(paths: list[str | Path], out: Path, title: str | None = None, styles: Styles | None = None) -> list[Path]:
     """The runs of ``paths`` overlaid in the run figure (:func:`cosim.plots.scenario_figure`) at ``out``
-    (its suffix, if any, dropped: PNG and SVG are written). Returns the written files."""
+    (``out.png`` and ``out.svg``; a .png or .svg ending of ``out`` stands for the pair). Returns the written files."""
     results = load_runs(paths)
     labels = run_labels(results, paths)
     relabelled = [relabel(r, label) for r, label in zip(results, labels)]

@@ -172,13 +172,17 @@ def _mark_transient(ax_v, ax_i, result: RunResult, m: dict, color) -> None:
 
 
 def save_figure(fig, stem: Path) -> list[Path]:
-    """Write ``<stem>.png`` (150 dpi) and ``<stem>.svg`` atomically; close the figure."""
+    """Write ``<stem>.png`` (110 dpi) and ``<stem>.svg`` atomically; close the figure. A ``stem`` ending in .png or
+    .svg stands for the pair; any other dot is part of the name (``startup_13.33us`` gives ``startup_13.33us.png``,
+    not ``startup_13.png``)."""
     stem = Path(stem)
+    if stem.suffix.lower() in (".png", ".svg"):
+        stem = stem.with_suffix("")
     paths = [
-        atomic_write(stem.with_suffix(".png"), lambda tmp: fig.savefig(tmp, format="png", dpi=110,
-                                                                       metadata={"Software": None})),
-        atomic_write(stem.with_suffix(".svg"), lambda tmp: fig.savefig(tmp, format="svg",
-                                                                       metadata={"Date": None})),
+        atomic_write(stem.with_name(f"{stem.name}.png"), lambda tmp: fig.savefig(tmp, format="png", dpi=110,
+                                                                                 metadata={"Software": None})),
+        atomic_write(stem.with_name(f"{stem.name}.svg"), lambda tmp: fig.savefig(tmp, format="svg",
+                                                                                 metadata={"Date": None})),
     ]
     plt.close(fig)
     return paths

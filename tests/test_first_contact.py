@@ -538,6 +538,15 @@ def test_plot_and_compare_overlay_runs_from_different_folders_and_formats(tmp_pa
     capsys.readouterr()
     assert main(["plot", *runs, "--out", str(tmp_path / "fig.png")]) == 0
     assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "fig.svg").is_file()
+    # a dot inside the name is part of it (startup_13.33us was written as startup_13.png), a format plot does not
+    # write is refused, not renamed
+    assert main(["plot", *runs[:1], "--out", str(tmp_path / "startup_13.33us")]) == 0
+    assert (tmp_path / "startup_13.33us.png").is_file() and (tmp_path / "startup_13.33us.svg").is_file()
+    assert not (tmp_path / "startup_13.png").exists()
+    capsys.readouterr()
+    assert main(["plot", *runs[:1], "--out", str(tmp_path / "fig.pdf")]) == 2
+    assert not (tmp_path / "fig.pdf").exists()
+    assert f"--out {tmp_path / 'fig.pdf'} is invalid: plot writes PNG and SVG" in capsys.readouterr().err
     assert main(["compare", *runs, "--out", str(tmp_path / "cmp")]) == 0
     printed = capsys.readouterr().out
     table = pd.read_csv(tmp_path / "cmp" / "compare.csv")

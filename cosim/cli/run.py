@@ -24,6 +24,9 @@ from cosim.cli.options import (
 from cosim.study.data_collection import MIN_SAMPLES
 from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD
 
+#: image formats plot does not write (it writes PNG and SVG): an --out ending in one is refused, not renamed
+OTHER_IMAGE_FORMATS = (".pdf", ".eps", ".ps", ".jpg", ".jpeg", ".tif", ".tiff", ".gif", ".bmp", ".webp")
+
 
 def cmd_scenarios(args) -> int:
     from cosim.scenarios import SHIPPED_DIR, shipped_scenarios
@@ -147,6 +150,9 @@ def cmd_plot(args) -> int:
     from cosim.study.vocabulary import CONTROLLER_STYLES
 
     out = output_file(args.out)
+    if out.suffix.lower() in OTHER_IMAGE_FORMATS:
+        raise ConfigError(f"--out {out} is invalid: plot writes PNG and SVG (FIG.png and FIG.svg), not "
+                          f"{out.suffix[1:].upper()}: give FIG, FIG.png or FIG.svg")
     files = overlay(args.runs, out, title=args.title, styles=CONTROLLER_STYLES)
     print(f"wrote {' and '.join(str(f) for f in files)}")
     return 0
@@ -246,7 +252,7 @@ def add_plot_parser(sub) -> None:
                                    "transient with overshoot, settling band and settling time marked. Runs that share "
                                    "a controller name are labelled with their folder. Writes FIG.png and FIG.svg.")
     p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
-    p.add_argument("--out", required=True, metavar="FIG", help="the figure to write (FIG.png and FIG.svg)")
+    p.add_argument("--out", required=True, metavar="FIG", help="the figure to write: FIG.png and FIG.svg (FIG.png or FIG.svg stands for the pair)")
     p.add_argument("--title", help="figure title (default: the scenarios and plants)")
     p.set_defaults(func=cmd_plot)
 
