@@ -334,8 +334,13 @@ def test_export_controller_writes_the_object_a_firmware_links(tmp_path):
     buckc_controller.h and needs only newlib's libm; a firmware for an STM32G4 memory map links it."""
     import subprocess
 
-    from conftest import cli
+    from conftest import cli, one_line_error
 
+    (tmp_path / "afile").write_text("x")  # a folder that cannot be made is refused before the FMU is written
+    one_line_error(cli("export-controller", "pi", "--kp", "0.007", "--ki", "170", "--control-period", "1/75e3",
+                       "--precision", "float32", "--out", str(tmp_path / "pi.fmu"), "--cortex-m4",
+                       str(tmp_path / "afile" / "m4")), 2, f"cannot create output folder {tmp_path / 'afile' / 'm4'}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
     done = cli("export-controller", "pi", "--kp", "0.007", "--ki", "170", "--control-period", "1/75e3", "--precision",
                "float32", "--out", str(tmp_path / "pi.fmu"), "--cortex-m4", str(tmp_path / "m4"))
     assert done.returncode == 0, done.stderr

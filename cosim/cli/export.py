@@ -55,6 +55,7 @@ def cmd_export_controller(args) -> int:
                               "build)")
         if toolchain_problem():
             raise ConfigError(f"--cortex-m4 {args.cortex_m4}: {toolchain_problem()}")
+        output_dir(args.cortex_m4)  # an unwritable folder before the FMU is designed, built and written
     if args.precision == "float32" and args.controller not in FLOAT32_CONTROLLERS:
         raise ConfigError(f"--precision float32: {args.controller} has no float32 controller FMU (the predictive "
                           "controller FMU computes in double; the online NNPC's float32 build runs on the Cortex-M4F: "
