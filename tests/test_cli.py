@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -158,7 +159,7 @@ def test_collect_data_draws_over_the_region_asked_for(tmp_path):
     assert refused.value.code == 2
 
 
-def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_path):
+def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_path, capsys):
     from controllers.nn_model import load_model
 
     data, more = tmp_path / "data.parquet", tmp_path / "more.parquet"
@@ -177,6 +178,13 @@ def test_train_with_the_simulation_error_stage_extra_data_and_a_refinement(tmp_p
     assert model.metadata["training"]["refined_from_initial"] and model.metadata["training"]["extra_samples"] == 500
     assert model.metadata["extra_data_files"] == [str(more)]
     np.testing.assert_array_equal(model.input_mean, load_model(first).input_mean)
+    # the same samples again (a copy of the data file) would train on the held-out share: refused, nothing written
+    shutil.copy(data, tmp_path / "copy.parquet")
+    assert main(["--no-progress", "train", str(data), "--extra-data", str(more), "--extra-data",
+                 str(tmp_path / "copy.parquet"), "--out", str(tmp_path / "twice.pt")]) == 2
+    assert not (tmp_path / "twice.pt").exists()
+    assert f"--extra-data {tmp_path / 'copy.parquet'} holds the same samples as {data}: training on them twice " \
+           "would train on the held-out share too" in capsys.readouterr().err
 
 
 def test_nnpc_trains_on_demand_and_reuses_its_model(tmp_path):

@@ -107,9 +107,15 @@ def cmd_train(args) -> int:
     if period is None:
         raise ConfigError(f"{source} has no workbench metadata naming its control period (not written by "
                           "buck-cosim collect-data?): give the period the samples were taken at with --control-period")
-    extra = []
+    from cosim.base.digests import file_sha256
+
+    extra, contents = [], {file_sha256(source): source}
     for name in args.extra_data or ():
         other, more, more_meta = samples(name)
+        first = contents.setdefault(file_sha256(other), other)
+        if first != other:  # the held-out share of the data would be trained on: its RMSE would flatter the model
+            raise ConfigError(f"--extra-data {other} holds the same samples as {first}: training on them twice "
+                              "would train on the held-out share too (an optimistic held-out RMSE)")
         other_period = more_meta.get("control_period_s")
         if other_period is not None and not math.isclose(period, other_period, rel_tol=1e-9):
             raise ConfigError(f"{other} was collected at a control period of {other_period:.6g} s, "
