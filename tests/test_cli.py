@@ -92,6 +92,12 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["reproduce", "--workers", "0"], "argument --workers: 0 is invalid: expected a whole number >= 1"),
     (["frequency-response", "--workers", "-1", "--out", "fr"], "argument --workers: -1 is invalid: expected a whole "
                                                                "number >= 1"),
+    (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--model", "m.pt", "--out", "pi.fmu"],
+     "error: --model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but none of them is run "
+     "(controllers: pi): drop --model or add such a controller"),
+    (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--samples", "2000", "--out", "pi.fmu"],
+     "error: --samples sizes the data a network is trained on, but no controller run here has one (controllers: pi): "
+     "drop --samples"),
     (["tune-pi", "--plant", "p.toml", "--mode", "switched"],
      "error: --mode switched chooses a built-in plant, but --plant p.toml drives an external FMU, whose binding file "
      "chooses the model: drop --mode"),

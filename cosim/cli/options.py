@@ -13,7 +13,13 @@ from pathlib import Path
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MIN_SAMPLES
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, IMPLEMENTATIONS, PLANT_VARIANTS, SENSORS
+from cosim.study.vocabulary import (
+    DEFAULT_IMPLEMENTATION,
+    IMPLEMENTATIONS,
+    ON_DEMAND_SAMPLES,
+    PLANT_VARIANTS,
+    SENSORS,
+)
 from cosim.timeline import MIN_PERIOD, period_too_short
 
 DEFAULT_RESULTS = Path("results")
@@ -236,8 +242,9 @@ def _add_controller_design_options(parser) -> None:
     :func:`_design_controller`): the PI's gains and the duty limits, the samples and seed of an NN plant model
     trained on demand, and the folder the tuned gains and trained networks are cached in."""
     _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
-    parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
-                        help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
+                        help=f"samples collected when a network (nnpc, nnpc-paper, nnpc-adaptive, nnpc-explicit) "
+                        f"is trained on demand (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
     parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                         help="where tuned gains and trained networks are cached, created only when one is "

@@ -22,7 +22,7 @@ from cosim.cli.options import (
     seed_value,
 )
 from cosim.study.data_collection import MIN_SAMPLES
-from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD
+from cosim.study.vocabulary import CONTROLLERS, ON_DEMAND_SAMPLES, PAPER_PERIOD
 
 #: image formats plot does not write (it writes PNG and SVG): an --out ending in one is refused, not renamed
 OTHER_IMAGE_FORMATS = (".pdf", ".eps", ".ps", ".jpg", ".jpeg", ".tif", ".tiff", ".gif", ".bmp", ".webp")
@@ -207,8 +207,9 @@ def add_run_parser(sub) -> None:
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand from "
                         "the nnpc network, about a minute at 13.33 us)")
-    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=10_000,
-                   help=f"samples collected when nnpc trains on demand (>= {MIN_SAMPLES}; default: 10000)")
+    p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
+                   help=f"samples collected when a network (nnpc, nnpc-paper, nnpc-adaptive, nnpc-explicit) is trained "
+                        f"on demand (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
     p.add_argument("--seed", type=seed_value, default=0,
                    help=f"random seed for data collection and training, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
@@ -252,7 +253,8 @@ def add_plot_parser(sub) -> None:
                                    "transient with overshoot, settling band and settling time marked. Runs that share "
                                    "a controller name are labelled with their folder. Writes FIG.png and FIG.svg.")
     p.add_argument("runs", nargs="+", metavar="RUN", help="run files (.parquet, or .csv with its .json beside it)")
-    p.add_argument("--out", required=True, metavar="FIG", help="the figure to write: FIG.png and FIG.svg (FIG.png or FIG.svg stands for the pair)")
+    p.add_argument("--out", required=True, metavar="FIG",
+                   help="the figure to write: FIG.png and FIG.svg (FIG.png or FIG.svg stands for the pair)")
     p.add_argument("--title", help="figure title (default: the scenarios and plants)")
     p.set_defaults(func=cmd_plot)
 

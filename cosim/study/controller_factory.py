@@ -39,6 +39,7 @@ from cosim.study.vocabulary import (
     NETWORKS,
     NNPC_EXPLICIT,
     NOMINAL,
+    ON_DEMAND_SAMPLES,
 )
 from plant_fmu.table_ii import TABLE_II
 
@@ -179,7 +180,7 @@ def true_parameters(binding: PlantBinding) -> CircuitParameters:
 
 def make_controllers(names: list[str], binding: PlantBinding, period: float, out_dir: Path, *,
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
-                     model_path: str | None = None, samples: int = 10_000, seed: int = 0,
+                     model_path: str | None = None, samples: int | None = None, seed: int = 0,
                      progress: bool = False, policy_path: str | None = None) -> list:
     """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`),
     paths of controller FMUs / controller-binding files, or Python controllers (``module:Class``,
@@ -227,6 +228,15 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                           f"{period:.6g} s")
     if needs_current and not binding.has("inductor_current"):
         raise ConfigError(f"{needs_current[0]} needs the inductor_current role, which {binding.origin} does not bind")
+    trains = [n for n in names if n in NETWORKS or n == "nnpc-adaptive" or (n == "nnpc-explicit" and not policy_path)]
+    if model_path and not trains:
+        raise ConfigError(f"--model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but none of "
+                          f"them is run (controllers: {', '.join(names)}): drop --model or add such a controller")
+    if samples is not None and (model_path or not trains):
+        why = "--model gives the network" if model_path else "no controller run here has one"
+        raise ConfigError(f"--samples sizes the data a network is trained on, but {why} (controllers: "
+                          f"{', '.join(names)}): drop --samples")
+    samples = ON_DEMAND_SAMPLES if samples is None else samples
     if policy_path and "nnpc-explicit" not in names:
         raise ConfigError("--policy gives the explicit NNPC's policy: add --controller nnpc-explicit (or drop --policy)")
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now

@@ -67,6 +67,8 @@ ONE_STEP_ITERATIONS, MULTI_STEP_STRIDE, MULTI_STEP_ITERATIONS = 3000, 6, 300
 #: 13.33 us the envelope, where the dither is the amplitude-modulated binary one, CLOSED_LOOP_DITHER its
 #: largest level; at 1 ms the paper's region, a white dither of that standard deviation
 CLOSED_LOOP_SAMPLES, CLOSED_LOOP_ITERATIONS, CLOSED_LOOP_DITHER, CLOSED_LOOP_SEED_OFFSET = 1000, 150, 0.03, 1000
+#: samples of PI data a network the command line trains on demand is identified from (run/export-controller --samples)
+ON_DEMAND_SAMPLES = 10_000
 
 
 # ---------------------------------------------------------------------------------------------
