@@ -409,6 +409,11 @@ def test_export_then_run_from_the_command_line(tmp_path, fmus):
     np.testing.assert_array_equal(_duties(runs["pi"]), _duties(runs["mine-fmu"]))
     assert runs["mine-fmu"].metadata["controller"]["type"] == "controller FMU"
     assert runs["mine-fmu"].metadata["controller"]["name"] == "mine (FMU)"
+    # duty limits with nothing to apply them to (an FMU limits its duty itself) are refused, not ignored
+    done = cli("run", "startup", "--controller", str(tmp_path / "mine.fmu"), "--duty-max", "0.2", "--no-figures",
+               "--out", str(tmp_path / "limited"))
+    assert done.returncode == 2 and "duty limits (0.0, 0.2) apply to the built-in and Python controllers, but only " \
+        "controller FMUs run here" in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
 def test_controller_fmu_faults_end_in_one_line(tmp_path, fmus):

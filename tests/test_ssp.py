@@ -395,6 +395,12 @@ def test_export_ssp_refuses_a_step_off_the_control_grid_and_writes_nothing(pi_fm
     assert len(result.stderr.strip().splitlines()) == 1 and not target.exists()
     result = cli("export-ssp", "reference_up", "--controller", "nonsense", "--out", str(target))
     assert result.returncode == 2 and "expected pi, nnpc" in result.stderr and not target.exists()
+    # a controller FMU brings its own gains and limits: the options that design a built-in one are refused, not ignored
+    result = cli("export-ssp", "reference_up", "--controller", str(pi_fmu), "--kp", "0.002", "--ki", "10",
+                 "--duty-max", "0.5", "--out", str(target))
+    assert result.returncode == 2 and not target.exists()
+    assert f"--kp, --ki, --duty-min/--duty-max design a built-in controller, but --controller {pi_fmu} is a " \
+           "controller FMU, which brings its own" in result.stderr, result.stderr
 
 
 def test_the_commands_write_run_tables_that_read_back(pi_fmu, tmp_path):

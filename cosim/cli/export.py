@@ -92,6 +92,13 @@ def cmd_export_ssp(args) -> int:
 
     out = output_file(args.out, (".ssp",))
     _check_duty_limits(args)
+    if args.controller not in EXPORTABLE_CONTROLLERS:  # an FMU: the options that design a built-in one do not apply
+        given = [f"--{name}" for name, value in (("kp", args.kp), ("ki", args.ki), ("model", args.model),
+                                                 ("samples", args.samples)) if value is not None]
+        given += ["--duty-min/--duty-max"] if (args.duty_min, args.duty_max) != (0.0, 1.0) else []
+        if given:
+            raise ConfigError(f"{', '.join(given)} design a built-in controller, but --controller {args.controller} "
+                              f"is a controller FMU, which brings its own: drop {', '.join(given)}")
     scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
     if args.fmi_version == 3 and binding.source is None:  # the built-in plant's FMI 3.0 edition

@@ -209,6 +209,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     python = {n: load_python_controller(n, sample_period=period, duty_limits=duty_limits)
               for n in names if is_python_controller(n)}  # imported and checked now
     bound = {n: controller_binding(n) for n in names if n not in CONTROLLERS and n not in python}  # FMUs, binding files
+    if bound and len(bound) == len(names) and tuple(duty_limits) != (0.0, 1.0):  # an FMU keeps its own limits
+        raise ConfigError(f"duty limits {tuple(duty_limits)} apply to the built-in and Python controllers, but only "
+                          f"controller FMUs run here ({', '.join(names)}), which limit the duty themselves: drop "
+                          "--duty-min/--duty-max")
     networks = [n for n in names if n in NETWORKS or n == "nnpc-adaptive"]
     if model_path and len(networks) > 1:
         raise ConfigError("--model gives one network: run nnpc, nnpc-paper and nnpc-adaptive separately when you "
