@@ -98,6 +98,8 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--samples", "2000", "--out", "pi.fmu"],
      "error: --samples sizes the data a network is trained on, but no controller run here has one (controllers: pi): "
      "drop --samples"),
+    (["frequency-response", "--out", "fr.csv"], "error: output folder fr.csv is named like a CSV file, but the results "
+                                                 "are a folder of files"),
     (["tune-pi", "--plant", "p.toml", "--mode", "switched"],
      "error: --mode switched chooses a built-in plant, but --plant p.toml drives an external FMU, whose binding file "
      "chooses the model: drop --mode"),

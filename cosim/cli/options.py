@@ -32,6 +32,11 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
 
 
+#: endings of the files the workbench reads and writes: a new output folder named with one is taken for a file name
+FILE_SUFFIXES = (".csv", ".parquet", ".json", ".md", ".txt", ".png", ".svg", ".pdf", ".pt", ".pth", ".fmu", ".ssp",
+                 ".toml")
+
+
 def output_dir(text: str | None) -> Path | None:
     """A folder results go to: refused at once if it cannot be one (not after hours of work)."""
     if text is None:
@@ -39,6 +44,9 @@ def output_dir(text: str | None) -> Path | None:
     path = Path(text)
     if path.exists() and not path.is_dir():
         raise ConfigError(f"output folder {path} is an existing file: expected a folder")
+    if not path.exists() and path.suffix.lower() in FILE_SUFFIXES:  # export --out run.csv made a folder run.csv/
+        raise ConfigError(f"output folder {path} is named like a {path.suffix[1:].upper()} file, but the results are a "
+                          "folder of files: give a folder name (an existing folder of that name is used as it is)")
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
