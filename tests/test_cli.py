@@ -100,6 +100,11 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
      "drop --samples"),
     (["frequency-response", "--out", "fr.csv"], "error: output folder fr.csv is named like a CSV file, but the results "
                                                  "are a folder of files"),
+    (["tune-pi", "--control-period", "1e-3", "--control-period=1/75e3"],
+     "error: buck-cosim tune-pi: argument --control-period: given twice (--control-period 1e-3 and "
+     "--control-period=1/75e3): give it once"),
+    (["train", "d.parquet", "--seed", "1", "--se", "2", "--out", "m.pt"], "argument --seed: given twice (--seed 1 and "
+                                                                        "--se 2)"),
     (["tune-pi", "--plant", "p.toml", "--mode", "switched"],
      "error: --mode switched chooses a built-in plant, but --plant p.toml drives an external FMU, whose binding file "
      "chooses the model: drop --mode"),
