@@ -66,9 +66,9 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
 @pytest.mark.parametrize("args,message", [
     (["run", "no_such_scenario"], "error: scenario 'no_such_scenario' is neither a file nor a shipped scenario"),
     (["run", "startup", "--control-period", "0"], "error: buck-cosim run: argument --control-period: period 0 s is invalid"),
-    (["run", "startup", "--control-period", "1e-9"], "error: buck-cosim run: argument --control-period: period 1e-9 s is "
-                                                      "invalid: expected >= 1e-07 s (one switching period of the "
-                                                      "paper's converter is 13.3 us): was it given in another unit?"),
+    (["run", "startup", "--control-period", "1e-9"],
+     "error: buck-cosim run: argument --control-period: period 1e-9 s is invalid: expected >= 1e-07 s (one switching "
+     "period of the paper's converter is 13.3 us): was it given in another unit?"),
     (["export-ssp", "startup", "--controller", "pi", "--communication-step", "1e-9", "--out", "l.ssp"],
      "argument --communication-step: period 1e-9 s is invalid: expected >= 1e-07 s"),
     (["run", "startup", "--control-period", "fast"], "'fast' is not a period in seconds"),
