@@ -46,6 +46,9 @@ def test_export_converts_between_formats(tmp_path):
     original = read_run(source)
     pd.testing.assert_frame_equal(back.frame, original.frame.drop(columns=["controller_compute_time"]))
     assert back.metadata == original.metadata
+    # a "conversion" into the file it reads would replace it: refused, the file untouched
+    before = source.read_bytes()
+    assert main(["export", str(source), "--to", "parquet"]) == 2 and source.read_bytes() == before
 
 
 def test_build_fmu_copies_binary_and_source_fmus(tmp_path):

@@ -134,6 +134,9 @@ def cmd_export(args) -> int:
     source = Path(args.run_file)
     result = read_run_file(source)
     out_dir = output_dir(args.out) if args.out else source.parent
+    if (out_dir / f"{source.stem}.{args.to}").resolve() == source.resolve():  # it would replace what it reads
+        raise ConfigError(f"export {source} --to {args.to} would write {source} itself (and replace it): give --out DIR "
+                          "for a copy, or the other format")
     frame = result.frame.drop(columns=["controller_compute_time"], errors="ignore")
     if args.to == "csv":
         target = out_dir / f"{source.stem}.csv"
