@@ -455,3 +455,16 @@ def test_an_external_plant_with_other_units_travels_as_linear_transformations(py
         tolerance = 1e-12 if engine == "workbench" else 1e-4  # the Jacobi engines: a delay, second order here
         for column in ("output_voltage", "inductor_current", "duty_cycle"):
             assert np.max(np.abs(frame[column].to_numpy() - normal[column].to_numpy())) <= tolerance, (engine, column)
+
+
+def test_the_agreement_study_reads_the_controllers_of_two_pipelines_every_full_and_quick_reproduction_runs():
+    """The SSP agreement study runs the reproduction's PI and NNPC of the nominal plants at 1 ms as FMUs, read from
+    the reproduction's files (it no longer designs them itself: a profile without those pipelines, as the benchmark
+    suite's one-pipeline smoke reproduction, skips the study -- it was 10 s of PI tuning and a 10 000-sample
+    identification there, a third of the smoke reproduction)."""
+    from cosim.study.reproduce import FULL, PIPELINES, QUICK
+    from cosim.study.ssp_agreement import SOURCE_PIPELINES
+
+    assert SOURCE_PIPELINES == ("nominal-averaged__1ms", "nominal-switched__1ms")
+    assert set(SOURCE_PIPELINES) <= {p.tag for p in PIPELINES} and FULL.pipelines is None
+    assert set(SOURCE_PIPELINES) <= set(QUICK.pipelines)

@@ -44,7 +44,15 @@ from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
 from cosim.metrics import WALLCLOCK_METRICS
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import classical_design, envelope, explicit, frequency_response, optimizer_ablation, tolerance_study
+from cosim.study import (
+    classical_design,
+    envelope,
+    explicit,
+    frequency_response,
+    optimizer_ablation,
+    ssp_agreement,
+    tolerance_study,
+)
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import data_file, model_file, pi_file
@@ -75,7 +83,6 @@ from cosim.study.identification import (
 from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 from cosim.study.plants import plant_binding
 from cosim.study.report import write_report
-from cosim.study.ssp_agreement import append_to_report
 from cosim.study.summaries import transient_and_steady_iae
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
@@ -901,8 +908,8 @@ def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementat
     pipelines = _per_pipeline(selected, jobs, outputs)
     drift = [outputs[job] for job in jobs if job.kind == "drift"]
     report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift, tolerance=tolerance)
-    if not binding_file:  # the loop as an SSP, rerun by fmpy and libcosim (issue 17)
-        append_to_report(out_dir, report, quick=profile.quick)
+    if not binding_file and set(ssp_agreement.SOURCE_PIPELINES) <= {p.tag for p in selected}:
+        ssp_agreement.append_to_report(out_dir, report, quick=profile.quick)  # the loop as an SSP (issue 17)
     elapsed = time.perf_counter() - started
     write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts),
                   envelope=map_timing)

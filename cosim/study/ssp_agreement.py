@@ -48,9 +48,11 @@ from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import export_ssp
 from cosim.study.experiments import implemented, nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD, pipeline_tag
+from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD, pipeline_tag, plant_tag
 
 PLANT_MODES = ("averaged", "switched")
+#: the reproduction's pipelines whose PI and NNPC the study runs as FMUs: it is part of a reproduction that runs both
+SOURCE_PIPELINES = tuple(pipeline_tag(plant_tag("nominal", mode), PAPER_PERIOD) for mode in PLANT_MODES)
 CONTROLLER_NAMES = (PI, NNPC)
 #: the communication steps of the convergence ladder [s], and the scenario it is run on
 LADDER = (1e-3, 1e-4, 5e-5, 2e-5, 1e-5, 5e-6, 2e-6, 1e-6)
@@ -84,23 +86,18 @@ def delay_of(mode: str, step: float) -> float:
 
 
 def controllers_for(out_dir: Path, mode: str, quick: bool = False) -> dict:
-    """The reproduction's PI (tuned gains) and NNPC (trained network) for the nominal ``mode``
-    plant at 1 ms, read from ``out_dir`` (tuned or trained there if missing; the PI with the
-    reproduction's tuning settings -- ``quick``: the quick profile's -- so its design key matches)."""
-    from cosim.study.controller_factory import trained_model
+    """The reproduction's PI (tuned gains) and NNPC (trained network) for the nominal ``mode`` plant at 1 ms, read
+    from ``out_dir``, where its pipeline (:data:`SOURCE_PIPELINES`) wrote them (the PI read with the reproduction's
+    tuning settings -- ``quick``: the quick profile's -- so its design key matches)."""
+    from controllers.nn_model import load_model
     from cosim.study.design_cache import pi_file
     from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 
     binding = plant_binding("nominal", mode)
     pi = load_or_tune(pi_file(out_dir, binding.tag, PAPER_PERIOD), binding, PAPER_PERIOD,
                       record_period=REPRODUCTION_RECORD_PERIOD, quick=quick).controller()
-    path = out_dir / "models" / f"{pipeline_tag(binding.tag, PAPER_PERIOD)}__nnpc.pt"
-    if path.is_file():
-        from controllers.nn_model import load_model
-
-        model = load_model(path, expect_period=PAPER_PERIOD)
-    else:
-        model = trained_model("nnpc", binding, PAPER_PERIOD, out_dir, samples=10_000, seed=0, model_path=None)
+    model = load_model(out_dir / "models" / f"{pipeline_tag(binding.tag, PAPER_PERIOD)}__nnpc.pt",
+                       expect_period=PAPER_PERIOD)
     return {PI: pi, NNPC: nnpc(model, PAPER_PERIOD, NNPC)}
 
 
