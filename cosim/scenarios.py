@@ -223,6 +223,14 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
             at = _where(path, loc, None, "events", i)
         events.append(ScenarioEvent(time=time, changes=changes, parameters=parameters, where=at))
     indexed = list(enumerate(events))  # the file's order, for messages
+    setting: dict[tuple[float, str], int] = {}
+    for i, event in indexed:  # two changes of one signal at one instant: the run would take one and drop the other
+        for key in (*event.changes, *(f"parameters.{name}" for name in event.parameters)):
+            first = setting.setdefault((event.time, key), i)
+            if first != i:
+                raise ConfigError(
+                    f"{_where(path, loc, 'time', 'events', i)}: events[{i}] sets {key} at t = {event.time} s, as "
+                    f"events[{first}] does: one of the two would be dropped -- merge them or give them different times")
     events.sort(key=lambda e: e.time)
 
     analysis_start = None

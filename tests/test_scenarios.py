@@ -91,6 +91,18 @@ def test_event_without_changes_and_missing_keys(tmp_path):
         load_scenario(write(tmp_path, GOOD.replace("reference = 12.0\n", "")))
 
 
+def test_two_changes_of_one_signal_at_one_instant_are_refused(tmp_path):
+    """The later line used to win silently (12 -> 9 V, the 15 V event dropped); a change of two different signals at
+    one instant stays fine."""
+    same = ('name = "x"\nduration = 0.02\n[initial]\nreference = 12.0\n[[events]]\ntime = 0.005\nreference = 15.0\n'
+            '[[events]]\ntime = 0.005\nreference = 9.0\n')
+    with pytest.raises(ConfigError, match=r"^\S*bad.toml:9: events\[1\] sets reference at t = 0.005 s, as events\[0\] "
+                                          r"does: one of the two would be dropped"):
+        load_scenario(write(tmp_path, same))
+    both = load_scenario(write(tmp_path, same.replace("reference = 9.0", "load_resistance = 9.0")))
+    assert [dict(e.changes) for e in both.events] == [{"reference": 15.0}, {"load_resistance": 9.0}]
+
+
 def test_unknown_scenario_name_lists_the_shipped_ones():
     with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(capacitor_ageing, load_change"):
         load_scenario("nope")
