@@ -368,6 +368,9 @@ def test_a_pythonfmu_pi_under_other_names_matches_the_built_in_pi(python_pi_fmu,
     (('variable = "Vref"', 'variable = "Dpct"'), r"pi.toml:5: role 'reference' needs causality input or parameter, "
                                                  r"but 'Dpct' has causality output"),
     (("Kp = 0.0015", 'Kp = "fast"'), r"pi.toml:15: parameter 'Kp' is Real in PythonPI.fmu, got 'fast'"),
+    (('variable = "Vmeas"', 'variable = "Vref"'), r"pi.toml:7: role 'measured_output_voltage' names variable 'Vref', "
+                                                  r"which role 'reference' names too: the workbench writes "
+                                                  r"measured_output_voltage into it"),
     (('label = "PI (pythonfmu)"', 'label = "PI"\nsample_period = 1.5e-3'),
      r"pi.toml:3: sample_period = 0.0015 s is not a whole multiple of the FMU's own sample period 0.001 s"),
     (('label = "PI (pythonfmu)"', 'label = "PI"\nduty_limits = [0.5, 0.2]'), r"pi.toml:3: duty_limits = \[0.5, 0.2\] is invalid: expected 0 <= min < max <= 1"),

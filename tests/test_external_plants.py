@@ -153,7 +153,13 @@ def test_draft_binding_guesses_roles_from_names_and_units(python_buck_fmu, buck_
     (("[roles.load_current]", "[roles.load_currnt]"), r"plant.toml:\d+: unknown role 'load_currnt'"),
     (('variable = "D"\nscale = 100.0          # the FMU takes percent\n', ""), r"role 'duty_cycle' must be a table|missing role|variable"),
     (('variable = "Vout"', 'variable = "V_out"'), r"plant.toml:9: role 'output_voltage' names variable 'V_out', which PyBuck.fmu does not have"),
-    (('variable = "Vin"', 'variable = "Vout"'), r"role 'input_voltage' needs causality input or parameter, but 'Vout' has causality output"),
+    (('[roles.input_voltage]\nvariable = "Vin"\n\n[roles.load_current]\nvariable = "Iout"\n',
+      '[roles.input_voltage]\nvariable = "Iout"\n'),
+     r"role 'input_voltage' needs causality input or parameter, but 'Iout' has causality output"),
+    # a variable the workbench writes must be the role's own (the supply dip was written into Rload and lost)
+    (('variable = "Vin"', 'variable = "Rload"'), r"plant.toml:\d+: role 'input_voltage' names variable 'Rload', "
+                                                 r"which role 'load_resistance' names too: the workbench writes "
+                                                 r"input_voltage into it"),
     (("scale = 1000.0", "scale = 0"), r"plant.toml:13: roles.inductor_current.scale = 0 is invalid"),
     (("rL = 0.15", "Lf = 0.15"), r"plant.toml:\d+: parameter 'Lf' is not a variable of PyBuck.fmu"),
     (('fmu = "PyBuck.fmu"', 'fmu = "Nope.fmu"'), r"plant.toml:1: FMU .*Nope.fmu does not exist"),

@@ -152,7 +152,10 @@ def checked_fmu_of(fmu_path: Path, path: Path, loc: TomlLocator):
 
 
 def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ...]) -> None:
-    """A binding's roles and parameters against its FMU, each mistake located at its key's line."""
+    """A binding's roles and parameters against its FMU, each mistake located at its key's line; then that every
+    role of ``input_roles`` (the workbench sets its variable) has a variable of its own: two values written into one
+    would overwrite each other, and a value written where another is read would be read back as the other (roles the
+    workbench only reads may share one, e.g. the output voltage and its measurement)."""
     try:
         resolve_roles(binding, checked.model_description, input_roles)
         resolve_parameters(binding.parameters, checked.model_description, binding.fmu_path.name)
@@ -160,6 +163,14 @@ def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ..
         place = where(binding.source, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
             where(binding.source, loc, error.key, "parameters")
         raise ConfigError(f"{place}: {error}") from None
+    named: dict[str, str] = {}
+    for role, mapping in binding.roles.items():  # in the file's order: the second of two is the one named
+        other = named.setdefault(mapping.variable, role)
+        if other != role and input_roles and (role in input_roles or other in input_roles):
+            written = role if role in input_roles else other
+            raise ConfigError(f"{where(binding.source, loc, 'variable', f'roles.{role}')}: role {role!r} names "
+                              f"variable {mapping.variable!r}, which role {other!r} names too: the workbench writes "
+                              f"{written} into it, so the two would overwrite each other -- give each its own variable")
 
 
 def parse_binding(text: str, path: Path) -> PlantBinding:
