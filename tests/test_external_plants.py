@@ -162,6 +162,10 @@ def test_draft_binding_guesses_roles_from_names_and_units(python_buck_fmu, buck_
                                                  r"input_voltage into it"),
     (("scale = 1000.0", "scale = 0"), r"plant.toml:13: roles.inductor_current.scale = 0 is invalid"),
     (("rL = 0.15", "Lf = 0.15"), r"plant.toml:\d+: parameter 'Lf' is not a variable of PyBuck.fmu"),
+    # [parameters] sets what the FMU takes and the workbench leaves alone: not an output, not a role's variable
+    (("rL = 0.15", "Vout = 5.0"), r"plant.toml:\d+: parameter 'Vout' is an output of PyBuck.fmu: the FMU computes it"),
+    (("rL = 0.15", "Rload = 3.0"), r"plant.toml:\d+: parameter 'Rload' is the variable of role 'load_resistance', "
+                                   r"which the workbench sets itself"),
     (('fmu = "PyBuck.fmu"', 'fmu = "Nope.fmu"'), r"plant.toml:1: FMU .*Nope.fmu does not exist"),
     (('label = "PyBuck (pythonfmu)"', 'interface = "model-exchange"'), r"plant.toml:2: interface 'model-exchange' is not available \(the FMU offers: co-simulation\)"),
     (('label = "PyBuck (pythonfmu)"', 'interface = "cosim"'), r"interface 'cosim' is unknown"),

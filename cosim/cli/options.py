@@ -280,8 +280,8 @@ def _add_controller_design_options(parser) -> None:
     trained on demand, and the folder the tuned gains and trained networks are cached in."""
     _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
     parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
-                        help=f"samples collected when a network (nnpc, nnpc-paper, nnpc-adaptive, nnpc-explicit) "
-                        f"is trained on demand (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
+                        help=f"samples of PI data an NNPC's network is identified from when trained on demand"
+                        f" (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
     parser.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     parser.add_argument("--work-dir", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",
                         help="where tuned gains and trained networks are cached, created only when one is "

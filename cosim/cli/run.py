@@ -211,8 +211,8 @@ def add_run_parser(sub) -> None:
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand from "
                         "the nnpc network, about a minute at 13.33 us)")
     p.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
-                   help=f"samples collected when a network (nnpc, nnpc-paper, nnpc-adaptive, nnpc-explicit) is trained "
-                        f"on demand (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
+                   help=f"samples of PI data an NNPC's network is identified from when trained on demand"
+                        f" (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")
     p.add_argument("--seed", type=seed_value, default=0,
                    help=f"random seed for data collection and training, 0 .. {SEED_MAX} (default: 0)")
     p.add_argument("--out", default=str(DEFAULT_RESULTS / "runs-cli"), metavar="DIR",

@@ -321,6 +321,10 @@ def resolve_parameters(parameters: Mapping[str, object], model_description, fmu_
             raise BindingMismatch(f"parameter {name!r} is not a variable of {fmu_name}"
                                   f"{did_you_mean(name, settable, hint_all=12)}", "parameter", name)
         kind = variable.type
+        if variable.causality in ("output", "calculatedParameter", "independent"):
+            raise BindingMismatch(f"parameter {name!r} is {'an' if variable.causality[0] in 'oi' else 'a'} "
+                                  f"{variable.causality} of {fmu_name}: the FMU computes it, a binding sets parameters "
+                                  "and inputs only", "parameter", name)
         if array_shape(variable):
             raise BindingMismatch(f"parameter {name!r} is an FMI 3.0 array in {fmu_name} (shape "
                                   f"{list(array_shape(variable))}): a binding sets scalar parameters only; leave it at "

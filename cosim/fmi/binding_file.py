@@ -163,6 +163,13 @@ def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ..
         place = where(binding.source, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
             where(binding.source, loc, error.key, "parameters")
         raise ConfigError(f"{place}: {error}") from None
+    bound = {mapping.variable: role for role, mapping in binding.roles.items()}
+    for name in binding.parameters:  # a role's variable is set by the workbench at every step: a value here is lost
+        if name in bound:
+            raise ConfigError(f"{where(binding.source, loc, name, 'parameters')}: parameter {name!r} is the variable "
+                              f"of role {bound[name]!r}, which the workbench sets itself (from the scenario or the "
+                              f"controller): its value here would be replaced -- drop it (a scenario sets the "
+                              f"{bound[name]} of a run)")
     named: dict[str, str] = {}
     for role, mapping in binding.roles.items():  # in the file's order: the second of two is the one named
         other = named.setdefault(mapping.variable, role)
