@@ -358,6 +358,17 @@ def test_an_axis_anchored_where_the_scenario_is_zero_is_refused_before_any_work(
     assert moved.initial["reference"] == 0.0 and moved.events[0].changes["reference"] == 10.0
 
 
+def test_a_parameter_the_scenario_changes_during_the_run_is_not_swept(tmp_path):
+    """capacitor_ageing sets the capacitance itself (its ageing events): a sweep of capacitance on it ran three
+    identical units labelled 5, 10 and 20 uF. Refused, naming the axis, the scenario and the event's line."""
+    path = sweep_file(tmp_path, 'scenarios = ["capacitor_ageing"]\ncontrollers = ["pi"]\n[parameters]\n'
+                      'capacitance = { values = [5e-6, 10e-6, 20e-6] }\n')
+    text = plan_error(path)
+    assert text.startswith("study.toml:4: parameters.capacitance is swept, but scenario capacitor_ageing sets "
+                           "capacitance at t = 0.00675 s (") and "capacitor_ageing.toml:" in text, text
+    assert text.endswith("the event would replace the swept value -- sweep it on another scenario, or drop the axis")
+
+
 def test_a_folder_given_as_the_sweep_file_is_called_a_folder(tmp_path):
     folder = tmp_path / "d.toml"
     folder.mkdir()

@@ -400,6 +400,13 @@ def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
             r.fail(r.at("scenarios"), f"scenarios: {error}")
         if scenario.name in {s.name for s in scenarios}:
             r.fail(r.at("scenarios"), f"scenario {scenario.name!r} is listed twice")
+        for axis in (a for a in axes if a.group == "parameters"):  # an event of the scenario would replace the value
+            event = next((e for e in scenario.parameter_events if axis.name in e.parameters), None)
+            if event is not None:
+                r.fail(places[axis.key], f"{axis.key} is swept, but scenario {scenario.name} sets {axis.name} at "
+                                         f"t = {event.time:g} s ({event.where or scenario.place('events')}): the "
+                                         "event would replace the swept value -- sweep it on another scenario, or "
+                                         "drop the axis")
         scenarios.append(scenario)
 
     control_period = r.period(data.get("control_period", PAPER_PERIOD), "control_period", r.at("control_period"))
