@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.base import Controller, Measurement
+from controllers.base import Controller, Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, locate_refusal
@@ -116,6 +116,13 @@ def run_checked(plant: FmuPlant, controller: Controller, scenario: Scenario, *, 
                 seed: int | None = None, progress: bool = False, extra_metadata: dict | None = None,
                 stream_to: Path | None = None) -> RunResult:
     """:func:`run` for a scenario already checked against ``plant.binding``."""
+    limits = getattr(controller, "duty_limits", None)
+    if limits is not None:  # a duty in percent, (0, 100), would drive the plant at full duty without a word
+        try:
+            check_duty_limits(tuple(limits), f"controller {getattr(controller, 'name', type(controller).__name__)}")
+        except (TypeError, ValueError) as error:
+            raise ConfigError(str(error) if isinstance(error, ValueError) else
+                              f"controller duty_limits = {limits!r}: expected (min, max)") from None
     plan = plan_timeline(scenario, controller.sample_period, record_period)
     check_step_sizes(plant, plan)
     return _Run(plant, controller, scenario, plan, seed, extra_metadata, stream_to).execute(progress)

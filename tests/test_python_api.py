@@ -36,3 +36,28 @@ def test_the_public_names_are_importable_from_the_top_level():
     for name in cosim.__all__:
         assert getattr(cosim, name) is not None, name
     assert set(cosim.__all__) <= set(dir(cosim))
+
+
+def test_simulate_refuses_a_controller_whose_duty_limits_are_not_a_fraction():
+    """A controller written for a duty in percent, duty_limits (0, 100), ran at full duty and recorded 50 as the duty
+    cycle; the command line refused it, the Python API now does too, before the plant steps."""
+    import pytest
+
+    from cosim import builtin_binding, load_scenario, simulate
+    from cosim.base.errors import ConfigError
+
+    class Percent:
+        name, sample_period, duty_limits = "percent", 1e-3, (0.0, 100.0)
+
+        def reset(self):
+            pass
+
+        def step(self, measurement):
+            return 50.0
+
+        def describe(self):
+            return {"name": self.name}
+
+    with pytest.raises(ConfigError, match=r"^controller percent: duty limits \(0.0, 100.0\) are invalid: expected "
+                                          r"0 <= min < max <= 1$"):
+        simulate(builtin_binding("averaged"), Percent(), load_scenario("startup"))
