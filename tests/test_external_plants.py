@@ -176,6 +176,22 @@ def test_binding_mistakes_name_file_key_and_line(python_binding, edit, message):
         load_binding(write(python_binding.parent, text))
 
 
+def test_an_fmu_or_a_controller_binding_given_as_the_plant_binding_is_named_as_what_it_is(python_binding, tmp_path,
+                                                                                        buck_fmu):
+    with pytest.raises(ConfigError, match=r"^\S+\.fmu is an FMU, not a binding file: a binding file \(\.toml\) names "
+                                          r"the FMU and its variables' roles -- draft one with buck-cosim inspect "):
+        load_binding(buck_fmu)
+    text = python_binding.read_text().replace("[roles.output_voltage]", "[roles.reference]")
+    with pytest.raises(ConfigError, match=r"plant.toml:\d+: role 'reference' is a controller role: this is a "
+                                          r"controller binding file, given where a plant binding is expected$"):
+        load_binding(write(python_binding.parent, text))
+    from cosim.fmi.controller import load_controller_binding
+
+    with pytest.raises(ConfigError, match=r"plant.toml:\d+: role '\w+' is a plant role: this is a plant "
+                                          r"binding file, given where a controller binding is expected$"):
+        load_controller_binding(python_binding)
+
+
 def test_missing_required_role_is_refused(python_binding):
     text = python_binding.read_text().replace("[roles.duty_cycle]\nvariable = \"D\"\nscale = 100.0          # the FMU takes percent\n", "")
     with pytest.raises(ConfigError, match=r"plant.toml: missing role \[roles.duty_cycle\]"):

@@ -91,6 +91,17 @@ def test_event_without_changes_and_missing_keys(tmp_path):
         load_scenario(write(tmp_path, GOOD.replace("reference = 12.0\n", "")))
 
 
+def test_a_scenario_saved_with_a_byte_order_mark_reads_as_without_one(tmp_path):
+    """Windows editors save UTF-8 with a BOM; tomllib refused it as an "invalid statement" at line 1."""
+    plain = load_scenario(write(tmp_path, GOOD))
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + GOOD.encode("utf-8"))
+    assert load_scenario(path).events == plain.events and load_scenario(path).duration == plain.duration
+    with pytest.raises(ConfigError, match=r"bom.toml:10: events\[0\] changes nothing"):  # its lines count as before
+        path.write_bytes(b"\xef\xbb\xbf" + GOOD.replace("reference = 15.0\n", "").encode("utf-8"))
+        load_scenario(path)
+
+
 def test_two_changes_of_one_signal_at_one_instant_are_refused(tmp_path):
     """The later line used to win silently (12 -> 9 V, the 15 V event dropped); a change of two different signals at
     one instant stays fine."""

@@ -46,7 +46,9 @@ def where(path: Path | None, locator: TomlLocator, key: str, table: str | None =
 
 def parse_toml(text: str, path: Path | None, allowed_keys: set[str], unnamed: str = "<text>") -> tuple[dict, TomlLocator]:
     """Parse a configuration file's text; invalid TOML or an unknown top-level key is a
-    :class:`ConfigError` naming the file (``unnamed`` for text without one) and the key's line."""
+    :class:`ConfigError` naming the file (``unnamed`` for text without one) and the key's line. A byte-order mark,
+    which Windows editors put before UTF-8 text and tomllib refuses ("invalid statement at line 1"), is skipped."""
+    text = text.removeprefix("\ufeff")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:

@@ -101,14 +101,20 @@ def fmu_path_of(data: dict, path: Path, loc: TomlLocator) -> Path:
     return fmu_path if fmu_path.is_absolute() else (path.parent / fmu_path).resolve()
 
 
-def parse_roles(data: dict, path: Path, loc: TomlLocator, allowed: tuple[str, ...]) -> dict[str, RoleMap]:
-    """The ``[roles.<name>]`` tables: each a variable with an optional finite, non-zero scale and offset."""
+def parse_roles(data: dict, path: Path, loc: TomlLocator, allowed: tuple[str, ...],
+                other: tuple[str, tuple[str, ...]] = ("", ())) -> dict[str, RoleMap]:
+    """The ``[roles.<name>]`` tables: each a variable with an optional finite, non-zero scale and offset. ``other``:
+    the other kind of binding and its roles, to say so when a file of that kind is given here."""
     roles_table = data.get("roles", {})
     if not isinstance(roles_table, dict):
         raise ConfigError(f"{where(path, loc, 'roles')}: 'roles' must be a table of [roles.<name>] tables")
     roles: dict[str, RoleMap] = {}
     for role, entry in roles_table.items():
         table = f"roles.{role}"
+        if role not in allowed and role in other[1]:
+            expected = "plant" if other[0] == "controller" else "controller"
+            raise ConfigError(f"{where(path, loc, None, table)}: role {role!r} is a {other[0]} role: this is a "
+                              f"{other[0]} binding file, given where a {expected} binding is expected")
         if role not in allowed:
             hint = did_you_mean(role, allowed)
             raise ConfigError(f"{where(path, loc, None, table)}: unknown role {role!r}"
@@ -207,7 +213,9 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     step_timeout = _isolation_limit(data, path, loc, "step_timeout", "s", isolate)
     memory_limit = _isolation_limit(data, path, loc, "memory_limit", "MB", isolate)
 
-    roles = parse_roles(data, path, loc, ROLES)
+    from cosim.fmi.controller import CONTROLLER_ROLES
+
+    roles = parse_roles(data, path, loc, ROLES, other=("controller", CONTROLLER_ROLES))
     for role in REQUIRED_ROLES:
         if role not in roles:
             raise ConfigError(f"{path}: missing role [roles.{role}] ({ROLE_DESCRIPTIONS[role]})")
@@ -289,6 +297,9 @@ def read_binding_text(path: str | Path, what: str = "binding file") -> tuple[str
         raise ConfigError(f"{what} {path} is a folder: expected a .toml file")
     if not path.is_file():
         raise ConfigError(f"{what} {path} does not exist")
+    if path.suffix.lower() == ".fmu":  # read as text it would be "cannot decode byte 0x.."
+        raise ConfigError(f"{path} is an FMU, not a {what}: a binding file (.toml) names the FMU and its variables' "
+                          f"roles -- draft one with buck-cosim inspect {path} --draft-binding binding.toml")
     try:
         return path.read_text(encoding="utf-8"), path.resolve()
     except (OSError, UnicodeDecodeError) as error:

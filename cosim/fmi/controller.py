@@ -63,7 +63,7 @@ from controllers.base import Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, FmuArchiveError
 from cosim.base.toml_files import parse_toml, where
 from cosim.fmi.archive import CheckedFmu, check_fmu
-from cosim.fmi.binding import BindingMismatch, RoleMap, apply_parameters, resolve_parameters, resolve_roles
+from cosim.fmi.binding import ROLES, BindingMismatch, RoleMap, apply_parameters, resolve_parameters, resolve_roles
 from cosim.fmi.binding_file import (
     PARAMETER,
     TOGETHER,
@@ -191,7 +191,7 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
         if not 0.0 <= limits[0] < limits[1] <= 1.0:
             raise ConfigError(f"{place}: duty_limits = [{limits[0]:g}, {limits[1]:g}] is invalid: expected 0 <= min < "
                               "max <= 1")
-    roles = parse_roles(data, path, loc, CONTROLLER_ROLES)
+    roles = parse_roles(data, path, loc, CONTROLLER_ROLES, other=("plant", ROLES))
     for role in REQUIRED_CONTROLLER_ROLES:
         if role not in roles:
             raise ConfigError(f"{path}: missing role [roles.{role}] (the controller FMU's {role})")
