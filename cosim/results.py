@@ -228,8 +228,12 @@ def read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
 
 
 def write_run(result: RunResult, directory: Path, stem: str) -> dict[str, Path]:
-    """Write ``<stem>.parquet``, ``<stem>.csv``, ``<stem>.json`` and ``<stem>.timing.csv`` atomically."""
+    """Write ``<stem>.parquet``, ``<stem>.csv``, ``<stem>.json`` and ``<stem>.timing.csv`` atomically. A ``stem``
+    given with one of those endings (``"startup.parquet"``) stands for the run without it (not
+    ``startup.parquet.parquet``)."""
     directory = Path(directory)
+    for ending in (".parquet", ".csv", ".json"):
+        stem = stem.removesuffix(ending)
     metadata = result.metadata
     table = _deterministic_part(result.frame)
     timing = result.frame[["time", *[c for c in WALLCLOCK_COLUMNS if c in result.frame.columns]]]

@@ -41,6 +41,13 @@ def test_round_trip_gives_the_same_frame_and_metadata(result, tmp_path, kind):
     assert back.metadata == result.metadata
 
 
+def test_a_stem_given_with_a_run_files_ending_names_the_run_without_it(result, tmp_path):
+    paths = write_run(result, tmp_path, "startup.parquet")  # was startup.parquet.parquet, .csv, ...
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["startup.csv", "startup.json", "startup.parquet",
+                                                          "startup.timing.csv"]
+    assert paths["parquet"] == tmp_path / "startup.parquet"
+
+
 def test_parquet_carries_units_per_field_and_metadata_in_the_schema(result, tmp_path):
     path = write_run(result, tmp_path, "run")["parquet"]
     schema = pq.read_schema(path)
