@@ -139,6 +139,29 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
     return BatchOutput(results=results, metrics=table, files=files)
 
 
+def with_earlier_metrics(table: pd.DataFrame, path_stem: Path) -> pd.DataFrame:
+    """``table`` after the rows of an earlier metrics table at ``path_stem`` (:func:`write_metrics`' files) that it
+    does not replace -- a run of the same scenario, controller and control period replaces its row -- so a folder
+    that several commands ran into keeps one table of all its runs (a second ``run`` into the same ``--out`` used to
+    leave only its own rows beside the first one's run files). No earlier table: ``table`` itself."""
+    path_stem = Path(path_stem)
+    stored, timing = path_stem.with_suffix(".csv"), path_stem.with_name(f"{path_stem.name}.timing.csv")
+    if not stored.is_file():
+        return table
+    key = ["scenario", "controller", "control_period_us"]
+    earlier = pd.read_csv(stored)
+    if timing.is_file():
+        clocks = pd.read_csv(timing)
+        extra = [c for c in WALLCLOCK_METRICS if c in clocks.columns and c not in earlier.columns]
+        if len(clocks) == len(earlier) and extra:  # written together, row for row
+            earlier = pd.concat([earlier, clocks[extra]], axis=1)
+    if not set(key) <= set(earlier.columns):
+        return table
+    new = pd.MultiIndex.from_frame(table[key])
+    kept = earlier[~pd.MultiIndex.from_frame(earlier[key]).isin(new)]
+    return pd.concat([kept, table], ignore_index=True)[list(dict.fromkeys([*earlier.columns, *table.columns]))]
+
+
 def write_metrics(table: pd.DataFrame, path_stem: Path) -> list[Path]:
     """Write a metrics table atomically: ``<stem>.csv`` and ``.parquet`` with every metric that is
     not a wall-clock measurement (byte-identical when the same runs are repeated), and

@@ -38,6 +38,23 @@ def test_run_writes_tables_metrics_and_one_figure_per_scenario(tmp_path, capsys)
     assert "startup" in capsys.readouterr().out
 
 
+def test_runs_into_one_folder_keep_one_metrics_table_of_all_its_runs(tmp_path):
+    """A second run into the same --out replaced the metrics table, leaving the first run's files without their row;
+    a run of the same scenario and controller again replaces its own row, the rest stay."""
+    args = ["--no-progress", "run", "--kp", "0.01", "--ki", "14", "--no-figures", "--out", str(tmp_path)]
+    table = tmp_path / "metrics" / "metrics__nominal-averaged.csv"
+    assert main([*args, "startup"]) == 0
+    first = pd.read_csv(table)
+    assert main([*args, "load_change"]) == 0
+    assert pd.read_csv(table)["scenario"].tolist() == ["startup", "load_change"]
+    assert main([*args, "startup"]) == 0
+    both = pd.read_csv(table)
+    assert both["scenario"].tolist() == ["load_change", "startup"]
+    pd.testing.assert_frame_equal(both.iloc[[1]].reset_index(drop=True), first)  # the same run, the same row
+    timing = pd.read_csv(tmp_path / "metrics" / "metrics__nominal-averaged.timing.csv")
+    assert timing["scenario"].tolist() == ["load_change", "startup"] and timing["controller_p99_us"].notna().all()
+
+
 def test_export_converts_between_formats(tmp_path):
     main(["--no-progress", "run", "reference_down", "--kp", "0", "--ki", "14", "--out", str(tmp_path), "--no-figures"])
     source = tmp_path / "runs" / "reference_down__pi__nominal-averaged__1ms.parquet"

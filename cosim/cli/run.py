@@ -42,7 +42,7 @@ def cmd_scenarios(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from cosim.batch import Batch, run_batch, write_metrics
+    from cosim.batch import Batch, run_batch, with_earlier_metrics, write_metrics
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 
     _check_duty_limits(args)
@@ -69,7 +69,8 @@ def cmd_run(args) -> int:
         for result in output.results:
             print(f"streamed {result.rows} rows to {result.streamed_to}")
         return 0
-    files = write_metrics(output.metrics, out_dir / "metrics" / f"metrics__{batch.binding.tag}")
+    stem = out_dir / "metrics" / f"metrics__{batch.binding.tag}"
+    files = write_metrics(with_earlier_metrics(output.metrics, stem), stem)  # the folder's earlier runs kept
     columns = ["scenario", "controller", "rise_time_ms", "overshoot_pct", "settling_time_ms",
                "steady_state_error_pct", "iae_Vs", "controller_p99_us"]
     print(output.metrics[columns].to_string(index=False, float_format=lambda v: f"{v:.4g}"))
