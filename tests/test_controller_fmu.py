@@ -361,6 +361,21 @@ def test_a_pythonfmu_pi_under_other_names_matches_the_built_in_pi(python_pi_fmu,
         np.testing.assert_allclose(other, reference, rtol=0, atol=1e-12)
 
 
+def test_a_sample_period_set_in_the_bindings_parameters_is_the_one_the_master_steps_at(python_pi_fmu, tmp_path):
+    """[parameters] Ts = 2e-3 on the FMU's sample-period parameter: the FMU computes with 2 ms, and the master now
+    steps it every 2 ms (it stepped it at the start value's 1 ms, halving the integral action); a role the workbench
+    writes stays out of [parameters]."""
+    path = tmp_path / "pi.toml"
+    path.write_text(BINDING.format(fmu=python_pi_fmu) + "Ts = 2e-3\n")
+    controller = FmuController(load_controller_binding(path))
+    assert controller.sample_period == 2e-3
+    controller.close()
+    path.write_text(BINDING.format(fmu=python_pi_fmu) + "Vref = 5.0\n")
+    with pytest.raises(ConfigError, match=r"pi.toml:\d+: parameter 'Vref' is the variable of role 'reference', which "
+                                          r"the workbench sets itself"):
+        load_controller_binding(path)
+
+
 @pytest.mark.parametrize("edit,message", [
     (("[roles.duty_cycle]\nvariable = \"Dpct\"\nscale = 100.0\n", ""), "missing role [roles.duty_cycle]"),
     (('variable = "Vmeas"', 'variable = "Vmeasured"'), r"pi.toml:7: role 'measured_output_voltage' names variable "

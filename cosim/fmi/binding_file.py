@@ -157,11 +157,14 @@ def checked_fmu_of(fmu_path: Path, path: Path, loc: TomlLocator):
         raise FmuArchiveError(f"{where(path, loc, 'fmu')}: {error}") from None
 
 
-def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ...]) -> None:
+def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ...],
+                  settings: tuple[str, ...] = ()) -> None:
     """A binding's roles and parameters against its FMU, each mistake located at its key's line; then that every
     role of ``input_roles`` (the workbench sets its variable) has a variable of its own: two values written into one
     would overwrite each other, and a value written where another is read would be read back as the other (roles the
-    workbench only reads may share one, e.g. the output voltage and its measurement)."""
+    workbench only reads may share one, e.g. the output voltage and its measurement). A ``[parameters]`` value may
+    not set a role's variable (the workbench sets it at every step), except for the roles of ``settings``: the FMU's
+    own settings the workbench reads, such as a controller's sample period."""
     try:
         resolve_roles(binding, checked.model_description, input_roles)
         resolve_parameters(binding.parameters, checked.model_description, binding.fmu_path.name)
@@ -169,7 +172,7 @@ def check_against(binding, checked, loc: TomlLocator, input_roles: tuple[str, ..
         place = where(binding.source, loc, "variable", f"roles.{error.key}") if error.kind == "role" else \
             where(binding.source, loc, error.key, "parameters")
         raise ConfigError(f"{place}: {error}") from None
-    bound = {mapping.variable: role for role, mapping in binding.roles.items()}
+    bound = {mapping.variable: role for role, mapping in binding.roles.items() if role not in settings}
     for name in binding.parameters:  # a role's variable is set by the workbench at every step: a value here is lost
         if name in bound:
             raise ConfigError(f"{where(binding.source, loc, name, 'parameters')}: parameter {name!r} is the variable "

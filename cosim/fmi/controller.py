@@ -130,13 +130,15 @@ def builtin_controller_binding(fmu_path: str | Path) -> ControllerBinding:
 
 
 def own_sample_period(binding: ControllerBinding, model_description) -> float | None:
-    """The sample period [s] the FMU starts with in the parameter bound to the ``sample_period`` role (its
-    start value, mapped by the role's scale and offset), or None (no such role, or no start value)."""
+    """The sample period [s] the FMU computes with in the parameter bound to the ``sample_period`` role: the value
+    the binding's ``[parameters]`` give it, else its start value, mapped by the role's scale and offset; or None (no
+    such role, or no value). (``[parameters] Ts = 2e-3`` was set on the FMU while the master stepped it at the start
+    value's 1 ms.)"""
     mapping = binding.roles.get("sample_period")
     if mapping is None:
         return None
-    start = _variable(model_description, mapping.variable).start
-    return None if start is None else (float(start) - mapping.offset) / mapping.scale
+    value = binding.parameters.get(mapping.variable, _variable(model_description, mapping.variable).start)
+    return None if value is None else (float(value) - mapping.offset) / mapping.scale
 
 
 def _variable(model_description, name: str):
@@ -201,7 +203,8 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     parameters = parse_parameters(data, path, loc)
     checked = checked_fmu_of(fmu_path, path, loc)
     binding = ControllerBinding(fmu_path, roles, period, limits, parameters, path, label)
-    check_against(binding, checked, loc, CONTROLLER_INPUT_ROLES + CONTROLLER_PARAMETER_ROLES)
+    check_against(binding, checked, loc, CONTROLLER_INPUT_ROLES + CONTROLLER_PARAMETER_ROLES,
+                  settings=CONTROLLER_PARAMETER_ROLES)
     problem = sample_period_problem(period, own_sample_period(binding, checked.model_description))
     if problem:
         key = "sample_period" if "sample_period" in data else "variable"
