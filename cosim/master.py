@@ -26,12 +26,12 @@ import numpy as np
 from controllers.base import Controller, Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
 from cosim.fmi.binding import PlantBinding
-from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, locate_refusal
+from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, load_binding, locate_refusal
 from cosim.fmi.plant import open_plant
 from cosim.fmi.plant_fmi2 import FmuPlant
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
 from cosim.results import RunInfo, RunResult, RunStream, run_details
-from cosim.scenarios import Scenario, check_parameter_events
+from cosim.scenarios import Scenario, check_parameter_events, load_scenario
 from cosim.timeline import CONTROL, EVENT, MERGE_TOLERANCE, RECORD, TimelinePlan, plan_timeline, signal_at
 
 STREAM_CHUNK = 16_384  # rows held in memory between writes when streaming
@@ -391,10 +391,18 @@ def _progress_bar(enabled: bool, total: int, label: str):
     return tqdm(total=total, desc=label, unit="step", leave=False, mininterval=0.5, delay=1.0)
 
 
-def simulate(binding: PlantBinding, controller: Controller, scenario: Scenario, *, interface: str | None = None,
+def simulate(binding: PlantBinding | str | Path, controller: Controller, scenario: Scenario | str | Path, *,
+             interface: str | None = None,
              record_period: float = 1e-5, seed: int | None = None, progress: bool = False,
              relative_tolerance: float = 1e-8, extra_metadata: dict | None = None) -> RunResult:
-    """Open the plant, run one scenario, and always free the FMU, even on error."""
+    """Open the plant, run one scenario, and always free the FMU, even on error. ``binding`` may be a binding file's
+    path and ``scenario`` a shipped scenario's name or a scenario file's path, as the command line takes them."""
+    if isinstance(binding, (str, Path)):
+        binding = load_binding(binding)
+    if isinstance(scenario, (str, Path)):
+        scenario = load_scenario(scenario)
+    if isinstance(controller, type):
+        raise TypeError(f"controller {controller.__name__} is a class: pass an instance, {controller.__name__}(...)")
     with open_plant(binding, interface=interface, relative_tolerance=relative_tolerance) as plant:
         return run(plant, controller, scenario, record_period=record_period, seed=seed, progress=progress,
                    extra_metadata=extra_metadata)

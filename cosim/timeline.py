@@ -11,6 +11,7 @@ window at a time, so memory stays bounded however long the run.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,6 +111,8 @@ def period_too_short(what: str) -> str:
 def plan_timeline(scenario: Scenario, control_period: float, record_period: float) -> TimelinePlan:
     """Validate the periods and lay out the grids of a run (see :class:`TimelinePlan`)."""
     for label, value in (("control period", control_period), ("record period", record_period)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ConfigError(f"{label} = {value!r} is invalid: expected a number of seconds")
         if not (value > 0 and math.isfinite(value)):
             raise ConfigError(f"{label} = {value} s is invalid: expected a finite value > 0")
         if value < MIN_PERIOD:

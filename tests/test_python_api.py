@@ -61,3 +61,24 @@ def test_simulate_refuses_a_controller_whose_duty_limits_are_not_a_fraction():
     with pytest.raises(ConfigError, match=r"^controller percent: duty limits \(0.0, 100.0\) are invalid: expected "
                                           r"0 <= min < max <= 1$"):
         simulate(builtin_binding("averaged"), Percent(), load_scenario("startup"))
+
+
+def test_simulate_takes_names_and_paths_as_the_command_line_does_and_names_the_mistakes_it_cannot_take(tmp_path):
+    """A scenario's name or file and a binding file's path work as on the command line (they were AttributeErrors
+    deep inside); a controller class for an instance and a period as text are named in one line."""
+    import pytest
+
+    from controllers.pi import PIController
+    from cosim import builtin_binding, load_scenario, simulate
+    from cosim.base.errors import ConfigError
+
+    pi = PIController(0.0017, 15.6, 1e-3)
+    by_name = simulate(builtin_binding("averaged"), pi, "startup")
+    by_object = simulate(builtin_binding("averaged"), pi, load_scenario("startup"))
+    np.testing.assert_array_equal(by_name.frame["output_voltage"], by_object.frame["output_voltage"])
+    with pytest.raises(TypeError, match=r"^controller PIController is a class: pass an instance, PIController\(\.\.\.\)$"):
+        simulate(builtin_binding("averaged"), PIController, "startup")
+    with pytest.raises(ConfigError, match=r"^record period = '1e-5' is invalid: expected a number of seconds$"):
+        simulate(builtin_binding("averaged"), pi, "startup", record_period="1e-5")
+    with pytest.raises(ConfigError, match=r"binding file \S+none.toml does not exist"):
+        simulate(str(tmp_path / "none.toml"), pi, "startup")
