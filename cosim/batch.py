@@ -149,9 +149,10 @@ def with_earlier_metrics(table: pd.DataFrame, path_stem: Path) -> pd.DataFrame:
     if not stored.is_file():
         return table
     key = ["scenario", "controller", "control_period_us"]
-    earlier = pd.read_csv(stored)
+    text = {"keep_default_na": False, "na_values": [""]}  # only an empty cell is missing (a controller named NA is not)
+    earlier = pd.read_csv(stored, **text)
     if timing.is_file():
-        clocks = pd.read_csv(timing)
+        clocks = pd.read_csv(timing, **text)
         extra = [c for c in WALLCLOCK_METRICS if c in clocks.columns and c not in earlier.columns]
         if len(clocks) == len(earlier) and extra:  # written together, row for row
             earlier = pd.concat([earlier, clocks[extra]], axis=1)

@@ -113,11 +113,12 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["frequency-response", "--workers", "-1", "--out", "fr"], "argument --workers: -1 is invalid: expected a whole "
                                                                "number >= 1"),
     (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--model", "m.pt", "--out", "pi.fmu"],
-     "error: --model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but none of them is run "
-     "(controllers: pi): drop --model or add such a controller"),
+     "error: --model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but no controller run "
+     "here uses one (controllers: pi): drop --model"),
     (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--samples", "2000", "--out", "pi.fmu"],
-     "error: --samples sizes the data a network is trained on, but no controller run here has one (controllers: pi): "
-     "drop --samples"),
+     "error: --samples sizes the data a network is trained on, but no controller run here trains one (controllers: "
+     "pi): drop --samples"),
+    (["run", "startup", "--controller", "nnpc", "--controller", "nnpc"], "error: controller nnpc is given twice"),
     (["frequency-response", "--out", "fr.csv"], "error: output folder fr.csv is named like a CSV file, but the results "
                                                  "are a folder of files"),
     (["tune-pi", "--control-period", "1e-3", "--control-period=1/75e3"],

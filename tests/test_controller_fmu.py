@@ -468,5 +468,10 @@ def test_a_sample_period_the_fmus_unbound_own_contradicts_is_warned_of(fmus, tmp
         load_controller_binding(path)
         err = capsys.readouterr().err
         assert (err == f"warning: {path}:2: sample_period = {period:g} s, but the FMU's parameter 'sample_period' "
-                       "starts at 0.001 s and is not bound ([roles.sample_period]): the FMU may compute with its own "
+                       "is 0.001 s and is not bound ([roles.sample_period]): the FMU may compute with its own "
                        "period while the master steps it at this one\n") if warned else err == ""
+    # the FMU's period set to the binding's by [parameters]: they agree, nothing to warn of
+    path.write_text(role_named_binding(fmus["pi"], CONTROLLER_ROLES, parameters="sample_period = 0.002",
+                                       sample_period=2e-3))
+    load_controller_binding(path)
+    assert capsys.readouterr().err == ""

@@ -43,18 +43,22 @@ class OneLineParser(argparse.ArgumentParser):
         single = {option: action for action in self._actions if isinstance(action, argparse._StoreAction)
                   for option in action.option_strings}  # options with a value (flags repeated are harmless)
         seen: dict[argparse.Action, str] = {}
-        for index, token in enumerate(tokens):
+        index = 0
+        while index < len(tokens):
+            token = tokens[index]
+            index += 1
             if token == "--":
                 break
             name = token.split("=", 1)[0]
-            if not name.startswith("--"):
+            if not name.startswith("--") or " " in name:  # a value (a title "--out=x y" is text, not an option)
                 continue
             matches = {single[o] for o in single if o == name} or {single[o] for o in single if o.startswith(name)}
             if len(matches) != 1:  # another kind of option, or an ambiguous abbreviation argparse itself refuses
                 continue
             action = matches.pop()
-            if "=" not in token and action.nargs is None and index + 1 < len(tokens):  # "--option value"
-                token = f"{token} {tokens[index + 1]}"
+            if "=" not in token and action.nargs is None and index < len(tokens):  # "--option value": skip the value
+                token = f"{token} {tokens[index]}"
+                index += 1
             if action in seen:
                 self.error(f"argument {'/'.join(action.option_strings)}: given twice ({seen[action]} and {token}): "
                            "give it once")

@@ -152,8 +152,8 @@ def sample_period_problem(period: float | None, own: float | None) -> str | None
     if period is None or own is None:
         return None
     if not (own > 0 and math.isfinite(own)):
-        return (f"the FMU's own sample period (its sample_period parameter's start value) is {own:g} s: expected a "
-                "finite value > 0")
+        return (f"the FMU's own sample period (the value of its sample_period role's parameter) is {own:g} s: "
+                "expected a finite value > 0")
     ratio = period / own
     if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
         return (f"sample_period = {period:.6g} s is not a whole multiple of the FMU's own sample period {own:.6g} s: "
@@ -211,10 +211,11 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
         raise ConfigError(f"{where(path, loc, key, None if key == 'sample_period' else 'roles.sample_period')}: "
                           f"{problem}")
     unbound = _variable(checked.model_description, "sample_period")
+    own = binding.parameters.get("sample_period", None if unbound is None else unbound.start)  # as [parameters] set it
     if period is not None and "sample_period" not in roles and unbound is not None \
-            and unbound.causality == "parameter" and unbound.start is not None and float(unbound.start) != period:
+            and unbound.causality == "parameter" and own is not None and float(own) != period:
         _warn_once(f"warning: {where(path, loc, 'sample_period')}: sample_period = {period:.6g} s, but the FMU's "
-                   f"parameter 'sample_period' starts at {float(unbound.start):.6g} s and is not bound "
+                   f"parameter 'sample_period' is {float(own):.6g} s and is not bound "
                    "([roles.sample_period]): the FMU may compute with its own period while the master steps it at "
                    "this one")
     if "co-simulation" not in checked.interfaces:

@@ -195,6 +195,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     from cosim.fmi.controller import FmuController, controller_binding
     from cosim.python_controller import is_python_controller, load_python_controller
 
+    twice = next((name for i, name in enumerate(names) if name in names[:i]), None)
+    if twice is not None:  # their runs would write the same files: refused before any tuning or training
+        raise ConfigError(f"controller {twice} is given twice")
     for name in names:
         if name not in CONTROLLERS and not is_python_controller(name) \
                 and Path(name).suffix.lower() not in (".fmu", ".toml"):
@@ -233,11 +236,12 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     if needs_current and not binding.has("inductor_current"):
         raise ConfigError(f"{needs_current[0]} needs the inductor_current role, which {binding.origin} does not bind")
     trains = [n for n in names if n in NETWORKS or n == "nnpc-adaptive" or (n == "nnpc-explicit" and not policy_path)]
+    by_policy = " (nnpc-explicit runs the policy --policy gives)" if policy_path and "nnpc-explicit" in names else ""
     if model_path and not trains:
-        raise ConfigError(f"--model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but none of "
-                          f"them is run (controllers: {', '.join(names)}): drop --model or add such a controller")
+        raise ConfigError(f"--model gives the network of nnpc, nnpc-paper, nnpc-adaptive or nnpc-explicit, but no "
+                          f"controller run here uses one{by_policy} (controllers: {', '.join(names)}): drop --model")
     if samples is not None and (model_path or not trains):
-        why = "--model gives the network" if model_path else "no controller run here has one"
+        why = "--model gives the network" if model_path else f"no controller run here trains one{by_policy}"
         raise ConfigError(f"--samples sizes the data a network is trained on, but {why} (controllers: "
                           f"{', '.join(names)}): drop --samples")
     samples = ON_DEMAND_SAMPLES if samples is None else samples

@@ -271,8 +271,8 @@ class _Summary:
             if vector:
                 save_figure(fig, stem)  # PNG + SVG
             else:
-                atomic_write(stem.with_suffix(".png"), lambda tmp: fig.savefig(tmp, format="png", dpi=110,
-                                                                              metadata={"Software": None}))
+                atomic_write(stem.with_name(f"{stem.name}.png"),  # every dot of the name kept, as save_figure does
+                             lambda tmp: fig.savefig(tmp, format="png", dpi=110, metadata={"Software": None}))
                 plt.close(fig)
 
         folder = self.out_dir / "figures"
