@@ -70,8 +70,8 @@ def test_runs_whose_files_would_overwrite_each_other_are_refused_before_any_run(
     (tmp_path / "mine.toml").write_text(shipped.source.read_text().replace("load_resistance = 6.0",
                                                                            "load_resistance = 10.0"))
     binding = plant_binding("nominal", "averaged")
-    with pytest.raises(ConfigError, match=rf"^\S*mine.toml:\d+: scenario name 'startup' is the name of "
-                                          rf"\S*startup.toml:\d+ too: the runs' files are named after it"):
+    with pytest.raises(ConfigError, match=r"^\S*mine.toml:\d+: scenario name 'startup' is the name of "
+                                          r"\S*startup.toml:\d+ too: the runs' files are named after it"):
         Batch(binding, [shipped, load_scenario(str(tmp_path / "mine.toml"))])
     with pytest.raises(ConfigError, match=r"^scenario \S*startup.toml is given twice$"):
         Batch(binding, [shipped, load_scenario("startup")])
