@@ -369,6 +369,17 @@ def test_a_parameter_the_scenario_changes_during_the_run_is_not_swept(tmp_path):
     assert text.endswith("the event would replace the swept value -- sweep it on another scenario, or drop the axis")
 
 
+def test_a_swept_value_orders_of_magnitude_off_its_nominal_is_taken_for_a_unit_slip(tmp_path):
+    """inductance = 200 meant 200 uH: it ran at 200 H with 99.7 % steady-state error, the only hint in SWEEP.md."""
+    path = sweep_file(tmp_path, 'scenarios = ["startup"]\ncontrollers = ["pi"]\n[parameters]\n'
+                      'inductance = { values = [200, 220] }\n')
+    text = plan_error(path)
+    assert text.startswith("study.toml:4: parameters.inductance = 200 H is 9.1e+05 x its nominal 0.00022 H in ") and \
+        text.endswith("expected values within 10000 x of it -- was it given in another unit?"), text
+    path.write_text(path.read_text().replace("[200, 220]", "[200e-6, 220e-6]"))
+    SweepPlan(load_sweep(path))  # the same study in henries plans
+
+
 def test_a_folder_given_as_the_sweep_file_is_called_a_folder(tmp_path):
     folder = tmp_path / "d.toml"
     folder.mkdir()

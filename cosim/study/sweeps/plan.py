@@ -77,6 +77,10 @@ class BatchTask:
     scenario: str
     runs: tuple[PlannedRun, ...]
 
+#: a swept value further than this factor from the parameter's nominal value (either way) is taken for a unit slip
+#: (200 for 200 uH: 9e5 x the nominal 220 uH; a tolerance study spans a few x, a design space a few decades)
+UNIT_SLIP_RATIO = 1e4
+
 
 def nominal_binding(spec: SweepSpec) -> PlantBinding:
     """The sweep's plant without any axis applied."""
@@ -146,6 +150,14 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
         if axis.relative and nominal < 0:
             raise ConfigError(f"{axis.place}: parameters.{axis.name}: a tolerance on a negative nominal value "
                               f"({nominal:g}) is ambiguous: give absolute bounds")
+        if nominal and not axis.relative and not integer:  # 200 for 200 uH is 200 H: a unit slip, not a study
+            far = next((v for v in axis.values if v and not 1 / UNIT_SLIP_RATIO <= abs(v / nominal) <= UNIT_SLIP_RATIO),
+                       None)
+            if far is not None:
+                unit = _attribute(variable, "unit") or ""
+                raise ConfigError(f"{axis.place}: parameters.{axis.name} = {far:g} {unit} is "
+                                  f"{abs(far / nominal):.2g} x its nominal {nominal:g} {unit} in {fmu}: expected "
+                                  f"values within {UNIT_SLIP_RATIO:g} x of it -- was it given in another unit?")
         try:  # the plant's own check (existence, type), with a representative value
             resolve_parameters({axis.name: (axis.values[0] if axis.values else float(nominal or 0.0))}, md, fmu)
         except BindingMismatch as error:
