@@ -22,6 +22,14 @@ OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_
                 "measured_inductor_current", "measured_load_current")
 ROLES = INPUT_ROLES + OUTPUT_ROLES
 REQUIRED_ROLES = ("duty_cycle", "output_voltage")
+#: a controller FMU's inputs, in the order the adapter sets them (the Measurement's fields; cosim.fmi.controller)
+CONTROLLER_INPUT_ROLES = ("reference", "measured_output_voltage", "measured_inductor_current",
+                          "measured_load_current", "input_voltage")
+CONTROLLER_OUTPUT_ROLES = ("duty_cycle",)
+#: a parameter that holds the controller FMU's own sample period
+CONTROLLER_PARAMETER_ROLES = ("sample_period",)
+CONTROLLER_ROLES = CONTROLLER_INPUT_ROLES + CONTROLLER_OUTPUT_ROLES + CONTROLLER_PARAMETER_ROLES
+REQUIRED_CONTROLLER_ROLES = ("reference", "measured_output_voltage", "duty_cycle")
 ROLE_DESCRIPTIONS = {
     "duty_cycle": "duty cycle command, 0..1 (input, required)",
     "input_voltage": "input/supply voltage Vs (input, optional: needed for supply steps)",

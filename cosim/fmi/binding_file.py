@@ -53,6 +53,7 @@ from cosim.base.labels import did_you_mean
 from cosim.base.toml_files import TomlLocator, parse_toml, where
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import (
+    CONTROLLER_ROLES,
     INPUT_ROLES,
     REQUIRED_ROLES,
     ROLE_DESCRIPTIONS,
@@ -215,8 +216,6 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
                           "false")
     step_timeout = _isolation_limit(data, path, loc, "step_timeout", "s", isolate)
     memory_limit = _isolation_limit(data, path, loc, "memory_limit", "MB", isolate)
-
-    from cosim.fmi.controller import CONTROLLER_ROLES
 
     roles = parse_roles(data, path, loc, ROLES, other=("controller", CONTROLLER_ROLES))
     for role in REQUIRED_ROLES:

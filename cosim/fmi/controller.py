@@ -63,7 +63,18 @@ from controllers.base import Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, FmuArchiveError
 from cosim.base.toml_files import parse_toml, where
 from cosim.fmi.archive import CheckedFmu, check_fmu
-from cosim.fmi.binding import ROLES, BindingMismatch, RoleMap, apply_parameters, resolve_parameters, resolve_roles
+from cosim.fmi.binding import (
+    CONTROLLER_INPUT_ROLES,
+    CONTROLLER_PARAMETER_ROLES,
+    CONTROLLER_ROLES,
+    REQUIRED_CONTROLLER_ROLES,
+    ROLES,
+    BindingMismatch,
+    RoleMap,
+    apply_parameters,
+    resolve_parameters,
+    resolve_roles,
+)
 from cosim.fmi.binding_file import (
     PARAMETER,
     TOGETHER,
@@ -79,14 +90,6 @@ from cosim.fmi.binding_file import (
 from cosim.fmi.fmu_log import STATUS_NAMES, callbacks_for, release
 from cosim.fmi.plant_fmi3 import Fmi3DoStep, clock_refusal
 
-#: the controller FMU's inputs, in the order the adapter sets them (the Measurement's fields)
-CONTROLLER_INPUT_ROLES = ("reference", "measured_output_voltage", "measured_inductor_current",
-                          "measured_load_current", "input_voltage")
-CONTROLLER_OUTPUT_ROLES = ("duty_cycle",)
-#: a parameter that holds the FMU's own sample period
-CONTROLLER_PARAMETER_ROLES = ("sample_period",)
-CONTROLLER_ROLES = CONTROLLER_INPUT_ROLES + CONTROLLER_OUTPUT_ROLES + CONTROLLER_PARAMETER_ROLES
-REQUIRED_CONTROLLER_ROLES = ("reference", "measured_output_voltage", "duty_cycle")
 TOP_KEYS = {"fmu", "label", "sample_period", "duty_limits", "roles", "parameters"}
 
 

@@ -61,8 +61,8 @@ import numpy as np
 from cosim.base.digests import file_sha256
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.labels import period_label, slug
-from cosim.fmi.binding import PlantBinding, RoleMap
-from cosim.fmi.controller import CONTROLLER_INPUT_ROLES, ControllerBinding, FmuController
+from cosim.fmi.binding import CONTROLLER_INPUT_ROLES, PlantBinding, RoleMap
+from cosim.fmi.controller import ControllerBinding, FmuController
 from cosim.master import simulate
 from cosim.recorder import COLUMNS, DESCRIPTIONS, SCHEMA, UNITS
 from cosim.results import RUN_FORMAT, RunInfo, RunResult, json_ready, package_versions

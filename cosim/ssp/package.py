@@ -47,8 +47,16 @@ from lxml import etree
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.files import atomic_write
 from cosim.fmi.archive import CheckedFmu, _member_problem, check_fmu
-from cosim.fmi.binding import INPUT_ROLES, PLANT_MODE_CODES, PlantBinding, RoleMap, is_float, is_integer
-from cosim.fmi.controller import CONTROLLER_INPUT_ROLES, builtin_controller_binding
+from cosim.fmi.binding import (
+    CONTROLLER_INPUT_ROLES,
+    INPUT_ROLES,
+    PLANT_MODE_CODES,
+    PlantBinding,
+    RoleMap,
+    is_float,
+    is_integer,
+)
+from cosim.fmi.controller import builtin_controller_binding
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario, parse_scenario
 from cosim.ssp.scenario_source import OUTPUTS as SCENARIO_OUTPUTS
