@@ -109,7 +109,7 @@ def cmd_train(args) -> int:
                           "buck-cosim collect-data?): give the period the samples were taken at with --control-period")
     from cosim.base.digests import file_sha256
 
-    extra, contents = [], {file_sha256(source): source}
+    extra, contents = [], ({file_sha256(source): source} if args.extra_data else {})  # hashed only to compare
     for name in args.extra_data or ():
         other, more, more_meta = samples(name)
         first = contents.setdefault(file_sha256(other), other)

@@ -150,11 +150,11 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
         if axis.relative and nominal < 0:
             raise ConfigError(f"{axis.place}: parameters.{axis.name}: a tolerance on a negative nominal value "
                               f"({nominal:g}) is ambiguous: give absolute bounds")
+        unit = _attribute(variable, "unit") or ""
         if nominal and not axis.relative and not integer:  # 200 for 200 uH is 200 H: a unit slip, not a study
             far = next((v for v in axis.values if v and not 1 / UNIT_SLIP_RATIO <= abs(v / nominal) <= UNIT_SLIP_RATIO),
                        None)
             if far is not None:
-                unit = _attribute(variable, "unit") or ""
                 raise ConfigError(f"{axis.place}: parameters.{axis.name} = {far:g} {unit} is "
                                   f"{abs(far / nominal):.2g} x its nominal {nominal:g} {unit} in {fmu}: expected "
                                   f"values within {UNIT_SLIP_RATIO:g} x of it -- was it given in another unit?")
@@ -162,7 +162,6 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
             resolve_parameters({axis.name: (axis.values[0] if axis.values else float(nominal or 0.0))}, md, fmu)
         except BindingMismatch as error:
             raise ConfigError(f"{axis.place}: parameters.{axis.name}: {error}") from None
-        unit = _attribute(variable, "unit") or ""
         infos.append(AxisInfo(axis, unit, nominal, integer, _float(_attribute(variable, "min")),
                               _float(_attribute(variable, "max"))))
     for scenario in spec.scenarios:
