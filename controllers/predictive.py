@@ -271,9 +271,9 @@ class RtiSettings:
     to the search (:class:`HorizonOptimizer`) instead."""
 
     iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known. One step
-    # is what fits a switching period best in C; with the envelope-identified 8-10-2 networks it missed the quality
-    # targets at 13.33 us (2.8 x the search's IAE at worst), and the study takes two, damped
-    # (cosim.study.experiments.SWITCHING_PERIOD_RTI)
+    # is what fits a switching period in C; undamped, with the envelope-identified 8-10-2 networks, it missed the
+    # quality targets at 13.33 us (2.8 x the search's IAE at worst): the study's one step is damped and hands the
+    # start-up over late (cosim.study.experiments.SWITCHING_PERIOD_RTI)
     line_search: bool = False  # roll each trial out and take it only if its smoothed cost is not higher (else the
     # trust region shrinks); False takes every step, as acados' SQP-RTI does, and the plan's states are not rolled
     # out past the first (the step's cost: one linearisation). The reweighted model majorises the linearised cost,
@@ -311,7 +311,9 @@ class RtiSettings:
     # identified from PI data is poor in the start-up's fast transient, and the search's coarse plan overshoots
     # less. With it, 4-10 samples of each start-up are planned by the search, and none of the rest. (Under an
     # error_region at most this wide the guard would plan those samples anyway: this then only names them, so the
-    # fallback counts tell the start-up from the guard.)
+    # fallback counts tell the start-up from the guard.) The study's one-step RTI at 13.33 us takes 0.1 V: handed
+    # over at the 0.5 V guard, its one step lagged the last of the rise (+0.72 overshoot points over the search's on
+    # the mismatch plant's seed-0 network), from 0.1 V on it overshoots as the search does
     startup_region: float = 1.0
     # [V] the search plans any sample whose measured |vref - vo| exceeds this (0: never) -- a guard, not a transient
     # rule: where the network extrapolates (light loads in DCM, far from its PI data) its tanh units saturate, its

@@ -32,10 +32,11 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per RTI step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per RTI step: tanh calls",
                 "NNPC (search) 13.33 us per step: tanh calls", "C step, NNPC-explicit, 13.33 us",
-                # the default optimizer (the RTI at both rates), the search beside it, and the one-step variant
+                # the default optimizer (the RTI at both rates), the search beside it, and the two-step variants
                 "C RTI step, NNPC, 1 ms", "C RTI step, NNPC, 13.33 us", "C step, NNPC (search), 13.33 us",
                 "C step, NNPC (search), 1 ms", "NNPC 13.33 us per RTI step: box-QP iterations (counted)",
-                "C RTI step, NNPC (rti, one step), 13.33 us", "C RTI step, NNPC (rti, reused Jacobian), 13.33 us",
+                "C RTI step, NNPC (rti, two steps), 13.33 us",
+                "C RTI step, NNPC (rti, two steps, reused Jacobian), 13.33 us",
                 # the same steps, each sample's median over the passes (the OS's interruptions left out)
                 "C RTI step, NNPC, 13.33 us, each sample's median over the", "C RTI step, NNPC, 1 ms, each sample's",
                 "C RTI NNPC step, startup",

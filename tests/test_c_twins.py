@@ -607,14 +607,16 @@ def replay_case(name: str, model_1ms):
     from cosim.study.experiments import rti_settings
 
     # "-rti": the same case with the study's real-time iteration at its rate (and the search as its fallback);
-    # "-rti1": with RtiSettings' defaults (one Gauss-Newton step, undamped: the ablation's one-step variant);
-    # "-rti-reuse": the study's, the second step with the first step's sensitivities (RtiSettings.reuse_jacobian)
+    # "-rti1": with RtiSettings' defaults (one Gauss-Newton step, undamped, the start-up handed over at 1 V);
+    # "-rti2": the study's with two steps (the ablation's variant, optimizer_ablation.TWO_STEPS);
+    # "-rti-reuse": the same, the second step with the first step's sensitivities (RtiSettings.reuse_jacobian)
     if name.endswith("-rti1"):
         binding, controller, scenarios = _replay_case(name.removesuffix("-rti1"), model_1ms)
         return binding, with_rti(controller), scenarios
-    if name.endswith("-rti-reuse"):
-        binding, controller, scenarios = _replay_case(name.removesuffix("-rti-reuse"), model_1ms)
-        settings = replace(rti_settings(controller.sample_period, "rti"), reuse_jacobian=True)
+    if name.endswith("-rti2") or name.endswith("-rti-reuse"):
+        reuse = name.endswith("-rti-reuse")
+        binding, controller, scenarios = _replay_case(name.removesuffix("-rti-reuse" if reuse else "-rti2"), model_1ms)
+        settings = replace(rti_settings(controller.sample_period, "rti"), iterations=2, reuse_jacobian=reuse)
         return binding, with_rti(controller, settings), scenarios
     rti = name.endswith("-rti")
     binding, controller, scenarios = _replay_case(name.removesuffix("-rti"), model_1ms)
@@ -659,7 +661,8 @@ def with_rti(controller: PredictiveController, settings: RtiSettings = RtiSettin
 
 
 SEARCH_REPLAYS = ["nnpc-1ms", "nnpc-13us", "mpc-averaged-13us", "mpc-switched-13us", "mpc-switched-nominal-13us"]
-REPLAYS = SEARCH_REPLAYS + [f"{name}-rti" for name in SEARCH_REPLAYS] + ["nnpc-13us-rti1", "nnpc-13us-rti-reuse"]
+REPLAYS = SEARCH_REPLAYS + [f"{name}-rti" for name in SEARCH_REPLAYS] + ["nnpc-13us-rti1", "nnpc-13us-rti2",
+                                                                               "nnpc-13us-rti-reuse"]
 PREDICTOR_TYPES = {"nnpc-1ms": "NNPredictor", "nnpc-13us": "NNPredictor", "mpc-averaged-13us": "AveragedModelPredictor",
                    "mpc-switched-13us": "SwitchedModelPredictor", "mpc-switched-nominal-13us": "SwitchedModelPredictor"}
 

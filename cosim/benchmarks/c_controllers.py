@@ -23,7 +23,7 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         rti_operation_counts,
     )
     from cosim.study.experiments import implemented, model_mpc, nnpc
-    from cosim.study.optimizer_ablation import ONE_STEP, with_rti
+    from cosim.study.optimizer_ablation import TWO_STEPS, with_rti
     from cosim.study.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
@@ -37,12 +37,12 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                        nnpc(model, period, f"{NNPC} (search)", optimizer="search")]
         if not transient_within_sample(period):
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
-            # the ablation's variant (cosim.study.optimizer_ablation.ONE_STEP): what the second Gauss-Newton step costs
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, one step)", optimizer="rti"), **ONE_STEP))
-            # the option the study does not take (RtiSettings.reuse_jacobian): the second step's trial rolled out with
-            # the first step's sensitivities, not linearised again
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, reused Jacobian)", optimizer="rti"),
-                                        reuse_jacobian=True))
+            # the ablation's variant (cosim.study.optimizer_ablation.TWO_STEPS): what a second Gauss-Newton step costs
+            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti"), **TWO_STEPS))
+            # the option the study does not take (RtiSettings.reuse_jacobian): a second step whose trial is rolled out
+            # with the first step's sensitivities, not linearised again
+            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti"),
+                                        **TWO_STEPS, reuse_jacobian=True))
         for controller in controllers:
             measurements = record_measurements(binding, implemented(controller), scenario)
             result = replay(controller, measurements, repeats=1 if quick else REPLAY_PASSES)
