@@ -313,6 +313,12 @@ def _affine_power(step: tuple[np.ndarray, np.ndarray], times: int) -> tuple[np.n
     return result
 
 
+#: [grid steps] a duty this close to an interior node of the switched model's duty table takes the mean of its two
+#: intervals' slopes as the derivative (SwitchedModelPredictor.linearize); 1e-6 of the 1/256 step is 4e-9 in duty,
+#: far above the plans' rounding noise (1e-14) and far below any move that matters
+NODE_TOLERANCE = 1e-6
+
+
 class SwitchedModelPredictor:
     """The switched converter solved exactly per PWM period (CCM), as the controller's sensor sees it.
 
@@ -464,8 +470,12 @@ class SwitchedModelPredictor:
         """Analytic: step j's map y(j+1) = H(d(j)) (K(d(j-1)) y(j) + kappa(d(j-1))) + h(d(j)) depends on
         two duties, through the tabulated maps, whose linear interpolation has the slope
         (table difference) x (grid points - 1) in d -- exact for the interpolated model the rollout
-        uses (its derivative jumps at the 1/256-wide grid nodes, where the left interval's is taken,
-        as the lookup does). A block's move thus enters at the step it is applied (through H, h) and
+        uses between the 1/256-wide grid nodes. At a node (within :data:`NODE_TOLERANCE` of a grid step) its
+        derivative jumps, and the mean of its two intervals' slopes is taken: a plan settled on a node (the ideal
+        model's steady duty 12/48 = 64/256 is one) dithers about it at rounding level, and one interval's slope
+        or the other's by the sign of a 1e-14 rounding error would give the one-step RTI a Jacobian that jumps
+        from sample to sample -- and the C twin, whose sums round differently, the other side's (a 7.7e-5 duty
+        difference that an open-loop replay never heals, tests/test_c_twins.py). A block's move thus enters at the step it is applied (through H, h) and
         at the next (through K, kappa); the clipped current's sensitivity is zero, as in the averaged model."""
         table = self._table(context.load_resistance, context.input_voltage)
         n = len(duties)
@@ -477,6 +487,11 @@ class SwitchedModelPredictor:
         position = np.clip(applied, 0.0, 1.0) * last
         index = np.minimum(position.astype(np.intp), last - 1)
         slopes = table[index][:, 12:] * last  # d values / d duty on the interval the lookup used
+        node = np.rint(position)
+        at_node = (np.abs(position - node) <= NODE_TOLERANCE) & (node > 0) & (node < last)
+        if at_node.any():  # the mean of the two intervals' slopes (C: buckc_switched_lookup_slope)
+            nodes = node[at_node].astype(np.intp)
+            slopes[at_node] = (table[nodes - 1, 12:] + table[nodes, 12:]) * 0.5 * last
         out = np.empty((n, 2))
         jacobian = np.zeros((n, 2, n_blocks))
         sensitivity = np.zeros((2, n_blocks))

@@ -464,6 +464,39 @@ def test_circuit_linearizations_match(predictor):
         assert relative_error(actual[1], expected[1]) <= 1e-10
 
 
+def test_switched_linearization_at_a_table_node_takes_the_mean_slope_on_both_sides_of_rounding():
+    """A plan settled on a node of the switched model's duty table (the ideal steady duty 12/48 = 64/256) dithers
+    about it at rounding level: within NODE_TOLERANCE the Jacobian is the mean of the two intervals' slopes, the
+    same on either side of the node (one interval's or the other's by the sign of a 1e-14 error gave the one-step
+    RTI and its C twin different steps), and the C twin gives the same (to 1e-10, as everywhere); a duty a grid step's 1e-3 away from
+    the node takes its own interval's slope, in both."""
+    from controllers.predictive import doubling_blocks
+    from controllers.predictors import NODE_TOLERANCE
+
+    predictor = SwitchedModelPredictor(NOMINAL, TS, FSW)
+    twin = native.NativePredictor(predictor)
+    blocks = doubling_blocks(23)
+    of_step = np.repeat(np.arange(len(blocks)), blocks)
+    ctx = PredictionContext(history=np.array([[2.0, 12.0, 0.25]]), input_voltage=48.0, load_resistance=6.0,
+                            load_conductance=1 / 6.0, load_current=2.0, previous_duty=0.25)
+    grid = len(predictor.duty_grid) - 1
+    assert 0.25 * grid == 64 and NODE_TOLERANCE / grid > 1e-12
+    jacobians = {}
+    for offset in (-3e-14, 0.0, 3e-14, -1e-3 / grid, 1e-3 / grid):
+        moves = np.full(len(blocks), 0.25 + offset)
+        expected = predictor.linearize(ctx, moves[of_step], np.zeros(2), of_step, len(blocks))
+        actual = twin.linearize(ctx, moves[of_step], np.zeros(2), of_step, len(blocks))
+        assert relative_error(actual[0], expected[0]) <= 1e-10  # as test_circuit_linearizations_match
+        assert relative_error(actual[1], expected[1]) <= 1e-10
+        jacobians[offset] = expected[1]
+    at_node = jacobians[0.0]
+    for offset in (-3e-14, 3e-14):  # rounding noise: the node's mean slope, to rounding
+        np.testing.assert_allclose(jacobians[offset], at_node, rtol=1e-9, atol=1e-12)
+    below, above = jacobians[-1e-3 / grid], jacobians[1e-3 / grid]
+    assert np.abs(below - above).max() > 1e-4 * np.abs(at_node).max()  # the derivative jumps at the node
+    np.testing.assert_allclose(at_node, (below + above) / 2, rtol=1e-2, atol=1e-6 * np.abs(at_node).max())
+
+
 def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     controller = with_rti(PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=23),
                                                **OPERATING_POINT), RtiSettings(iterations=3, smoothing=0.02,

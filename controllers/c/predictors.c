@@ -561,7 +561,7 @@ void buckc_switched_rollout(const BuckcSwitchedTable *table, const double y0[2],
 void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, double values[12], double slopes[12])
 {
     int last = table->points - 1, index, k;
-    double position = duty;
+    double position = duty, node;
     const double *row;
     buckc_switched_lookup(table, duty, values);
     if (position < 0.0) position = 0.0;
@@ -570,6 +570,14 @@ void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, d
     if (!(position >= 0.0)) {
         for (k = 0; k < 12; ++k)
             slopes[k] = NAN;
+        return;
+    }
+    node = floor(position + 0.5);
+    if (fabs(position - node) <= BUCKC_SWITCHED_NODE_TOLERANCE && node > 0.0 && node < (double)last) {
+        /* at an interior node: the mean of its two intervals' slopes (SwitchedModelPredictor.linearize) */
+        const double *below = table->rows[(int)node - 1], *above = table->rows[(int)node];
+        for (k = 0; k < 12; ++k)
+            slopes[k] = (below[12 + k] + above[12 + k]) * 0.5 * (double)last;
         return;
     }
     index = (int)position;

@@ -110,6 +110,9 @@ typedef struct {
 
 /* predictors.MAX_SENSOR_CONDITION: a table whose sensor map H is worse conditioned is refused */
 #define BUCKC_SWITCHED_MAX_CONDITION 1e8
+/* predictors.NODE_TOLERANCE [grid steps]: a duty this close to an interior node of the table takes the mean of the
+ * two intervals' slopes (buckc_switched_lookup_slope) */
+#define BUCKC_SWITCHED_NODE_TOLERANCE 1e-6
 
 typedef struct {
     double load, input_voltage; /* the values it was computed from */
@@ -141,7 +144,8 @@ const BuckcSwitchedTable *buckc_switched_cached(const BuckcSwitchedConfig *confi
 void buckc_switched_cache_clear(BuckcSwitchedCache *cache);
 /* SwitchedModelPredictor._lookup at one duty: the 12 interpolated map entries */
 void buckc_switched_lookup(const BuckcSwitchedTable *table, double duty, double values[12]);
-/* ... and its slope in the duty on the interval the lookup uses (zero outside 0..1) */
+/* ... and its slope in the duty on the interval the lookup uses (zero outside 0..1; at an interior node the
+ * mean of its two intervals' slopes) */
 void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, double values[12], double slopes[12]);
 /* SwitchedModelPredictor.rollout for one candidate, from y0 = history[0, :2] */
 void buckc_switched_rollout(const BuckcSwitchedTable *table, const double y0[2], double previous_duty,
