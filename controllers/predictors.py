@@ -470,13 +470,14 @@ class SwitchedModelPredictor:
         """Analytic: step j's map y(j+1) = H(d(j)) (K(d(j-1)) y(j) + kappa(d(j-1))) + h(d(j)) depends on
         two duties, through the tabulated maps, whose linear interpolation has the slope
         (table difference) x (grid points - 1) in d -- exact for the interpolated model the rollout
-        uses between the 1/256-wide grid nodes. At a node (within :data:`NODE_TOLERANCE` of a grid step) its
-        derivative jumps, and the mean of its two intervals' slopes is taken: a plan settled on a node (the ideal
-        model's steady duty 12/48 = 64/256 is one) dithers about it at rounding level, and one interval's slope
-        or the other's by the sign of a 1e-14 rounding error would give the one-step RTI a Jacobian that jumps
-        from sample to sample -- and the C twin, whose sums round differently, the other side's (a 7.7e-5 duty
-        difference that an open-loop replay never heals, tests/test_c_twins.py). A block's move thus enters at the step it is applied (through H, h) and
-        at the next (through K, kappa); the clipped current's sensitivity is zero, as in the averaged model."""
+        uses between the 1/256-wide grid nodes. A block's move thus enters at the step it is applied (through
+        H, h) and at the next (through K, kappa); the clipped current's sensitivity is zero, as in the averaged
+        model. At a node (within :data:`NODE_TOLERANCE` of a grid step) the derivative jumps, and the mean of
+        its two intervals' slopes is taken: a plan settled on a node (the ideal model's steady duty 12/48 =
+        64/256 is one) dithers about it at rounding level, and one interval's slope or the other's by the sign
+        of a 1e-14 rounding error would give the one-step RTI a Jacobian that jumps from sample to sample -- and
+        the C twin, whose sums round differently, the other side's (a 7.7e-5 duty difference that an open-loop
+        replay never heals, tests/test_c_twins.py)."""
         table = self._table(context.load_resistance, context.input_voltage)
         n = len(duties)
         applied = np.empty(n + 1)

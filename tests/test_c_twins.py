@@ -468,8 +468,8 @@ def test_switched_linearization_at_a_table_node_takes_the_mean_slope_on_both_sid
     """A plan settled on a node of the switched model's duty table (the ideal steady duty 12/48 = 64/256) dithers
     about it at rounding level: within NODE_TOLERANCE the Jacobian is the mean of the two intervals' slopes, the
     same on either side of the node (one interval's or the other's by the sign of a 1e-14 error gave the one-step
-    RTI and its C twin different steps), and the C twin gives the same (to 1e-10, as everywhere); a duty a grid step's 1e-3 away from
-    the node takes its own interval's slope, in both."""
+    RTI and its C twin different steps), and the C twin gives the same (to 1e-10, as everywhere); a duty a grid
+    step's 1e-3 away from the node takes its own interval's slope, in both."""
     from controllers.predictive import doubling_blocks
     from controllers.predictors import NODE_TOLERANCE
 
@@ -646,9 +646,10 @@ def replay_case(name: str, model_1ms):
     if name.endswith("-rti1"):
         binding, controller, scenarios = _replay_case(name.removesuffix("-rti1"), model_1ms)
         return binding, with_rti(controller), scenarios
-    if name.endswith("-rti2") or name.endswith("-rti-reuse"):
+    if name.endswith(("-rti2", "-rti-reuse")):
         reuse = name.endswith("-rti-reuse")
-        binding, controller, scenarios = _replay_case(name.removesuffix("-rti-reuse" if reuse else "-rti2"), model_1ms)
+        case = name.removesuffix("-rti-reuse" if reuse else "-rti2")
+        binding, controller, scenarios = _replay_case(case, model_1ms)
         settings = replace(rti_settings(controller.sample_period, "rti"), iterations=2, reuse_jacobian=reuse)
         return binding, with_rti(controller, settings), scenarios
     rti = name.endswith("-rti")

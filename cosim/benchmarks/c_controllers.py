@@ -41,8 +41,8 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti"), **TWO_STEPS))
             # the option the study does not take (RtiSettings.reuse_jacobian): a second step whose trial is rolled out
             # with the first step's sensitivities, not linearised again
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti"),
-                                        **TWO_STEPS, reuse_jacobian=True))
+            reused = nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti")
+            controllers.append(with_rti(reused, **TWO_STEPS, reuse_jacobian=True))
         for controller in controllers:
             measurements = record_measurements(binding, implemented(controller), scenario)
             result = replay(controller, measurements, repeats=1 if quick else REPLAY_PASSES)

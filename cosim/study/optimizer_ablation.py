@@ -166,8 +166,8 @@ def report_lines(rows: list[dict]) -> list[str]:
     if not rows:
         return []
     lines = ["Old vs new optimizer on the same models (seed 0): the search (grid + pattern search) and the real-time "
-             "iteration, the default at both rates (Gauss-Newton steps from the shifted plan -- one at 13.33 us, two at "
-             "1 ms; the search at a cold start, through the start-up until the output is within 0.1 V of its "
+             "iteration, the default at both rates (Gauss-Newton steps from the shifted plan -- one at 13.33 us, "
+             "two at 1 ms; the search at a cold start, through the start-up until the output is within 0.1 V of its "
              "reference and at any later sample more than 0.5 V off it at 13.33 us, at the cold start only at 1 ms: "
              "`controllers/predictive.py`, `cosim/study/experiments.py` rti_settings) drive the same plant through the "
              "same scenarios. Every study seed, with the spread: `optimizer-every-seed.md` (`make every-seed`). Targets for the RTI to be "
