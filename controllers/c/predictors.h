@@ -144,8 +144,8 @@ const BuckcSwitchedTable *buckc_switched_cached(const BuckcSwitchedConfig *confi
 void buckc_switched_cache_clear(BuckcSwitchedCache *cache);
 /* SwitchedModelPredictor._lookup at one duty: the 12 interpolated map entries */
 void buckc_switched_lookup(const BuckcSwitchedTable *table, double duty, double values[12]);
-/* ... and its slope in the duty on the interval the lookup uses (zero outside 0..1; at an interior node the
- * mean of its two intervals' slopes) */
+/* ... and its slope in the duty on the interval the lookup uses (the duty clamped to 0..1, as the lookup does; at
+ * an interior node the mean of its two intervals' slopes) */
 void buckc_switched_lookup_slope(const BuckcSwitchedTable *table, double duty, double values[12], double slopes[12]);
 /* SwitchedModelPredictor.rollout for one candidate, from y0 = history[0, :2] */
 void buckc_switched_rollout(const BuckcSwitchedTable *table, const double y0[2], double previous_duty,

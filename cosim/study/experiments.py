@@ -170,29 +170,30 @@ def default_optimizer(optimizer: str):
 
 
 #: the RTI at one switching period (13.33 us): one Gauss-Newton step without a line search (acados' SQP-RTI: one
-#: linearisation per sample), Levenberg-Marquardt damping 1e-3, a proximal term 1e-4 on the applied move, the search
-#: at any sample more than 0.5 V off the reference (which carries every reference step's transient) and through the
+#: linearisation per sample), Levenberg-Marquardt damping 1e-3, a proximal term 1e-4 on the applied move, the search at
+#: any sample more than 0.5 V off the reference (which carries every reference step's transient) and through the
 #: start-up until the output first comes within 0.1 V of its reference (RtiSettings.startup_region). Measured over the
 #: 84 runs of the every-seed evaluation at 13.33 us (scripts/optimizer_every_seed.py --rti ...; the IAE over the
 #: search's at worst, the runs above 1.02): one step 2.80 (6 runs); two steps 1.89 (4); two steps, damping 1e-3: 1.25
 #: (1: a period-2 limit cycle of the first two 1-sample blocks, which a model identified from PI data predicts to pay,
 #: mismatch plant seed 4); with the move term besides: 1.019 (0, but the step up overshot 14 points more than the
-#: search's there); with the search through a reference step's transient until within 1 V besides: 1.010 (0); with
-#: the 0.5 V guard instead: 1.010 (0), start-up overshoot +0.38 points at worst -- the study's setting until its C
-#: step was timed: 8.8 us p50 but 17 us p99 for a 13.33 us period, and 690-730 x faster than do-mpc where issue 24
-#: asks 1000 x. The same with one step: 1.019 (0), but the start-up overshot 0.72 points more than the search's
-#: (mismatch plant, seed 0: the search hands the start-up over 0.5 V below the reference and one step lags the last
-#: of the rise); with the search through the start-up until within 0.1 V (this setting: 8-9 of a start-up's 451
-#: samples, 4-5 before): 1.019 (0), +0.00 points, and the C step 4.5 us p50. Stronger damping alone (1e-2) lagged the
-#: transients: 1.07 (11 runs). Without the guard, where the network extrapolates (RtiSettings.error_region), the
-#: reproduction's envelope map had the RTI hold 12.9 V at a 3 V reference. Over the envelope one step plans as two
-#: did: the map's share of points meeting the spec 66.7 % for the oracle MPC with either, the NNPC's 30.7 / 70.7 /
-#: 64.0 / 46.7 / 53.3 % for seeds 0-4 against 29.3 / 73.3 / 62.7 / 50.7 / 54.7 % with two steps (the median seed
-#: 53.3 against 54.7 %: within the spread). Every seed, both rates: results/optimizer-every-seed.md (make every-seed).
-#: Reusing the first step's sensitivities in a second step (RtiSettings.reuse_jacobian: a rollout of its trial
-#: instead of a second linearisation) planned as well as two linearisations on the paper's scenarios but not over
-#: the envelope (the map fell from 67 % to 61 % of points meeting the spec for the oracle MPC, from 55 % to 48 % for
-#: the NNPC at the median seed); it stays an option
+#: search's there); with the search through a reference step's transient until within 1 V besides: 1.010 (0); with the
+#: 0.5 V guard instead: 1.010 (0), start-up overshoot +0.38 points at worst -- the study's setting until its C step was
+#: timed: 8.8 us p50 but 17 us p99 for a 13.33 us period, and 690-730 x faster than do-mpc where issue 24 asks 1000 x.
+#: The same with one step: 1.019 (0), but the start-up overshot 0.72 points more than the search's (mismatch plant, seed
+#: 0: the search hands the start-up over 0.5 V below the reference and one step lags the last of the rise); with the
+#: search through the start-up until within 0.1 V (this setting: 4-9 of a start-up's 451 samples, the cold start
+#: included): 1.019 (0), +0.00 points, and the C step 0.59 x the two steps' in one bench run. Stronger damping alone
+#: (1e-2) lagged the transients: 1.07 (11 runs). Without the guard, where the network extrapolates
+#: (RtiSettings.error_region), the reproduction's envelope map had the RTI hold 12.9 V at a 3 V reference. Over the
+#: envelope one step plans as two did (before the switched model's node rule, predictors.NODE_TOLERANCE): the map's
+#: share of points meeting the spec 66.7 % for the oracle MPC with either, the NNPC's 30.7 / 70.7 / 64.0 / 46.7 / 53.3 %
+#: for seeds 0-4 against 29.3 / 73.3 / 62.7 / 50.7 / 54.7 % with two steps (the median seed 53.3 against 54.7 %: within
+#: the spread). Every seed, both rates: results/optimizer-every-seed.md (make every-seed). Reusing the first step's
+#: sensitivities in a second step (RtiSettings.reuse_jacobian: a rollout of its trial instead of a second linearisation)
+#: planned as well as two linearisations on the paper's scenarios but not over the envelope (the map fell from 67 % to
+#: 61 % of points meeting the spec for the oracle MPC, from 55 % to 48 % for the NNPC at the median seed); it stays an
+#: option
 SWITCHING_PERIOD_RTI = RtiSettings(iterations=1, regularization=1e-3, move_damping=1e-4, error_region=0.5,
                                    startup_region=0.1)
 
