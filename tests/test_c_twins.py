@@ -481,6 +481,8 @@ def test_switched_linearization_at_a_table_node_takes_the_mean_slope_on_both_sid
                             load_conductance=1 / 6.0, load_current=2.0, previous_duty=0.25)
     grid = len(predictor.duty_grid) - 1
     assert 0.25 * grid == 64 and NODE_TOLERANCE / grid > 1e-12
+    header = (native.SOURCE_DIR / "predictors.h").read_text()  # one tolerance for both twins
+    assert float(re.search(r"#define BUCKC_SWITCHED_NODE_TOLERANCE (\S+)", header).group(1)) == NODE_TOLERANCE
     jacobians = {}
     for offset in (-3e-14, 0.0, 3e-14, -1e-3 / grid, 1e-3 / grid):
         moves = np.full(len(blocks), 0.25 + offset)
