@@ -83,11 +83,13 @@ def operation_counts(controller, evaluations: np.ndarray) -> dict[str, np.ndarra
 
 
 def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.ndarray,
-                         evaluations: np.ndarray) -> dict[str, np.ndarray]:
+                         evaluations: np.ndarray, reweighted: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Operations per step of a predictive controller with the real-time iteration, from the C code paths
     (``controllers/c``): where ``rti_steps`` is False the search planned (:func:`operation_counts` of its
     ``evaluations``); an RTI step does a fixed amount of work, counted at the most the code can do except
-    for the box QP, whose iterations are read off the step:
+    for the box QP, whose iterations are read off the step, and the reweightings, read off the step too
+    (``reweighted``: the reweighted box QPs per step; None counts the most, ``iterations`` x
+    :attr:`~controllers.predictive.RtiSettings.reweightings`):
 
     * ``iterations`` linearisations of the NN over the horizon (``nn_model.c``, buckc_nn_sensitivities), or with
       :attr:`~controllers.predictive.RtiSettings.reuse_jacobian` one, and a rollout of each further step's trial
@@ -95,9 +97,12 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
     * without the line search (:attr:`~controllers.predictive.RtiSettings.line_search`) the plan's first
       state (one network evaluation); with it one rollout of the last trial over the horizon, and one more
       where a duty quantum may round the plan;
-    * the costs of each evaluated trajectory (4 MACs and two square roots per step), the Gauss-Newton model
-      ``iterations`` times (nb (nb + 1) + 3 nb MACs -- the Hessian's upper triangle, mirrored -- one square root
-      and one division per step), and the box QP
+    * with the line search the costs of each evaluated trajectory (4 MACs and two square roots per step; without
+      it none: they would decide nothing), the Gauss-Newton model
+      ``iterations`` times (c (c + 1) + 3 c MACs at a step with c = block + 1 blocks it depends on -- the Hessian's
+      upper triangle, mirrored, and the gradient; causality leaves the later blocks' zeros out -- one square root
+      and one division per step), once more per reweighting after the linear prediction y_j + J_j delta (2 c MACs
+      per step), and the box QP
       (per iteration H x, a Cholesky of at most nb x nb, two triangular solves: 2 nb^2 + nb^3 / 6 MACs and nb
       square roots).
 
@@ -125,20 +130,24 @@ def rti_operation_counts(controller, rti_steps: np.ndarray, qp_iterations: np.nd
         rollouts = 1 + (1 if rti.duty_resolution else 0)  # the last trial's, and the rounded plan's
         steps_evaluated, trajectories = rollouts * horizon, iterations + rollouts
     else:
-        steps_evaluated, trajectories = 1, iterations  # the plan's first state; costs of the linearisations only
+        steps_evaluated, trajectories = 1, 0  # the plan's first state; no costs
     linearizations = 1 if rti.reuse_jacobian else iterations
     rollouts = iterations - linearizations  # the trials of the steps that reuse the first step's sensitivities
     macs_rollout = float(operation_counts(controller, np.ones(1))["macs"][0]) - 3 * horizon  # its cost counted below
-    macs_model = horizon * (nb * (nb + 1) + 3 * nb)
+    active = blocks + 1  # the blocks each step depends on
+    macs_model = float(np.sum(active * (active + 1) + 3 * active))
+    sweeps = (np.full(len(rti_steps), iterations * rti.reweightings, dtype=float) if reweighted is None
+              else np.asarray(reweighted, dtype=float))
+    models = iterations + sweeps  # the Gauss-Newton models, the reweighted ones included
     qp = np.asarray(qp_iterations, dtype=float) * (2 * nb * nb + nb ** 3 / 6.0)
     per_step = (linearizations * macs_linearize + rollouts * macs_rollout + steps_evaluated * forward
-                + iterations * macs_model + trajectories * 4 * horizon)
+                + models * macs_model + sweeps * 2 * float(np.sum(active)) + trajectories * 4 * horizon)
     tanh = sum(hidden)
     return {"macs": np.where(rti_steps, per_step + qp, search["macs"]),
             "tanh": np.where(rti_steps, (iterations * horizon + steps_evaluated) * tanh, search["tanh"]),
-            "sqrt": np.where(rti_steps, trajectories * 2 * horizon + iterations * horizon + qp_iterations * nb,
+            "sqrt": np.where(rti_steps, trajectories * 2 * horizon + models * horizon + qp_iterations * nb,
                              search["sqrt"]),
-            "division": np.where(rti_steps, iterations * horizon, 0.0),
+            "division": np.where(rti_steps, models * horizon, 0.0),
             "candidates": np.where(rti_steps, iterations + (1 if rti.line_search else 0), search["candidates"]),
             "qp_iterations": np.where(rti_steps, np.asarray(qp_iterations, dtype=float), 0.0)}
 

@@ -435,8 +435,9 @@ class PredictorConfig(ctypes.Structure):
 
 class RtiSettingsC(ctypes.Structure):
     _fields_ = [("enabled", c_int), ("iterations", c_int), ("line_search", c_int), ("reuse_jacobian", c_int),
-                ("smoothing", c_double),
+                ("reweightings", c_int), ("smoothing", c_double),
                 ("step_limit", c_double), ("regularization", c_double), ("move_damping", c_double),
+                ("reweighting_tolerance", c_double),
                 ("qp_iterations", c_int),
                 ("reference_step", c_double), ("load_step", c_double), ("innovation", c_double),
                 ("startup_region", c_double), ("error_region", c_double), ("duty_resolution", c_double)]
@@ -456,6 +457,7 @@ class PredictiveState(ctypes.Structure):
                 ("best_cost", c_double),
                 ("evaluations", c_int), ("passes", c_int), ("best_call", c_int), ("best_row", c_int),
                 ("last_solver", c_int), ("last_fallback", c_int), ("qp_iterations", c_int), ("accepted", c_int),
+                ("reweighted", c_int),
                 ("warm_before_valid", c_int), ("warm_before", _array(c_double, MAX_HORIZON)), ("anchor", c_double)]
 
 
@@ -641,10 +643,12 @@ def rti_config(settings, owner: str) -> RtiSettingsC:
     c.iterations = settings.iterations
     c.line_search = int(settings.line_search)
     c.reuse_jacobian = int(settings.reuse_jacobian)
+    c.reweightings = settings.reweightings
     c.smoothing = settings.smoothing
     c.step_limit = settings.step_limit
     c.regularization = settings.regularization
     c.move_damping = settings.move_damping
+    c.reweighting_tolerance = settings.reweighting_tolerance
     c.qp_iterations = settings.qp_iterations
     c.reference_step = settings.reference_step
     c.load_step = settings.load_step

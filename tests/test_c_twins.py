@@ -503,11 +503,12 @@ def test_switched_linearization_at_a_table_node_takes_the_mean_slope_on_both_sid
 def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     controller = with_rti(PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS, HorizonSettings(horizon=23),
                                                **OPERATING_POINT), RtiSettings(iterations=3, smoothing=0.02,
-                                                                                move_damping=0.125))
+                                                                                move_damping=0.125, reweightings=2,
+                                                                                reweighting_tolerance=0.01))
     twin = native.NativePredictiveController.from_python(controller)
     rti = twin.config.rti
-    assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit, rti.move_damping) == \
-        (1, 3, 0.02, RtiSettings().step_limit, 0.125)
+    assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit, rti.move_damping, rti.reweightings,
+            rti.reweighting_tolerance) == (1, 3, 0.02, RtiSettings().step_limit, 0.125, 2, 0.01)
     assert native.NativePredictiveController.from_python(with_rti(controller, search=True)).rti is None
     config = native.PredictiveConfig()
     ctypes.pointer(config)[0] = twin.config
@@ -523,6 +524,16 @@ def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     config.rti.error_region, config.rti.reuse_jacobian = 0.0, 2
     with pytest.raises(ValueError, match="rti reuse_jacobian: expected 0 or 1"):
         native.NativePredictiveController(config, "bad")
+    config.rti.reuse_jacobian, config.rti.reweightings = 0, 4
+    with pytest.raises(ValueError, match="rti reweightings: expected 0, 1, 2 or 3"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.reweightings, config.rti.line_search = 1, 1
+    with pytest.raises(ValueError, match="rti reweightings: expected 0 with the line search"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.line_search, config.rti.reweighting_tolerance = 0, -0.1
+    with pytest.raises(ValueError, match="rti reweighting_tolerance: expected 0 <= tolerance < 1"):
+        native.NativePredictiveController(config, "bad")
+    config.rti.reweighting_tolerance, config.rti.reweightings = 0.0, 0
     config.rti.reuse_jacobian = 1
     config.rti.iterations, config.horizon.n_blocks = 2, 9
     config.horizon.blocks[:9] = [1, 1, 1, 1, 1, 1, 1, 1, 15]

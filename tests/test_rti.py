@@ -4,6 +4,7 @@ optimizer ablation of the study."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -266,6 +267,35 @@ def test_reusing_the_first_jacobian_linearises_once_and_on_a_linear_model_plans_
     assert not np.allclose(plans[True], 0.1)
 
 
+def test_reweightings_lower_the_linearised_cost_without_a_new_linearisation_and_stop_at_their_tolerance():
+    """RtiSettings.reweightings on the averaged (linear) model, whose linearisation is exact: from a poor plan one
+    step's smoothed cost falls with each reweighting (each QP minimises a quadratic that touches the cost from above
+    at the current point), the step linearises once whatever their number, and a tolerance above the first QP's
+    step leaves none (the plan of no reweighting, bit for bit)."""
+    settings, predictor, ctx, weights, target, _ = convex_problem()
+    smoothed, plans = [], {}
+    for k, tolerance in ((0, 0.0), (1, 0.0), (2, 0.0), (3, 0.0), (3, 0.99)):
+        optimizer = RealTimeIteration(RtiSettings(reweightings=k, reweighting_tolerance=tolerance, step_limit=1.0),
+                                      settings, (0.1, 0.6), weights)
+        calls = []
+
+        def linearize(duties, optimizer=optimizer, calls=calls):
+            calls.append(duties)
+            return predictor.linearize(ctx, duties, np.zeros(2), optimizer.block_of_step, 3)
+
+        def evaluate(duties):
+            return predictor.rollout(ctx, duties[None], np.zeros(2))[0]
+
+        plan, _, _ = optimizer.solve(linearize, evaluate, target, np.full(6, 0.1), 0.1)
+        assert len(calls) == 1 and optimizer.reweighted == (k if tolerance == 0 else 0)
+        plans[k, tolerance] = plan
+        if tolerance == 0:
+            smoothed.append(optimizer.costs(evaluate(plan), target)[0])
+    assert all(later <= earlier * (1 + 1e-12) for earlier, later in itertools.pairwise(smoothed)), smoothed
+    assert smoothed[3] < 0.99 * smoothed[0]  # they move the plan, not by rounding
+    np.testing.assert_array_equal(plans[3, 0.99], plans[0, 0.0])
+
+
 def test_move_damping_adds_a_proximal_term_on_the_first_move_only():
     """The quadratic model with move damping rho is the undamped one plus rho m on H[0, 0] and
     rho m (u_0 - d_prev) on g[0], m = mean(diag H) before the Levenberg-Marquardt term; no other entry moves."""
@@ -418,6 +448,12 @@ def test_the_search_plans_the_start_up_until_the_output_first_comes_within_the_r
         RtiSettings(startup_region=-1.0)
     with pytest.raises(ValueError, match="RTI duty_resolution = 1.0 is invalid"):
         RtiSettings(duty_resolution=1.0)
+    with pytest.raises(ValueError, match="RTI reweightings = 4 is invalid: expected 0, 1, 2 or 3"):
+        RtiSettings(reweightings=4)
+    with pytest.raises(ValueError, match="RTI reweightings = 1 with line_search is refused"):
+        RtiSettings(reweightings=1, line_search=True)
+    with pytest.raises(ValueError, match="RTI reweighting_tolerance = 1.0 is invalid"):
+        RtiSettings(reweighting_tolerance=1.0)
 
 
 def fallback_reasons(predictor, settings: RtiSettings, run: list[Measurement]) -> tuple[list[str], list[str]]:

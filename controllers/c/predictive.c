@@ -435,6 +435,12 @@ int buckc_predictive_init(BuckcPredictive *c, const BuckcPredictiveConfig *confi
             FAIL(BUCKC_ERR_INVALID, "rti line_search: expected 0 or 1");
         if (r->reuse_jacobian != 0 && r->reuse_jacobian != 1)
             FAIL(BUCKC_ERR_INVALID, "rti reuse_jacobian: expected 0 or 1");
+        if (r->reweightings < 0 || r->reweightings > 3)
+            FAIL(BUCKC_ERR_INVALID, "rti reweightings: expected 0, 1, 2 or 3");
+        if (r->reweightings > 0 && r->line_search)
+            FAIL(BUCKC_ERR_INVALID, "rti reweightings: expected 0 with the line search");
+        if (!(r->reweighting_tolerance >= ZERO && r->reweighting_tolerance < ONE))
+            FAIL(BUCKC_ERR_INVALID, "rti reweighting_tolerance: expected 0 <= tolerance < 1");
         if (!(r->reference_step >= ZERO && isfinite(r->reference_step)) || !(r->load_step >= ZERO && isfinite(r->load_step))
             || !(r->innovation >= ZERO && isfinite(r->innovation))
             || !(r->startup_region >= ZERO && isfinite(r->startup_region))
@@ -609,9 +615,13 @@ static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, con
         buckc_real e0 = predicted[2 * j] - c->target[0], e1 = predicted[2 * j + 1] - c->target[1];
         buckc_real s = BUCKC_SQRT(e0 * e0 + e1 * e1 + eps * eps), weight = c->weights[j] / s;
         const buckc_real *j0 = jacobian + (2 * j) * nb, *j1 = jacobian + (2 * j + 1) * nb;
-        for (a = 0; a < nb; ++a) {
+        /* causality: step j's state does not depend on the blocks after its own (their Jacobian columns are zeros,
+         * as every predictor's linearisation writes them), whose terms would add +-0 to each sum: left out, the
+         * sums are the same bits */
+        int active = c->optimizer.block_of_step[j] + 1;
+        for (a = 0; a < active; ++a) {
             gradient[a] += (j0[a] * e0 + j1[a] * e1) * weight;
-            for (b = a; b < nb; ++b) /* the upper triangle: the lower one is the same products (mirrored below) */
+            for (b = a; b < active; ++b) /* the upper triangle: the lower one is the same products (mirrored below) */
                 hessian[a][b] += weight * (j0[a] * j0[b] + j1[a] * j1[b]);
         }
     }
@@ -645,8 +655,10 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
     const BuckcRtiSettings *st = &c->config->rti;
     const BuckcOptimizer *o = &c->optimizer;
     BuckcPredictiveState *state = &c->state;
-    int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration, rolled_out = 1;
+    int nb = o->n_blocks, horizon = o->settings.horizon, b, iteration, sweep, rolled_out = 1;
     buckc_real u[BUCKC_QP_MAX_VARIABLES], trial[BUCKC_QP_MAX_VARIABLES], delta[BUCKC_QP_MAX_VARIABLES];
+    buckc_real step[BUCKC_QP_MAX_VARIABLES], shifted_lower[BUCKC_QP_MAX_VARIABLES];
+    buckc_real shifted_upper[BUCKC_QP_MAX_VARIABLES], linear[BUCKC_MAX_HORIZON * 2];
     buckc_real lower[BUCKC_QP_MAX_VARIABLES], upper[BUCKC_QP_MAX_VARIABLES], gradient[BUCKC_QP_MAX_VARIABLES];
     buckc_real hessian[BUCKC_QP_MAX_VARIABLES][BUCKC_QP_MAX_VARIABLES];
     buckc_real duties[BUCKC_MAX_HORIZON], predicted[BUCKC_MAX_HORIZON * 2], trial_predicted[BUCKC_MAX_HORIZON * 2];
@@ -661,9 +673,12 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
     }
     expand(o, u, duties);
     linearize(c, duties, predicted, jacobian);
-    rti_costs(c, predicted, &smoothed, &exact);
+    if (st->line_search) /* without it the costs decide nothing and the plan's is NaN: not computed */
+        rti_costs(c, predicted, &smoothed, &exact);
+    else
+        smoothed = exact = NAN;
     rti_model(c, predicted, jacobian, u[0] - state->previous_duty, gradient, hessian);
-    state->qp_iterations = state->accepted = 0;
+    state->qp_iterations = state->accepted = state->reweighted = 0;
     for (iteration = 0; iteration < st->iterations; ++iteration) {
         buckc_real trial_smoothed, trial_exact;
         int final = iteration + 1 == st->iterations;
@@ -674,6 +689,34 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
         }
         state->qp_iterations += buckc_box_qp(nb, &hessian[0][0], BUCKC_QP_MAX_VARIABLES, gradient, lower, upper,
                                              st->qp_iterations, delta, NULL);
+        memcpy(step, delta, sizeof(buckc_real) * (size_t)nb); /* the last QP's step */
+        for (sweep = 0; sweep < st->reweightings; ++sweep) { /* the same linearisation, reweighted at its errors */
+            buckc_real largest = ZERO;
+            int j;
+            for (b = 0; b < nb; ++b) /* np.max(np.abs(last)): NaN does not stop it */
+                if (BUCKC_FABS(step[b]) > largest || isnan(step[b]))
+                    largest = BUCKC_FABS(step[b]);
+            if (largest <= st->reweighting_tolerance)
+                break;
+            state->reweighted += 1;
+            for (j = 0; j < 2 * horizon; ++j) { /* predicted + J delta, block by block (as the Python twin), the
+                                                   * active blocks (rti_model says why) */
+                buckc_real v = predicted[j];
+                int active = o->block_of_step[j / 2] + 1;
+                for (b = 0; b < active; ++b)
+                    v += jacobian[j * nb + b] * delta[b];
+                linear[j] = v;
+            }
+            rti_model(c, linear, jacobian, u[0] + delta[0] - state->previous_duty, gradient, hessian);
+            for (b = 0; b < nb; ++b) {
+                shifted_lower[b] = lower[b] - delta[b];
+                shifted_upper[b] = upper[b] - delta[b];
+            }
+            state->qp_iterations += buckc_box_qp(nb, &hessian[0][0], BUCKC_QP_MAX_VARIABLES, gradient, shifted_lower,
+                                                 shifted_upper, st->qp_iterations, step, NULL);
+            for (b = 0; b < nb; ++b)
+                delta[b] = delta[b] + step[b];
+        }
         for (b = 0; b < nb; ++b) {
             buckc_real v = u[b] + delta[b];
             if (v < o->low) v = o->low;
@@ -691,7 +734,10 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
             predict(c, duties, horizon, trial_predicted);
         else
             linearize(c, duties, trial_predicted, jacobian);
-        rti_costs(c, trial_predicted, &trial_smoothed, &trial_exact);
+        if (st->line_search)
+            rti_costs(c, trial_predicted, &trial_smoothed, &trial_exact);
+        else
+            trial_smoothed = trial_exact = NAN;
         if (!st->line_search || trial_smoothed <= smoothed * BUCKC_RTI_ACCEPT_TOLERANCE) {
             memcpy(u, trial, sizeof(buckc_real) * (size_t)nb);
             memcpy(predicted, trial_predicted, sizeof(buckc_real) * 2 * (size_t)horizon);
@@ -864,7 +910,7 @@ int buckc_predictive_step(BuckcPredictive *c, const BuckcMeasurement *m, buckc_r
         s->passes = c->optimizer.passes;
         s->best_call = c->optimizer.best_call;
         s->best_row = c->optimizer.best_row;
-        s->qp_iterations = s->accepted = 0;
+        s->qp_iterations = s->accepted = s->reweighted = 0;
     }
     s->last_fallback = fallback;
     /* the model's own one-step prediction (the disturbance is added after each step) */

@@ -102,10 +102,12 @@ typedef struct {
     int iterations;            /* Gauss-Newton steps per sample, 1..3 */
     int line_search;           /* 1: roll each trial out, take it if not worse; 0: take every step, the last unevaluated */
     int reuse_jacobian;        /* 1: the steps after the first keep the first step's sensitivities (a rollout each) */
+    int reweightings;          /* box QPs after each step's first on its linearisation, reweighted there, 0..3 at most */
     buckc_real smoothing;          /* eps [V] of BUCKC_SQRT(|e|^2 + eps^2) */
     buckc_real step_limit;         /* trust region [duty], 0 < r <= 1 */
     buckc_real regularization;     /* mu = this x mean(diag H) + 1e-12 */
     buckc_real move_damping;       /* rho: + (rho mean(diag H) / 2)(u_0 - d_prev)^2 in each step's model, 0 <= rho < 1 */
+    buckc_real reweighting_tolerance; /* [duty] no reweighting once the last QP moved no block by more (0: all) */
     int qp_iterations;         /* the box QP's active-set iterations, at most */
     buckc_real reference_step;     /* [V] fallback when the reference moves more than this, */
     buckc_real load_step;          /* the load-conductance estimate more than this fraction, */
@@ -172,6 +174,7 @@ typedef struct {
     int last_solver;                        /* BUCKC_SOLVER_... */
     int last_fallback;                      /* BUCKC_FALLBACK_... (with the RTI enabled) */
     int qp_iterations, accepted;            /* the RTI's box-QP iterations and accepted steps */
+    int reweighted;                         /* the RTI's reweighted box QPs (RtiSettings.reweightings) */
     /* the last step's problem, for buckc_predictive_search_last (the context stays in BuckcPredictive) */
     int warm_before_valid;
     buckc_real warm_before[BUCKC_MAX_HORIZON];

@@ -87,6 +87,7 @@ class Replay:
     rti: np.ndarray  # True where the real-time iteration planned the step, last pass
     qp_iterations: np.ndarray  # the RTI's box-QP iterations per step, last pass
     updated: np.ndarray  # True where the adaptive NNPC's RLS updated its output layer in the step, last pass
+    reweighted: np.ndarray  # the RTI's reweighted box QPs per step (RtiSettings.reweightings), last pass
 
 
 def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:
@@ -103,4 +104,4 @@ def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:
     last = table[-len(measurements):]
     return Replay(ns=table[:, 0], duty=last[:, 1], evaluations=last[:, 2].astype(int),
                   passes=last[:, 3].astype(int), rti=last[:, 4] == 1, qp_iterations=last[:, 5].astype(int),
-                  updated=last[:, 6] == 1)
+                  updated=last[:, 6] == 1, reweighted=last[:, 7].astype(int))

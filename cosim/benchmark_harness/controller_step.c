@@ -57,9 +57,9 @@ int main(int argc, char **argv) {
     double *duties = (double *)malloc((total + 1) * sizeof(double));
     int *evaluations = (int *)malloc((total + 1) * sizeof(int)), *passes = (int *)malloc((total + 1) * sizeof(int));
     int *solvers = (int *)malloc((total + 1) * sizeof(int)), *qp = (int *)malloc((total + 1) * sizeof(int));
-    int *updated = (int *)malloc((total + 1) * sizeof(int));
+    int *updated = (int *)malloc((total + 1) * sizeof(int)), *reweighted = (int *)malloc((total + 1) * sizeof(int));
     if (ns == NULL || duties == NULL || evaluations == NULL || passes == NULL || solvers == NULL || qp == NULL
-        || updated == NULL)
+        || updated == NULL || reweighted == NULL)
         return 2;
     const char *what = NULL;
 #ifdef ADAPTIVE_CONTROLLER
@@ -120,6 +120,7 @@ int main(int argc, char **argv) {
             passes[i] = predictive_kind ? s->passes : 0;
             solvers[i] = predictive_kind ? s->last_solver : 0;
             qp[i] = predictive_kind ? s->qp_iterations : 0;
+            reweighted[i] = predictive_kind ? s->reweighted : 0;
 #ifdef ADAPTIVE_CONTROLLER
             updated[i] = counters[BUCKC_ADAPT_UPDATES] > updates;
 #else
@@ -128,8 +129,8 @@ int main(int argc, char **argv) {
         }
     }
     for (size_t i = 0; i < total; ++i)
-        printf("%lld %.17g %d %d %d %d %d\n", ns[i], duties[i], evaluations[i], passes[i], solvers[i], qp[i],
-               updated[i]);
+        printf("%lld %.17g %d %d %d %d %d %d\n", ns[i], duties[i], evaluations[i], passes[i], solvers[i], qp[i],
+               updated[i], reweighted[i]);
     free(m);
     free(ns);
     free(duties);
@@ -138,5 +139,6 @@ int main(int argc, char **argv) {
     free(solvers);
     free(qp);
     free(updated);
+    free(reweighted);
     return 0;
 }

@@ -78,7 +78,8 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             if not online:
                 continue
             if rti:
-                counts = rti_operation_counts(controller, result.rti, result.qp_iterations, result.evaluations)
+                counts = rti_operation_counts(controller, result.rti, result.qp_iterations, result.evaluations,
+                                              result.reweighted)
             else:
                 counts = operation_counts(controller, result.evaluations)
             cycles = cortex_m4f_cycles(counts)

@@ -280,8 +280,9 @@ def _online_nnpc_rows(period: float, quick: bool) -> list[BenchRow]:
 
 
 def _rti_diagnostics(controller, measurements):
-    """(box-QP iterations, candidate evaluations) per step of the double C twin on ``measurements``."""
+    """(box-QP iterations, candidate evaluations, reweighted box QPs) per step of the double C twin on
+    ``measurements``."""
     from cosim.benchmark_harness import replay
 
     result = replay(controller, measurements, repeats=1)
-    return result.qp_iterations, result.evaluations
+    return result.qp_iterations, result.evaluations, result.reweighted

@@ -32,6 +32,7 @@ class _CountingTwin:
         self.evaluations: list[int] = []
         self.rti: list[bool] = []
         self.qp_iterations: list[int] = []
+        self.reweighted: list[int] = []
 
     def reset(self):
         self.twin.reset()
@@ -42,6 +43,7 @@ class _CountingTwin:
         self.evaluations.append(int(state.evaluations))
         self.rti.append(self.twin.last_solver == "rti")
         self.qp_iterations.append(int(state.qp_iterations))
+        self.reweighted.append(int(state.reweighted))
         return duty
 
     def describe(self):
@@ -59,7 +61,7 @@ def count_nnpc_operations(model_path: Path, period: float, scenario_names) -> di
         simulate(binding, counting, scenario, record_period=period)
     if controller.rti is not None:
         counts = rti_operation_counts(controller, np.array(counting.rti), np.array(counting.qp_iterations),
-                                      np.array(counting.evaluations))
+                                      np.array(counting.evaluations), np.array(counting.reweighted))
     else:
         counts = operation_counts(controller, np.array(counting.evaluations))
     counts["cycles"] = cortex_m4f_cycles(counts)
