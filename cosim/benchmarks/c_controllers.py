@@ -39,6 +39,9 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
             # the ablation's variant (cosim.study.optimizer_ablation.TWO_STEPS): what a second Gauss-Newton step costs
             controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti"), **TWO_STEPS))
+            # the study's step without its reweightings (RtiSettings.reweightings): what they cost where they run
+            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, no reweightings)", optimizer="rti"),
+                                        reweightings=0))
             # the option the study does not take (RtiSettings.reuse_jacobian): a second step whose trial is rolled out
             # with the first step's sensitivities, not linearised again
             reused = nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti")
