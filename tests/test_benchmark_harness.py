@@ -100,7 +100,9 @@ def test_rti_tanh_counts_match_what_the_python_reference_evaluates(monkeypatch, 
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
     controller = nnpc(model, SWITCHING_PERIOD, optimizer="rti")
-    controller.rti = replace(controller.rti, line_search=line_search, iterations=iterations)
+    # (the study's reweightings are refused with the line search; they evaluate no tanh either way)
+    controller.rti = replace(controller.rti, line_search=line_search, iterations=iterations,
+                             reweightings=0 if line_search else controller.rti.reweightings)
     controller.rti_optimizer.settings = controller.rti
     counted = []
 
@@ -112,15 +114,16 @@ def test_rti_tanh_counts_match_what_the_python_reference_evaluates(monkeypatch, 
     proxy.tanh = counting_tanh
     monkeypatch.setattr(nn_model_module, "np", proxy)
     monkeypatch.setattr(model, "_activation", counting_tanh)  # the generic path's (two delays) activation
-    rti, qp, evaluations = [], [], []
+    rti, qp, evaluations, reweighted = [], [], [], []
     for k in range(6):
         counted.append(0)
         # within the start-up region's 0.1 V of the reference: the RTI plans every step after the cold start
         controller.step(Measurement(k * SWITCHING_PERIOD, 12.0, 11.95 + 0.01 * k, 2.0, 1.99, 48.0))
         rti.append(controller.last_solver == "rti")
         qp.append(controller.rti_optimizer.qp_iterations if rti[-1] else 0)
+        reweighted.append(controller.rti_optimizer.reweighted if rti[-1] else 0)
         evaluations.append(0 if rti[-1] else controller.optimizer.evaluations)
-    counts = rti_operation_counts(controller, np.array(rti), np.array(qp), np.array(evaluations))
+    counts = rti_operation_counts(controller, np.array(rti), np.array(qp), np.array(evaluations), np.array(reweighted))
     assert rti == [False] + [True] * 5
     np.testing.assert_array_equal(counts["tanh"], counted)
     hidden, horizon = model.config.hidden[0], 23
@@ -133,7 +136,7 @@ def test_rti_tanh_counts_match_what_the_python_reference_evaluates(monkeypatch, 
         # the same tanh, and per RTI step the same number of MACs more for the linearisation than for the rollout
         flipped = types.SimpleNamespace(rti=replace(controller.rti, reuse_jacobian=not controller.rti.reuse_jacobian),
                                         settings=controller.settings, predictor=controller.predictor)
-        other = rti_operation_counts(flipped, np.array(rti), np.array(qp), np.array(evaluations))
+        other = rti_operation_counts(flipped, np.array(rti), np.array(qp), np.array(evaluations), np.array(reweighted))
         np.testing.assert_array_equal(other["tanh"], counts["tanh"])
         extra = (other["macs"] - counts["macs"]) * (1 if controller.rti.reuse_jacobian else -1)
         assert extra[0] == 0 and np.all(extra[1:] == extra[1]) and extra[1] > 0

@@ -510,30 +510,21 @@ def test_rti_settings_reach_the_c_controller_and_bad_ones_are_refused_by_name():
     assert (rti.enabled, rti.iterations, rti.smoothing, rti.step_limit, rti.move_damping, rti.reweightings,
             rti.reweighting_tolerance) == (1, 3, 0.02, RtiSettings().step_limit, 0.125, 2, 0.01)
     assert native.NativePredictiveController.from_python(with_rti(controller, search=True)).rti is None
+    for changes, message in (({"iterations": 4}, "rti iterations: expected 1, 2 or 3"),
+                             ({"move_damping": 1.0}, "rti move_damping: expected 0 <= rho < 1"),
+                             ({"error_region": -1.0}, "rti fallback thresholds: expected >= 0"),
+                             ({"reuse_jacobian": 2}, "rti reuse_jacobian: expected 0 or 1"),
+                             ({"reweightings": 4}, "rti reweightings: expected 0, 1, 2 or 3"),
+                             ({"reweightings": 1, "line_search": 1}, "rti reweightings: expected 0 with the line"),
+                             ({"reweighting_tolerance": -0.1}, "rti reweighting_tolerance: expected 0 <= tolerance")):
+        config = native.PredictiveConfig()
+        ctypes.pointer(config)[0] = twin.config
+        for field, value in changes.items():
+            setattr(config.rti, field, value)
+        with pytest.raises(ValueError, match=message):
+            native.NativePredictiveController(config, "bad")
     config = native.PredictiveConfig()
     ctypes.pointer(config)[0] = twin.config
-    config.rti.iterations = 4
-    with pytest.raises(ValueError, match="rti iterations: expected 1, 2 or 3"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.iterations, config.rti.move_damping = 2, 1.0
-    with pytest.raises(ValueError, match="rti move_damping: expected 0 <= rho < 1"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.move_damping, config.rti.error_region = 0.0, -1.0
-    with pytest.raises(ValueError, match="rti fallback thresholds: expected >= 0"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.error_region, config.rti.reuse_jacobian = 0.0, 2
-    with pytest.raises(ValueError, match="rti reuse_jacobian: expected 0 or 1"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.reuse_jacobian, config.rti.reweightings = 0, 4
-    with pytest.raises(ValueError, match="rti reweightings: expected 0, 1, 2 or 3"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.reweightings, config.rti.line_search = 1, 1
-    with pytest.raises(ValueError, match="rti reweightings: expected 0 with the line search"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.line_search, config.rti.reweighting_tolerance = 0, -0.1
-    with pytest.raises(ValueError, match="rti reweighting_tolerance: expected 0 <= tolerance < 1"):
-        native.NativePredictiveController(config, "bad")
-    config.rti.reweighting_tolerance, config.rti.reweightings = 0.0, 0
     config.rti.reuse_jacobian = 1
     config.rti.iterations, config.horizon.n_blocks = 2, 9
     config.horizon.blocks[:9] = [1, 1, 1, 1, 1, 1, 1, 1, 15]

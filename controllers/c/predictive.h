@@ -102,7 +102,7 @@ typedef struct {
     int iterations;            /* Gauss-Newton steps per sample, 1..3 */
     int line_search;           /* 1: roll each trial out, take it if not worse; 0: take every step, the last unevaluated */
     int reuse_jacobian;        /* 1: the steps after the first keep the first step's sensitivities (a rollout each) */
-    int reweightings;          /* box QPs after each step's first on its linearisation, reweighted there, 0..3 at most */
+    int reweightings;          /* at most this many more box QPs on each step's linearisation, reweighted, 0..3 */
     buckc_real smoothing;          /* eps [V] of BUCKC_SQRT(|e|^2 + eps^2) */
     buckc_real step_limit;         /* trust region [duty], 0 < r <= 1 */
     buckc_real regularization;     /* mu = this x mean(diag H) + 1e-12 */

@@ -5,7 +5,8 @@ and a cycle estimate for a 170 MHz Cortex-M4F.
   what it measured at every sample;
 * :func:`replay` compiles ``controller_step.c`` with the controller's generated header (the same
   sources as its FMU), replays the measurements through the C step and returns ns per step, the
-  duty and the optimizer's candidate evaluations;
+  duty and the optimizer's candidate evaluations; :func:`replay_interleaved` times several controllers
+  pass by pass in turn, so that a machine whose speed drifts slows each of them alike;
 * :func:`~controllers.cost_model.operation_counts` (re-exported here) turns candidate evaluations
   into multiply-accumulates, activations (tanh) and square roots per step -- exact for the code
   paths of ``controllers/c`` -- and :func:`~controllers.cost_model.cortex_m4f_cycles` into cycles
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import subprocess
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,24 @@ class Replay:
     qp_iterations: np.ndarray  # the RTI's box-QP iterations per step, last pass
     updated: np.ndarray  # True where the adaptive NNPC's RLS updated its output layer in the step, last pass
     reweighted: np.ndarray  # the RTI's reweighted box QPs per step (RtiSettings.reweightings), last pass
+
+
+def replay_interleaved(jobs, passes: int) -> list[Replay]:
+    """Time the C steps of several ``(controller, measurements)`` jobs in turn, one pass of each, ``passes``
+    times -- job 1's pass, job 2's, ..., then the next round -- each pass in its own harness process after an
+    untimed warm-up pass over the same measurements. One controller's passes then span the same stretch of time
+    as the others': a shared VM whose speed steps between two levels for seconds at a time (measured here: the
+    same step 5 us or 10 us by the minute) slows each job alike, and a ratio between jobs is one of the same
+    conditions, which replaying one controller's passes after another's does not give. Each result has ns of all
+    ``passes`` (pass-major, as :func:`replay`'s) and the last pass's diagnostics."""
+    timed: list[list[np.ndarray]] = [[] for _ in jobs]
+    last: list[Replay | None] = [None] * len(jobs)
+    for _ in range(passes):
+        for index, (controller, measurements) in enumerate(jobs):
+            result = replay(controller, measurements, repeats=2)
+            timed[index].append(result.ns[len(measurements):])
+            last[index] = result
+    return [replace(result, ns=np.concatenate(ns)) for result, ns in zip(last, timed)]
 
 
 def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:

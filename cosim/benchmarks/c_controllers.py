@@ -12,14 +12,15 @@ from cosim.study.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWIT
 
 def bench_c_controllers(quick: bool) -> list[BenchRow]:
     """ns per step of the C PI and NNPC (the FMU's sources, controllers/c + the generated header)
-    replaying recorded closed-loop measurements, next to the Python controller on the same inputs;
-    the NNPC's operations counted and a Cortex-M4F cycle estimate (cosim.benchmark_harness)."""
+    replaying recorded closed-loop measurements, next to the Python controller on the same inputs (the C steps of
+    one rate's controllers timed pass by pass in turn: replay_interleaved); the NNPC's operations counted and a
+    Cortex-M4F cycle estimate (cosim.benchmark_harness)."""
     from cosim.benchmark_harness import (
         CORTEX_M4F,
         cortex_m4f_cycles,
         operation_counts,
         record_measurements,
-        replay,
+        replay_interleaved,
         rti_operation_counts,
     )
     from cosim.study.experiments import implemented, model_mpc, nnpc
@@ -46,9 +47,12 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
             # with the first step's sensitivities, not linearised again
             reused = nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti")
             controllers.append(with_rti(reused, **TWO_STEPS, reuse_jacobian=True))
-        for controller in controllers:
-            measurements = record_measurements(binding, implemented(controller), scenario)
-            result = replay(controller, measurements, repeats=1 if quick else REPLAY_PASSES)
+        # each controller's own closed loop, then their C steps timed pass by pass in turn (replay_interleaved: the
+        # variants' ratios under the same machine conditions)
+        recorded = [(controller, record_measurements(binding, implemented(controller), scenario))
+                    for controller in controllers]
+        replays = replay_interleaved(recorded, 1 if quick else REPLAY_PASSES)
+        for (controller, measurements), result in zip(recorded, replays):
             c_p50, c_p99, py_p50, py_p99 = _c_and_python_step_us(controller, measurements, result)
             budget = period * 1e6
             online = controller.name.startswith(NNPC)
