@@ -577,10 +577,10 @@ def test_horizon_settings_above_the_c_maxima_are_refused_by_name():
 
 def python_path(controller: PredictiveController) -> tuple:
     """Which optimizer planned the last step and how: the search's evaluations, passes and winning
-    candidate, or the RTI's box-QP iterations and accepted steps (with the fallback reason)."""
+    candidate, or the RTI's box-QP iterations, accepted steps and reweighted QPs (with the fallback reason)."""
     if controller.rti is not None and controller.last_solver == "rti":
         o = controller.rti_optimizer
-        return ("rti", controller.last_fallback, o.qp_iterations, o.accepted)
+        return ("rti", controller.last_fallback, o.qp_iterations, o.accepted, o.reweighted)
     o = controller.optimizer
     return ("search", controller.last_fallback, o.evaluations, o.passes, o.best_location)
 
@@ -588,7 +588,7 @@ def python_path(controller: PredictiveController) -> tuple:
 def c_path(twin) -> tuple:
     s = twin.state
     if twin.last_solver == "rti":
-        return ("rti", twin.last_fallback, s.qp_iterations, s.accepted)
+        return ("rti", twin.last_fallback, s.qp_iterations, s.accepted, s.reweighted)
     return ("search", twin.last_fallback, s.evaluations, s.passes, (s.best_call, s.best_row))
 
 
