@@ -689,7 +689,8 @@ static buckc_real rti_solve(BuckcPredictive *c, const buckc_real *warm, buckc_re
         }
         state->qp_iterations += buckc_box_qp(nb, &hessian[0][0], BUCKC_QP_MAX_VARIABLES, gradient, lower, upper,
                                              st->qp_iterations, delta, NULL);
-        memcpy(step, delta, sizeof(buckc_real) * (size_t)nb); /* the last QP's step */
+        if (st->reweightings > 0) /* the last QP's step, which the reweightings' stop rule reads */
+            memcpy(step, delta, sizeof(buckc_real) * (size_t)nb);
         for (sweep = 0; sweep < st->reweightings; ++sweep) { /* the same linearisation, reweighted at its errors */
             buckc_real largest = ZERO;
             int j;

@@ -103,10 +103,16 @@ def replay_interleaved(jobs, passes: int) -> list[Replay]:
     last: list[Replay | None] = [None] * len(jobs)
     for _ in range(passes):
         for index, (controller, measurements) in enumerate(jobs):
-            result = replay(controller, measurements, repeats=2)
-            timed[index].append(result.ns[len(measurements):])
-            last[index] = result
+            last[index] = replay_warm(controller, measurements, 1)
+            timed[index].append(last[index].ns)
     return [replace(result, ns=np.concatenate(ns)) for result, ns in zip(last, timed)]
+
+
+def replay_warm(controller, measurements: np.ndarray, passes: int, warm_up: bool = True) -> Replay:
+    """:func:`replay` of ``passes`` timed passes after an untimed warm-up pass over the same measurements (in
+    the same harness process; ``warm_up=False``: none); ns holds the timed passes only."""
+    result = replay(controller, measurements, repeats=passes + (1 if warm_up else 0))
+    return replace(result, ns=result.ns[len(measurements) if warm_up else 0:])
 
 
 def replay(controller, measurements: np.ndarray, repeats: int = 3) -> Replay:

@@ -17,7 +17,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     own closed loop's measurements, one pass before do-mpc's closed loop and two after it, so that its passes
     span do-mpc's solves on a machine whose speed drifts; do-mpc's solve timed in-process), IAE and the eq. 16
     cost of the plans."""
-    from cosim.benchmark_harness import Recorder, replay
+    from cosim.benchmark_harness import Recorder, replay_warm
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.study.dompc_peer import DoMpcNnpc
@@ -42,7 +42,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         twin = Recorder(PlanCosts(implemented(rti), _rti_plan_cost))  # one closed loop: its costs and the
         result_rti = simulate(binding, twin, scenario, record_period=period)  # measurements the harness replays
         measurements = np.array(twin.rows, dtype=float)
-        before = replay(rti, measurements, repeats=1 if quick else 2)  # the first pass warms up, untimed
+        before = replay_warm(rti, measurements, 1, warm_up=not quick)
         peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
         costed_peer = PlanCosts(peer, lambda solver: solver.best_cost)
         result_peer = simulate(binding, costed_peer, scenario, record_period=period)
@@ -51,8 +51,8 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         plain = with_rti(nnpc(model, period, NNPC, optimizer="rti"), reweightings=0)
         iae_plain = run_metrics(simulate(binding, implemented(plain), scenario, record_period=period))["iae_Vs"]
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
-        timed = replay(rti, measurements, repeats=1 if quick else 3)  # after do-mpc: again a warm-up and two passes
-        c_ns = np.concatenate([before.ns[-len(measurements):], timed.ns[0 if quick else len(measurements):]]) * 1e-3
+        timed = replay_warm(rti, measurements, 1 if quick else 2, warm_up=not quick)  # after do-mpc's loop
+        c_ns = np.concatenate([before.ns, timed.ns]) * 1e-3
         reweighted_share = float(np.mean(timed.reweighted[timed.rti] > 0)) if timed.rti.any() else 0.0
         iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
         label = f"{scenario.name}, {period_text(period, ascii_only=True)}, nominal switched plant"

@@ -196,10 +196,12 @@ def default_optimizer(optimizer: str):
 #: option. Two reweightings of the step's QP where its step moves a block by more than 0.01 (RtiSettings.reweightings:
 #: the linearised cost's subproblem solved further, no new linearisation): with one QP, a load step's plan lagged
 #: do-mpc's converged one (closed-loop IAE 1.032 x do-mpc's, load change, nominal switched plant, seed 0's NNPC), with
-#: the two 1.004; they run at 0.5-1.0 % of the RTI samples of the paper's four scenarios there (the transients), so
-#: the step's median cost stays one QP's (at every sample they cost about 1.4 x one step's time in one replay). Every
-#: seed at 13.33 us (84 runs): IAE / search 0.32-1.010 against 0.44-1.019 without them; three reweightings gave 1.021
-#: (one run: nominal averaged plant, seed 4, reference down). Over the envelope they cost seeds 0-2 4-7 points of the
+#: the two 1.004 (make bench, group do-mpc: both rows); they run at 0.45 % and 1 % of its RTI samples (the transients),
+#: so the step's median cost stays one QP's, and a reweighted step costs 1.4 x a plain one (the Cortex-M4F's executed
+#: instructions, group embedded: its worst step against its median one). Every seed at 13.33 us (make every-seed):
+#: IAE / search 0.32-1.010 against 0.44-1.019 without them; three reweightings gave 1.021 in the screening
+#: (scripts/optimizer_every_seed.py --no-audit --rti reweightings=3 --rti reweighting_tolerance=0.01: nominal
+#: averaged plant, seed 4, reference down). Over the envelope they cost seeds 0-2 4-7 points of the
 #: map's share (the median seed's unchanged; docs/guide/controllers.md)
 SWITCHING_PERIOD_RTI = RtiSettings(iterations=1, regularization=1e-3, move_damping=1e-4, error_region=0.5,
                                    startup_region=0.1, reweightings=2, reweighting_tolerance=0.01)
