@@ -26,8 +26,9 @@ from pathlib import Path
 
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
+    from cosim.study.experiments import rti_changes
     from cosim.study.optimizer_ablation import verdict
-    from cosim.study.optimizer_every_seed import every_seed, rti_changes, write_tables
+    from cosim.study.optimizer_every_seed import every_seed, write_tables
 
     parser = argparse.ArgumentParser(prog="optimizer_every_seed.py", description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"),

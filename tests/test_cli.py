@@ -129,6 +129,32 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["tune-pi", "--plant", "p.toml", "--mode", "switched"],
      "error: --mode switched chooses a built-in plant, but --plant p.toml drives an external FMU, whose binding file "
      "chooses the model: drop --mode"),
+    (["run", "startup", "--optimizer", "search"],
+     "error: --optimizer search chooses the optimizer of the predictive controllers (nnpc, nnpc-paper, nnpc-adaptive, "
+     "mpc-oracle, mpc-nominal), but none runs here (controllers: pi): drop --optimizer"),
+    (["run", "startup", "--controller", "mpc-oracle", "--rti", "iteration=2"],
+     "error: --rti iteration=2: 'iteration' is not an RTI setting (did you mean 'iterations'? expected one of "
+     "iterations, line_search, "),
+    (["run", "startup", "--controller", "mpc-oracle", "--rti", "iterations"],
+     "error: --rti iterations: expected FIELD=VALUE (e.g. iterations=2)"),
+    (["run", "startup", "--controller", "mpc-oracle", "--rti", "iterations=2", "--rti", "iterations=3"],
+     "error: --rti iterations=3: iterations is given twice: give it once"),
+    (["run", "startup", "--controller", "mpc-oracle", "--rti", "smoothing=-1"],
+     "error: --rti smoothing=-1: RTI smoothing = -1.0 is invalid: expected eps > 0 [V]"),
+    # the 1 ms RTI has the line search, which the reweightings are refused with: before the network is trained
+    (["run", "startup", "--controller", "nnpc", "--rti", "reweightings=1"],
+     "error: --rti reweightings=1 at the control period 1 ms: RTI reweightings = 1 with line_search is refused"),
+    (["run", "startup", "--controller", "mpc-oracle", "--optimizer", "search", "--rti", "iterations=2"],
+     "error: --rti iterations=2 changes the real-time iteration's settings, but no controller here plans with it "
+     "(--optimizer search; controllers: mpc-oracle): drop --rti"),
+    (["run", "startup", "--controller", "nnpc-paper", "--rti", "line_search=true"],
+     "error: --rti line_search=true changes the real-time iteration's settings, but no controller here plans with it "
+     "(nnpc-paper plans with the search unless --optimizer rti; controllers: nnpc-paper): drop --rti"),
+    (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--rti", "iterations=2", "--out", "pi.fmu"],
+     "error: --rti iterations=2 changes the real-time iteration's settings, but no controller here plans with it "
+     "(none of nnpc, nnpc-paper, nnpc-adaptive, mpc-oracle, mpc-nominal runs; controllers: pi): drop --rti"),
+    (["export-ssp", "startup", "--controller", "my.fmu", "--optimizer", "search", "--out", "l.ssp"],
+     "error: --optimizer design a built-in controller, but --controller my.fmu is a controller FMU"),
     (["inspect", "README.md"], "is not a zip archive"),
     (["export", "missing.parquet", "--to", "csv"], "error: run file missing.parquet does not exist"),
     (["frobnicate"], "error: buck-cosim: argument COMMAND: invalid choice"),
@@ -156,6 +182,57 @@ def test_mpc_baselines_run_without_training(tmp_path):
     metrics = pd.read_csv(tmp_path / "metrics" / "metrics__mismatch-switched.csv")
     assert metrics["controller"].tolist() == ["MPC-oracle", "MPC-nominal"]
     assert (metrics["steady_state_error_pct"].abs() < 0.2).all()
+
+
+def test_the_predictive_controllers_optimizer_and_rti_settings_are_chosen_on_the_command_line(tmp_path):
+    """--optimizer search runs the search alone; --rti FIELD=VALUE changes fields of the rate's RTI settings and
+    keeps the others; the run's metadata says which optimizer planned, with its settings."""
+    from dataclasses import asdict
+
+    from cosim.study.experiments import SWITCHING_PERIOD_RTI
+
+    common = ["--no-progress", "run", "reference_up", "--controller", "mpc-oracle", "--no-figures"]
+    assert main([*common, "--optimizer", "search", "--out", str(tmp_path / "search")]) == 0
+    run = read_run(tmp_path / "search" / "runs" / "reference_up__mpc-oracle__nominal-averaged__1ms.parquet")
+    assert run.metadata["controller"]["optimizer"] == "search (grid + pattern search)"
+    assert main([*common, "--control-period", "1/75e3", "--rti", "reweightings=0", "--rti", "iterations=2",
+                 "--out", str(tmp_path / "rti")]) == 0
+    run = read_run(tmp_path / "rti" / "runs" / "reference_up__mpc-oracle__nominal-averaged__13p33us.parquet")
+    optimizer = run.metadata["controller"]["optimizer"]
+    assert optimizer["type"].startswith("real-time iteration")
+    assert {k: v for k, v in optimizer.items() if k != "type"} == \
+        {**asdict(SWITCHING_PERIOD_RTI), "reweightings": 0, "iterations": 2}
+    assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=5e-3)
+
+
+def test_each_predictive_controller_plans_with_its_own_optimizer_unless_one_is_given(tmp_path):
+    """nnpc-paper plans with the search as the reproduction runs the paper's network, the others with the RTI;
+    --optimizer overrides both, and --rti changes only the controllers that plan with the RTI."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from controllers.adaptation import AdaptiveNNPC
+    from cosim.study.controller_factory import make_controllers
+    from cosim.study.experiments import SWITCHING_PERIOD_RTI
+    from cosim.study.plants import plant_binding
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    model = str(Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt")
+    binding = plant_binding("nominal", "averaged")
+
+    def rti_of(name, **options):
+        [controller] = make_controllers([name], binding, SWITCHING_PERIOD, tmp_path, duty_limits=(0.0, 1.0),
+                                        model_path=model, **options)
+        return (controller.inner if isinstance(controller, AdaptiveNNPC) else controller).rti
+
+    assert rti_of("nnpc") == SWITCHING_PERIOD_RTI and rti_of("nnpc-paper") is None
+    assert rti_of("nnpc-paper", optimizer="rti") == SWITCHING_PERIOD_RTI and rti_of("nnpc", optimizer="search") is None
+    changed = rti_of("nnpc-adaptive", rti_changes={"reweightings": 1, "smoothing": 0.02})
+    assert (changed.reweightings, changed.smoothing, changed.iterations) == (1, 0.02, SWITCHING_PERIOD_RTI.iterations)
+    [mpc] = make_controllers(["mpc-oracle"], binding, SWITCHING_PERIOD, tmp_path, duty_limits=(0.0, 1.0),
+                             rti_changes={"iterations": 2})
+    assert mpc.rti == replace(SWITCHING_PERIOD_RTI, iterations=2) and rti_of("nnpc", rti_changes={"iterations": 2}) \
+        == replace(SWITCHING_PERIOD_RTI, iterations=2)
 
 
 def test_collect_train_and_run_an_nnpc(tmp_path):

@@ -74,7 +74,8 @@ def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp
     assert run_script(["--results", str(tmp_path)], capsys) == (
         2, f"optimizer_every_seed.py: error: --results {tmp_path}: no models folder there (run make reproduce first)")
     assert run_script(["--rti", "iterations=4"], capsys) == (
-        2, "optimizer_every_seed.py: error: RTI iterations = 4 is invalid: expected 1, 2 or 3 (a fixed count per sample)")
+        2, "optimizer_every_seed.py: error: --rti iterations=4: RTI iterations = 4 is invalid: expected 1, 2 or 3 (a "
+           "fixed count per sample)")
 
 
 def test_one_pipeline_of_the_committed_results_evaluates_and_meets_the_targets(tmp_path):

@@ -177,7 +177,7 @@ def test_rti_settings_are_validated_by_name():
 
 
 def test_the_every_seed_evaluation_takes_rti_settings_by_name_and_type():
-    from cosim.study.optimizer_every_seed import rti_changes
+    from cosim.study.experiments import rti_changes
 
     assert rti_changes(["iterations=2", "line_search=False", "regularization=1e-3"]) == \
         {"iterations": 2, "line_search": False, "regularization": 1e-3}

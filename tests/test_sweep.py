@@ -1045,3 +1045,18 @@ def test_a_controller_fmu_mistake_stops_the_sweep_before_any_work(tmp_path, pi_f
     one_line_error(capsys, code, 2, "controllers[1].path = 'my_pi.fmu': the controller FMU's sample period is 0.001 "
                                     "s, but the sweep's control_period = 1.33333e-05 s")
     assert not out.exists()
+
+
+def test_a_swept_nnpc_plans_with_the_optimizer_its_key_has_on_the_command_line():
+    """nnpc-paper plans with the search in a sweep as in the reproduction and `run` (the paper's network), nnpc with
+    the rate's RTI (cosim.study.experiments.own_optimizer)."""
+    from cosim.study.experiments import SWITCHING_PERIOD_RTI
+    from cosim.study.plants import plant_binding
+    from cosim.study.sweeps.designs import build
+    from cosim.study.sweeps.recipes import ControllerRecipe
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    blob = (Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt").read_bytes()
+    built = {kind: build(ControllerRecipe(kind, kind, SWITCHING_PERIOD, "{}", blob), plant_binding("nominal", "averaged"),
+                         "python") for kind in ("nnpc", "nnpc-paper")}
+    assert built["nnpc"].rti == SWITCHING_PERIOD_RTI and built["nnpc-paper"].rti is None

@@ -14,6 +14,7 @@ from cosim.cli.options import (
     _plant_binding,
     cache_dir,
     input_file,
+    optimizer_options,
     output_dir,
     output_file,
     parse_period,
@@ -26,10 +27,12 @@ def _design_controller(args, binding, period: float, work_dir: Path, policy_path
     :func:`_add_controller_design_options` (tuned, trained or distilled on demand, cached in ``work_dir``)."""
     from cosim.study.controller_factory import make_controllers
 
+    optimizer, rti_changes = optimizer_options(args)
     [controller] = make_controllers([args.controller], binding, period, work_dir,
                                     duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                     model_path=args.model, samples=args.samples, seed=args.seed,
-                                    progress=args.progress, policy_path=policy_path)
+                                    progress=args.progress, policy_path=policy_path, optimizer=optimizer,
+                                    rti_changes=rti_changes)
     return controller
 
 
@@ -94,7 +97,9 @@ def cmd_export_ssp(args) -> int:
     _check_duty_limits(args)
     if args.controller not in EXPORTABLE_CONTROLLERS:  # an FMU: the options that design a built-in one do not apply
         given = [f"--{name}" for name, value in (("kp", args.kp), ("ki", args.ki), ("model", args.model),
-                                                 ("samples", args.samples)) if value is not None]
+                                                 ("samples", args.samples), ("optimizer", args.optimizer))
+                 if value is not None]
+        given += ["--rti"] if args.rti else []
         given += ["--duty-min/--duty-max"] if (args.duty_min, args.duty_max) != (0.0, 1.0) else []
         if given:
             raise ConfigError(f"{', '.join(given)} design a built-in controller, but --controller {args.controller} "

@@ -16,9 +16,12 @@ from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.study.data_collection import MIN_SAMPLES
 from cosim.study.vocabulary import (
     DEFAULT_IMPLEMENTATION,
+    EXPORTABLE_CONTROLLERS,
     IMPLEMENTATIONS,
     ON_DEMAND_SAMPLES,
+    OPTIMIZERS,
     PLANT_VARIANTS,
+    PREDICTIVE_CONTROLLERS,
     SENSORS,
 )
 from cosim.timeline import MIN_PERIOD, period_too_short
@@ -265,6 +268,33 @@ def _add_implementation_option(parser) -> None:
                              "about as cheap: its ctypes call) or as the Python references (default: %(default)s)")
 
 
+def _add_optimizer_options(parser, offered: tuple[str, ...] = PREDICTIVE_CONTROLLERS) -> None:
+    """--optimizer and --rti FIELD=VALUE (the predictive controllers' optimizer and its RTI settings), read by
+    :func:`optimizer_options`; ``offered``: the predictive controllers the command offers (named in the help)."""
+    parser.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
+                        help=f"the optimizer of the predictive controllers ({', '.join(offered)}): rti, "
+                             "the real-time iteration (Gauss-Newton steps on the blocked duties from the last plan, "
+                             "the search as its fallback at a cold start and at large steps), or search, the grid + "
+                             "pattern search alone (the reference). Default: each one's own -- the search for "
+                             "nnpc-paper (as the reproduction runs the paper's network), the RTI for the others")
+    parser.add_argument("--rti", action="append", default=[], metavar="FIELD=VALUE",
+                        help="change one of the RTI settings of the control period's default (repeat for several), "
+                             "e.g. --rti reweightings=0 --rti iterations=2; fields and units: "
+                             "docs/guide/controllers.md (controllers.predictive.RtiSettings); refused where no "
+                             "controller plans with the RTI")
+
+
+def optimizer_options(args) -> tuple[str | None, dict]:
+    """(--optimizer, the --rti changes parsed: :func:`cosim.study.experiments.rti_changes`); a bad item is a
+    ConfigError naming it."""
+    from cosim.study.experiments import rti_changes
+
+    try:
+        return args.optimizer, rti_changes(args.rti)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+
+
 def _add_pi_and_duty_options(parser, gains_default: str) -> None:
     """--kp/--ki (the PI's gains; ``gains_default`` says what happens without them) and --duty-min/--duty-max (every
     built-in controller's duty limits), checked together by :func:`_check_duty_limits`."""
@@ -280,9 +310,11 @@ def _add_pi_and_duty_options(parser, gains_default: str) -> None:
 
 def _add_controller_design_options(parser) -> None:
     """What export-controller and export-ssp need to design a built-in controller on the plant (read by
-    :func:`_design_controller`): the PI's gains and the duty limits, the samples and seed of an NN plant model
+    :func:`_design_controller`): the PI's gains and the duty limits, the predictive controllers' optimizer and RTI
+    settings, the samples and seed of an NN plant model
     trained on demand, and the folder the tuned gains and trained networks are cached in."""
     _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
+    _add_optimizer_options(parser, tuple(k for k in PREDICTIVE_CONTROLLERS if k in EXPORTABLE_CONTROLLERS))
     parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
                         help=f"samples of PI data an NNPC's network is identified from when trained on demand"
                         f" (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")

@@ -11,11 +11,13 @@ from cosim.cli.options import (
     DEFAULT_RESULTS,
     SEED_MAX,
     _add_implementation_option,
+    _add_optimizer_options,
     _add_pi_and_duty_options,
     _add_plant_options,
     _check_duty_limits,
     _plant_binding,
     bounded,
+    optimizer_options,
     output_dir,
     output_file,
     parse_period,
@@ -46,6 +48,7 @@ def cmd_run(args) -> int:
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 
     _check_duty_limits(args)
+    optimizer, rti_changes = optimizer_options(args)
     out_dir = output_dir(args.out)
     args.controller = args.controller or ["pi"]
     batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
@@ -60,7 +63,8 @@ def cmd_run(args) -> int:
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                    model_path=args.model, samples=args.samples, seed=args.seed,
-                                   progress=args.progress, policy_path=args.policy)
+                                   progress=args.progress, policy_path=args.policy, optimizer=optimizer,
+                                   rti_changes=rti_changes)
     controllers = [implemented(c, args.implementation) for c in controllers]
     output = run_batch(batch, controllers, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
                        record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
@@ -207,6 +211,7 @@ def add_run_parser(sub) -> None:
     p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
                    help="recording step in s; need not divide the control period (default: 1e-5)")
     _add_pi_and_duty_options(p, gains_default="tuned automatically")
+    _add_optimizer_options(p)
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")
     p.add_argument("--policy", metavar="POLICY.pt",
                    help="distilled policy for nnpc-explicit (buck-cosim distill; default: distilled on demand from "

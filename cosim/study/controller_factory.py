@@ -19,6 +19,7 @@ from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
 from cosim.study.experiments import (
     adaptive_nnpc,
+    check_optimizer,
     collection_settings,
     default_region,
     explicit_nnpc,
@@ -26,6 +27,8 @@ from cosim.study.experiments import (
     network_region,
     nn_configs,
     nnpc,
+    own_optimizer,
+    rti_settings,
 )
 
 if TYPE_CHECKING:  # torch loads with the NN model's module: only where a network is trained or read (seconds)
@@ -40,6 +43,7 @@ from cosim.study.vocabulary import (
     NNPC_EXPLICIT,
     NOMINAL,
     ON_DEMAND_SAMPLES,
+    PREDICTIVE_CONTROLLERS,
 )
 from plant_fmu.table_ii import TABLE_II
 
@@ -181,7 +185,8 @@ def true_parameters(binding: PlantBinding) -> CircuitParameters:
 def make_controllers(names: list[str], binding: PlantBinding, period: float, out_dir: Path, *,
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int | None = None, seed: int = 0,
-                     progress: bool = False, policy_path: str | None = None) -> list:
+                     progress: bool = False, policy_path: str | None = None, optimizer: str | None = None,
+                     rti_changes: dict | None = None) -> list:
     """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`),
     paths of controller FMUs / controller-binding files, or Python controllers (``module:Class``,
     ``file.py:Class``, :mod:`cosim.python_controller`); those run at their own sample period.
@@ -189,7 +194,10 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     needs, a given model or policy file, controller FMUs and their bindings), then the PI is tuned,
     networks trained and the explicit NNPC distilled where needed -- so a mistake is refused before
     minutes of work. ``policy_path``: a distilled policy for nnpc-explicit (else distilled on demand
-    from the nnpc network)."""
+    from the nnpc network). ``optimizer`` (``"rti"`` or ``"search"``): the predictive controllers' optimizer
+    (None: each one's own, :func:`~cosim.study.experiments.own_optimizer`); ``rti_changes``
+    (:func:`~cosim.study.experiments.rti_changes`): fields of the rate's RTI settings replaced for those that plan
+    with the RTI."""
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
     from cosim.fmi.controller import FmuController, controller_binding
@@ -247,6 +255,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     samples = ON_DEMAND_SAMPLES if samples is None else samples
     if policy_path and "nnpc-explicit" not in names:
         raise ConfigError("--policy gives the explicit NNPC's policy: add --controller nnpc-explicit (or drop --policy)")
+    check_optimizer_options(names, period, duty_limits, optimizer, rti_changes)
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
     if model_path:
         from controllers.nn_model import load_model
@@ -272,10 +281,14 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 network = "nnpc" if name == "nnpc-adaptive" else name
                 model = given or trained_model(network, binding, period, out_dir, samples=samples, seed=seed,
                                                model_path=None, progress=progress)
+                own = own_optimizer(name, optimizer)
+                changes = rti_changes if own == "rti" else None
                 if name == "nnpc-adaptive":
-                    controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                    controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits,
+                                                     optimizer=own, rti_changes=changes))
                 else:
-                    controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits))
+                    controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits,
+                                            optimizer=own, rti_changes=changes))
             elif name == "nnpc-explicit":
                 if not policy_path:
                     if tuple(duty_limits) != (0.0, 1.0):
@@ -296,10 +309,11 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
 
                 tuning = tune_pi_envelope(binding, period, progress=progress)
                 controllers.append(tuning.controller(duty_limits, name=CONTROLLERS[name]))
-            elif name == "mpc-oracle":
-                controllers.append(model_mpc(oracle, period, MPC_ORACLE, duty_limits, binding))
-            elif name == "mpc-nominal":
-                controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, duty_limits, binding))
+            elif name in ("mpc-oracle", "mpc-nominal"):
+                own = own_optimizer(name, optimizer)
+                parameters, label = (oracle, MPC_ORACLE) if name == "mpc-oracle" else (NOMINAL, MPC_NOMINAL)
+                controllers.append(model_mpc(parameters, period, label, duty_limits, binding, optimizer=own,
+                                             rti_changes=rti_changes if own == "rti" else None))
             elif name in python:  # the user's own Python controller, at its own sample period
                 controllers.append(python[name])
             else:  # a controller FMU, named NAME (FMU) as the docs say (a binding file's label, if it has one)
@@ -307,6 +321,36 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     except ValueError as error:  # a setting a controller constructor refuses
         raise ConfigError(str(error)) from None
     return controllers
+
+
+def check_optimizer_options(names: list[str], period: float, duty_limits: tuple[float, float],
+                            optimizer: str | None, rti_changes: dict | None) -> None:
+    """Refuse --optimizer and --rti where they change nothing, and RTI changes that do not suit the rate's
+    settings (e.g. reweightings with the 1 ms line search) -- one ConfigError line, before any tuning or training."""
+    predictive = [n for n in names if n in PREDICTIVE_CONTROLLERS]
+    if optimizer is not None:
+        try:
+            check_optimizer(optimizer)
+        except ConfigError as error:
+            raise ConfigError(f"--optimizer: {error}") from None
+        if not predictive:
+            raise ConfigError(f"--optimizer {optimizer} chooses the optimizer of the predictive controllers "
+                              f"({', '.join(PREDICTIVE_CONTROLLERS)}), but none runs here (controllers: "
+                              f"{', '.join(names)}): drop --optimizer")
+    if not rti_changes:
+        return
+    given = " ".join(f"--rti {k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in rti_changes.items())
+    with_rti = [n for n in predictive if own_optimizer(n, optimizer) == "rti"]
+    if not with_rti:
+        why = ("--optimizer search" if optimizer == "search" else
+               "nnpc-paper plans with the search unless --optimizer rti" if predictive else
+               f"none of {', '.join(PREDICTIVE_CONTROLLERS)} runs")
+        raise ConfigError(f"{given} changes the real-time iteration's settings, but no controller here plans with it "
+                          f"({why}; controllers: {', '.join(names)}): drop --rti")
+    try:
+        rti_settings(period, "rti", duty_limits, rti_changes)
+    except ValueError as error:
+        raise ConfigError(f"{given} at the control period {period_text(period)}: {error}") from None
 
 
 def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[float, tuple[str, ...]]:

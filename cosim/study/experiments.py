@@ -9,8 +9,9 @@ come from :mod:`cosim.study.vocabulary`.
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import fields, replace
 from typing import TYPE_CHECKING
 
 from controllers.adaptation import AdaptationSettings, AdaptiveNNPC
@@ -24,6 +25,7 @@ from controllers.predictors import (
     ripple_free_horizon,
 )
 from cosim.base.errors import ConfigError
+from cosim.base.labels import did_you_mean
 from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from cosim.study.data_collection import CollectionSettings
@@ -38,6 +40,7 @@ from cosim.study.vocabulary import (
     FAST_RATE_COMPRESSION,
     IMPLEMENTATIONS,
     LC_PERIOD,
+    OPTIMIZERS,
     identification_dither,
     transient_within_sample,
 )
@@ -133,9 +136,6 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
 
 
-#: the predictive controllers' optimizers: the real-time iteration (Gauss-Newton steps from the last plan, the
-#: search as fallback at a cold start and at large steps) and the search alone (grid + pattern search, the reference)
-OPTIMIZERS = ("rti", "search")
 
 
 #: The optimizer of the NNPC and the MPC baselines unless one is asked for: the real-time iteration at both of the
@@ -215,10 +215,55 @@ SWITCHING_PERIOD_RTI = RtiSettings(iterations=1, regularization=1e-3, move_dampi
 PAPER_NNPC_OPTIMIZER = "search"
 
 
+def rti_changes(items: list[str]) -> dict:
+    """``["iterations=2", "line_search=false"]`` (the command line's ``--rti FIELD=VALUE``) -> ``{"iterations": 2,
+    "line_search": False}``, each value of its :class:`~controllers.predictive.RtiSettings` field's type, checked by
+    RtiSettings on its defaults (ranges); ValueError names the item and what was expected. Whether the changes
+    suit a rate's own settings (e.g. reweightings with the 1 ms line search) is :func:`rti_settings`' check."""
+    types = {f.name: type(getattr(RtiSettings(), f.name)) for f in fields(RtiSettings)}
+    changes = {}
+    for item in items:
+        name, equals, text = item.partition("=")
+        if not equals:
+            raise ValueError(f"--rti {item}: expected FIELD=VALUE (e.g. iterations=2), FIELD one of {', '.join(types)}")
+        if name not in types:
+            hint = did_you_mean(name, types).strip()[1:-1]  # "did you mean 'x'?", or ""
+            raise ValueError(f"--rti {item}: {name!r} is not an RTI setting ({hint + ' ' if hint else ''}expected one "
+                             f"of {', '.join(types)})")
+        if name in changes:
+            raise ValueError(f"--rti {item}: {name} is given twice: give it once")
+        kind = types[name]
+        if kind is bool:
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"--rti {item}: expected true or false")
+            changes[name] = text.lower() == "true"
+        else:
+            try:
+                changes[name] = kind(text)
+            except ValueError:
+                raise ValueError(f"--rti {item}: expected {'an integer' if kind is int else 'a number'}") from None
+    try:
+        RtiSettings(**changes)  # its own checks (ranges), before any simulation
+    except ValueError as error:
+        raise ValueError(f"--rti {' '.join(items)}: {error}") from None
+    return changes
+
+
+def own_optimizer(key: str, optimizer: str | None = None) -> str:
+    """The optimizer the predictive controller of command-line key ``key`` plans with: ``optimizer`` if given, else
+    its own -- :data:`PAPER_NNPC_OPTIMIZER` for nnpc-paper (the paper's network, as the reproduction runs it),
+    :data:`DEFAULT_OPTIMIZER` for the others (read when called: :func:`default_optimizer` may change it)."""
+    if optimizer is not None:
+        return check_optimizer(optimizer)
+    return PAPER_NNPC_OPTIMIZER if key == "nnpc-paper" else DEFAULT_OPTIMIZER
+
+
 def rti_settings(control_period: float, optimizer: str | None = None,
-                 duty_limits: tuple[float, float] = (0.0, 1.0)) -> RtiSettings | None:
+                 duty_limits: tuple[float, float] = (0.0, 1.0),
+                 changes: Mapping[str, object] | None = None) -> RtiSettings | None:
     """The RTI settings of a predictive controller at ``control_period`` for ``optimizer`` (None:
-    :data:`DEFAULT_OPTIMIZER`), or None for the search alone.
+    :data:`DEFAULT_OPTIMIZER`), or None for the search alone; ``changes`` (:func:`rti_changes`) replace fields of
+    the rate's settings (ValueError if they do not suit them, or if the optimizer is the search, which has none).
 
     Where the transient is shaped within a sample (13.33 us): :data:`SWITCHING_PERIOD_RTI`. At 1 ms (one sample of horizon, one block: a 1-D problem whose
     linearisation costs one network evaluation): two steps with the line search and a trust region of the
@@ -229,12 +274,17 @@ def rti_settings(control_period: float, optimizer: str | None = None,
     the search's lattice: 1.3-1408 x the search's IAE unrounded)."""
     optimizer = check_optimizer(DEFAULT_OPTIMIZER if optimizer is None else optimizer)
     if optimizer == "search":
+        if changes:
+            raise ValueError(f"RTI settings changed ({', '.join(f'{k}={v}' for k, v in changes.items())}), but the "
+                             "optimizer is the search, which has none")
         return None
     if not transient_within_sample(control_period):
-        return SWITCHING_PERIOD_RTI
-    quantum = HorizonOptimizer(horizon_settings(control_period), duty_limits).warm_step
-    return RtiSettings(iterations=2, line_search=True, step_limit=1.0, reference_step=0.0, startup_region=0.0,
-                       duty_resolution=quantum)
+        settings = SWITCHING_PERIOD_RTI
+    else:
+        quantum = HorizonOptimizer(horizon_settings(control_period), duty_limits).warm_step
+        settings = RtiSettings(iterations=2, line_search=True, step_limit=1.0, reference_step=0.0, startup_region=0.0,
+                               duty_resolution=quantum)
+    return replace(settings, **changes) if changes else settings
 
 
 def implemented(controller, implementation: str = DEFAULT_IMPLEMENTATION):
@@ -257,20 +307,25 @@ NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_in
 
 
 def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon: int | None = None,
-         duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None) -> PredictiveController:
-    """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`)."""
+         duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None,
+         rti_changes: Mapping[str, object] | None = None) -> PredictiveController:
+    """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`);
+    ``rti_changes``: fields of the rate's RTI settings replaced (:func:`rti_settings`)."""
     return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
                                 duty_limits, name=name, **NOMINAL_OPERATING_POINT,
-                                rti=rti_settings(control_period, optimizer, duty_limits))
+                                rti=rti_settings(control_period, optimizer, duty_limits, rti_changes))
 
 
 def adaptive_nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC-adaptive",
                   settings: AdaptationSettings = AdaptationSettings(),
-                  duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None) -> AdaptiveNNPC:
+                  duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None,
+                  rti_changes: Mapping[str, object] | None = None) -> AdaptiveNNPC:
     """The NNPC whose output layer follows the plant online (:mod:`controllers.adaptation`), on its
-    own copy of ``model`` (the adaptation rewrites the output layer in place)."""
+    own copy of ``model`` (the adaptation rewrites the output layer in place); ``optimizer`` and ``rti_changes``
+    as :func:`nnpc`'s."""
     own = copy.deepcopy(model)
-    return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits, optimizer=optimizer), own, settings,
+    return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits, optimizer=optimizer,
+                             rti_changes=rti_changes), own, settings,
                         name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
 
 
@@ -308,17 +363,17 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
 def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
               duty_limits: tuple[float, float] = (0.0, 1.0), binding: PlantBinding | None = None,
               offset_free: bool = True, optimizer: str | None = None,
-              horizon: int | None = None) -> PredictiveController:
+              horizon: int | None = None, rti_changes: Mapping[str, object] | None = None) -> PredictiveController:
     """An MPC baseline on :func:`model_predictor`'s model of ``binding``'s plant; ``offset_free=False``
     drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error);
     ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`); ``horizon``: samples
-    (None: the rate's, :func:`horizon_settings`)."""
+    (None: the rate's, :func:`horizon_settings`); ``rti_changes`` as :func:`nnpc`'s."""
     settings = horizon_settings(control_period, horizon)
     if not offset_free:
         settings = replace(settings, bias_filter=0.0)
     return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,
                                 settings, duty_limits, name=name, **NOMINAL_OPERATING_POINT,
-                                rti=rti_settings(control_period, optimizer, duty_limits))
+                                rti=rti_settings(control_period, optimizer, duty_limits, rti_changes))
 
 
 def scenarios_for(control_period: float, names=PAPER_SCENARIOS) -> list[Scenario]:

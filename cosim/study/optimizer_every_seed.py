@@ -11,14 +11,12 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pandas as pd
 
-from controllers.predictive import RtiSettings
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.study.optimizer_ablation import (
     COST_EXCESS_TARGET,
@@ -114,29 +112,6 @@ def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
             cache.mkdir(parents=True, exist_ok=True)
             save_model(identified.model, path)
     return load_model(path, expect_period=period, expect_config=config)
-
-
-def rti_changes(items: list[str]) -> dict:
-    """``["iterations=2", "line_search=false"]`` -> ``{"iterations": 2, "line_search": False}``, each value of its
-    :class:`~controllers.predictive.RtiSettings` field's type; ValueError names a field or value that is not."""
-    types = {f.name: type(getattr(RtiSettings(), f.name)) for f in fields(RtiSettings)}
-    changes = {}
-    for item in items:
-        name, _, text = item.partition("=")
-        if name not in types:
-            raise ValueError(f"--rti {item}: {name!r} is not an RTI setting (expected one of {', '.join(types)})")
-        kind = types[name]
-        if kind is bool:
-            if text.lower() not in ("true", "false"):
-                raise ValueError(f"--rti {item}: expected true or false")
-            changes[name] = text.lower() == "true"
-        else:
-            try:
-                changes[name] = kind(text)
-            except ValueError:
-                raise ValueError(f"--rti {item}: expected {'an integer' if kind is int else 'a number'}") from None
-    RtiSettings(**changes)  # its own checks (ranges), before any simulation
-    return changes
 
 
 def table(rows: list[dict]) -> pd.DataFrame:

@@ -129,6 +129,9 @@ EXPORTABLE_CONTROLLERS = tuple(k for k in CONTROLLERS if k != "nnpc-adaptive")
 FLOAT32_CONTROLLERS = ("pi", "nnpc-explicit", "current-mode", "type-iii")
 #: the NN plant models per rate, by command-line key
 NETWORKS = ("nnpc", "nnpc-paper")
+#: the command-line keys of the predictive controllers: those whose optimizer (the RTI or the search) --optimizer
+#: chooses and whose RTI settings --rti changes
+PREDICTIVE_CONTROLLERS = ("nnpc", "nnpc-paper", "nnpc-adaptive", "mpc-oracle", "mpc-nominal")
 #: ablation variants (reproduction only)
 MPC_ORACLE_AVERAGED = f"{MPC_ORACLE} (averaged model)"
 MPC_ORACLE_SYNC = f"{MPC_ORACLE} (sync. sample)"
@@ -243,5 +246,9 @@ ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
 #: default, far faster for the predictive controllers: results/benchmarks.md) or the Python reference
 IMPLEMENTATIONS = ("c", "python")
 DEFAULT_IMPLEMENTATION = "c"
+
+#: the predictive controllers' optimizers: the real-time iteration (Gauss-Newton steps from the last plan, the
+#: search as fallback at a cold start and at large steps) and the search alone (grid + pattern search, the reference)
+OPTIMIZERS = ("rti", "search")
 #: how tables and benchmark rows name each implementation
 IMPLEMENTATION_NAMES = {"c": "C twin", "python": "Python reference"}

@@ -235,10 +235,10 @@ def _build_pi(recipe: ControllerRecipe, binding: PlantBinding):
 
 
 def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.experiments import nnpc
+    from cosim.study.experiments import nnpc, own_optimizer
 
     controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
-                      recipe.name)
+                      recipe.name, optimizer=own_optimizer(recipe.kind))
     shadow = recipe.settings.get("shadow_policy")
     if shadow is None:
         return controller
