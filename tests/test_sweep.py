@@ -194,6 +194,28 @@ def test_the_sweep_file_gives_grids_distributions_controllers_and_a_spec(tmp_pat
      "bad.toml:4: plant.mode applies to the built-in FMU, but plant.binding names an external one"),
     ('scenarios = ["startup"]\ncontrollers = ["pi"]\nworkers = 4\n',
      "bad.toml:3: unknown key 'workers': expected one of batch_size, control_period"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\noptimizer = "newton"\n',
+     "bad.toml:4: controllers[0].optimizer = 'newton' is unknown: expected one of rti, search"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "pi"\noptimizer = "search"\n',
+     "bad.toml:4: controllers[0].optimizer does not apply to pi"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = { iteration = 2 }\n',
+     "bad.toml:4: controllers[0].rti: 'iteration' is not an RTI setting (did you mean 'iterations'? expected one of "),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = { line_search = 1 }\n',
+     "bad.toml:4: controllers[0].rti: line_search = 1 is invalid: expected true or false"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = { iterations = 2.0 }\n',
+     "bad.toml:4: controllers[0].rti: iterations = 2.0 is invalid: expected an integer"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = { smoothing = 0 }\n',
+     "bad.toml:4: controllers[0].rti: RTI smoothing = 0.0 is invalid: expected eps > 0 [V]"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = 2\n',
+     "bad.toml:4: controllers[0].rti must be a table"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "mpc-nominal"\nrti = { reweightings = 1 }\n',
+     "bad.toml:4: controllers[0].rti at the control period 0.001 s: RTI reweightings = 1 with line_search is refused"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "nnpc-paper"\nrti = { iterations = 2 }\n',
+     "bad.toml:4: controllers[0].rti changes the real-time iteration's settings, but this controller plans with the "
+     "search (nnpc-paper plans with the search unless optimizer = \"rti\"): drop rti"),
+    ('scenarios = ["startup"]\n[[controllers]]\nkind = "nnpc"\noptimizer = "search"\nrti = { iterations = 2 }\n',
+     "bad.toml:5: controllers[0].rti changes the real-time iteration's settings, but this controller plans with the "
+     "search (optimizer = \"search\"): drop rti"),
 ])
 def test_sweep_file_mistakes_name_file_key_and_line(tmp_path, body, message):
     (tmp_path / "bad.toml").write_text(body)
@@ -1045,6 +1067,41 @@ def test_a_controller_fmu_mistake_stops_the_sweep_before_any_work(tmp_path, pi_f
     one_line_error(capsys, code, 2, "controllers[1].path = 'my_pi.fmu': the controller FMU's sample period is 0.001 "
                                     "s, but the sweep's control_period = 1.33333e-05 s")
     assert not out.exists()
+
+
+def test_a_sweep_file_chooses_a_predictive_controllers_optimizer_and_rti_settings(tmp_path):
+    """optimizer and rti = { ... } of a [[controllers]] table reach the controller each worker builds (through the
+    recipe), and leave the recipes of the controllers that give none as they were."""
+    from dataclasses import replace
+
+    from cosim.study.experiments import SWITCHING_PERIOD_RTI
+    from cosim.study.sweeps.designs import build, design
+
+    path = sweep_file(tmp_path, """\
+        scenarios = ["startup"]
+        control_period = "1/75e3"
+        [[controllers]]
+        kind = "mpc-nominal"
+        name = "MPC (search)"
+        optimizer = "search"
+        [[controllers]]
+        kind = "mpc-nominal"
+        name = "MPC (plain RTI step)"
+        rti = { reweightings = 0, smoothing = 0.02 }
+        [[controllers]]
+        kind = "mpc-nominal"
+        """)
+    spec = load_sweep(path)
+    assert [(c.optimizer, dict(c.rti)) for c in spec.controllers] == \
+        [("search", {}), (None, {"reweightings": 0, "smoothing": 0.02}), (None, {})]
+    plan = SweepPlan(spec)
+    recipes = design(spec.controllers, plan.binding, spec.control_period, tmp_path / "out")
+    built = [build(recipe, plan.binding, "python") for recipe in recipes]
+    assert built[0].rti is None
+    assert built[1].rti == replace(SWITCHING_PERIOD_RTI, reweightings=0, smoothing=0.02)
+    assert built[2].rti == SWITCHING_PERIOD_RTI and set(recipes[2].settings) == {"circuit"}
+    assert spec.controllers[1].describe()["rti"] == {"reweightings": 0, "smoothing": 0.02}
+    assert "optimizer" not in spec.controllers[2].describe() and "rti" not in spec.controllers[2].describe()
 
 
 def test_a_swept_nnpc_plans_with_the_optimizer_its_key_has_on_the_command_line():

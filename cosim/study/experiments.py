@@ -215,21 +215,29 @@ SWITCHING_PERIOD_RTI = RtiSettings(iterations=1, regularization=1e-3, move_dampi
 PAPER_NNPC_OPTIMIZER = "search"
 
 
+def _rti_fields() -> dict[str, type]:
+    """Each :class:`~controllers.predictive.RtiSettings` field's name and type (bool, int or float)."""
+    return {f.name: type(getattr(RtiSettings(), f.name)) for f in fields(RtiSettings)}
+
+
+def _not_an_rti_field(name: str, types: dict[str, type]) -> str:
+    hint = did_you_mean(name, types).strip()[1:-1]  # "did you mean 'x'?", or ""
+    return f"{name!r} is not an RTI setting ({hint + ' ' if hint else ''}expected one of {', '.join(types)})"
+
+
 def rti_changes(items: list[str]) -> dict:
     """``["iterations=2", "line_search=false"]`` (the command line's ``--rti FIELD=VALUE``) -> ``{"iterations": 2,
     "line_search": False}``, each value of its :class:`~controllers.predictive.RtiSettings` field's type, checked by
     RtiSettings on its defaults (ranges); ValueError names the item and what was expected. Whether the changes
     suit a rate's own settings (e.g. reweightings with the 1 ms line search) is :func:`rti_settings`' check."""
-    types = {f.name: type(getattr(RtiSettings(), f.name)) for f in fields(RtiSettings)}
+    types = _rti_fields()
     changes = {}
     for item in items:
         name, equals, text = item.partition("=")
         if not equals:
             raise ValueError(f"--rti {item}: expected FIELD=VALUE (e.g. iterations=2), FIELD one of {', '.join(types)}")
         if name not in types:
-            hint = did_you_mean(name, types).strip()[1:-1]  # "did you mean 'x'?", or ""
-            raise ValueError(f"--rti {item}: {name!r} is not an RTI setting ({hint + ' ' if hint else ''}expected one "
-                             f"of {', '.join(types)})")
+            raise ValueError(f"--rti {item}: {_not_an_rti_field(name, types)}")
         if name in changes:
             raise ValueError(f"--rti {item}: {name} is given twice: give it once")
         kind = types[name]
@@ -246,6 +254,26 @@ def rti_changes(items: list[str]) -> dict:
         RtiSettings(**changes)  # its own checks (ranges), before any simulation
     except ValueError as error:
         raise ValueError(f"--rti {' '.join(items)}: {error}") from None
+    return changes
+
+
+def rti_table(table: Mapping[str, object]) -> dict:
+    """A sweep file's ``rti = { iterations = 2, line_search = false }`` (TOML's own types) checked as
+    :func:`rti_changes` checks the command line's items: known fields, a bool for a bool field, an integer for an
+    integer one, a number for a float one, then RtiSettings' ranges; ValueError says which field and what."""
+    types = _rti_fields()
+    for name, value in table.items():
+        if name not in types:
+            raise ValueError(_not_an_rti_field(name, types))
+        kind = types[name]
+        fits = isinstance(value, bool) if kind is bool else \
+            (isinstance(value, int) and not isinstance(value, bool)) if kind is int else \
+            (isinstance(value, (int, float)) and not isinstance(value, bool))
+        if not fits:
+            expected = {bool: "true or false", int: "an integer"}.get(kind, "a number")
+            raise ValueError(f"{name} = {value!r} is invalid: expected {expected}")
+    changes = {name: float(value) if types[name] is float else value for name, value in table.items()}
+    RtiSettings(**changes)  # its own checks (ranges)
     return changes
 
 

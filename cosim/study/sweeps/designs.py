@@ -84,7 +84,23 @@ def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, wor
         import base64
 
         settings["shadow_policy"] = base64.b64encode(Path(entry.policy).read_bytes()).decode()
-    return ControllerRecipe(entry.kind, entry.name, period, _json(settings), blob)
+    return ControllerRecipe(entry.kind, entry.name, period, _json({**settings, **_optimizer_settings(entry)}), blob)
+
+
+def _optimizer_settings(entry: ControllerEntry) -> dict:
+    """A predictive controller's optimizer and RTI changes as the file gave them (only then: the recipes and ids
+    of sweeps that give none stay what they were)."""
+    given = {"optimizer": entry.optimizer} if entry.optimizer is not None else {}
+    return {**given, "rti": dict(entry.rti)} if entry.rti else given
+
+
+def _planned(recipe: ControllerRecipe) -> dict:
+    """``optimizer`` and ``rti_changes`` for the factories of :mod:`cosim.study.experiments`: the recipe's own, else
+    its kind's (:func:`~cosim.study.experiments.own_optimizer`)."""
+    from cosim.study.experiments import own_optimizer
+
+    optimizer = own_optimizer(recipe.kind, recipe.settings.get("optimizer"))
+    return {"optimizer": optimizer, "rti_changes": recipe.settings.get("rti") if optimizer == "rti" else None}
 
 
 def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
@@ -94,7 +110,8 @@ def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, wo
     # the nominal plant's circuit: Table II with the variant's parasitics for the built-in FMU;
     # for an external FMU only Table II is known
     circuit = true_parameters(binding) if binding.source is None else NOMINAL
-    return ControllerRecipe("mpc-nominal", entry.name, period, _json({"circuit": asdict(circuit)}))
+    return ControllerRecipe("mpc-nominal", entry.name, period,
+                            _json({"circuit": asdict(circuit), **_optimizer_settings(entry)}))
 
 
 def _design_oracle(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
@@ -107,7 +124,8 @@ def _design_oracle(entry: ControllerEntry, binding: PlantBinding, period: float,
         circuit = true_parameters(binding)
     except ConfigError as error:
         raise ConfigError(f"{entry.place}: {error}") from None
-    return ControllerRecipe("mpc-oracle", entry.name, period, _json({"circuit": asdict(circuit)}))
+    return ControllerRecipe("mpc-oracle", entry.name, period,
+                            _json({"circuit": asdict(circuit), **_optimizer_settings(entry)}))
 
 
 def _design_explicit(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
@@ -235,10 +253,10 @@ def _build_pi(recipe: ControllerRecipe, binding: PlantBinding):
 
 
 def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.experiments import nnpc, own_optimizer
+    from cosim.study.experiments import nnpc
 
     controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
-                      recipe.name, optimizer=own_optimizer(recipe.kind))
+                      recipe.name, **_planned(recipe))
     shadow = recipe.settings.get("shadow_policy")
     if shadow is None:
         return controller
@@ -257,7 +275,7 @@ def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.study.experiments import model_mpc
 
     circuit = CircuitParameters(**recipe.settings["circuit"])
-    return model_mpc(circuit, recipe.control_period, recipe.name, binding=binding)
+    return model_mpc(circuit, recipe.control_period, recipe.name, binding=binding, **_planned(recipe))
 
 
 def _build_oracle(recipe: ControllerRecipe, binding: PlantBinding):

@@ -95,9 +95,13 @@ OPERATING_POINT = {"input_voltage": "V", "load_resistance": "Ohm", "reference": 
 #: controller kinds a sweep designs once on the nominal plant (``fmu``: a given controller FMU, run as it is)
 CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu", "mpc-oracle", "nnpc-explicit", "current-mode",
                     "type-iii", "pi-envelope")
-CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path", "policy", "design", "settle"}
-KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"}, "nnpc-paper": {"model", "samples", "seed"},
-             "mpc-nominal": set(), "fmu": {"path"}, "mpc-oracle": set(), "nnpc-explicit": {"policy"},
+CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path", "policy", "design", "settle",
+                   "optimizer", "rti"}
+#: the predictive controllers' keys: their optimizer (the RTI or the search) and its RTI settings
+OPTIMIZER_KEYS = {"optimizer", "rti"}
+KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"} | OPTIMIZER_KEYS,
+             "nnpc-paper": {"model", "samples", "seed"} | OPTIMIZER_KEYS, "mpc-nominal": OPTIMIZER_KEYS,
+             "fmu": {"path"}, "mpc-oracle": OPTIMIZER_KEYS, "nnpc-explicit": {"policy"},
              "current-mode": {"design"}, "type-iii": {"design"}, "pi-envelope": {"kp", "ki"}}
 KIND_KEYS = {kind: keys | {"settle"} for kind, keys in KIND_KEYS.items()}
 #: what ``path`` of an ``fmu`` controller may name
@@ -198,13 +202,17 @@ class ControllerEntry:
     policy: Path | None = None  # nnpc-explicit: a distilled policy file
     design: Path | None = None  # current-mode / type-iii: a design file (results/tuning/), else designed here
     settle: float | None = None  # [s] this controller's closed-loop operation before t = 0 (else the scenarios')
+    optimizer: str | None = None  # predictive kinds: "rti" or "search" (else the kind's own: own_optimizer)
+    rti: tuple[tuple[str, object], ...] = ()  # predictive kinds: RtiSettings fields changed, (name, value) pairs
 
     def describe(self) -> dict:
         described = {"kind": self.kind, "name": self.name, "kp": self.kp, "ki": self.ki,
                      "model": str(self.model) if self.model else None, "samples": self.samples, "seed": self.seed}
-        for key in ("policy", "design", "settle"):
+        for key in ("policy", "design", "settle", "optimizer"):
             if getattr(self, key) is not None:  # only then: the ids of sweeps that give none stay what they were
                 described[key] = str(getattr(self, key)) if key != "settle" else self.settle
+        if self.rti:
+            described["rti"] = dict(self.rti)
         if self.kind == "fmu":
             described["path"] = str(self.path)
         return described
@@ -638,10 +646,41 @@ def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> l
                 r.fail(at("settle"), f"controllers[{index}].settle = {settle:g} s is invalid: expected >= 0")
         samples = r.integer(entry.get("samples", 10_000), f"controllers[{index}].samples", at("samples"), 200)
         seed = r.integer(entry.get("seed", 0), f"controllers[{index}].seed", at("seed"), 0)
+        optimizer, rti = _optimizer(r, index, kind, entry, at, control_period)
         controllers.append(ControllerEntry(kind=kind, name=name, kp=kp, ki=ki, model=model, samples=samples,
                                            seed=seed, path=path, fmu=fmu, place=place, policy=files.get("policy"),
-                                           design=files.get("design"), settle=settle))
+                                           design=files.get("design"), settle=settle, optimizer=optimizer,
+                                           rti=tuple(rti.items())))
     return controllers
+
+
+def _optimizer(r: _Reader, index: int, kind: str, entry: dict, at, control_period: float) -> tuple[str | None, dict]:
+    """A predictive controller's ``optimizer`` ("rti" or "search") and ``rti`` table (RtiSettings fields changed),
+    checked against the settings of the sweep's control period as ``run --optimizer/--rti`` checks them."""
+    if "optimizer" not in entry and "rti" not in entry:
+        return None, {}
+    from cosim.study.experiments import own_optimizer, rti_settings, rti_table
+    from cosim.study.vocabulary import OPTIMIZERS
+
+    label = f"controllers[{index}]"
+    optimizer = r.choice(entry["optimizer"], f"{label}.optimizer", at("optimizer"), OPTIMIZERS) \
+        if "optimizer" in entry else None
+    if "rti" not in entry:
+        return optimizer, {}
+    table = r.table(entry["rti"], f"{label}.rti", at("rti"))
+    try:
+        changes = rti_table(table)
+    except ValueError as error:
+        r.fail(at("rti"), f"{label}.rti: {error}")
+    if own_optimizer(kind, optimizer) != "rti":
+        why = 'optimizer = "search"' if optimizer else f'{kind} plans with the search unless optimizer = "rti"'
+        r.fail(at("rti"), f"{label}.rti changes the real-time iteration's settings, but this controller plans with "
+                          f"the search ({why}): drop rti")
+    try:
+        rti_settings(control_period, "rti", (0.0, 1.0), changes)
+    except ValueError as error:
+        r.fail(at("rti"), f"{label}.rti at the control period {control_period:.6g} s: {error}")
+    return optimizer, changes
 
 
 def _controller_fmu(r: _Reader, index: int, value, place: str, base: Path, control_period: float,
