@@ -153,6 +153,10 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
     (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--rti", "iterations=2", "--out", "pi.fmu"],
      "error: --rti iterations=2 changes the real-time iteration's settings, but no controller here plans with it "
      "(none of nnpc, nnpc-paper, nnpc-adaptive, mpc-oracle, mpc-nominal runs; controllers: pi): drop --rti"),
+    (["frequency-response", "--controller", "pi", "--optimizer", "search", "--out", "fr"],
+     "error: --optimizer search chooses the optimizer of the predictive controllers"),
+    (["frequency-response", "--controller", "mpc-oracle", "--rti", "reweightings=5", "--out", "fr"],
+     "error: --rti reweightings=5: RTI reweightings = 5 is invalid: expected 0, 1, 2 or 3"),
     (["export-ssp", "startup", "--controller", "my.fmu", "--optimizer", "search", "--out", "l.ssp"],
      "error: --optimizer design a built-in controller, but --controller my.fmu is a controller FMU"),
     (["inspect", "README.md"], "is not a zip archive"),

@@ -9,14 +9,16 @@ from cosim.cli.options import (
     DEFAULT_RESULTS,
     SEED_MAX,
     _add_implementation_option,
+    _add_optimizer_options,
     _add_plant_options,
     _plant_binding,
     bounded,
+    optimizer_options,
     output_dir,
     parse_period,
     seed_value,
 )
-from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD
+from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD, PREDICTIVE_CONTROLLERS
 
 
 def cmd_reproduce(args) -> int:
@@ -59,6 +61,7 @@ def cmd_sweep(args) -> int:
 
 def cmd_frequency_response(args) -> int:
     from cosim.study.cluster import dask_client
+    from cosim.study.controller_factory import check_optimizer_options
     from cosim.study.frequency_response import ResponseSettings, measure, write_outputs
     from cosim.study.sweeps.spec import ControllerEntry
 
@@ -71,12 +74,18 @@ def cmd_frequency_response(args) -> int:
     kinds = {"pi": "pi", "pi-envelope": "pi-envelope", "current-mode": "current-mode", "type-iii": "type-iii",
              "nnpc": "nnpc", "nnpc-explicit": "nnpc-explicit", "mpc-oracle": "mpc-oracle",
              "mpc-nominal": "mpc-nominal"}
+    names = args.controller or ["pi"]
+    for name in names:
+        if name not in kinds:
+            raise ConfigError(f"--controller {name} is invalid: expected one of {', '.join(kinds)}")
+    optimizer, rti_changes = optimizer_options(args)
+    check_optimizer_options(names, args.control_period, (0.0, 1.0), optimizer, rti_changes)
     tables = []
     with dask_client(None, args.workers) as client:
-        for name in args.controller or ["pi"]:
-            if name not in kinds:
-                raise ConfigError(f"--controller {name} is invalid: expected one of {', '.join(kinds)}")
-            entry = ControllerEntry(kind=kinds[name], name=CONTROLLERS[name], place=f"--controller {name}")
+        for name in names:
+            planning = {"optimizer": optimizer, "rti": tuple(rti_changes.items())} \
+                if name in PREDICTIVE_CONTROLLERS else {}
+            entry = ControllerEntry(kind=kinds[name], name=CONTROLLERS[name], place=f"--controller {name}", **planning)
             table = measure(binding, entry, args.control_period, settings, out / CONTROLLERS[name], client=client,
                             implementation=args.implementation, progress=args.progress)
             tables.append(table)
@@ -163,6 +172,7 @@ def add_frequency_response_parser(sub) -> None:
     p.add_argument("--controller", action="append", metavar="NAME",
                    help="pi, pi-envelope, current-mode, type-iii, nnpc, nnpc-explicit, mpc-oracle, mpc-nominal "
                         "(repeatable; default: pi)")
+    _add_optimizer_options(p, ("nnpc", "mpc-oracle", "mpc-nominal"))
     p.add_argument("--injection", choices=["duty", "reference", "load"], default="duty",
                    help="where the sine goes in (default: duty)")
     p.add_argument("--control-period", type=parse_period, default=1 / 75e3, metavar="SECONDS",
