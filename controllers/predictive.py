@@ -265,6 +265,11 @@ class HorizonOptimizer:
 ACCEPT_TOLERANCE = 1.0 + 1e-12
 
 
+#: the most box-QP iterations an RTI step may be given (RtiSettings.qp_iterations): far above the few per variable a
+#: strictly convex box QP needs (at most 8 variables), and within the C twins' int
+MAX_QP_ITERATIONS = 10_000
+
+
 @dataclass(frozen=True)
 class RtiSettings:
     """The real-time-iteration optimizer (:class:`RealTimeIteration`) and when the controller falls back
@@ -349,8 +354,9 @@ class RtiSettings:
             raise ValueError(f"RTI regularization = {self.regularization} is invalid: expected 0 <= mu < 1")
         if not (0 <= self.move_damping < 1):
             raise ValueError(f"RTI move_damping = {self.move_damping} is invalid: expected 0 <= rho < 1 (x mean(diag H))")
-        if self.qp_iterations < 1:
-            raise ValueError(f"RTI qp_iterations = {self.qp_iterations} is invalid: expected >= 1")
+        if not 1 <= self.qp_iterations <= MAX_QP_ITERATIONS:
+            raise ValueError(f"RTI qp_iterations = {self.qp_iterations} is invalid: expected 1 .. {MAX_QP_ITERATIONS} "
+                             "(a bound on the box QP's active-set iterations; it needs a few per variable)")
         if not 0 <= self.reweightings <= 3:
             raise ValueError(f"RTI reweightings = {self.reweightings} is invalid: expected 0, 1, 2 or 3 (at most, per "
                              "step)")
@@ -362,7 +368,8 @@ class RtiSettings:
                              "tolerance < 1 (duty; 0: every reweighting)")
         for name in ("reference_step", "load_step", "innovation", "startup_region", "error_region"):
             if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
-                raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected >= 0 (0: never)")
+                raise ValueError(f"RTI {name} = {getattr(self, name)} is invalid: expected a finite value >= 0 "
+                                 "(0: never)")
         if not (0 <= self.duty_resolution < 1):
             raise ValueError(f"RTI duty_resolution = {self.duty_resolution} is invalid: expected 0 <= quantum < 1 "
                              "(0: not rounded)")

@@ -152,7 +152,7 @@ def test_scenarios_and_inspect_print_what_they_describe(buck_fmu, capsys):
      "(nnpc-paper plans with the search unless --optimizer rti; controllers: nnpc-paper): drop --rti"),
     (["export-controller", "pi", "--kp", "0.01", "--ki", "14", "--rti", "iterations=2", "--out", "pi.fmu"],
      "error: --rti iterations=2 changes the real-time iteration's settings, but no controller here plans with it "
-     "(none of nnpc, nnpc-paper, nnpc-adaptive, mpc-oracle, mpc-nominal runs; controllers: pi): drop --rti"),
+     "(none of nnpc, nnpc-paper, mpc-oracle, mpc-nominal runs; controllers: pi): drop --rti"),
     (["frequency-response", "--controller", "pi", "--optimizer", "search", "--out", "fr"],
      "error: --optimizer search chooses the optimizer of the predictive controllers"),
     (["frequency-response", "--controller", "mpc-oracle", "--rti", "reweightings=5", "--out", "fr"],
@@ -171,6 +171,7 @@ def test_user_mistakes_are_one_line_errors_without_traceback(args, message, tmp_
     assert len(lines) == 1, done.stderr
     assert message in lines[0]
     assert "Traceback" not in done.stderr
+    assert not list(tmp_path.rglob("*.pt")) and not list(tmp_path.rglob("*.parquet"))  # refused before any work
 
 
 def test_help_texts_state_units():
@@ -207,6 +208,50 @@ def test_the_predictive_controllers_optimizer_and_rti_settings_are_chosen_on_the
     assert {k: v for k, v in optimizer.items() if k != "type"} == \
         {**asdict(SWITCHING_PERIOD_RTI), "reweightings": 0, "iterations": 2}
     assert run.frame["output_voltage"].iloc[-1] == pytest.approx(15.0, rel=5e-3)
+
+
+def test_export_controller_builds_the_fmu_with_the_optimizer_and_rti_settings_asked_for(tmp_path):
+    """The controller FMU's generated header (data only) holds the RTI settings the command line chose."""
+    import zipfile
+
+    def header(*options):
+        out = tmp_path / f"mpc{len(options)}.fmu"
+        assert main(["--no-progress", "export-controller", "mpc-oracle", "--control-period", "1/75e3", *options,
+                     "--out", str(out)]) == 0
+        with zipfile.ZipFile(out.with_name(out.stem + "-source.fmu")) as source:
+            return source.read("sources/controller_config.h").decode()
+
+    assert ".rti = {.enabled = 1, .iterations = 1, .reweightings = 2," in header()
+    assert ".rti = {" not in header("--optimizer", "search")  # all zero: the search alone
+    assert ".rti = {.enabled = 1, .iterations = 2, .smoothing = 0.02," in header("--rti", "iterations=2", "--rti",
+                                                                                 "smoothing=0.02", "--rti",
+                                                                                 "reweightings=0")
+
+
+def test_frequency_response_measures_the_predictive_controllers_with_the_optimizer_asked_for(tmp_path, monkeypatch):
+    """--optimizer/--rti reach the controller entry frequency-response designs and measures (the measurement itself,
+    minutes of a dask cluster, is tests/test_frequency_response.py's)."""
+    import contextlib
+
+    import cosim.study.cluster as cluster
+    import cosim.study.frequency_response as response
+
+    from cosim.base.errors import ConfigError
+
+    entries = []
+
+    def measure(binding, entry, *args, **kwargs):
+        entries.append(entry)
+        raise ConfigError("stopped by the test")  # the entry is what this test checks
+
+    monkeypatch.setattr(response, "measure", measure)
+    monkeypatch.setattr(cluster, "dask_client", lambda *a, **k: contextlib.nullcontext())
+    assert main(["--no-progress", "frequency-response", "--controller", "mpc-oracle", "--rti", "reweightings=0",
+                 "--out", str(tmp_path)]) == 2
+    assert main(["--no-progress", "frequency-response", "--controller", "nnpc", "--optimizer", "search", "--out",
+                 str(tmp_path)]) == 2
+    assert [(e.kind, e.optimizer, dict(e.rti)) for e in entries] == \
+        [("mpc-oracle", None, {"reweightings": 0}), ("nnpc", "search", {})]
 
 
 def test_each_predictive_controller_plans_with_its_own_optimizer_unless_one_is_given(tmp_path):

@@ -19,6 +19,7 @@ from controllers.native import NativePredictiveController
 from controllers.nn_config import NNConfig
 from controllers.nn_model import load_model
 from controllers.predictive import (
+    MAX_QP_ITERATIONS,
     HorizonOptimizer,
     HorizonSettings,
     PredictiveController,
@@ -166,7 +167,7 @@ def test_rti_settings_are_validated_by_name():
     for field, value, message in (("iterations", 4, "RTI iterations = 4 is invalid: expected 1, 2 or 3"),
                                   ("smoothing", 0.0, "RTI smoothing = 0.0 is invalid"),
                                   ("step_limit", 1.5, "RTI step_limit = 1.5 is invalid"),
-                                  ("reference_step", -1.0, r"RTI reference_step = -1.0 is invalid: expected >= 0"),
+                                  ("reference_step", -1.0, r"RTI reference_step = -1.0 is invalid: expected a finite value >= 0"),
                                   ("move_damping", 1.0, r"RTI move_damping = 1.0 is invalid: expected 0 <= rho < 1")):
         with pytest.raises(ValueError, match=message):
             RtiSettings(**{field: value})
@@ -454,6 +455,12 @@ def test_the_search_plans_the_start_up_until_the_output_first_comes_within_the_r
         RtiSettings(reweightings=1, line_search=True)
     with pytest.raises(ValueError, match="RTI reweighting_tolerance = 1.0 is invalid"):
         RtiSettings(reweighting_tolerance=1.0)
+    RtiSettings(qp_iterations=MAX_QP_ITERATIONS)
+    for bad in (0, MAX_QP_ITERATIONS + 1, 2**32 + 1):  # the last would be 1 in the C twin's int
+        with pytest.raises(ValueError, match=f"RTI qp_iterations = {bad} is invalid: expected 1 .. 10000"):
+            RtiSettings(qp_iterations=bad)
+    with pytest.raises(ValueError, match="RTI innovation = inf is invalid: expected a finite value >= 0"):
+        RtiSettings(innovation=float("inf"))
 
 
 def fallback_reasons(predictor, settings: RtiSettings, run: list[Measurement]) -> tuple[list[str], list[str]]:
@@ -487,7 +494,7 @@ def test_a_reference_step_is_planned_by_the_search_on_its_sample_only():
                                 (0.0, ["cold start"] + [none] * 13)):
         assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, reference_step=threshold), run) == \
             (expected, expected)
-    with pytest.raises(ValueError, match="RTI reference_step = -1.0 is invalid: expected >= 0"):
+    with pytest.raises(ValueError, match="RTI reference_step = -1.0 is invalid: expected a finite value >= 0"):
         RtiSettings(reference_step=-1.0)
 
 
@@ -510,7 +517,7 @@ def test_the_search_plans_every_sample_whose_error_exceeds_the_error_region():
     steps = [Measurement(k * TS, r, v, 2.0, v / 6.0, 48.0) for k, (r, v) in enumerate(settle + up + down)]
     expected = ["cold start", "", "", guard, guard, guard, "", guard, "", guard, guard, ""]
     assert fallback_reasons(predictor, RtiSettings(startup_region=0.0, error_region=1.0), steps) == (expected, expected)
-    with pytest.raises(ValueError, match="RTI error_region = -0.5 is invalid: expected >= 0"):
+    with pytest.raises(ValueError, match="RTI error_region = -0.5 is invalid: expected a finite value >= 0"):
         RtiSettings(error_region=-0.5)
 
 

@@ -1093,13 +1093,18 @@ def test_a_sweep_file_chooses_a_predictive_controllers_optimizer_and_rti_setting
         """)
     spec = load_sweep(path)
     assert [(c.optimizer, dict(c.rti)) for c in spec.controllers] == \
-        [("search", {}), (None, {"reweightings": 0, "smoothing": 0.02}), (None, {})]
+        [("search", {}), ("rti", {"reweightings": 0, "smoothing": 0.02}), (None, {})]
     plan = SweepPlan(spec)
     recipes = design(spec.controllers, plan.binding, spec.control_period, tmp_path / "out")
     built = [build(recipe, plan.binding, "python") for recipe in recipes]
     assert built[0].rti is None
     assert built[1].rti == replace(SWITCHING_PERIOD_RTI, reweightings=0, smoothing=0.02)
     assert built[2].rti == SWITCHING_PERIOD_RTI and set(recipes[2].settings) == {"circuit"}
+    # the C twin each worker runs by default gets them too
+    twins = [build(recipe, plan.binding, "c").config.rti for recipe in recipes]
+    assert twins[0].enabled == 0
+    assert (twins[1].enabled, twins[1].reweightings, twins[1].smoothing) == (1, 0, 0.02)
+    assert (twins[2].reweightings, twins[2].smoothing) == (SWITCHING_PERIOD_RTI.reweightings, 0.05)
     assert spec.controllers[1].describe()["rti"] == {"reweightings": 0, "smoothing": 0.02}
     assert "optimizer" not in spec.controllers[2].describe() and "rti" not in spec.controllers[2].describe()
 
@@ -1114,6 +1119,10 @@ def test_a_swept_nnpc_plans_with_the_optimizer_its_key_has_on_the_command_line()
     from cosim.study.vocabulary import SWITCHING_PERIOD
 
     blob = (Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt").read_bytes()
-    built = {kind: build(ControllerRecipe(kind, kind, SWITCHING_PERIOD, "{}", blob), plant_binding("nominal", "averaged"),
-                         "python") for kind in ("nnpc", "nnpc-paper")}
+    binding = plant_binding("nominal", "averaged")
+    built = {kind: build(ControllerRecipe(kind, kind, SWITCHING_PERIOD, "{}", blob), binding, "python")
+             for kind in ("nnpc", "nnpc-paper")}
     assert built["nnpc"].rti == SWITCHING_PERIOD_RTI and built["nnpc-paper"].rti is None
+    # a sweep file's nnpc-paper says so in its description (the sweep's id), nnpc keeps the description it had
+    spec = parse_sweep('scenarios = ["startup"]\ncontrollers = ["nnpc", "nnpc-paper"]\n', Path("study.toml"))
+    assert [c.describe().get("optimizer") for c in spec.controllers] == [None, "search"]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from cosim.base.errors import BuildError, ConfigError
 from cosim.cli.options import (
+    EXPORTED_PREDICTIVE,
     _add_controller_design_options,
     _add_fmi_version_option,
     _add_plant_options,
@@ -32,7 +33,7 @@ def _design_controller(args, binding, period: float, work_dir: Path, policy_path
                                     duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
                                     model_path=args.model, samples=args.samples, seed=args.seed,
                                     progress=args.progress, policy_path=policy_path, optimizer=optimizer,
-                                    rti_changes=rti_changes)
+                                    rti_changes=rti_changes, offered=EXPORTED_PREDICTIVE)
     return controller
 
 

@@ -275,13 +275,18 @@ def _add_optimizer_options(parser, offered: tuple[str, ...] = PREDICTIVE_CONTROL
                         help=f"the optimizer of the predictive controllers ({', '.join(offered)}): rti, "
                              "the real-time iteration (Gauss-Newton steps on the blocked duties from the last plan, "
                              "the search as its fallback at a cold start and at large steps), or search, the grid + "
-                             "pattern search alone (the reference). Default: each one's own -- the search for "
-                             "nnpc-paper (as the reproduction runs the paper's network), the RTI for the others")
+                             "pattern search alone (the reference). Default: "
+                             + ("each one's own -- the search for nnpc-paper (as the reproduction runs the paper's "
+                                "network), the RTI for the others" if "nnpc-paper" in offered else "the RTI"))
     parser.add_argument("--rti", action="append", default=[], metavar="FIELD=VALUE",
                         help="change one of the RTI settings of the control period's default (repeat for several), "
                              "e.g. --rti reweightings=0 --rti iterations=2; fields and units: "
                              "docs/guide/controllers.md (controllers.predictive.RtiSettings); refused where no "
                              "controller plans with the RTI")
+
+
+#: the predictive controllers export-controller and export-ssp offer (the adaptive NNPC has no C twin to export)
+EXPORTED_PREDICTIVE = tuple(k for k in PREDICTIVE_CONTROLLERS if k in EXPORTABLE_CONTROLLERS)
 
 
 def optimizer_options(args) -> tuple[str | None, dict]:
@@ -314,7 +319,7 @@ def _add_controller_design_options(parser) -> None:
     settings, the samples and seed of an NN plant model
     trained on demand, and the folder the tuned gains and trained networks are cached in."""
     _add_pi_and_duty_options(parser, gains_default="tuned on the plant")
-    _add_optimizer_options(parser, tuple(k for k in PREDICTIVE_CONTROLLERS if k in EXPORTABLE_CONTROLLERS))
+    _add_optimizer_options(parser, EXPORTED_PREDICTIVE)
     parser.add_argument("--samples", type=bounded(int, MIN_SAMPLES), default=None,
                         help=f"samples of PI data an NNPC's network is identified from when trained on demand"
                         f" (>= {MIN_SAMPLES}; default: {ON_DEMAND_SAMPLES}); refused where none is")

@@ -59,6 +59,12 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+#: the controllers frequency-response measures (command-line keys, each also its sweep kind), and the predictive ones
+RESPONSE_CONTROLLERS = ("pi", "pi-envelope", "current-mode", "type-iii", "nnpc", "nnpc-explicit", "mpc-oracle",
+                        "mpc-nominal")
+RESPONSE_PREDICTIVE = tuple(k for k in PREDICTIVE_CONTROLLERS if k in RESPONSE_CONTROLLERS)
+
+
 def cmd_frequency_response(args) -> int:
     from cosim.study.cluster import dask_client
     from cosim.study.controller_factory import check_optimizer_options
@@ -71,21 +77,18 @@ def cmd_frequency_response(args) -> int:
     settings.check(args.control_period)  # every setting before the cluster or a design
     binding = _plant_binding(args)
     out = output_dir(args.out)
-    kinds = {"pi": "pi", "pi-envelope": "pi-envelope", "current-mode": "current-mode", "type-iii": "type-iii",
-             "nnpc": "nnpc", "nnpc-explicit": "nnpc-explicit", "mpc-oracle": "mpc-oracle",
-             "mpc-nominal": "mpc-nominal"}
     names = args.controller or ["pi"]
     for name in names:
-        if name not in kinds:
-            raise ConfigError(f"--controller {name} is invalid: expected one of {', '.join(kinds)}")
+        if name not in RESPONSE_CONTROLLERS:
+            raise ConfigError(f"--controller {name} is invalid: expected one of {', '.join(RESPONSE_CONTROLLERS)}")
     optimizer, rti_changes = optimizer_options(args)
-    check_optimizer_options(names, args.control_period, (0.0, 1.0), optimizer, rti_changes)
+    check_optimizer_options(names, args.control_period, (0.0, 1.0), optimizer, rti_changes, RESPONSE_PREDICTIVE)
     tables = []
     with dask_client(None, args.workers) as client:
         for name in names:
             planning = {"optimizer": optimizer, "rti": tuple(rti_changes.items())} \
                 if name in PREDICTIVE_CONTROLLERS else {}
-            entry = ControllerEntry(kind=kinds[name], name=CONTROLLERS[name], place=f"--controller {name}", **planning)
+            entry = ControllerEntry(kind=name, name=CONTROLLERS[name], place=f"--controller {name}", **planning)
             table = measure(binding, entry, args.control_period, settings, out / CONTROLLERS[name], client=client,
                             implementation=args.implementation, progress=args.progress)
             tables.append(table)
@@ -170,9 +173,8 @@ def add_frequency_response_parser(sub) -> None:
                                    "closed form (PI, current-mode, Type-III). Writes DIR/frequency_response.csv, "
                                    ".json (margins) and .png (Bode plot, margins marked).")
     p.add_argument("--controller", action="append", metavar="NAME",
-                   help="pi, pi-envelope, current-mode, type-iii, nnpc, nnpc-explicit, mpc-oracle, mpc-nominal "
-                        "(repeatable; default: pi)")
-    _add_optimizer_options(p, ("nnpc", "mpc-oracle", "mpc-nominal"))
+                   help=f"{', '.join(RESPONSE_CONTROLLERS)} (repeatable; default: pi)")
+    _add_optimizer_options(p, RESPONSE_PREDICTIVE)
     p.add_argument("--injection", choices=["duty", "reference", "load"], default="duty",
                    help="where the sine goes in (default: duty)")
     p.add_argument("--control-period", type=parse_period, default=1 / 75e3, metavar="SECONDS",

@@ -186,7 +186,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                      duty_limits: tuple[float, float], kp: float | None = None, ki: float | None = None,
                      model_path: str | None = None, samples: int | None = None, seed: int = 0,
                      progress: bool = False, policy_path: str | None = None, optimizer: str | None = None,
-                     rti_changes: dict | None = None) -> list:
+                     rti_changes: dict | None = None, offered: tuple[str, ...] = PREDICTIVE_CONTROLLERS) -> list:
     """The controllers ``names`` for ``binding`` at ``period``: built-in names (:data:`CONTROLLERS`),
     paths of controller FMUs / controller-binding files, or Python controllers (``module:Class``,
     ``file.py:Class``, :mod:`cosim.python_controller`); those run at their own sample period.
@@ -197,7 +197,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     from the nnpc network). ``optimizer`` (``"rti"`` or ``"search"``): the predictive controllers' optimizer
     (None: each one's own, :func:`~cosim.study.experiments.own_optimizer`); ``rti_changes``
     (:func:`~cosim.study.experiments.rti_changes`): fields of the rate's RTI settings replaced for those that plan
-    with the RTI."""
+    with the RTI; ``offered``: the predictive controllers the calling command offers (named in its messages)."""
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
     from cosim.fmi.controller import FmuController, controller_binding
@@ -255,7 +255,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     samples = ON_DEMAND_SAMPLES if samples is None else samples
     if policy_path and "nnpc-explicit" not in names:
         raise ConfigError("--policy gives the explicit NNPC's policy: add --controller nnpc-explicit (or drop --policy)")
-    check_optimizer_options(names, period, duty_limits, optimizer, rti_changes)
+    check_optimizer_options(names, period, duty_limits, optimizer, rti_changes, offered)
     oracle = true_parameters(binding) if "mpc-oracle" in names else None  # refuses an external plant now
     if model_path:
         from controllers.nn_model import load_model
@@ -324,9 +324,11 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
 
 
 def check_optimizer_options(names: list[str], period: float, duty_limits: tuple[float, float],
-                            optimizer: str | None, rti_changes: dict | None) -> None:
+                            optimizer: str | None, rti_changes: dict | None,
+                            offered: tuple[str, ...] = PREDICTIVE_CONTROLLERS) -> None:
     """Refuse --optimizer and --rti where they change nothing, and RTI changes that do not suit the rate's
-    settings (e.g. reweightings with the 1 ms line search) -- one ConfigError line, before any tuning or training."""
+    settings (e.g. reweightings with the 1 ms line search) -- one ConfigError line, before any tuning or training.
+    ``offered``: the predictive controllers the command offers (named in the messages)."""
     predictive = [n for n in names if n in PREDICTIVE_CONTROLLERS]
     if optimizer is not None:
         try:
@@ -335,22 +337,26 @@ def check_optimizer_options(names: list[str], period: float, duty_limits: tuple[
             raise ConfigError(f"--optimizer: {error}") from None
         if not predictive:
             raise ConfigError(f"--optimizer {optimizer} chooses the optimizer of the predictive controllers "
-                              f"({', '.join(PREDICTIVE_CONTROLLERS)}), but none runs here (controllers: "
+                              f"({', '.join(offered)}), but none runs here (controllers: "
                               f"{', '.join(names)}): drop --optimizer")
     if not rti_changes:
         return
     given = " ".join(f"--rti {k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in rti_changes.items())
+    rate = rti_settings(period, "rti", duty_limits)
     with_rti = [n for n in predictive if own_optimizer(n, optimizer) == "rti"]
     if not with_rti:
         why = ("--optimizer search" if optimizer == "search" else
                "nnpc-paper plans with the search unless --optimizer rti" if predictive else
-               f"none of {', '.join(PREDICTIVE_CONTROLLERS)} runs")
+               f"none of {', '.join(offered)} runs")
         raise ConfigError(f"{given} changes the real-time iteration's settings, but no controller here plans with it "
                           f"({why}; controllers: {', '.join(names)}): drop --rti")
     try:
         rti_settings(period, "rti", duty_limits, rti_changes)
     except ValueError as error:
-        raise ConfigError(f"{given} at the control period {period_text(period)}: {error}") from None
+        kept = [f"{k} = {getattr(rate, k)}" for k in ("reweightings", "line_search")
+                if k in str(error) and k not in rti_changes]  # a field of the rate's the user did not set
+        hint = f" (the rate's settings have {', '.join(kept)}: change it too)" if kept else ""
+        raise ConfigError(f"{given} at the control period {period_text(period)}: {error}{hint}") from None
 
 
 def external_controllers(paths: list[str], periods: tuple[float, ...]) -> dict[float, tuple[str, ...]]:

@@ -136,8 +136,6 @@ def horizon_settings(control_period: float, horizon: int | None = None) -> Horiz
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
 
 
-
-
 #: The optimizer of the NNPC and the MPC baselines unless one is asked for: the real-time iteration at both of the
 #: study's rates (:func:`rti_settings`), with the search as its fallback; ``optimizer="rti"`` / ``"search"`` selects
 #: either at any rate. Issue 24 makes the RTI the default where it meets its quality targets on every identification
@@ -234,7 +232,7 @@ def rti_changes(items: list[str]) -> dict:
     changes = {}
     for item in items:
         name, equals, text = item.partition("=")
-        if not equals:
+        if not equals or not name:
             raise ValueError(f"--rti {item}: expected FIELD=VALUE (e.g. iterations=2), FIELD one of {', '.join(types)}")
         if name not in types:
             raise ValueError(f"--rti {item}: {_not_an_rti_field(name, types)}")
@@ -253,7 +251,7 @@ def rti_changes(items: list[str]) -> dict:
     try:
         RtiSettings(**changes)  # its own checks (ranges), before any simulation
     except ValueError as error:
-        raise ValueError(f"--rti {' '.join(items)}: {error}") from None
+        raise ValueError(f"{' '.join(f'--rti {item}' for item in items)}: {error}") from None
     return changes
 
 

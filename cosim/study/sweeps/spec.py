@@ -74,6 +74,7 @@ from cosim.study.vocabulary import (
     IMPLEMENTATIONS,
     PAPER_PERIOD,
     PLANT_VARIANTS,
+    PREDICTIVE_CONTROLLERS,
     SENSORS,
 )
 
@@ -97,13 +98,13 @@ CONTROLLER_KINDS = ("pi", "nnpc", "nnpc-paper", "mpc-nominal", "fmu", "mpc-oracl
                     "type-iii", "pi-envelope")
 CONTROLLER_KEYS = {"kind", "name", "kp", "ki", "model", "samples", "seed", "path", "policy", "design", "settle",
                    "optimizer", "rti"}
-#: the predictive controllers' keys: their optimizer (the RTI or the search) and its RTI settings
-OPTIMIZER_KEYS = {"optimizer", "rti"}
-KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"} | OPTIMIZER_KEYS,
-             "nnpc-paper": {"model", "samples", "seed"} | OPTIMIZER_KEYS, "mpc-nominal": OPTIMIZER_KEYS,
-             "fmu": {"path"}, "mpc-oracle": OPTIMIZER_KEYS, "nnpc-explicit": {"policy"},
+KIND_KEYS = {"pi": {"kp", "ki"}, "nnpc": {"model", "samples", "seed", "policy"}, "nnpc-paper": {"model", "samples", "seed"},
+             "mpc-nominal": set(), "fmu": {"path"}, "mpc-oracle": set(), "nnpc-explicit": {"policy"},
              "current-mode": {"design"}, "type-iii": {"design"}, "pi-envelope": {"kp", "ki"}}
-KIND_KEYS = {kind: keys | {"settle"} for kind, keys in KIND_KEYS.items()}
+#: the predictive kinds' optimizer (the RTI or the search) and its RTI settings
+OPTIMIZER_KEYS = {"optimizer", "rti"}
+KIND_KEYS = {kind: keys | {"settle"} | (OPTIMIZER_KEYS if kind in PREDICTIVE_CONTROLLERS else set())
+             for kind, keys in KIND_KEYS.items()}
 #: what ``path`` of an ``fmu`` controller may name
 CONTROLLER_FILE_SUFFIXES = (".fmu", ".toml")
 #: how closely a controller FMU's sample period must match the sweep's control period (relative)
@@ -656,8 +657,12 @@ def _controllers(r: _Reader, data: dict, base: Path, control_period: float) -> l
 
 def _optimizer(r: _Reader, index: int, kind: str, entry: dict, at, control_period: float) -> tuple[str | None, dict]:
     """A predictive controller's ``optimizer`` ("rti" or "search") and ``rti`` table (RtiSettings fields changed),
-    checked against the settings of the sweep's control period as ``run --optimizer/--rti`` checks them."""
-    if "optimizer" not in entry and "rti" not in entry:
+    checked against the settings of the sweep's control period as ``run --optimizer/--rti`` checks them. The
+    optimizer is written out where the file gives rti or the kind's own is not the default (nnpc-paper's search):
+    the recipe and the sweep's id then say it, and no worker's default decides it; nnpc and the MPCs that give
+    neither keep the ids they had."""
+    if kind not in PREDICTIVE_CONTROLLERS or ("optimizer" not in entry and "rti" not in entry
+                                              and kind != "nnpc-paper"):
         return None, {}
     from cosim.study.experiments import own_optimizer, rti_settings, rti_table
     from cosim.study.vocabulary import OPTIMIZERS
@@ -666,7 +671,7 @@ def _optimizer(r: _Reader, index: int, kind: str, entry: dict, at, control_perio
     optimizer = r.choice(entry["optimizer"], f"{label}.optimizer", at("optimizer"), OPTIMIZERS) \
         if "optimizer" in entry else None
     if "rti" not in entry:
-        return optimizer, {}
+        return optimizer or own_optimizer(kind), {}
     table = r.table(entry["rti"], f"{label}.rti", at("rti"))
     try:
         changes = rti_table(table)
@@ -680,7 +685,7 @@ def _optimizer(r: _Reader, index: int, kind: str, entry: dict, at, control_perio
         rti_settings(control_period, "rti", (0.0, 1.0), changes)
     except ValueError as error:
         r.fail(at("rti"), f"{label}.rti at the control period {control_period:.6g} s: {error}")
-    return optimizer, changes
+    return "rti", changes
 
 
 def _controller_fmu(r: _Reader, index: int, value, place: str, base: Path, control_period: float,
