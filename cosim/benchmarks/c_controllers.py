@@ -24,7 +24,7 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         rti_operation_counts,
     )
     from cosim.study.experiments import implemented, model_mpc, nnpc
-    from cosim.study.optimizer_ablation import TWO_STEPS, with_rti
+    from cosim.study.optimizer_ablation import TWO_STEPS
     from cosim.study.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
@@ -39,14 +39,14 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         if not transient_within_sample(period):
             controllers.append(model_mpc(NOMINAL, period, MPC_ORACLE, binding=binding))
             # the ablation's variant (cosim.study.optimizer_ablation.TWO_STEPS): what a second Gauss-Newton step costs
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti"), **TWO_STEPS))
+            controllers.append(nnpc(model, period, f"{NNPC} (rti, two steps)", optimizer="rti", rti_changes=TWO_STEPS))
             # the study's step without its reweightings (RtiSettings.reweightings): what they cost where they run
-            controllers.append(with_rti(nnpc(model, period, f"{NNPC} (rti, no reweightings)", optimizer="rti"),
-                                        reweightings=0))
+            controllers.append(nnpc(model, period, f"{NNPC} (rti, no reweightings)", optimizer="rti",
+                                    rti_changes={"reweightings": 0}))
             # the option the study does not take (RtiSettings.reuse_jacobian): a second step whose trial is rolled out
             # with the first step's sensitivities, not linearised again
-            reused = nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti")
-            controllers.append(with_rti(reused, **TWO_STEPS, reuse_jacobian=True))
+            controllers.append(nnpc(model, period, f"{NNPC} (rti, two steps, reused Jacobian)", optimizer="rti",
+                                    rti_changes={**TWO_STEPS, "reuse_jacobian": True}))
         # each controller's own closed loop, then their C steps timed pass by pass in turn (replay_interleaved: the
         # variants' ratios under the same machine conditions)
         recorded = [(controller, record_measurements(binding, implemented(controller), scenario))

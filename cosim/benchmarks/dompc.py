@@ -28,7 +28,6 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         nnpc,
         scenarios_for,
     )
-    from cosim.study.optimizer_ablation import with_rti
     from cosim.study.plants import plant_binding
 
     period = SWITCHING_PERIOD
@@ -48,7 +47,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         result_peer = simulate(binding, costed_peer, scenario, record_period=period)
         costs, peer_costs = twin.inner.costs, costed_peer.costs
         # the same RTI without its reweightings (RtiSettings.reweightings: one QP per sample), for their share
-        plain = with_rti(nnpc(model, period, NNPC, optimizer="rti"), reweightings=0)
+        plain = nnpc(model, period, NNPC, optimizer="rti", rti_changes={"reweightings": 0})
         iae_plain = run_metrics(simulate(binding, implemented(plain), scenario, record_period=period))["iae_Vs"]
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
         timed = replay_warm(rti, measurements, 1 if quick else 2, warm_up=not quick)  # after do-mpc's loop

@@ -28,6 +28,7 @@ from cosim.study.experiments import (
     nn_configs,
     nnpc,
     own_optimizer,
+    planned_with,
     rti_settings,
 )
 
@@ -281,14 +282,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 network = "nnpc" if name == "nnpc-adaptive" else name
                 model = given or trained_model(network, binding, period, out_dir, samples=samples, seed=seed,
                                                model_path=None, progress=progress)
-                own = own_optimizer(name, optimizer)
-                changes = rti_changes if own == "rti" else None
-                if name == "nnpc-adaptive":
-                    controllers.append(adaptive_nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits,
-                                                     optimizer=own, rti_changes=changes))
-                else:
-                    controllers.append(nnpc(model, period, CONTROLLERS[name], duty_limits=duty_limits,
-                                            optimizer=own, rti_changes=changes))
+                factory = adaptive_nnpc if name == "nnpc-adaptive" else nnpc
+                controllers.append(factory(model, period, CONTROLLERS[name], duty_limits=duty_limits,
+                                           **planned_with(name, optimizer, rti_changes)))
             elif name == "nnpc-explicit":
                 if not policy_path:
                     if tuple(duty_limits) != (0.0, 1.0):
@@ -310,10 +306,9 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 tuning = tune_pi_envelope(binding, period, progress=progress)
                 controllers.append(tuning.controller(duty_limits, name=CONTROLLERS[name]))
             elif name in ("mpc-oracle", "mpc-nominal"):
-                own = own_optimizer(name, optimizer)
                 parameters, label = (oracle, MPC_ORACLE) if name == "mpc-oracle" else (NOMINAL, MPC_NOMINAL)
-                controllers.append(model_mpc(parameters, period, label, duty_limits, binding, optimizer=own,
-                                             rti_changes=rti_changes if own == "rti" else None))
+                controllers.append(model_mpc(parameters, period, label, duty_limits, binding,
+                                             **planned_with(name, optimizer, rti_changes)))
             elif name in python:  # the user's own Python controller, at its own sample period
                 controllers.append(python[name])
             else:  # a controller FMU, named NAME (FMU) as the docs say (a binding file's label, if it has one)
@@ -342,9 +337,7 @@ def check_optimizer_options(names: list[str], period: float, duty_limits: tuple[
     if not rti_changes:
         return
     given = " ".join(f"--rti {k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in rti_changes.items())
-    rate = rti_settings(period, "rti", duty_limits)
-    with_rti = [n for n in predictive if own_optimizer(n, optimizer) == "rti"]
-    if not with_rti:
+    if not any(own_optimizer(n, optimizer) == "rti" for n in predictive):
         why = ("--optimizer search" if optimizer == "search" else
                "nnpc-paper plans with the search unless --optimizer rti" if predictive else
                f"none of {', '.join(offered)} runs")
@@ -353,6 +346,7 @@ def check_optimizer_options(names: list[str], period: float, duty_limits: tuple[
     try:
         rti_settings(period, "rti", duty_limits, rti_changes)
     except ValueError as error:
+        rate = rti_settings(period, "rti", duty_limits)
         kept = [f"{k} = {getattr(rate, k)}" for k in ("reweightings", "line_search")
                 if k in str(error) and k not in rti_changes]  # a field of the rate's the user did not set
         hint = f" (the rate's settings have {', '.join(kept)}: change it too)" if kept else ""

@@ -284,6 +284,14 @@ def own_optimizer(key: str, optimizer: str | None = None) -> str:
     return PAPER_NNPC_OPTIMIZER if key == "nnpc-paper" else DEFAULT_OPTIMIZER
 
 
+def planned_with(key: str, optimizer: str | None = None, changes: Mapping[str, object] | None = None) -> dict:
+    """``optimizer`` and ``rti_changes`` for :func:`nnpc`, :func:`adaptive_nnpc` or :func:`model_mpc` building the
+    predictive controller of command-line key ``key``: :func:`own_optimizer`, and ``changes`` where it is the RTI
+    (the search has no RTI settings)."""
+    own = own_optimizer(key, optimizer)
+    return {"optimizer": own, "rti_changes": changes if own == "rti" else None}
+
+
 def rti_settings(control_period: float, optimizer: str | None = None,
                  duty_limits: tuple[float, float] = (0.0, 1.0),
                  changes: Mapping[str, object] | None = None) -> RtiSettings | None:

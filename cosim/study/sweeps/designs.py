@@ -96,11 +96,10 @@ def _optimizer_settings(entry: ControllerEntry) -> dict:
 
 def _planned(recipe: ControllerRecipe) -> dict:
     """``optimizer`` and ``rti_changes`` for the factories of :mod:`cosim.study.experiments`: the recipe's own, else
-    its kind's (:func:`~cosim.study.experiments.own_optimizer`)."""
-    from cosim.study.experiments import own_optimizer
+    its kind's (:func:`~cosim.study.experiments.planned_with`)."""
+    from cosim.study.experiments import planned_with
 
-    optimizer = own_optimizer(recipe.kind, recipe.settings.get("optimizer"))
-    return {"optimizer": optimizer, "rti_changes": recipe.settings.get("rti") if optimizer == "rti" else None}
+    return planned_with(recipe.kind, recipe.settings.get("optimizer"), recipe.settings.get("rti"))
 
 
 def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
