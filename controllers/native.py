@@ -183,15 +183,24 @@ def precision_flags(precision: str) -> tuple[str, ...]:
     return FLAGS + (FLOAT32_FLAGS if check_precision(precision) == "float32" else ())
 
 
-def build_library(source_dir: Path = SOURCE_DIR, force: bool = False, precision: str = "float64") -> Path:
+#: the build variants :func:`library` takes besides the default: ``scalar-pairs`` computes buckc_pair.h's pairs as
+#: two scalars where the default build uses SSE2 (the tests check that both give the same bits)
+VARIANT_DEFINES = {"default": (), "scalar-pairs": ("-DBUCKC_SCALAR_PAIRS",)}
+
+
+def build_library(source_dir: Path = SOURCE_DIR, force: bool = False, precision: str = "float64",
+                  variant: str = "default") -> Path:
     """Path of the compiled twins in ``precision`` (``float64``: all of them; ``float32``: the files with a
-    float32 build, compiled with ``-DBUCKC_FLOAT32``), compiling once per source hash; raises
-    :class:`NativeBuildError`."""
+    float32 build, compiled with ``-DBUCKC_FLOAT32``) and ``variant`` (:data:`VARIANT_DEFINES`), compiling once
+    per source hash; raises :class:`NativeBuildError`."""
     source_dir = Path(source_dir)
     name = LIBRARY_NAME if precision == "float64" else f"{LIBRARY_NAME}-{precision}"
+    if variant not in VARIANT_DEFINES:
+        raise ValueError(f"build variant {variant!r} is unknown: expected one of {', '.join(VARIANT_DEFINES)}")
+    name += "" if variant == "default" else f"-{variant}"
     try:
         return build_c(name, precision_sources(precision, source_dir), sorted(source_dir.glob("*.h")),
-                       precision_flags(precision), _suffix(), force=force)
+                       precision_flags(precision) + VARIANT_DEFINES[variant], _suffix(), force=force)
     except NativeBuildError as error:
         raise NativeBuildError(str(error).replace(f"compiling {name}", f"compiling the C controller twins "
                                                                         f"({precision})")) from None
@@ -322,6 +331,7 @@ class RealMirrors:
         real, rp, P = self.real, ctypes.POINTER(self.real), ctypes.POINTER
         return {
             "buckc_real_name": (ctypes.c_char_p, []),
+            "buckc_pair_backend": (ctypes.c_char_p, []),
             "buckc_status_text": (ctypes.c_char_p, [c_int]),
             "buckc_struct_size": (ctypes.c_size_t, [ctypes.c_char_p]),
             "buckc_pi_init": (c_int, [P(self.Pi), P(self.PiConfig), P(ctypes.c_char_p)]),
@@ -527,11 +537,11 @@ _PREDICTIVE_SIGNATURES = {  # the double-only functions (predictors.c, predictiv
 
 
 @functools.lru_cache(maxsize=None)
-def library(precision: str = "float64") -> ctypes.CDLL:
-    """The loaded twins of ``precision`` (built on first use), with argument types set and the struct layouts
-    checked; the float32 library has the files of :data:`FLOAT32_SOURCES` only."""
+def library(precision: str = "float64", variant: str = "default") -> ctypes.CDLL:
+    """The loaded twins of ``precision`` and build ``variant`` (built on first use), with argument types set and
+    the struct layouts checked; the float32 library has the files of :data:`FLOAT32_SOURCES` only."""
     mirrors = real_mirrors(precision)
-    lib = ctypes.CDLL(str(build_library(precision=precision)))
+    lib = ctypes.CDLL(str(build_library(precision=precision, variant=variant)))
     double = precision == "float64"
     for name, (restype, argtypes) in {**mirrors.signatures(), **(_PREDICTIVE_SIGNATURES if double else {})}.items():
         function = getattr(lib, name)

@@ -442,6 +442,92 @@ def test_nn_sensitivities_match_numpy(config):
         native.nn_sensitivities(c_config, history, duties[:9], extras, None, np.arange(9), 9)
 
 
+def _with_library(monkeypatch, variant: str):
+    """Point the twins' bindings at the ``variant`` build of the library (controllers.native.VARIANT_DEFINES)."""
+    built = native.library
+    monkeypatch.setattr(native, "library", lambda precision="float64": built(precision, variant))
+
+
+def test_the_pairs_back_ends_are_the_ones_each_build_names():
+    """buckc_pair.h computes its pairs with SSE2 in the default build on x86-64 (the ISA's baseline: no -m flag),
+    with two scalars in the float32 build (the Cortex-M4F's) and with -DBUCKC_SCALAR_PAIRS."""
+    import platform
+
+    x86_64 = platform.machine().lower() in ("x86_64", "amd64")
+    assert native.library().buckc_pair_backend().decode() == ("sse2" if x86_64 else "scalar")
+    assert native.library("float64", "scalar-pairs").buckc_pair_backend().decode() == "scalar"
+    assert native.library("float32").buckc_pair_backend().decode() == "scalar"
+    with pytest.raises(ValueError, match="build variant 'avx' is unknown: expected one of default, scalar-pairs"):
+        native.build_library(variant="avx")
+
+
+@pytest.mark.parametrize("config", NN_CONFIGS, ids=lambda c: c.label)
+def test_sse2_and_scalar_pairs_give_the_nn_predictor_the_same_bits(config, monkeypatch):
+    """Each lane of a pair is the scalar expression in the scalar order (buckc_pair.h): the forward pass, the
+    rollouts and the sensitivities (every layer's backward rows, an odd and an even number of directions) of the
+    SSE2 build equal the scalar build's bit for bit, for every network shape the twins support."""
+    from controllers.predictive import doubling_blocks
+
+    model = random_model(config, seed=11 + len(config.hidden))
+    c_config = native.nn_config(model)
+    results = {}
+    for variant in ("default", "scalar-pairs"):
+        _with_library(monkeypatch, variant)
+        outputs = []
+        for n_blocks in (5, 6):  # the last pair of directions full, then half used
+            blocks = doubling_blocks(23)[:n_blocks]
+            of_step = np.repeat(np.arange(n_blocks), blocks)
+            run = np.random.default_rng(n_blocks)
+            history = np.column_stack([run.uniform(0, 3, config.delays), run.uniform(0, 15, config.delays),
+                                       run.uniform(0, 1, config.delays)])
+            duties = run.uniform(0, 1, n_blocks)[of_step]
+            extras = run.uniform(0, 2, len(config.extra_signals)) if config.extra_signals else None
+            disturbance = run.normal(0, 0.1, 2)
+            outputs += [*native.nn_sensitivities(c_config, history, duties, extras, disturbance, of_step, n_blocks),
+                        native.nn_rollout(c_config, history[None], duties[None], None if extras is None else extras[None]),
+                        native.nn_forward(c_config, run.uniform(-2, 2, (4, config.n_inputs)))]
+        results[variant] = outputs
+        monkeypatch.undo()
+    for sse2, scalar in zip(results["default"], results["scalar-pairs"]):
+        assert sse2.shape == scalar.shape and np.array_equal(sse2, scalar)
+    assert np.abs(results["default"][1]).max() > 0  # sensitivities, not zeros
+
+
+def test_sse2_and_scalar_pairs_give_the_online_nnpc_the_same_steps(nnpc_1ms, monkeypatch):
+    """The RTI step (sensitivities, the Gauss-Newton model's gradient and Hessian, reweighted QPs) and the search's
+    fallback steps of the default and the scalar-pairs builds, on the measurements of a closed loop through random
+    references, loads and supplies: the same duties and the same solver path, bit for bit -- at 1 ms (the line
+    search) and with the 13.33 us settings (reweightings)."""
+    from cosim.benchmark_harness import record_measurements
+    from cosim.study.data_collection import random_scenario
+    from cosim.study.experiments import collection_settings, implemented, nnpc
+    from cosim.study.plants import plant_binding
+    from cosim.study.vocabulary import SWITCHING_PERIOD
+
+    model = nnpc_1ms.predictor.model
+    for controller, plant in ((nnpc_1ms, "averaged"), (nnpc(model, SWITCHING_PERIOD), "switched")):
+        scenario = random_scenario(collection_settings(controller.sample_period, 600, seed=11),
+                                   controller.sample_period)
+        rows = record_measurements(plant_binding("nominal", plant), implemented(controller), scenario)
+        runs = {}
+        for variant in ("default", "scalar-pairs"):
+            _with_library(monkeypatch, variant)
+            twin = native.NativePredictiveController.from_python(controller)
+            twin.reset()
+            steps = []
+            for row in rows:
+                duty = twin.step(Measurement(*row))
+                state = twin.state
+                steps.append((duty, state.last_solver, state.qp_iterations, state.reweighted, state.accepted))
+            runs[variant] = np.array(steps)
+            monkeypatch.undo()
+        assert np.array_equal(runs["default"], runs["scalar-pairs"])
+        rti = runs["default"][:, 1] == native.SOLVERS.index("rti")
+        assert rti.sum() >= 100  # the RTI planned these steps: its arithmetic is what was compared
+        if controller.sample_period == SWITCHING_PERIOD:
+            assert runs["default"][:, 3].max() > 0  # and reweighted some
+
+
 @pytest.mark.parametrize("predictor", [AveragedModelPredictor(PARASITICS, TS), AveragedModelPredictor(NOMINAL, 1e-3),
                                        SwitchedModelPredictor(PARASITICS, TS, FSW),
                                        SwitchedModelPredictor(NOMINAL, TS, FSW, carrier="triangle",

@@ -4,6 +4,7 @@
 #include <string.h>
 
 #include "buckc.h"
+#include "buckc_pair.h"
 #include "compensator.h"
 #include "current_mode.h"
 #include "explicit_policy.h"
@@ -18,6 +19,11 @@
 const char *buckc_real_name(void)
 {
     return BUCKC_REAL_NAME;
+}
+
+const char *buckc_pair_backend(void)
+{
+    return BUCKC_PAIRS_SSE2 ? "sse2" : "scalar";
 }
 
 const char *buckc_status_text(int status)

@@ -105,6 +105,8 @@ const char *buckc_status_text(int status);
 
 /* BUCKC_REAL_NAME of the build ("float64" or "float32"), for bindings to check what they loaded. */
 const char *buckc_real_name(void);
+/* how buckc_pair.h computes its pairs in this build: "sse2" or "scalar" (the same bits either way) */
+const char *buckc_pair_backend(void);
 
 /* sizeof() of a public struct by its type name ("BuckcNnConfig", ...), 0 if unknown: lets a
  * binding (controllers/native.py) check that its mirrors have the C layout. */

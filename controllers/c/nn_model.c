@@ -12,9 +12,13 @@
 #include <math.h>
 #include <string.h>
 
+#include "buckc_pair.h"
 #include "nn_model.h"
 
 #define W BUCKC_NN_MAX_WIDTH
+
+/* the sensitivity pass takes the directions two at a time (buckc_pair.h): an even number fits its arrays */
+typedef char buckc_directions_even[(BUCKC_NN_MAX_DIRECTIONS % 2 == 0) ? 1 : -1];
 
 int buckc_nn_inputs(const BuckcNnConfig *config)
 {
@@ -98,35 +102,49 @@ void buckc_nn_activate(int activation, const buckc_real *z, int n, buckc_real *o
 
 /* y = x @ W_l + b_l: each output's product summed over the inputs in order, then the bias.
  *
- * Four (then two, then one) outputs' sums run side by side: each is still one chain of dependent additions in
- * the same order -- the same bits as one output at a time -- but the processor overlaps four chains where it
- * waited out each addition's latency in one (the 13.33 us C RTI step 25 % faster, the search's 13 %:
- * benchmarks.md, group c-controllers). Not vectorised or reassociated: the Python twins' sums are in this order. */
+ * Eight (then four, two, one) outputs' sums run side by side, two per pair (buckc_pair.h): each is still one chain
+ * of dependent additions in the same order -- the same bits as one output at a time -- but the processor overlaps
+ * the chains where it waited out each addition's latency in one, and one instruction does two outputs' work (the
+ * 13.33 us C RTI step: benchmarks.md, group c-controllers). Not reassociated: the Python twins' sums are in this
+ * order. */
 static void dense(const buckc_real (*weights)[W], const buckc_real *bias, const buckc_real *x, int n_in, int n_out, buckc_real *y)
 {
     int i, j = 0;
-    for (; j + 3 < n_out; j += 4) {
-        buckc_real acc0 = x[0] * weights[0][j], acc1 = x[0] * weights[0][j + 1];
-        buckc_real acc2 = x[0] * weights[0][j + 2], acc3 = x[0] * weights[0][j + 3];
+    for (; j + 7 < n_out; j += 8) {
+        buckc_pair x0 = buckc_pair_splat(x[0]);
+        buckc_pair acc0 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j]));
+        buckc_pair acc1 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j + 2]));
+        buckc_pair acc2 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j + 4]));
+        buckc_pair acc3 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j + 6]));
         for (i = 1; i < n_in; ++i) {
-            acc0 += x[i] * weights[i][j];
-            acc1 += x[i] * weights[i][j + 1];
-            acc2 += x[i] * weights[i][j + 2];
-            acc3 += x[i] * weights[i][j + 3];
+            buckc_pair xi = buckc_pair_splat(x[i]);
+            acc0 = buckc_pair_add_mul(acc0, xi, buckc_pair_load(&weights[i][j]));
+            acc1 = buckc_pair_add_mul(acc1, xi, buckc_pair_load(&weights[i][j + 2]));
+            acc2 = buckc_pair_add_mul(acc2, xi, buckc_pair_load(&weights[i][j + 4]));
+            acc3 = buckc_pair_add_mul(acc3, xi, buckc_pair_load(&weights[i][j + 6]));
         }
-        y[j] = acc0 + bias[j];
-        y[j + 1] = acc1 + bias[j + 1];
-        y[j + 2] = acc2 + bias[j + 2];
-        y[j + 3] = acc3 + bias[j + 3];
+        buckc_pair_store(y + j, buckc_pair_add(acc0, buckc_pair_load(bias + j)));
+        buckc_pair_store(y + j + 2, buckc_pair_add(acc1, buckc_pair_load(bias + j + 2)));
+        buckc_pair_store(y + j + 4, buckc_pair_add(acc2, buckc_pair_load(bias + j + 4)));
+        buckc_pair_store(y + j + 6, buckc_pair_add(acc3, buckc_pair_load(bias + j + 6)));
+    }
+    for (; j + 3 < n_out; j += 4) {
+        buckc_pair x0 = buckc_pair_splat(x[0]);
+        buckc_pair acc0 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j]));
+        buckc_pair acc1 = buckc_pair_mul(x0, buckc_pair_load(&weights[0][j + 2]));
+        for (i = 1; i < n_in; ++i) {
+            buckc_pair xi = buckc_pair_splat(x[i]);
+            acc0 = buckc_pair_add_mul(acc0, xi, buckc_pair_load(&weights[i][j]));
+            acc1 = buckc_pair_add_mul(acc1, xi, buckc_pair_load(&weights[i][j + 2]));
+        }
+        buckc_pair_store(y + j, buckc_pair_add(acc0, buckc_pair_load(bias + j)));
+        buckc_pair_store(y + j + 2, buckc_pair_add(acc1, buckc_pair_load(bias + j + 2)));
     }
     for (; j + 1 < n_out; j += 2) {
-        buckc_real acc0 = x[0] * weights[0][j], acc1 = x[0] * weights[0][j + 1];
-        for (i = 1; i < n_in; ++i) {
-            acc0 += x[i] * weights[i][j];
-            acc1 += x[i] * weights[i][j + 1];
-        }
-        y[j] = acc0 + bias[j];
-        y[j + 1] = acc1 + bias[j + 1];
+        buckc_pair acc = buckc_pair_mul(buckc_pair_splat(x[0]), buckc_pair_load(&weights[0][j]));
+        for (i = 1; i < n_in; ++i)
+            acc = buckc_pair_add_mul(acc, buckc_pair_splat(x[i]), buckc_pair_load(&weights[i][j]));
+        buckc_pair_store(y + j, buckc_pair_add(acc, buckc_pair_load(bias + j)));
     }
     for (; j < n_out; ++j) {
         buckc_real acc = x[0] * weights[0][j];
@@ -136,35 +154,48 @@ static void dense(const buckc_real (*weights)[W], const buckc_real *bias, const 
     }
 }
 
-/* out[o][i] = sum_h g[o][h] W_l[i][h] for the two outputs o and the layer's inputs i < n_rows (g W_l'), each sum over
- * h in order: two rows' four sums side by side, for the reason dense() gives */
-static void backward_rows(const buckc_real g[2][W], const buckc_real (*weights)[W], int n_rows, int n_h,
-                          buckc_real out[2][W])
+/* out[i] = (sum_h g[h][0] W_l[i][h], sum_h g[h][1] W_l[i][h]) for the layer's inputs i < n_rows: g W_l' for the two
+ * outputs at once (g and out hold them side by side: one pair), each sum over h in order; four (then two, then
+ * one) rows' sums side by side, for the reason dense() gives */
+static void backward_rows(const buckc_real g[][2], const buckc_real (*weights)[W], int n_rows, int n_h,
+                          buckc_real out[][2])
 {
     int i = 0, h;
-    for (; i + 1 < n_rows; i += 2) {
-        const buckc_real *w = weights[i], *v = weights[i + 1];
-        buckc_real acc0 = g[0][0] * w[0], acc1 = g[1][0] * w[0], acc2 = g[0][0] * v[0], acc3 = g[1][0] * v[0];
+    for (; i + 3 < n_rows; i += 4) {
+        const buckc_real *w0 = weights[i], *w1 = weights[i + 1], *w2 = weights[i + 2], *w3 = weights[i + 3];
+        buckc_pair g0 = buckc_pair_load(g[0]);
+        buckc_pair acc0 = buckc_pair_mul(g0, buckc_pair_splat(w0[0])), acc1 = buckc_pair_mul(g0, buckc_pair_splat(w1[0]));
+        buckc_pair acc2 = buckc_pair_mul(g0, buckc_pair_splat(w2[0])), acc3 = buckc_pair_mul(g0, buckc_pair_splat(w3[0]));
         for (h = 1; h < n_h; ++h) {
-            acc0 += g[0][h] * w[h];
-            acc1 += g[1][h] * w[h];
-            acc2 += g[0][h] * v[h];
-            acc3 += g[1][h] * v[h];
+            buckc_pair gh = buckc_pair_load(g[h]);
+            acc0 = buckc_pair_add_mul(acc0, gh, buckc_pair_splat(w0[h]));
+            acc1 = buckc_pair_add_mul(acc1, gh, buckc_pair_splat(w1[h]));
+            acc2 = buckc_pair_add_mul(acc2, gh, buckc_pair_splat(w2[h]));
+            acc3 = buckc_pair_add_mul(acc3, gh, buckc_pair_splat(w3[h]));
         }
-        out[0][i] = acc0;
-        out[1][i] = acc1;
-        out[0][i + 1] = acc2;
-        out[1][i + 1] = acc3;
+        buckc_pair_store(out[i], acc0);
+        buckc_pair_store(out[i + 1], acc1);
+        buckc_pair_store(out[i + 2], acc2);
+        buckc_pair_store(out[i + 3], acc3);
+    }
+    for (; i + 1 < n_rows; i += 2) {
+        const buckc_real *w0 = weights[i], *w1 = weights[i + 1];
+        buckc_pair g0 = buckc_pair_load(g[0]);
+        buckc_pair acc0 = buckc_pair_mul(g0, buckc_pair_splat(w0[0])), acc1 = buckc_pair_mul(g0, buckc_pair_splat(w1[0]));
+        for (h = 1; h < n_h; ++h) {
+            buckc_pair gh = buckc_pair_load(g[h]);
+            acc0 = buckc_pair_add_mul(acc0, gh, buckc_pair_splat(w0[h]));
+            acc1 = buckc_pair_add_mul(acc1, gh, buckc_pair_splat(w1[h]));
+        }
+        buckc_pair_store(out[i], acc0);
+        buckc_pair_store(out[i + 1], acc1);
     }
     for (; i < n_rows; ++i) {
         const buckc_real *w = weights[i];
-        buckc_real acc0 = g[0][0] * w[0], acc1 = g[1][0] * w[0];
-        for (h = 1; h < n_h; ++h) {
-            acc0 += g[0][h] * w[h];
-            acc1 += g[1][h] * w[h];
-        }
-        out[0][i] = acc0;
-        out[1][i] = acc1;
+        buckc_pair acc = buckc_pair_mul(buckc_pair_load(g[0]), buckc_pair_splat(w[0]));
+        for (h = 1; h < n_h; ++h)
+            acc = buckc_pair_add_mul(acc, buckc_pair_load(g[h]), buckc_pair_splat(w[h]));
+        buckc_pair_store(out[i], acc);
     }
 }
 
@@ -307,24 +338,33 @@ void buckc_nn_shared_rollout(const BuckcNnConfig *config, const BuckcNnShared *s
     }
 }
 
-/* activation and its slope at z (the slope from the activation itself where that is exact) */
-static buckc_real activate_with_slope(int activation, buckc_real z, buckc_real *slope)
+/* z[i] = activation(z[i]) and slope[i] its slope there, i < n (the slope from the activation itself where that is
+ * exact); the activation chosen once per layer, not per unit */
+static void activate_with_slopes(int activation, buckc_real *z, int n, buckc_real *slope)
 {
-    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), one = BUCKC_REAL_LITERAL(1.0);
-    buckc_real a;
+    const buckc_real zero = BUCKC_REAL_LITERAL(0.0), one = BUCKC_REAL_LITERAL(1.0), half = BUCKC_REAL_LITERAL(0.5);
+    int i;
     switch (activation) {
     case BUCKC_ACTIVATION_RELU:
-        a = z < zero ? zero : z;
-        *slope = z > zero ? one : zero;
-        return a;
+        for (i = 0; i < n; ++i) {
+            slope[i] = z[i] > zero ? one : zero;
+            z[i] = z[i] < zero ? zero : z[i];
+        }
+        return;
     case BUCKC_ACTIVATION_SIGMOID:
-        a = BUCKC_REAL_LITERAL(0.5) * (one + BUCKC_NN_TANH(BUCKC_REAL_LITERAL(0.5) * z));
-        *slope = a * (one - a);
-        return a;
+        for (i = 0; i < n; ++i) {
+            buckc_real a = half * (one + BUCKC_NN_TANH(half * z[i]));
+            slope[i] = a * (one - a);
+            z[i] = a;
+        }
+        return;
     default:
-        a = BUCKC_NN_TANH(z);
-        *slope = one - a * a;
-        return a;
+        for (i = 0; i < n; ++i) {
+            buckc_real a = BUCKC_NN_TANH(z[i]);
+            slope[i] = one - a * a;
+            z[i] = a;
+        }
+        return;
     }
 }
 
@@ -349,7 +389,8 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
     for (r = 0; r < delays; ++r)
         duty_block[r] = -1;
     for (j = 0; j < n; ++j) {
-        buckc_real a[W], b[W], y[2], g[2][W], gn[2][W], jin[2][W], y_sens[2][D];
+        /* g, gn, jin: per unit or input, the two outputs' values side by side (backward_rows) */
+        buckc_real a[W], b[W], y[2], g[W][2], gn[W][2], jin[W][2], y_sens[2][D];
         const buckc_real *hv = x;
         int active = block_of_step[j] + 1, width = n_in;
         x[2] = duties[j];
@@ -358,36 +399,38 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
         for (l = 0; l < last; ++l) {
             buckc_real *next = (l % 2 == 0) ? a : b;
             dense(config->weights[l], config->biases[l], hv, width, config->hidden[l], next);
-            for (h = 0; h < config->hidden[l]; ++h)
-                next[h] = activate_with_slope(config->activation, next[h], &slopes[l][h]);
+            activate_with_slopes(config->activation, next, config->hidden[l], slopes[l]);
             hv = next;
             width = config->hidden[l];
         }
         dense(config->weights[last], config->biases[last], hv, width, BUCKC_NN_OUTPUTS, y);
         /* the network's Jacobian to its window inputs, backwards from the two outputs:
          * g = W_last' diag(slope), then g W_l' diag(slope) per further layer, jin = g W_0' (window rows) */
-        for (o = 0; o < 2; ++o)
-            for (h = 0; h < width; ++h)
-                g[o][h] = config->weights[last][h][o] * slopes[last - 1][h];
+        for (h = 0; h < width; ++h) /* W_last[h][0], W_last[h][1]: both outputs' weights of unit h */
+            buckc_pair_store(g[h], buckc_pair_mul(buckc_pair_load(config->weights[last][h]),
+                                                  buckc_pair_splat(slopes[last - 1][h])));
         for (l = last - 1; l > 0; --l) {
             int below = config->hidden[l - 1];
-            backward_rows((const buckc_real (*)[W])g, config->weights[l], below, config->hidden[l], gn);
-            for (o = 0; o < 2; ++o)
-                for (i = 0; i < below; ++i)
-                    g[o][i] = gn[o][i] * slopes[l - 1][i];
+            backward_rows((const buckc_real (*)[2])g, config->weights[l], below, config->hidden[l], gn);
+            for (i = 0; i < below; ++i)
+                buckc_pair_store(g[i], buckc_pair_mul(buckc_pair_load(gn[i]), buckc_pair_splat(slopes[l - 1][i])));
         }
-        backward_rows((const buckc_real (*)[W])g, config->weights[0], window, config->hidden[0], jin);
-        /* the state's sensitivity: jin times the window's (its states dense, its duties unit directions) */
+        backward_rows((const buckc_real (*)[2])g, config->weights[0], window, config->hidden[0], jin);
+        /* the state's sensitivity: jin times the window's (its states dense, its duties unit directions), two
+         * directions per pair; where `active` is odd the last pair's second lane is the next direction, whose
+         * sensitivities are zeros so far (no step has moved it yet): computed, never read */
         for (o = 0; o < 2; ++o) {
-            for (c = 0; c < active; ++c) {
-                buckc_real acc = zero;
+            for (c = 0; c < active; c += 2) {
+                buckc_pair acc = buckc_pair_splat(zero);
                 for (r = 0; r < delays; ++r)
-                    acc += jin[o][3 * r] * state_sens[r][0][c] + jin[o][3 * r + 1] * state_sens[r][1][c];
-                y_sens[o][c] = acc;
+                    acc = buckc_pair_add(acc, buckc_pair_add(
+                        buckc_pair_mul(buckc_pair_splat(jin[3 * r][o]), buckc_pair_load(&state_sens[r][0][c])),
+                        buckc_pair_mul(buckc_pair_splat(jin[3 * r + 1][o]), buckc_pair_load(&state_sens[r][1][c]))));
+                buckc_pair_store(&y_sens[o][c], acc);
             }
             for (r = 0; r < delays; ++r)
                 if (duty_block[r] >= 0)
-                    y_sens[o][duty_block[r]] += jin[o][3 * r + 2];
+                    y_sens[o][duty_block[r]] += jin[3 * r + 2][o];
         }
         if (config->residual) { /* + x[:2] and its sensitivity */
             for (o = 0; o < 2; ++o) {
@@ -402,9 +445,13 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
         }
         out[2 * j] = y[0];
         out[2 * j + 1] = y[1];
-        for (o = 0; o < 2; ++o)
-            for (c = 0; c < n_blocks; ++c)
-                jacobian[(2 * j + o) * n_blocks + c] = c < active ? y_sens[o][c] : zero;
+        for (o = 0; o < 2; ++o) {
+            buckc_real *row = jacobian + (2 * j + o) * n_blocks;
+            for (c = 0; c < active; ++c)
+                row[c] = y_sens[o][c];
+            for (; c < n_blocks; ++c)
+                row[c] = zero;
+        }
         if (delays > 1) { /* window[1:] = window[:-1] */
             memmove(x + 3, x, sizeof(buckc_real) * 3 * (size_t)(delays - 1));
             memmove(state_sens[1], state_sens[0], sizeof(state_sens[0]) * (size_t)(delays - 1));
@@ -412,9 +459,12 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
         }
         x[0] = y[0];
         x[1] = y[1];
-        for (o = 0; o < 2; ++o)
-            for (c = 0; c < D; ++c)
-                state_sens[0][o][c] = c < active ? y_sens[o][c] : zero;
+        for (o = 0; o < 2; ++o) {
+            for (c = 0; c < active; ++c)
+                state_sens[0][o][c] = y_sens[o][c];
+            for (; c < D; ++c)
+                state_sens[0][o][c] = zero;
+        }
     }
     return BUCKC_OK;
 }

@@ -13,6 +13,7 @@
 #include <math.h>
 #include <string.h>
 
+#include "buckc_pair.h"
 #include "predictive.h"
 #include "load_estimate.h"
 
@@ -619,9 +620,23 @@ static void rti_model(const BuckcPredictive *c, const buckc_real *predicted, con
          * as every predictor's linearisation writes them), whose terms would add +-0 to each sum: left out, the
          * sums are the same bits */
         int active = c->optimizer.block_of_step[j] + 1;
-        for (a = 0; a < active; ++a) {
+        /* two blocks' terms per pair (buckc_pair.h: each lane the scalar expression, the same bits), a last odd
+         * one alone: no lane writes past `active` */
+        for (a = 0; a + 1 < active; a += 2)
+            buckc_pair_store(gradient + a, buckc_pair_add(buckc_pair_load(gradient + a), buckc_pair_mul(
+                buckc_pair_add(buckc_pair_mul(buckc_pair_load(j0 + a), buckc_pair_splat(e0)),
+                               buckc_pair_mul(buckc_pair_load(j1 + a), buckc_pair_splat(e1))),
+                buckc_pair_splat(weight))));
+        if (a < active)
             gradient[a] += (j0[a] * e0 + j1[a] * e1) * weight;
-            for (b = a; b < active; ++b) /* the upper triangle: the lower one is the same products (mirrored below) */
+        for (a = 0; a < active; ++a) {
+            /* the upper triangle: the lower one is the same products (mirrored below) */
+            buckc_pair w = buckc_pair_splat(weight), j0a = buckc_pair_splat(j0[a]), j1a = buckc_pair_splat(j1[a]);
+            for (b = a; b + 1 < active; b += 2)
+                buckc_pair_store(&hessian[a][b], buckc_pair_add(buckc_pair_load(&hessian[a][b]), buckc_pair_mul(
+                    w, buckc_pair_add(buckc_pair_mul(j0a, buckc_pair_load(j0 + b)),
+                                      buckc_pair_mul(j1a, buckc_pair_load(j1 + b))))));
+            if (b < active)
                 hessian[a][b] += weight * (j0[a] * j0[b] + j1[a] * j1[b]);
         }
     }

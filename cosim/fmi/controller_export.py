@@ -52,10 +52,10 @@ from plant_fmu.fmu_sources import (
 
 MODEL_DIR = Path(__file__).parent / "controller_fmu"
 MODEL_FILES = ("controller_fmu.c", "controller_variables.h")
-ALGORITHM_FILES = ("buckc.c", "buckc.h", "buckc_tanh.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h", "predictors.c",
-                   "predictors.h", "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h", "explicit_policy.c",
-                   "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c", "compensator.h",
-                   "box_qp.c", "box_qp.h",
+ALGORITHM_FILES = ("buckc.c", "buckc.h", "buckc_pair.h", "buckc_tanh.h", "pi.c", "pi.h", "nn_model.c", "nn_model.h",
+                   "predictors.c", "predictors.h", "predictive.c", "predictive.h", "load_estimate.c", "load_estimate.h",
+                   "explicit_policy.c", "explicit_policy.h", "current_mode.c", "current_mode.h", "compensator.c",
+                   "compensator.h", "box_qp.c", "box_qp.h",
                    "adaptation.h")  # buckc.c's struct sizes include it; the FMU does not run the adaptation
 #: compiled files (the glue and its Real co-simulation-only defaults, the model, the algorithms), in
 #: modelDescription.xml's SourceFiles
@@ -67,8 +67,8 @@ COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "controller_fmu.c", "buckc.c
 FLOAT32_ALGORITHMS = tuple(f for f in ("buckc.c", "pi.c", "load_estimate.c", "explicit_policy.c",
                                        "current_mode.c", "compensator.c")
                            if f in FLOAT32_SOURCES)
-FLOAT32_HEADERS = ("buckc.h", "buckc_tanhf.h", "pi.h", "nn_model.h", "load_estimate.h", "explicit_policy.h",
-                   "current_mode.h", "compensator.h")
+FLOAT32_HEADERS = ("buckc.h", "buckc_pair.h", "buckc_tanhf.h", "pi.h", "nn_model.h", "load_estimate.h",
+                   "explicit_policy.h", "current_mode.h", "compensator.h")
 FLOAT32_COMPILED = ("fmi2_glue.c", REAL_CO_SIMULATION_ONLY, "f32_controller_fmu.c",
                     *(f"f32_{f}" for f in FLOAT32_ALGORITHMS))
 
