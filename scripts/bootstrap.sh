@@ -9,21 +9,22 @@ PYTHON="${PYTHON:-python3}"
 # (cosim/benchmark_harness/cortex_m4.py): Debian packages, installed here when this runs as root with
 # apt-get; elsewhere (or if the install fails) the embedded tests are deselected with one line saying why.
 # qemu-user: qemu-x86_64 runs one process on another x86-64 CPU model, for the test that the trained
-# networks are the same bytes on other CPUs (cosim/benchmark_harness/cpu_emulation.py).
-embedded_packages="gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm qemu-user"
+# networks are the same bytes on other CPUs (cosim/benchmark_harness/cpu_emulation.py). valgrind: callgrind
+# counts the C steps' instructions on the host (cosim/benchmark_harness/instruction_count.py).
+embedded_packages="gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm qemu-user valgrind"
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && command -v dpkg-query >/dev/null 2>&1; then
   missing=""
   for package in $embedded_packages; do
     dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "ok installed" || missing="$missing $package"
   done
   if [ -n "$missing" ]; then
-    echo "bootstrap: installing the Cortex-M4F toolchain and the emulators (Debian packages:$missing)"
+    echo "bootstrap: installing the Cortex-M4F toolchain, the emulators and valgrind (Debian packages:$missing)"
     log=$(mktemp)
     # shellcheck disable=SC2086  # the package list is meant to split
     if ! { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
            $missing; } >"$log" 2>&1; then
       tail -n 5 "$log"
-      echo "bootstrap: warning: apt-get could not install$missing; the embedded and emulated-CPU tests and benchmarks are skipped"
+      echo "bootstrap: warning: apt-get could not install$missing; the embedded, emulated-CPU and instruction-count tests and benchmarks are skipped"
     fi
     rm -f "$log"
   fi

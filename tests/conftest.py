@@ -176,16 +176,18 @@ def _deselect(config, items, marker: str, problem: str | None, what: str) -> Non
 def _tool_checks() -> list[tuple[str, str, Callable[[], str | None]]]:
     """(marker, what, the check saying why such tests cannot run here or None) of each kind of test that needs
     a tool; a check runs only where its tests are (the toolchain's runs the cross compiler)."""
-    from cosim.benchmark_harness import cpu_emulation
+    from cosim.benchmark_harness import cpu_emulation, instruction_count
     from cosim.benchmark_harness.cortex_m4 import toolchain_problem
 
     return [("embedded", "embedded tests", toolchain_problem),
-            ("emulated", "emulated-CPU tests", cpu_emulation.problem)]
+            ("emulated", "emulated-CPU tests", cpu_emulation.problem),
+            ("counted", "instruction-count tests", instruction_count.problem)]
 
 
 def pytest_collection_modifyitems(config, items):
     """Without the cross toolchain and QEMU (``make`` installs them when run as root), deselect the tests
-    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``."""
+    marked ``embedded``; without QEMU's user-mode x86-64 emulator, those marked ``emulated``; without valgrind,
+    those marked ``counted``."""
     for marker, what, check in _tool_checks():
         if any(item.get_closest_marker(marker) for item in items):
             _deselect(config, items, marker, check(), what)

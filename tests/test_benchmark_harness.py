@@ -180,3 +180,40 @@ def test_operation_counts_refuse_a_circuit_model_predictor():
 
     with pytest.raises(ValueError, match="NN predictor"):
         operation_counts(model_mpc(NOMINAL, 1e-3, "MPC"), np.array([1]))
+
+
+@pytest.mark.counted
+def test_instruction_counts_are_each_steps_own_and_the_same_in_every_run(nnpc_1ms, measurements):
+    """callgrind counts each replayed step alone (cosim/benchmark_harness/instruction_count.py): one count per
+    sample, the cold start's search far above the RTI steps after it, an RTI step of the 4-7-2 network in the
+    thousands, and the same counts from a second run -- the measure that does not move with the machine's speed."""
+    from cosim.benchmark_harness.instruction_count import instruction_counts
+    from cosim.benchmarks.common import instruction_row
+
+    rows = measurements[:40]
+    counts = instruction_counts(nnpc_1ms, rows)
+    planned = replay(nnpc_1ms, rows, repeats=1).rti
+    assert counts.shape == (40,) and counts.dtype == np.int64
+    assert not planned[0] and planned[1:].all()  # the search's cold start, then the RTI
+    assert counts[0] > 5 * counts[1:].max()
+    assert 1_000 < np.median(counts[1:]) < 30_000
+    assert np.array_equal(instruction_counts(nnpc_1ms, rows), counts)
+    row = instruction_row("x86-64 instructions per C RTI step, NNPC, 1 ms", nnpc_1ms, rows, planned)
+    assert (row.median, row.p99) == (float(np.median(counts[1:])), float(counts[1:].max()))
+    assert "the 39 RTI samples" in row.benchmark and f"p50 {float(counts[0]):.4g}" in row.note
+
+
+def test_without_valgrind_the_count_says_why_and_the_benchmark_row_says_not_measured(nnpc_1ms, monkeypatch):
+    from cosim.benchmark_harness import instruction_count
+    from cosim.benchmarks.common import instruction_row
+
+    monkeypatch.setattr(instruction_count.shutil, "which", lambda name: None)
+    monkeypatch.setattr(instruction_count.platform, "machine", lambda: "x86_64")
+    with pytest.raises(instruction_count.InstructionCountError,
+                       match=r"^cannot count instructions: valgrind is not installed \(Debian package valgrind; "):
+        instruction_count.instruction_counts(nnpc_1ms, np.zeros((3, 6)))
+    row = instruction_row("x86-64 instructions per C RTI step, NNPC, 1 ms", nnpc_1ms, np.zeros((3, 6)),
+                          np.ones(3, bool))
+    assert row.benchmark.endswith(": not measured") and row.note.startswith("valgrind is not installed")
+    monkeypatch.setattr(instruction_count.platform, "machine", lambda: "aarch64")
+    assert instruction_count.problem() == "the host is aarch64, not x86-64"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pandas as pd
 
 from cosim.benchmark_harness.cortex_m4 import toolchain_problem
+from cosim.benchmark_harness.instruction_count import problem as counting_problem
 from cosim.benchmarks import BENCHMARKS
 from cosim.cli import main
 
@@ -48,6 +49,10 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "soak: worker resident memory growth", "soak: the workbench's own process",
                 "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the",
                 "C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us: the RTI samples, each sample's median",
+                # each RTI step's x86-64 instructions (callgrind), where valgrind is installed
+                "x86-64 instructions per C RTI step, NNPC, 13.33 us" + (": not measured" if counting_problem() else ""),
+                "x86-64 instructions per C step, NNPC-adaptive (RLS + RTI, controllers/c/adaptation.c), 13.33 us"
+                + (": not measured" if counting_problem() else ""),
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else
                 "NNPC-explicit 13.33 us on a Cortex-M4F (float32, QEMU mps2-an386): max cycles per step",
                 "Cortex-M4F measurements (QEMU mps2-an386)" if toolchain_problem() else

@@ -70,13 +70,15 @@ def record_measurements(binding, controller, scenario) -> np.ndarray:
     return np.array(recorder.rows, dtype=float)
 
 
-def harness(controller) -> Path:
-    """The harness executable for a Python PI or predictive controller (cached by sources and data)."""
+def harness(controller, count_instructions: bool = False) -> Path:
+    """The harness executable for a Python PI or predictive controller (cached by sources and data);
+    ``count_instructions``: the build that callgrind counts step by step (:mod:`.instruction_count`)."""
     sources = [HARNESS, *sorted(p for p in SOURCE_DIR.glob("*.c"))]
     headers = [*sorted(SOURCE_DIR.glob("*.h")), CONTROLLER_FMU_DIR / "controller_variables.h"]
     flags = tuple(f for f in FLAGS if f not in ("-fPIC", "-shared"))
-    return build_c("controller-step", sources, headers, flags, "",
-                   generated={"controller_config.h": config_header(controller)})
+    flags += ("-DHARNESS_COUNT_INSTRUCTIONS",) if count_instructions else ()
+    return build_c("controller-step-counted" if count_instructions else "controller-step", sources, headers, flags,
+                   "", generated={"controller_config.h": config_header(controller)})
 
 
 @dataclass

@@ -13,7 +13,11 @@
  * of an adaptive NNPC defines ADAPTIVE_CONTROLLER and the adaptation's configuration)
  *
  * (the caller computes p50 / p99). Timer: clock_gettime(CLOCK_MONOTONIC), read around the step
- * only; results are kept in memory allocated before the first step and printed at the end. */
+ * only; results are kept in memory allocated before the first step and printed at the end.
+ *
+ * Built with -DHARNESS_COUNT_INSTRUCTIONS and run under valgrind --tool=callgrind --collect-atstart=no, it
+ * collects each step's instructions alone and dumps them, one profile per step (the ns column is then
+ * callgrind's slowed clock, not the step's: cosim/benchmark_harness/instruction_count.py reads the dumps). */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>
@@ -24,6 +28,15 @@
 #include "explicit_policy.h"
 #include "pi.h"
 #include "predictive.h"
+
+#ifdef HARNESS_COUNT_INSTRUCTIONS
+#include <valgrind/callgrind.h>
+#define STEP_BEGIN() CALLGRIND_TOGGLE_COLLECT
+#define STEP_END() do { CALLGRIND_TOGGLE_COLLECT; CALLGRIND_DUMP_STATS; } while (0)
+#else
+#define STEP_BEGIN() ((void)0)
+#define STEP_END() ((void)0)
+#endif
 
 static long long now_ns(void) {
     struct timespec t;
@@ -95,6 +108,7 @@ int main(int argc, char **argv) {
             int updates = counters[BUCKC_ADAPT_UPDATES];
 #endif
             long long start = now_ns();
+            STEP_BEGIN();
 #ifdef ADAPTIVE_CONTROLLER
             {
                 BuckcMeasurement x = {row[0], row[1], row[2], row[3], row[4], row[5]};
@@ -111,6 +125,7 @@ int main(int argc, char **argv) {
                 if (buckc_predictive_step(&predictive, &x, &duty) != BUCKC_OK) return 3;
             }
 #endif
+            STEP_END();
             long long elapsed = now_ns() - start;
             size_t i = (size_t)r * rows + k;
             int predictive_kind = CONTROLLER_KIND == CONTROLLER_PREDICTIVE || CONTROLLER_KIND == CONTROLLER_ADAPTIVE;

@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from cosim.base.labels import period_text
-from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _p99, per_sample_median_row
+from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _p99, instruction_row, per_sample_median_row
 from cosim.benchmarks.subjects import _mixed_scenario, _nn_model
 from cosim.study.vocabulary import SWITCHING_PERIOD
 
@@ -99,4 +99,5 @@ def _adaptive_c_step_rows(model, origin: str, samples: int) -> list[BenchRow]:
         rows.append(BenchRow(f"{name}: the {int(updated.sum())} RTI samples with an RLS update",
                              float(np.median(learned)), _p99(learned), "us",
                              note="the update's share: these against the RTI samples without one"))
+    rows.append(instruction_row(f"x86-64 instructions per {name}", adaptive, measurements, rti))
     return rows

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from cosim.base.labels import period_text
-from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _c_and_python_step_us, _p99, per_sample_median_row
+from cosim.benchmarks.common import (
+    REPLAY_PASSES,
+    BenchRow,
+    _c_and_python_step_us,
+    _p99,
+    instruction_row,
+    per_sample_median_row,
+)
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
 from cosim.study.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, transient_within_sample
 
@@ -75,6 +82,8 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
                     f"C RTI step, {controller.name}, {label}", per_pass, result.rti, limit if online else None,
                     "the row above is every pass's steps as timed, with the interrupts and preemptions of a "
                     "non-real-time OS"))
+                rows.append(instruction_row(f"x86-64 instructions per C RTI step, {controller.name}, {label}",
+                                            controller, measurements, result.rti))
                 note += (f"{'; ' if note else ''}every step, the search's {fallbacks} included "
                          f"({100 * fallbacks / len(measurements):.2g} % of the samples: the p99 is theirs at 1 % or more)")
             rows.append(BenchRow(f"C step, {controller.name}, {label} ({len(measurements)} replayed samples, "

@@ -1,8 +1,9 @@
-"""What every group uses to time and report: the table row, p99, the median of repeated calls, and the
-C twin timed against its Python reference on the same inputs."""
+"""What every group uses to time and report: the table row, p99, the median of repeated calls, the
+C twin timed against its Python reference on the same inputs, and a C step's instructions counted."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -84,3 +85,23 @@ def _c_and_python_step_us(controller, measurements, replayed) -> tuple[float, fl
         python.append(time.perf_counter_ns() - start)
     return (float(np.median(replayed.ns)) * 1e-3, _p99(replayed.ns) * 1e-3, float(np.median(python)) * 1e-3,
             _p99(python) * 1e-3)
+
+
+def instruction_row(what: str, controller, measurements: np.ndarray, planned: np.ndarray) -> BenchRow:
+    """x86-64 instructions per C step of ``controller`` on the samples ``planned`` marks (the RTI's), counted by
+    callgrind replaying ``measurements`` once from a reset -- the timed passes' path, each of them starting from a
+    reset too: what the step costs whatever the machine's speed, so a change to the C code is judged by it across
+    runs (:mod:`cosim.benchmark_harness.instruction_count`); one row saying why where valgrind is missing."""
+    from cosim.benchmark_harness.instruction_count import instruction_counts, problem
+
+    reason = problem()
+    if reason:
+        return BenchRow(f"{what}: not measured", math.nan, None, "", note=reason)
+    counts = instruction_counts(controller, measurements)
+    chosen, others = counts[planned], counts[~planned]
+    other = (f"p50 {float(np.median(others)):.4g}, max {float(np.max(others)):.4g}" if len(others) else "none")
+    return BenchRow(f"{what} (callgrind; the {int(planned.sum())} RTI samples of one pass; p99 column: max)",
+                    float(np.median(chosen)), float(np.max(chosen)), "count",
+                    note=f"the same in every run on this machine (another CPU may take another variant of libm's "
+                         f"exp); the search's {len(others)} fallback steps: {other}")
+

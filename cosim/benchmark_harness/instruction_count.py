@@ -1,0 +1,82 @@
+"""x86-64 instructions per C controller step, counted by callgrind: the host's measure of a step's cost that does
+not move with the machine's speed.
+
+The step's time on this shared VM steps between two levels for seconds at a time (the same binary's 13.33 us RTI
+step measured 5 or 10 us p50 by the minute; hardware performance counters are not exposed to it), so a change to
+the C code cannot be judged by its time across two benchmark runs, and a time target's verdict is partly the
+run's draw. The instructions a step executes are a property of the code and its inputs: the same in every run
+on the same machine (with another CPU, only where glibc picks another variant of a libm function, e.g. exp with
+or without FMA). :func:`instruction_counts` replays recorded measurements through the harness built with
+``-DHARNESS_COUNT_INSTRUCTIONS`` (``controller_step.c``: each step's instructions collected alone and dumped)
+under ``valgrind --tool=callgrind`` and returns every step's count. It takes ~50 x the step's time; valgrind is
+Debian's ``valgrind`` package, which ``make`` installs when run as root.
+
+Hand-written around valgrind rather than through a library: no maintained Python package reads callgrind's
+per-dump totals, and the one line read here (``totals:``) is the format's documented summary.
+"""
+
+from __future__ import annotations
+
+import platform
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from cosim.benchmark_harness import harness
+
+VALGRIND = "valgrind"
+PACKAGES = ("valgrind",)
+
+
+class InstructionCountError(RuntimeError):
+    """valgrind could not count the replay (its message and log tail)."""
+
+
+def problem() -> str | None:
+    """Why the steps' instructions cannot be counted here (None: they can)."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return f"the host is {platform.machine()}, not x86-64"
+    if shutil.which(VALGRIND) is None:
+        return (f"{VALGRIND} is not installed (Debian package {' '.join(PACKAGES)}; `make` installs it when run as "
+                "root)")
+    return None
+
+
+def instruction_counts(controller, measurements: np.ndarray) -> np.ndarray:
+    """Instructions executed by each step of ``controller``'s C step replaying ``measurements`` once from a reset
+    (int64, one per row; the clock reads around the step are outside the count). Raises
+    :class:`InstructionCountError` when valgrind is missing or fails."""
+    reason = problem()
+    if reason:
+        raise InstructionCountError(f"cannot count instructions: {reason}")
+    executable = harness(controller, count_instructions=True)
+    with tempfile.TemporaryDirectory(prefix="buck-cosim-callgrind-") as tmp:
+        data, out = Path(tmp) / "measurements.bin", Path(tmp) / "steps.out"
+        np.ascontiguousarray(measurements, dtype="<f8").tofile(data)
+        argv = [VALGRIND, "--tool=callgrind", "--collect-atstart=no", "--dump-instr=no", "--dump-line=no",
+                f"--callgrind-out-file={out}", str(executable), str(data), "1"]
+        try:
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=3600, check=False)
+        except (OSError, subprocess.TimeoutExpired) as error:
+            raise InstructionCountError(f"callgrind failed: {error}") from None
+        if done.returncode != 0:
+            tail = " | ".join(done.stderr.strip().splitlines()[-3:])
+            raise InstructionCountError(f"callgrind's replay failed (exit {done.returncode}): {tail}")
+        # one dump per step, numbered from 1 in step order (the file without a number is what followed the last)
+        counts = [_totals(out.with_name(f"{out.name}.{k}")) for k in range(1, len(measurements) + 1)]
+    return np.array(counts, dtype=np.int64)
+
+
+def _totals(dump: Path) -> int:
+    try:
+        text = dump.read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise InstructionCountError(f"callgrind wrote no profile {dump.name}: {error}") from None
+    found = re.search(r"^totals:\s+(\d+)", text, flags=re.MULTILINE) or re.search(r"^summary:\s+(\d+)", text, flags=re.MULTILINE)
+    if found is None:
+        raise InstructionCountError(f"callgrind's profile {dump.name} has no totals line")
+    return int(found.group(1))
