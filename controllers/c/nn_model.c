@@ -445,13 +445,9 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
         }
         out[2 * j] = y[0];
         out[2 * j + 1] = y[1];
-        for (o = 0; o < 2; ++o) {
-            buckc_real *row = jacobian + (2 * j + o) * n_blocks;
-            for (c = 0; c < active; ++c)
-                row[c] = y_sens[o][c];
-            for (; c < n_blocks; ++c)
-                row[c] = zero;
-        }
+        for (o = 0; o < 2; ++o)
+            for (c = 0; c < n_blocks; ++c)
+                jacobian[(2 * j + o) * n_blocks + c] = c < active ? y_sens[o][c] : zero;
         if (delays > 1) { /* window[1:] = window[:-1] */
             memmove(x + 3, x, sizeof(buckc_real) * 3 * (size_t)(delays - 1));
             memmove(state_sens[1], state_sens[0], sizeof(state_sens[0]) * (size_t)(delays - 1));
@@ -459,12 +455,9 @@ int buckc_nn_sensitivities(const BuckcNnConfig *config, const buckc_real *histor
         }
         x[0] = y[0];
         x[1] = y[1];
-        for (o = 0; o < 2; ++o) {
-            for (c = 0; c < active; ++c)
-                state_sens[0][o][c] = y_sens[o][c];
-            for (; c < D; ++c)
-                state_sens[0][o][c] = zero;
-        }
+        for (o = 0; o < 2; ++o)
+            for (c = 0; c < D; ++c)
+                state_sens[0][o][c] = c < active ? y_sens[o][c] : zero;
     }
     return BUCKC_OK;
 }
