@@ -4,6 +4,7 @@ match what the Python reference actually evaluates."""
 
 from __future__ import annotations
 
+import re
 import types
 from pathlib import Path
 
@@ -217,3 +218,29 @@ def test_without_valgrind_the_count_says_why_and_the_benchmark_row_says_not_meas
     assert row.benchmark.endswith(": not measured") and row.note.startswith("valgrind is not installed")
     monkeypatch.setattr(instruction_count.platform, "machine", lambda: "aarch64")
     assert instruction_count.problem() == "the host is aarch64, not x86-64"
+
+
+def test_a_count_callgrind_did_not_write_is_one_line_and_a_not_measured_row(nnpc_1ms, measurements, monkeypatch):
+    """A replay whose step profiles are missing (here: a callgrind that wrote none) raises one line saying how many
+    it wrote; the benchmark row then says "not measured" with that line instead of failing its group."""
+    import subprocess
+
+    from cosim.benchmark_harness import instruction_count
+    from cosim.benchmarks.common import instruction_row
+
+    run = subprocess.run
+
+    def callgrind_writing_nothing(argv, **kwargs):  # the compiler still runs
+        return subprocess.CompletedProcess(argv, 0, "", "") if argv[0] == instruction_count.VALGRIND else \
+            run(argv, **kwargs)
+
+    monkeypatch.setattr(instruction_count, "problem", lambda: None)
+    monkeypatch.setattr(instruction_count.subprocess, "run", callgrind_writing_nothing)
+    rows = measurements[:3]
+    message = "callgrind wrote 0 step profiles for 3 steps (the first missing: step 1)"
+    with pytest.raises(instruction_count.InstructionCountError, match=rf"^{re.escape(message)}$"):
+        instruction_count.instruction_counts(nnpc_1ms, rows)
+    row = instruction_row("x86-64 instructions per C RTI step, NNPC, 1 ms", nnpc_1ms, rows, np.ones(3, bool))
+    assert row.benchmark.endswith(": not measured") and row.note == message
+    row = instruction_row("x86-64 instructions per C RTI step, NNPC, 1 ms", nnpc_1ms, rows, np.zeros(3, bool))
+    assert row.note == "the RTI planned none of the replayed samples"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import json
 import math
+import platform
 import re
 import shutil
 from dataclasses import replace
@@ -442,19 +443,135 @@ def test_nn_sensitivities_match_numpy(config):
         native.nn_sensitivities(c_config, history, duties[:9], extras, None, np.arange(9), 9)
 
 
+def _sequential_sensitivities(c_config, history, extras, disturbance, duties, of_step, n_blocks):
+    """buckc_nn_sensitivities one scalar operation at a time in Python floats (IEEE doubles, never fused), in the
+    order nn_model.c's comments give: every product summed over its inputs from the first, the bias last
+    (dense), g W' over the units from the first (backward_rows), the directions' sums from +0 over the window
+    rows. It pins the C twin's sums to that order bit for bit, whichever way the C code computes them (two lanes
+    at a time since buckc_pair.h); tanh is buckc_tanh.h's formula with libm's exp (Python's math.exp)."""
+    weights, biases = np.ctypeslib.as_array(c_config.weights), np.ctypeslib.as_array(c_config.biases)
+    delays, last = c_config.delays, c_config.n_hidden
+    hidden = list(c_config.hidden[:last])
+    window, n_in = 3 * delays, 3 * delays + c_config.n_extras
+
+    def tanh(z):
+        a = abs(z)
+        return math.copysign(1.0 - 2.0 / (math.exp(a + a) + 1.0), z)
+
+    def activate(z):  # (activation, slope) as activate_with_slopes
+        if c_config.activation == 1:  # relu
+            return (0.0 if z < 0.0 else z), (1.0 if z > 0.0 else 0.0)
+        if c_config.activation == 2:  # sigmoid
+            a = 0.5 * (1.0 + tanh(0.5 * z))
+            return a, a * (1.0 - a)
+        a = tanh(z)
+        return a, 1.0 - a * a
+
+    def dense(layer, x, n_out):
+        out = []
+        for j in range(n_out):
+            acc = float(x[0]) * float(weights[layer][0][j])
+            for i in range(1, len(x)):
+                acc += float(x[i]) * float(weights[layer][i][j])
+            out.append(acc + float(biases[layer][j]))
+        return out
+
+    def backward(g, layer, n_rows):  # out[i][o] = sum_h g[h][o] W_layer[i][h]
+        out = []
+        for i in range(n_rows):
+            pair = []
+            for o in range(2):
+                acc = g[0][o] * float(weights[layer][i][0])
+                for h in range(1, len(g)):
+                    acc += g[h][o] * float(weights[layer][i][h])
+                pair.append(acc)
+            out.append(pair)
+        return out
+
+    x = [float(v) for v in np.ravel(history)] + [float(v) for v in (extras if extras is not None else [])]
+    assert len(x) == n_in
+    state_sens = [[[0.0] * n_blocks for _ in range(2)] for _ in range(delays)]
+    duty_block = [-1] * delays
+    outputs, jacobian = [], []
+    for j, duty in enumerate(duties):
+        x[2], duty_block[0], active = float(duty), int(of_step[j]), int(of_step[j]) + 1
+        h, slopes = x, []
+        for layer in range(last):
+            pairs = [activate(z) for z in dense(layer, h, hidden[layer])]
+            h, layer_slopes = [a for a, _ in pairs], [sl for _, sl in pairs]
+            slopes.append(layer_slopes)
+        y = dense(last, h, 2)
+        g = [[float(weights[last][k][o]) * slopes[-1][k] for o in range(2)] for k in range(hidden[-1])]
+        for layer in range(last - 1, 0, -1):
+            gn = backward(g, layer, hidden[layer - 1])
+            g = [[gn[i][o] * slopes[layer - 1][i] for o in range(2)] for i in range(hidden[layer - 1])]
+        jin = backward(g, 0, window)
+        y_sens = [[0.0] * n_blocks for _ in range(2)]
+        for o in range(2):
+            for c in range(active):
+                acc = 0.0
+                for r in range(delays):
+                    acc = acc + (jin[3 * r][o] * state_sens[r][0][c] + jin[3 * r + 1][o] * state_sens[r][1][c])
+                y_sens[o][c] = acc
+            for r in range(delays):
+                if duty_block[r] >= 0:
+                    y_sens[o][duty_block[r]] += jin[3 * r + 2][o]
+        if c_config.residual:
+            for o in range(2):
+                y[o] = y[o] + x[o]
+                for c in range(active):
+                    y_sens[o][c] = y_sens[o][c] + state_sens[0][o][c]
+        if disturbance is not None:
+            y = [y[0] + float(disturbance[0]), y[1] + float(disturbance[1])]
+        outputs.append(y)
+        jacobian.append([[y_sens[o][c] if c < active else 0.0 for c in range(n_blocks)] for o in range(2)])
+        x[3:window] = x[0:window - 3]  # the window moves one row back: states, their sensitivities, duties' blocks
+        state_sens[1:] = state_sens[:-1]
+        duty_block[1:] = duty_block[:-1]
+        x[0], x[1] = y[0], y[1]
+        state_sens[0] = [[y_sens[o][c] if c < active else 0.0 for c in range(n_blocks)] for o in range(2)]
+    return np.array(outputs), np.array(jacobian)
+
+
 def _with_library(monkeypatch, variant: str):
     """Point the twins' bindings at the ``variant`` build of the library (controllers.native.VARIANT_DEFINES)."""
     built = native.library
     monkeypatch.setattr(native, "library", lambda precision="float64": built(precision, variant))
 
 
+@pytest.mark.parametrize("config", NN_CONFIGS, ids=lambda c: c.label)
+def test_nn_sensitivities_sum_in_the_documented_order_bit_for_bit(config):
+    """The C twin's outputs and Jacobian equal a one-operation-at-a-time Python computation in nn_model.c's
+    documented order, bit for bit, for every network shape, an odd and an even number of directions: however the
+    C code groups its work (two lanes at a time on x86-64), each sum is the scalar chain it was before."""
+    from controllers.predictive import doubling_blocks
+
+    model = random_model(config, seed=5 + len(config.hidden))
+    c_config = native.nn_config(model)
+    for n_blocks in (5, 6):
+        blocks = doubling_blocks(23)[:n_blocks]
+        of_step = np.repeat(np.arange(n_blocks), blocks)
+        rng = np.random.default_rng(n_blocks + config.delays)
+        history = np.column_stack([rng.uniform(0, 3, config.delays), rng.uniform(0, 15, config.delays),
+                                   rng.uniform(0, 1, config.delays)])
+        duties = rng.uniform(0, 1, n_blocks)[of_step]
+        extras = rng.uniform(0, 2, len(config.extra_signals)) if config.extra_signals else None
+        disturbance = rng.normal(0, 0.1, 2)
+        out, jacobian = native.nn_sensitivities(c_config, history, duties, extras, disturbance, of_step, n_blocks)
+        expected_out, expected_jacobian = _sequential_sensitivities(c_config, history, extras, disturbance, duties,
+                                                                    of_step, n_blocks)
+        assert np.array_equal(out, expected_out)
+        assert np.array_equal(jacobian, expected_jacobian) and np.abs(jacobian).max() > 0
+
+
+#: the default build's pairs: SSE2 on x86-64, two scalars elsewhere (buckc_pair.h)
+SSE2_OR_SCALAR = "sse2" if platform.machine().lower() in ("x86_64", "amd64") else "scalar"
+
+
 def test_the_pairs_back_ends_are_the_ones_each_build_names():
     """buckc_pair.h computes its pairs with SSE2 in the default build on x86-64 (the ISA's baseline: no -m flag),
     with two scalars in the float32 build (the Cortex-M4F's) and with -DBUCKC_SCALAR_PAIRS."""
-    import platform
-
-    x86_64 = platform.machine().lower() in ("x86_64", "amd64")
-    assert native.library().buckc_pair_backend().decode() == ("sse2" if x86_64 else "scalar")
+    assert native.library().buckc_pair_backend().decode() == SSE2_OR_SCALAR
     assert native.library("float64", "scalar-pairs").buckc_pair_backend().decode() == "scalar"
     assert native.library("float32").buckc_pair_backend().decode() == "scalar"
     with pytest.raises(ValueError, match="build variant 'avx' is unknown: expected one of default, scalar-pairs"):
@@ -473,8 +590,10 @@ def test_sse2_and_scalar_pairs_give_the_nn_predictor_the_same_bits(config, monke
     results = {}
     for variant in ("default", "scalar-pairs"):
         _with_library(monkeypatch, variant)
+        assert native.library().buckc_pair_backend().decode() == ("scalar" if variant == "scalar-pairs" else
+                                                                  SSE2_OR_SCALAR)
         outputs = []
-        for n_blocks in (5, 6):  # the last pair of directions full, then half used
+        for n_blocks in (5, 6):  # the last pair of directions half used, then full
             blocks = doubling_blocks(23)[:n_blocks]
             of_step = np.repeat(np.arange(n_blocks), blocks)
             run = np.random.default_rng(n_blocks)

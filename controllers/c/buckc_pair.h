@@ -3,16 +3,19 @@
  * real-time iteration's Gauss-Newton model (predictive.c).
  *
  * Each lane does exactly what a scalar variable would, in the same order: a lane's sum is the same chain of
- * IEEE additions as before and gives the same bits (no reassociation, no fused multiply-add: the builds pass
- * -ffp-contract=off, and SSE2 has no FMA). What the pairs change is how many instructions the processor
+ * IEEE additions as before and gives the same bits (no reassociation, and no fused multiply-add because the builds
+ * pass -ffp-contract=off: a build with -march=native and contraction on would fuse these products as it would the
+ * scalar code's). What the pairs change is how many instructions the processor
  * decodes and how many chains it keeps in flight: two outputs', two directions' or two rows' sums per
  * instruction -- the 13.33 us C RTI step's sensitivity pass is most of the step (benchmarks.md, group
  * c-controllers), and its sums are 2 to 10 terms long, too short for the compiler's own vectoriser.
  *
  * Two back ends, one algorithm:
- *   - SSE2 (every x86-64 processor: the ISA's baseline, no -m flag) in the double build;
+ *   - SSE2 (every x86-64 processor: the ISA's baseline, no -m flag) in the double build on x86-64 -- not on
+ *     32-bit x86, whose scalar doubles may be x87's extended precision (lanes and tails would then differ);
  *   - a struct of two scalars everywhere else: the float32 build, the Cortex-M4F image, any other compiler or
- *     processor, and -DBUCKC_SCALAR_PAIRS (the tests build it on the host to check that both give the same bits).
+ *     processor, and -DBUCKC_SCALAR_PAIRS (the tests build it on the host to check that both give the same bits,
+ *     and check the sums' order against a one-operation-at-a-time Python computation: tests/test_c_twins.py).
  * Hand-written rather than GCC's vector extensions: those are not ISO C (the sources build with -std=c99
  * -Wpedantic for any compiler an FMU user has) and their loads would need the aliasing rules bent.
  */
@@ -21,7 +24,8 @@
 
 #include "buckc.h"
 
-#if defined(__SSE2__) && !defined(BUCKC_FLOAT32) && !defined(BUCKC_SCALAR_PAIRS)
+#if defined(__SSE2__) && (defined(__x86_64__) || defined(_M_X64)) && !defined(BUCKC_FLOAT32) && \
+    !defined(BUCKC_SCALAR_PAIRS)
 #include <emmintrin.h>
 
 #define BUCKC_PAIRS_SSE2 1

@@ -6,7 +6,7 @@ step measured 5 or 10 us p50 by the minute; hardware performance counters are no
 the C code cannot be judged by its time across two benchmark runs, and a time target's verdict is partly the
 run's draw. The instructions a step executes are a property of the code and its inputs: the same in every run
 on the same machine (with another CPU, only where glibc picks another variant of a libm function, e.g. exp with
-or without FMA). :func:`instruction_counts` replays recorded measurements through the harness built with
+or without FMA, or memcpy). :func:`instruction_counts` replays recorded measurements through the harness built with
 ``-DHARNESS_COUNT_INSTRUCTIONS`` (``controller_step.c``: each step's instructions collected alone and dumped)
 under ``valgrind --tool=callgrind`` and returns every step's count. It takes ~50 x the step's time; valgrind is
 Debian's ``valgrind`` package, which ``make`` installs when run as root.
@@ -17,6 +17,7 @@ per-dump totals, and the one line read here (``totals:``) is the format's docume
 
 from __future__ import annotations
 
+import functools
 import platform
 import re
 import shutil
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from controllers.native import NativeBuildError, compiler
 from cosim.benchmark_harness import harness
 
 VALGRIND = "valgrind"
@@ -37,12 +39,26 @@ class InstructionCountError(RuntimeError):
 
 
 def problem() -> str | None:
-    """Why the steps' instructions cannot be counted here (None: they can)."""
+    """Why the steps' instructions cannot be counted here (None: they can): not x86-64, no valgrind, or no
+    ``<valgrind/callgrind.h>`` for the harness (some distributions ship it apart, e.g. Fedora's valgrind-devel)."""
     if platform.machine() not in ("x86_64", "AMD64"):
         return f"the host is {platform.machine()}, not x86-64"
     if shutil.which(VALGRIND) is None:
         return (f"{VALGRIND} is not installed (Debian package {' '.join(PACKAGES)}; `make` installs it when run as "
                 "root)")
+    return _header_problem()
+
+
+@functools.lru_cache(maxsize=1)
+def _header_problem() -> str | None:
+    try:
+        done = subprocess.run([*compiler(), "-E", "-x", "c", "-"], input="#include <valgrind/callgrind.h>\n",
+                              capture_output=True, text=True, timeout=60, check=False)
+    except (OSError, subprocess.TimeoutExpired, NativeBuildError) as error:
+        return f"the C compiler cannot be run to find <valgrind/callgrind.h>: {error}"
+    if done.returncode != 0:
+        return ("the C compiler finds no <valgrind/callgrind.h>, which the counting harness includes (Debian's "
+                "valgrind package has it; elsewhere a valgrind-devel package)")
     return None
 
 
@@ -64,9 +80,15 @@ def instruction_counts(controller, measurements: np.ndarray) -> np.ndarray:
         except (OSError, subprocess.TimeoutExpired) as error:
             raise InstructionCountError(f"callgrind failed: {error}") from None
         if done.returncode != 0:
-            tail = " | ".join(done.stderr.strip().splitlines()[-3:])
+            tail = " | ".join(done.stderr.strip().splitlines()[-3:]) or "no message"
             raise InstructionCountError(f"callgrind's replay failed (exit {done.returncode}): {tail}")
         # one dump per step, numbered from 1 in step order (the file without a number is what followed the last)
+        dumps = {int(p.suffix[1:]) for p in Path(tmp).glob(f"{out.name}.*") if p.suffix[1:].isdigit()}
+        if dumps != set(range(1, len(measurements) + 1)):
+            missing = sorted(set(range(1, len(measurements) + 1)) - dumps)
+            raise InstructionCountError(
+                f"callgrind wrote {len(dumps)} step profiles for {len(measurements)} steps"
+                + (f" (the first missing: step {missing[0]})" if missing else " (more than the steps)"))
         counts = [_totals(out.with_name(f"{out.name}.{k}")) for k in range(1, len(measurements) + 1)]
     return np.array(counts, dtype=np.int64)
 

@@ -92,16 +92,23 @@ def instruction_row(what: str, controller, measurements: np.ndarray, planned: np
     callgrind replaying ``measurements`` once from a reset -- the timed passes' path, each of them starting from a
     reset too: what the step costs whatever the machine's speed, so a change to the C code is judged by it across
     runs (:mod:`cosim.benchmark_harness.instruction_count`); one row saying why where valgrind is missing."""
-    from cosim.benchmark_harness.instruction_count import instruction_counts, problem
+    from controllers.native import NativeBuildError
+    from cosim.benchmark_harness.instruction_count import InstructionCountError, instruction_counts, problem
 
     reason = problem()
+    if reason is None and not planned.any():
+        reason = "the RTI planned none of the replayed samples"
+    if reason is None:
+        try:
+            counts = instruction_counts(controller, measurements)
+        except (InstructionCountError, NativeBuildError) as error:
+            reason = str(error)
     if reason:
         return BenchRow(f"{what}: not measured", math.nan, None, "", note=reason)
-    counts = instruction_counts(controller, measurements)
     chosen, others = counts[planned], counts[~planned]
     other = (f"p50 {float(np.median(others)):.4g}, max {float(np.max(others)):.4g}" if len(others) else "none")
     return BenchRow(f"{what} (callgrind; the {int(planned.sum())} RTI samples of one pass; p99 column: max)",
                     float(np.median(chosen)), float(np.max(chosen)), "count",
-                    note=f"the same in every run on this machine (another CPU may take another variant of libm's "
-                         f"exp); the search's {len(others)} fallback steps: {other}")
+                    note=f"the same in every run on this machine (another CPU may take other variants of libm's exp "
+                         f"and libc's copies); the search's {len(others)} fallback steps: {other}")
 
