@@ -209,14 +209,14 @@ def test_without_valgrind_the_count_says_why_and_the_benchmark_row_says_not_meas
     from cosim.benchmarks.common import instruction_row
 
     monkeypatch.setattr(instruction_count.shutil, "which", lambda name: None)
-    monkeypatch.setattr(instruction_count.platform, "machine", lambda: "x86_64")
+    monkeypatch.setattr("platform.machine", lambda: "x86_64")
     with pytest.raises(instruction_count.InstructionCountError,
                        match=r"^cannot count instructions: valgrind is not installed \(Debian package valgrind; "):
         instruction_count.instruction_counts(nnpc_1ms, np.zeros((3, 6)))
     row = instruction_row("x86-64 instructions per C RTI step, NNPC, 1 ms", nnpc_1ms, np.zeros((3, 6)),
                           np.ones(3, bool))
     assert row.benchmark.endswith(": not measured") and row.note.startswith("valgrind is not installed")
-    monkeypatch.setattr(instruction_count.platform, "machine", lambda: "aarch64")
+    monkeypatch.setattr("platform.machine", lambda: "aarch64")
     assert instruction_count.problem() == "the host is aarch64, not x86-64"
 
 

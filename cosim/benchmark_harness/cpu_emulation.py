@@ -24,10 +24,15 @@ DESCRIPTIONS = {HASWELL: "Intel Haswell (AVX2 and FMA, no AVX-512)", ZEN2: "AMD 
                                                                           "no AVX-512)"}
 
 
+def not_x86_64() -> str | None:
+    """Why this host is not an x86-64 one (None: it is)."""
+    return None if platform.machine() in ("x86_64", "AMD64") else f"the host is {platform.machine()}, not x86-64"
+
+
 def problem() -> str | None:
     """Why no other CPU can be emulated here (None: it can)."""
-    if platform.machine() not in ("x86_64", "AMD64"):
-        return f"the host is {platform.machine()}, not x86-64"
+    if not_x86_64():
+        return not_x86_64()
     if shutil.which(QEMU) is None:
         return f"{QEMU} is not installed (Debian package qemu-user; `make` installs it when run as root)"
     return None

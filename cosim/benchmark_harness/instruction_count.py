@@ -18,7 +18,6 @@ per-dump totals, and the one line read here (``totals:``) is the format's docume
 from __future__ import annotations
 
 import functools
-import platform
 import re
 import shutil
 import subprocess
@@ -29,6 +28,7 @@ import numpy as np
 
 from controllers.native import NativeBuildError, compiler
 from cosim.benchmark_harness import harness
+from cosim.benchmark_harness.cpu_emulation import not_x86_64
 
 VALGRIND = "valgrind"
 PACKAGES = ("valgrind",)
@@ -41,8 +41,8 @@ class InstructionCountError(RuntimeError):
 def problem() -> str | None:
     """Why the steps' instructions cannot be counted here (None: they can): not x86-64, no valgrind, or no
     ``<valgrind/callgrind.h>`` for the harness (some distributions ship it apart, e.g. Fedora's valgrind-devel)."""
-    if platform.machine() not in ("x86_64", "AMD64"):
-        return f"the host is {platform.machine()}, not x86-64"
+    if not_x86_64():
+        return not_x86_64()
     if shutil.which(VALGRIND) is None:
         return (f"{VALGRIND} is not installed (Debian package {' '.join(PACKAGES)}; `make` installs it when run as "
                 "root)")
