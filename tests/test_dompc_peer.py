@@ -70,3 +70,37 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
     iae = [run_metrics(r)["iae_Vs"] for r in runs]
     assert iae[1] <= 1.02 * iae[0] and iae[0] <= 1.25 * iae[1]
     assert peer.describe()["optimizer"].startswith("do-mpc")
+
+
+def test_the_c_passes_are_interleaved_with_the_peers_steps():
+    """bench_dompc's Interleaved: ``between`` runs after every ``every``-th step and only then, the duties and the
+    plan costs pass through unchanged, and a reset restarts the count."""
+    from cosim.benchmarks.dompc import Interleaved, PlanCosts
+
+    class Counting:
+        name, sample_period, duty_limits = "probe", 1e-3, (0.0, 1.0)
+
+        def __init__(self):
+            self.steps = 0
+
+        def reset(self):
+            self.steps = 0
+
+        def step(self, m):
+            self.steps += 1
+            return 0.1 * self.steps
+
+        def describe(self):
+            return {"name": self.name}
+
+    calls = []
+    inner = Counting()
+    loop = Interleaved(PlanCosts(inner, lambda c: 2.0 * c.steps), every=3, between=lambda: calls.append(inner.steps))
+    duties = [loop.step(None) for _ in range(10)]
+    assert duties == [0.1 * k for k in range(1, 11)] and calls == [3, 6, 9]
+    assert loop.costs == [2.0 * k for k in range(1, 11)]
+    assert (loop.name, loop.sample_period, loop.duty_limits, loop.describe()) == ("probe", 1e-3, (0.0, 1.0),
+                                                                                 {"name": "probe"})
+    loop.reset()
+    [loop.step(None) for _ in range(4)]
+    assert calls == [3, 6, 9, 3] and loop.costs == [2.0, 4.0, 6.0, 8.0]
