@@ -30,6 +30,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "controller compute per step, MPC-mismatched, 13.33 us, C twin", "data collection, 500 samples",
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
                 "reproduction time with the RTI / with the search (same run)",
+                "floor of the RTI / search ratio: the search run's worker time no optimizer enters",
+                "worker time where a predictive controller plans, the search the default",
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per RTI step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per RTI step: tanh calls",
                 "NNPC (search) 13.33 us per step: tanh calls", "C step, NNPC-explicit, 13.33 us",
@@ -143,3 +145,28 @@ def test_the_per_sample_median_drops_one_pass_interruptions_and_keeps_what_the_d
     assert typical.shape == (200,)
     assert (typical[:190] == 10.0).all() and (typical[190:] == 14.5).all()
     assert _p99(passes.ravel()) == 60.0 and _p99(typical) == 14.5
+
+
+def test_the_reproductions_worker_time_is_split_by_whether_an_optimizer_plans_in_it():
+    """bench_reproduction_optimizer's floor: the stages of timings.csv summed into where a predictive controller
+    plans (with the tolerance study's and the envelope map's worker time, not their wall-clock spans) and where no
+    optimizer enters; a stage in neither list is refused by name rather than left out of both."""
+    import pytest
+
+    from cosim.benchmarks.reproduction import worker_seconds
+
+    rows = [("reproduction", "", "wall time on 2 worker process(es)", 500.0),
+            ("tolerance study", "", "600 runs: worker time", 10.0),
+            ("tolerance study", "", "last part written after its first task", 400.0),
+            ("envelope map", "", "1800 runs: worker time", 50.0),
+            ("envelope map", "", "last part written after its first task", 90.0),
+            ("envelope map", "", "tables and figures", 3.0),
+            ("stage", "a", "identification_nnpc_s", 100.0), ("stage", "a", "runs_s", 20.0),
+            ("stage", "a", "distillation_episodes_s", 30.0), ("stage", "a", "distillation_training_s", 40.0),
+            ("stage", "b", "identification_nnpc_s", 7.0), ("stage", "b", "optimizer_ablation_s", 2.0),
+            ("controller p50", "a", "startup / NNPC", 5.0)]
+    table = pd.DataFrame(rows, columns=["kind", "pipeline", "what", "value"]).assign(unit="s")
+    assert worker_seconds(table) == {"planning": 10.0 + 50.0 + 20.0 + 30.0 + 2.0, "optimizer_free": 147.0}
+    table.loc[len(table)] = ["stage", "b", "new_study_s", 1.0, "s"]
+    with pytest.raises(ValueError, match="new_study_s in neither PLANNING_STAGES nor OPTIMIZER_FREE_STAGES"):
+        worker_seconds(table)

@@ -216,10 +216,15 @@ def test_a_small_distillation_regulates_the_averaged_plant_at_one_switching_peri
 
 
 def test_distillation_is_deterministic(expert, tmp_path):
+    """The same inputs give the same policy file byte for byte, with or without the wall-clock timings asked for
+    (which go to the caller's dict, split into the labelled episodes and the trainings, never into the file)."""
     tiny = replace(SMALL_DISTILLATION, rounds=1, episodes=1, samples=100)
-    files = [save_policy(distill(expert, plant_binding("nominal", "averaged"), SWITCHING_PERIOD, tiny, log=None),
-                         tmp_path / f"{i}.pt") for i in range(2)]
+    timings = {"identification_nnpc_s": 1.0}
+    files = [save_policy(distill(expert, plant_binding("nominal", "averaged"), SWITCHING_PERIOD, tiny, log=None,
+                                 timings=timings if i else None), tmp_path / f"{i}.pt") for i in range(2)]
     assert files[0].read_bytes() == files[1].read_bytes()
+    assert set(timings) == {"identification_nnpc_s", "distillation_episodes_s", "distillation_training_s"}
+    assert timings["distillation_episodes_s"] > 0 and timings["distillation_training_s"] > 0
 
 
 def test_the_exported_fmu_driven_by_the_master_gives_the_python_duty_at_every_sample(distilled, tmp_path):

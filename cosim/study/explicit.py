@@ -14,7 +14,6 @@ NNPC's targets to the targets table and :func:`report_section` writes its part o
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -96,14 +95,10 @@ def in_pipeline(pipeline, binding, model, pi, out_dir: Path, profile, seed: int,
     if transient_within_sample(period) or pipeline.binding_file:
         return []
     tag = pipeline_tag(pipeline.plant_tag, period)
-    start = time.perf_counter()
     settings = replace(SMALL_DISTILLATION if profile.quick else FULL_DISTILLATION, seed=seed)
-    policy = distill(model, binding, period, settings, log=log, metadata={"pipeline": tag})
+    policy = distill(model, binding, period, settings, log=log, metadata={"pipeline": tag}, timings=timings)
     save_policy(policy, policy_path(out_dir, tag))
-    controller = explicit_nnpc(policy, NNPC_EXPLICIT)
-    if timings is not None:
-        timings["distillation_s"] = time.perf_counter() - start
-    return [controller]
+    return [explicit_nnpc(policy, NNPC_EXPLICIT)]
 
 
 # ---------------------------------------------------------------------------------------------
