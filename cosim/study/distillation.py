@@ -175,8 +175,8 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     """Distill the online NNPC on ``model`` into an explicit policy, with DAgger on ``binding``'s
     plant at ``control_period`` [s]. ``log`` gets one line per round (None: silent); ``progress``
     shows a bar over the episodes. ``timings`` (wall-clock, never in the policy file) gets the seconds of the
-    labelled episodes (``distillation_episodes_s``: the plant, the expert and the learner) and of the policy's
-    trainings (``distillation_training_s``)."""
+    policy's trainings (``distillation_training_s``) and of all the rest (``distillation_episodes_s``: the labelled
+    episodes -- the plant, the expert and the learner -- and their set-up)."""
     settings.check()  # torch trains on one thread (train_policy), and nothing else here uses it
     # the labels come from the search, even where the RTI plans the online NNPC: labels are made
     # offline (no real-time budget), and on episodes like these (references 3-20 V, loads 4-100 Ohm, a step every
@@ -191,7 +191,7 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     policy: ExplicitPolicy | None = None
     rounds = []
     bar = None
-    seconds = {"distillation_episodes_s": 0.0, "distillation_training_s": 0.0}
+    started_at, training_seconds = time.perf_counter(), 0.0
     if progress:
         from tqdm import tqdm
 
@@ -203,7 +203,6 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
                 beta = 1.0 if round_index == 0 else settings.expert_mixing ** round_index
                 learner = None if policy is None else explicit_nnpc(policy)
                 new_x, new_y, applied = [], [], 0
-                started = time.perf_counter()
                 for episode in range(settings.episodes):
                     seed = settings.seed + 1000 * round_index + episode
                     scenario = random_scenario(settings.collection(seed), control_period)
@@ -214,7 +213,6 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
                     applied += loop.applied_policy
                     if bar is not None:
                         bar.update(1)
-                seconds["distillation_episodes_s"] += time.perf_counter() - started
                 x_round, y_round = np.array(new_x), np.array(new_y)
                 record = {"round": round_index, "beta": beta, "labels": len(y_round),
                           "policy_share": applied / len(y_round)}
@@ -227,7 +225,7 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
                 started = time.perf_counter()
                 policy = train_policy(features, labels, control_period, settings.policy, training,
                                       online.duty_limits, initial=policy)
-                seconds["distillation_training_s"] += time.perf_counter() - started
+                training_seconds += time.perf_counter() - started
                 record["aggregate_labels"] = len(labels)
                 record["validation_rms_duty"] = policy.metadata["training"]["validation_rms_duty"]
                 rounds.append(record)
@@ -241,7 +239,8 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
         if bar is not None:
             bar.close()
         if timings is not None:
-            timings.update(seconds)
+            timings.update(distillation_episodes_s=time.perf_counter() - started_at - training_seconds,
+                           distillation_training_s=training_seconds)
     policy.metadata = {**(metadata or {}), **policy.metadata, "control_period_s": control_period,
                        "expert_model": expert_fingerprint(model),
                        "plant": binding.label, "expert": online.describe()["predictor"],
