@@ -17,8 +17,8 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     own closed loop's measurements, do-mpc's solve timed in-process), IAE and the eq. 16 cost of the plans.
 
     The C passes are interleaved with do-mpc's solves: one before its closed loop, one after every
-    ~1/:data:`C_PASSES` of its samples, one after it, so that both steps' medians are taken over the same stretch
-    of time. This VM's speed steps between two levels for seconds at a time (cosim/benchmark_harness/
+    ceil(samples / :data:`C_PASSES`) of its samples, one after it, so that both steps' medians are taken over the
+    same stretch of time. This VM's speed steps between two levels for seconds at a time (cosim/benchmark_harness/
     instruction_count.py): with one C pass before do-mpc's loop and two after it, one run of today's code measured
     the load change's ratio 800 x, its C step's p50 7.8 us there and 4.3 us in the start-up. The ratio row's note
     gives the C passes' medians' spread; each scenario's instructions per RTI step (callgrind) are a row of their
@@ -54,7 +54,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
             passes.append(replay_warm(rti, measurements, 1, warm_up=not quick).ns * 1e-3)
 
         costed_peer = Interleaved(PlanCosts(peer, lambda solver: solver.best_cost),
-                                  every=max(1, len(measurements) // C_PASSES), between=time_c_pass)
+                                  every=-(-len(measurements) // C_PASSES), between=time_c_pass)  # ceil: <= C_PASSES
         time_c_pass()
         result_peer = simulate(binding, costed_peer, scenario, record_period=period)
         time_c_pass()
@@ -97,13 +97,16 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     return rows
 
 
-#: about this many C passes interleaved with do-mpc's closed loop, besides one before it and one after (bench_dompc)
+#: at most this many C passes interleaved with do-mpc's closed loop, besides one before it and one after
+#: (bench_dompc)
 C_PASSES = 12
 
 
 class Interleaved:
-    """``controller`` in the closed loop, calling ``between()`` after every ``every``-th step (outside the
-    controller's own timing): do-mpc's solves with C passes timed between them."""
+    """``controller`` in the closed loop, calling ``between()`` after every ``every``-th step: do-mpc's solves with
+    C passes timed between them. ``between`` runs outside do-mpc's solve timing (``solve_times``) but inside this
+    wrapper's step, so the master's compute column and a harness error are the wrapper's, which is a benchmark's
+    instrument, not a controller of the study."""
 
     def __init__(self, controller, every: int, between):
         self.controller, self.every, self.between = controller, every, between
