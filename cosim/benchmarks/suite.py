@@ -3,6 +3,7 @@ benchmarks.csv (a group rerun alone replaces only its own rows)."""
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import sys
@@ -91,7 +92,9 @@ def _read_rows(path: Path) -> list[BenchRow]:
         if r["group"] not in BENCHMARKS:
             continue
         met = r.get("meets_target")
-        rows.append(BenchRow(str(r["benchmark"]), float(r["median"]), optional(r.get("p99"), float), str(r["unit"]),
+        median = optional(r["median"], float)  # empty: a "not measured" row's NaN
+        rows.append(BenchRow(str(r["benchmark"]), math.nan if median is None else median,
+                             optional(r.get("p99"), float), str(r["unit"]),
                              str(r.get("target", "")), None if met in ("", None) else str(met) == "True",
                              str(r.get("note", "")), group=r["group"], command=str(r["command"]),
                              machine=str(r.get("machine", ""))))
