@@ -154,17 +154,19 @@ def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
 
     Beside the wall times, each run's worker time from its timings table, split by :func:`worker_seconds`, and two
     floors under the ratio, were wall time to scale with worker time (both count the mixed stages as removable,
-    so each is a lower bound): an optimizer that took no time anywhere -- the search run's optimizer-free worker
-    time over all its worker time -- and a default optimizer that took no time, the stages that plan with the
-    search whatever the default (the distillation's expert, the optimizer ablation) costing what they cost in the
-    RTI run."""
+    so each is a lower bound): the RTI run's worker time that an optimizer taking no time anywhere could not
+    remove (its optimizer-free stages), and that a default optimizer taking no time could not remove (those and
+    the stages that plan with the search whatever the default: the distillation's expert, the optimizer ablation),
+    each over the search run's worker time. The same work's stage times differ between the two runs by the VM's
+    drift (a few to ~15 %), so a floor within that of 0.5 is at the target, not clearly past it."""
     runs = {optimizer: _timed_reproduction(quick, optimizer=optimizer) for optimizer in ("rti", "search")}
     scope = SMOKE_SCOPE if quick else ""
     ratio = runs["rti"].seconds / runs["search"].seconds
     work = {optimizer: worker_seconds(run.timings) for optimizer, run in runs.items()}
     total = {optimizer: w["planning"] + w["optimizer_free"] + w["mixed"] for optimizer, w in work.items()}
-    floors = {"any": work["search"]["optimizer_free"] / total["search"],
-              "default": (work["search"]["optimizer_free"] + work["rti"]["search_by_design"]) / total["search"]}
+    # the RTI run's own worker time that no optimizer (or no default optimizer) could remove, over the search run's
+    floors = {"any": work["rti"]["optimizer_free"] / total["search"],
+              "default": (work["rti"]["optimizer_free"] + work["rti"]["search_by_design"]) / total["search"]}
     rows = [BenchRow(f"end-to-end reproduction, the RTI the predictive controllers' default (as make reproduce){scope}",
                      runs["rti"].seconds, None, "s"),
             BenchRow(f"end-to-end reproduction, the search the predictive controllers' default{scope}",
@@ -194,8 +196,8 @@ def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
                       work["rti"]["planning"] / work["search"]["planning"], None, "ratio"),
              BenchRow("worker time with the RTI / with the search, all stages (same run)",
                       total["rti"] / total["search"], None, "ratio", note="next to the wall times' ratio above"),
-             BenchRow("floor of the RTI / search ratio, an optimizer that took no time anywhere: the search run's "
-                      "worker time no optimizer enters / all its worker time", floors["any"], None, "ratio",
+             BenchRow("floor of the RTI / search ratio, an optimizer that took no time anywhere: the RTI run's "
+                      "worker time no optimizer enters / all the search run's", floors["any"], None, "ratio",
                       note="a lower bound, were wall time to scale with worker time; " + verdict(floors["any"])),
              BenchRow("floor of the RTI / search ratio, a default optimizer that took no time: the same plus the RTI "
                       "run's planning with the search by design, over all the search run's worker time",
