@@ -18,7 +18,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
 
     The C passes are interleaved with do-mpc's solves: one before its closed loop, one after every
     ceil(samples / :data:`C_PASSES`) of its samples, one after it, so that both steps' medians are taken over the
-    same stretch of time. This VM's speed steps between two levels for seconds at a time (cosim/benchmark_harness/
+    same stretch of time. This VM's speed steps between two levels (cosim/benchmark_harness/
     instruction_count.py): with one C pass before do-mpc's loop and two after it, one run of today's code measured
     the load change's ratio 800 x, its C step's p50 7.8 us there and 4.3 us in the start-up. The ratio row's note
     gives the C passes' medians' spread; each scenario's instructions per RTI step (callgrind) are a row of their
