@@ -73,9 +73,9 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
 
 
 def test_the_c_passes_are_interleaved_with_the_peers_steps():
-    """bench_dompc's Interleaved: ``between`` runs after every ``every``-th step and only then, the duties and the
+    """bench_dompc's PlanCosts with ``between``: it runs after every ``every``-th step and only then, the duties and the
     plan costs pass through unchanged, and a reset restarts the count."""
-    from cosim.benchmarks.dompc import Interleaved, PlanCosts
+    from cosim.benchmarks.dompc import PlanCosts
 
     class Counting:
         name, sample_period, duty_limits = "probe", 1e-3, (0.0, 1.0)
@@ -95,7 +95,7 @@ def test_the_c_passes_are_interleaved_with_the_peers_steps():
 
     calls = []
     inner = Counting()
-    loop = Interleaved(PlanCosts(inner, lambda c: 2.0 * c.steps), every=3, between=lambda: calls.append(inner.steps))
+    loop = PlanCosts(inner, lambda c: 2.0 * c.steps, every=3, between=lambda: calls.append(inner.steps))
     duties = [loop.step(None) for _ in range(10)]
     assert duties == [0.1 * k for k in range(1, 11)] and calls == [3, 6, 9]
     assert loop.costs == [2.0 * k for k in range(1, 11)]

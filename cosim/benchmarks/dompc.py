@@ -48,13 +48,13 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         result_rti = simulate(binding, twin, scenario, record_period=period)  # measurements the harness replays
         measurements = np.array(twin.rows, dtype=float)
         peer = DoMpcNnpc(model, period, horizon_settings(period), **NOMINAL_OPERATING_POINT)
-        passes: list[np.ndarray] = []  # each C pass's step times [us], in time order
+        replays = []  # each C pass (its step times and the RTI's counters), in time order
 
-        def time_c_pass(passes=passes, rti=rti, measurements=measurements):  # this scenario's, bound now
-            passes.append(replay_warm(rti, measurements, 1, warm_up=not quick).ns * 1e-3)
+        def time_c_pass(replays=replays, rti=rti, measurements=measurements):  # this scenario's, bound now
+            replays.append(replay_warm(rti, measurements, 1, warm_up=not quick))
 
-        costed_peer = Interleaved(PlanCosts(peer, lambda solver: solver.best_cost),
-                                  every=-(-len(measurements) // C_PASSES), between=time_c_pass)  # ceil: <= C_PASSES
+        costed_peer = PlanCosts(peer, lambda solver: solver.best_cost, every=-(-len(measurements) // C_PASSES),
+                                between=time_c_pass)  # ceil: <= C_PASSES passes inside the loop
         time_c_pass()
         result_peer = simulate(binding, costed_peer, scenario, record_period=period)
         time_c_pass()
@@ -63,7 +63,8 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         plain = nnpc(model, period, NNPC, optimizer="rti", rti_changes={"reweightings": 0})
         iae_plain = run_metrics(simulate(binding, implemented(plain), scenario, record_period=period))["iae_Vs"]
         solve = np.array(peer.solve_times[1:] or peer.solve_times) * 1e6  # the first includes IPOPT's set-up
-        timed = replay_warm(rti, measurements, 1, warm_up=not quick)  # the RTI's counters (the times: passes)
+        timed = replays[-1]  # the RTI's counters: every pass replays the same steps from a reset
+        passes = [replay.ns * 1e-3 for replay in replays]  # [us]
         c_us = np.concatenate(passes)
         ratio = float(np.median(solve)) / float(np.median(c_us))
         pass_medians = [float(np.median(p)) for p in passes]
@@ -102,43 +103,15 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
 C_PASSES = 12
 
 
-class Interleaved:
-    """``controller`` in the closed loop, calling ``between()`` after every ``every``-th step: do-mpc's solves with
-    C passes timed between them. ``between`` runs outside do-mpc's solve timing (``solve_times``) but inside this
-    wrapper's step, so the master's compute column and a harness error are the wrapper's, which is a benchmark's
-    instrument, not a controller of the study."""
-
-    def __init__(self, controller, every: int, between):
-        self.controller, self.every, self.between = controller, every, between
-        self.name, self.sample_period, self.duty_limits = (controller.name, controller.sample_period,
-                                                           controller.duty_limits)
-        self.steps = 0
-
-    def reset(self):
-        self.controller.reset()
-        self.steps = 0
-
-    def step(self, m):
-        duty = self.controller.step(m)
-        self.steps += 1
-        if self.steps % self.every == 0:
-            self.between()
-        return duty
-
-    def describe(self):
-        return self.controller.describe()
-
-    @property
-    def costs(self):
-        return self.controller.costs
-
-
 class PlanCosts:
     """A controller in the closed loop, keeping after each step ``plan_cost(controller)``: the eq. 16 cost of the
-    plan it applied (``costs``, one per step since the last reset)."""
+    plan it applied (``costs``, one per step since the last reset). With ``between``, it also calls ``between()``
+    after every ``every``-th step: do-mpc's solves with C passes timed between them. ``between`` runs outside
+    do-mpc's solve timing (``solve_times``) but inside this wrapper's step, so the master's compute column and a
+    harness error are the wrapper's, a benchmark's instrument, not a controller of the study."""
 
-    def __init__(self, controller, plan_cost):
-        self.controller, self.plan_cost = controller, plan_cost
+    def __init__(self, controller, plan_cost, every: int = 1, between=None):
+        self.controller, self.plan_cost, self.every, self.between = controller, plan_cost, every, between
         self.name, self.sample_period, self.duty_limits = (controller.name, controller.sample_period,
                                                            controller.duty_limits)
         self.costs: list[float] = []
@@ -150,6 +123,8 @@ class PlanCosts:
     def step(self, m):
         duty = self.controller.step(m)
         self.costs.append(self.plan_cost(self.controller))
+        if self.between is not None and len(self.costs) % self.every == 0:
+            self.between()
         return duty
 
     def describe(self):
