@@ -65,16 +65,16 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
     for b in range(len(peer.settings.blocks)):
         assert np.ptp(plan[blocks == b]) <= 1e-6  # held over each block
     assert np.all((plan >= 0.0) & (plan <= 1.0)) and peer.last_solver == "do-mpc"
-    _, _, first, _ = peer.plan(*peer._problem[:4], "")
+    peer.plan(*peer._problem[:4], "")
     assert len(peer.solve_times) == len(runs[0].frame[runs[0].frame["control_sample"]]) + 1
     iae = [run_metrics(r)["iae_Vs"] for r in runs]
     assert iae[1] <= 1.02 * iae[0] and iae[0] <= 1.25 * iae[1]
     assert peer.describe()["optimizer"].startswith("do-mpc")
 
 
-def test_the_c_passes_are_interleaved_with_the_peers_steps():
-    """bench_dompc's PlanCosts with ``between``: it runs after every ``every``-th step and only then, the duties and the
-    plan costs pass through unchanged, and a reset restarts the count."""
+def test_a_c_pass_follows_every_one_of_the_peers_steps():
+    """bench_dompc's PlanCosts with ``after_step``: it runs after every step, the duties and the plan costs pass
+    through unchanged, and a reset restarts the costs."""
     from cosim.benchmarks.dompc import PlanCosts
 
     class Counting:
@@ -95,12 +95,28 @@ def test_the_c_passes_are_interleaved_with_the_peers_steps():
 
     calls = []
     inner = Counting()
-    loop = PlanCosts(inner, lambda c: 2.0 * c.steps, every=3, between=lambda: calls.append(inner.steps))
+    loop = PlanCosts(inner, lambda c: 2.0 * c.steps, after_step=lambda: calls.append(inner.steps))
     duties = [loop.step(None) for _ in range(10)]
-    assert duties == [0.1 * k for k in range(1, 11)] and calls == [3, 6, 9]
+    assert duties == [0.1 * k for k in range(1, 11)] and calls == list(range(1, 11))
     assert loop.costs == [2.0 * k for k in range(1, 11)]
     assert (loop.name, loop.sample_period, loop.duty_limits, loop.describe()) == ("probe", 1e-3, (0.0, 1.0),
                                                                                  {"name": "probe"})
     loop.reset()
     [loop.step(None) for _ in range(4)]
-    assert calls == [3, 6, 9, 3] and loop.costs == [2.0, 4.0, 6.0, 8.0]
+    assert calls == [*range(1, 11), 1, 2, 3, 4] and loop.costs == [2.0, 4.0, 6.0, 8.0]
+
+
+def test_the_ratio_pairs_each_solve_with_the_c_pass_right_after_it():
+    """paired_ratio: a VM at two speeds (the C step 5 us or 10 us, the solve 6 ms or 12 ms with it) gives each pair
+    1 200 x whatever the mix of speeds; a pass whose speed flipped part-way counts by its own median; mismatched
+    lengths raise."""
+    from cosim.benchmarks.dompc import paired_ratio
+
+    fast, slow = np.full(50, 5.0), np.full(50, 10.0)
+    solve = np.array([6000.0, 6000.0, 12000.0, 12000.0, 12000.0])
+    passes = [fast, fast, slow, slow, slow]
+    assert paired_ratio(solve, passes) == pytest.approx(1200.0, rel=1e-12)
+    passes[1] = np.concatenate([fast[:30], slow[:20]])  # one pass whose speed flipped half-way: its own median
+    assert paired_ratio(solve, passes) == pytest.approx(1200.0, rel=1e-12)
+    with pytest.raises(ValueError, match="paired_ratio: 5 solves and 4 C passes"):
+        paired_ratio(solve, passes[:4])

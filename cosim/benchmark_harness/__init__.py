@@ -97,8 +97,9 @@ def replay_interleaved(jobs, passes: int) -> list[Replay]:
     """Time the C steps of several ``(controller, measurements)`` jobs in turn, one pass of each, ``passes``
     times -- job 1's pass, job 2's, ..., then the next round -- each pass in its own harness process after an
     untimed warm-up pass over the same measurements. One controller's passes then span the same stretch of time
-    as the others': a shared VM whose speed steps between two levels for seconds at a time (measured here: the
-    same step 5 us or 10 us by the minute) slows each job alike, and a ratio between jobs is one of the same
+    as the others': a shared VM whose speed steps between two levels (measured here: the same step 5 us or
+    10 us by the minute on some days, from one ~10 ms pass to the next on others) slows each job alike in the
+    share of passes, and a ratio between jobs is one of the same
     conditions, which replaying one controller's passes after another's does not give. Each result has ns of all
     ``passes`` (pass-major, as :func:`replay`'s) and the last pass's diagnostics."""
     timed: list[list[np.ndarray]] = [[] for _ in jobs]

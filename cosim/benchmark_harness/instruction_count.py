@@ -1,8 +1,9 @@
 """x86-64 instructions per C controller step, counted by callgrind: the host's measure of a step's cost that does
 not move with the machine's speed.
 
-The step's time on this shared VM steps between two levels for seconds at a time (the same binary's 13.33 us RTI
-step measured 5 or 10 us p50 by the minute; hardware performance counters are not exposed to it), so a change to
+The step's time on this shared VM steps between two levels (the same binary's 13.33 us RTI step measured 5 or
+10 us p50 by the minute on some days, from one ~10 ms pass to the next on others; hardware performance counters
+are not exposed to it), so a change to
 the C code cannot be judged by its time across two benchmark runs, and a time target's verdict is partly the
 run's draw. The instructions a step executes are a property of the code and its inputs: the same in every run
 on the same machine (with another CPU, only where glibc picks another variant of a libm function, e.g. exp with
