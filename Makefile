@@ -26,8 +26,10 @@ docs: bootstrap
 # the RTI against the search, both plants, both rates (issue 24's quality targets): results/optimizer-every-seed.csv
 # and .md (9 minutes on two cores on a first run, which identifies the seeds' networks and caches them; 3 after); the
 # explicit NNPC distilled from every seed's NNPC against it at one switching period: results/explicit-every-seed.csv
-# and .md (16 minutes on a first run: twelve distillations of about 2.5 minutes each on a shared core, cached; under a
-# minute after).
+# and .md (6 minutes on a first run: twelve distillations of about 40 s each on a shared core, cached; under a
+# minute after), and the same with the search's labels instead of the RTI's: explicit-every-seed-search-labels.*
+# (10 minutes on a first run: fifteen distillations, seed 0's too).
 every-seed: bootstrap
 	nice .venv/bin/python scripts/optimizer_every_seed.py --results results --out results
 	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results
+	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results --expert-optimizer search

@@ -6,12 +6,15 @@ seed, the NNPC identified from that seed's data and the explicit NNPC distilled 
 policy; the others distilled here with the reproduction's budget -- about a minute per plant and seed on an idle core
 (55-65 s in results/timings.md), about 2.5 min on a shared one -- and kept in CACHE), both on the paper's four
 scenarios; prints a line per (pipeline, seed) and writes, with --out, ``explicit-every-seed.csv`` (one line per
-run) and ``explicit-every-seed.md`` (each target over the seeds, with the spread) after every job (marked incomplete until the last). Needs the reproduction's results in RESULTS
-(``make reproduce``). About 16 minutes on two cores on a first run (twelve distillations), under a minute after.
-``make every-seed`` runs it and writes results/.
+run) and ``explicit-every-seed.md`` (each target over the seeds, with the spread) after every job (marked incomplete
+until the last). With ``--expert-optimizer search`` the search's plans label the states instead of the RTI's (the
+reproduction's), every seed (0 too) is distilled here and the tables are ``explicit-every-seed-search-labels.*``:
+the labels' A/B. Needs the
+reproduction's results in RESULTS (``make reproduce``). About 16 minutes on two cores on a first run (twelve
+distillations), under a minute after. ``make every-seed`` runs it and writes results/.
 
     nice ./.venv/bin/python scripts/explicit_every_seed.py [--results results] [--cache ~/.cache/buck-cosim/every-seed]
-        [--pipelines TAG,...] [--seeds 0,1,...] [--workers N] [--out DIR]
+        [--pipelines TAG,...] [--seeds 0,1,...] [--workers N] [--expert-optimizer {rti,search}] [--out DIR]
 
 Exit codes: 0 done, 2 bad arguments or results (one line, before any simulation).
 """
@@ -28,7 +31,8 @@ from pathlib import Path
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
     from cosim.base.errors import ConfigError
-    from cosim.study.explicit_every_seed import REPORT_NAME, every_seed, fast_pipelines, verdict, write_tables
+    from cosim.study.explicit_every_seed import every_seed, fast_pipelines, file_names, verdict, write_tables
+    from cosim.study.vocabulary import OPTIMIZERS
 
     parser = argparse.ArgumentParser(prog="explicit_every_seed.py", description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"),
@@ -40,8 +44,12 @@ def main(argv: list[str]) -> int:
                                                         "(default: all)")
     parser.add_argument("--seeds", default="", help="comma-separated seeds (default: the study's)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
-    parser.add_argument("--out", type=Path, help=f"write {REPORT_NAME} and its CSV into this folder (after every job; "
-                                                 "the .md says incomplete until the last)")
+    parser.add_argument("--expert-optimizer", choices=OPTIMIZERS, default=None,
+                        help="the optimizer of the online NNPC that labels the distillation's states (default: the "
+                             "reproduction's, the RTI; another distills every seed, 0 too, and names the tables "
+                             "explicit-every-seed-<optimizer>-labels.*)")
+    parser.add_argument("--out", type=Path, help=f"write {file_names(None)[1]} and its CSV into this folder (after "
+                                                 "every job; the .md says incomplete until the last)")
     args = parser.parse_args(argv)
     tags = [p.tag for p in fast_pipelines()]
     chosen = [t.strip() for t in args.pipelines.split(",") if t.strip()] or None
@@ -66,15 +74,17 @@ def main(argv: list[str]) -> int:
             if not (args.results / "models" / name).is_file():
                 parser.error(f"--results {args.results}: no models/{name} there (run make reproduce first)")
     command = ("scripts/explicit_every_seed.py " + " ".join(argv)).strip()
-    save = (lambda rows: write_tables(args.out, rows, complete=False, command=command)) if args.out else None
+    save = (lambda rows: write_tables(args.out, rows, complete=False, command=command,
+                                      expert_optimizer=args.expert_optimizer)) if args.out else None
     try:
         rows = every_seed(args.results, args.cache, pipelines=chosen, seeds=seeds, workers=args.workers,
-                          log=lambda line: print(line, flush=True), on_rows=save)
+                          log=lambda line: print(line, flush=True), on_rows=save,
+                          expert_optimizer=args.expert_optimizer)
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     if args.out:
-        write_tables(args.out, rows, complete=True, command=command)
+        write_tables(args.out, rows, complete=True, command=command, expert_optimizer=args.expert_optimizer)
     for tag in dict.fromkeys(r["pipeline"] for r in rows):
         for line in verdict([r for r in rows if r["pipeline"] == tag]):
             print(f"{tag}: {line['target']}: {'met' if line['met'] else 'NOT met'} for every seed "

@@ -64,6 +64,9 @@ def test_the_command_refuses_bad_arguments_in_one_line_before_any_simulation(tmp
            "(run make reproduce first)")
     assert run_script(["--workers", "0"], capsys) == (
         2, "explicit_every_seed.py: error: --workers 0: expected at least 1")
+    assert run_script(["--expert-optimizer", "newton"], capsys) == (
+        2, "explicit_every_seed.py: error: argument --expert-optimizer: invalid choice: 'newton' (choose from 'rti', "
+           "'search')")
 
 
 def test_seed_0_is_the_committed_reproductions_explicit_and_online_nnpc(tmp_path):
@@ -120,10 +123,59 @@ def test_a_seeds_policy_is_distilled_once_and_taken_from_the_cache_while_its_exp
     model = load_model(ROOT / "results" / "models" / f"{FAST}__nnpc__seed1.pt")
     origins = [ees.seed_policy(pipeline, 1, model, ROOT / "results", tmp_path)[1] for _ in range(2)]
     assert origins == ["distilled", "cache"] and calls == [1]
-    assert ees.cached_policy_path(tmp_path, FAST, 1, distillation.expert_fingerprint(model)).is_file()
+    assert ees.cached_policy_path(tmp_path, FAST, 1, distillation.expert_fingerprint(model), "rti").is_file()
     monkeypatch.setattr(distillation, "FULL_DISTILLATION", replace(distillation.FULL_DISTILLATION, rounds=5))
     assert ees.seed_policy(pipeline, 1, model, ROOT / "results", tmp_path)[1] == "distilled"  # another budget
     assert calls == [1, 1]
+
+
+def test_with_another_expert_optimizer_every_seed_0_too_is_distilled_with_it_and_cached_apart(tmp_path, monkeypatch):
+    """--expert-optimizer search: seed 0 is distilled here (not the reproduction's RTI-labelled file), with the search
+    labelling the states, cached under its own name beside the RTI's; the tables are named for the labels and say
+    so; naming the reproduction's optimizer is the reproduction's labels; an unknown optimizer is refused before
+    any work."""
+    from controllers.explicit_policy import load_policy
+    from controllers.nn_model import load_model
+    from cosim.study import distillation
+
+    used = []
+
+    def fake_distill(model, binding, period, settings, *, log=None, metadata=None):
+        used.append((settings.seed, settings.expert_optimizer))
+        policy = load_policy(ROOT / "results" / "models" / f"{FAST}__nnpc-explicit.pt")
+        policy.metadata = {**policy.metadata, "expert_model": distillation.expert_fingerprint(model),
+                           "distillation": {**distillation.settings_dict(settings), "labels": 1, "history": []}}
+        return policy
+
+    monkeypatch.setattr(distillation, "distill", fake_distill)
+    (pipeline,) = ees.fast_pipelines([FAST])
+    model = load_model(ROOT / "results" / "models" / f"{FAST}__nnpc.pt")
+    expert = distillation.expert_fingerprint(model)
+    for named in (None, "rti"):
+        assert ees.seed_policy(pipeline, 0, model, ROOT / "results", tmp_path, expert_optimizer=named)[1] == \
+            "reproduction"
+    assert used == []
+    origins = [ees.seed_policy(pipeline, 0, model, ROOT / "results", tmp_path, expert_optimizer="search")[1]
+               for _ in range(2)]
+    assert origins == ["distilled", "cache"] and used == [(0, "search")]
+    assert ees.cached_policy_path(tmp_path, FAST, 0, expert, "search").name == (
+        f"{FAST}__seed0__nnpc-explicit__expert-{expert}__search-labels.pt")
+    assert ees.cached_policy_path(tmp_path, FAST, 0, expert, "search").is_file()
+    assert ees.file_names("search") == ("explicit-every-seed-search-labels.csv", "explicit-every-seed-search-labels.md")
+    assert ees.file_names("rti") == ees.file_names(None) == (ees.TABLE_NAME, ees.REPORT_NAME)
+    rows = [{"pipeline": FAST, "seed": 0, "scenario": "startup", "iae_online_Vs": 1.0, "iae_explicit_Vs": 1.0,
+             "iae_ratio": 1.0, "overshoot_online_pct": 1.0, "overshoot_explicit_pct": 2.0,
+             "steady_state_error_online_pct": 0.0, "steady_state_error_explicit_pct": 0.0,
+             "settling_time_online_ms": 1.0, "settling_time_explicit_ms": 1.0, "policy": "distilled here"}]
+    ees.write_tables(tmp_path, rows, complete=True, command="c", expert_optimizer="search")
+    text = (tmp_path / "explicit-every-seed-search-labels.md").read_text()
+    assert text.startswith("# The explicit NNPC on every seed, its labels from the search\n")
+    assert "distilled here with the online NNPC planned by the search labelling the states instead of the " \
+           "reproduction's RTI" in text
+    assert pd.read_csv(tmp_path / "explicit-every-seed-search-labels.csv")["overshoot_explicit_pct"].tolist() == [2.0]
+    assert not (tmp_path / ees.REPORT_NAME).exists()
+    with pytest.raises(ConfigError, match="expert optimizer 'newton' is unknown: expected one of rti, search"):
+        ees.seed_policy(pipeline, 1, model, ROOT / "results", tmp_path, expert_optimizer="newton")
 
 
 def test_the_explicit_nnpc_guide_quotes_the_committed_every_seed_table():

@@ -195,7 +195,8 @@ def distilled(expert) -> ExplicitPolicy:
 
 def test_a_small_distillation_regulates_the_averaged_plant_at_one_switching_period(expert, distilled):
     """1800 labels: every paper scenario within 0.2 % steady-state error, 10 % overshoot, 0.5 ms 2 %
-    settling and twice the IAE of the online NNPC it imitates (the search's, whose first moves are its labels).
+    settling and twice the IAE of the online NNPC it imitates (the default's, the RTI, whose first moves are its
+    labels; four times in the load change, where that NNPC is nearly dead-beat).
     The overshoot bound is the small budget's: with the quasi-static-current averaged model its reference
     step overshoots 7.3 % (the online NNPC: 0.004 %), a coarse policy's error; the reproduction's full
     budget is held to its targets table."""
@@ -205,14 +206,18 @@ def test_a_small_distillation_regulates_the_averaged_plant_at_one_switching_peri
     assert distilled.metadata["training"]["validation_rms_duty"] < 0.05
     binding = plant_binding("nominal", "averaged")
     explicit = implemented(explicit_nnpc(distilled))
-    online = implemented(nnpc(expert, SWITCHING_PERIOD, optimizer="search"))
+    online = implemented(nnpc(expert, SWITCHING_PERIOD))
+    assert distilled.metadata["distillation"]["expert_optimizer"] == "rti"
     for scenario in scenarios_for(SWITCHING_PERIOD):
         ours, theirs = (run_metrics(simulate(binding, c, scenario)) for c in (explicit, online))
         assert abs(ours["steady_state_error_pct"]) <= 0.2, scenario.name
         assert ours["overshoot_pct"] <= 10.0, scenario.name
         assert ours["settling_time_ms"] <= 0.5, scenario.name
-        # the small budget's bound; the reproduction's full budget is held to 1.05 (its targets table)
-        assert ours["iae_Vs"] <= 2.0 * theirs["iae_Vs"], scenario.name
+        # the small budget's bound; the reproduction's full budget is held to 1.05 (its targets table). In the load
+        # change the online RTI NNPC is nearly dead-beat on the averaged plant (8.6 uV s) and the policy's integral
+        # term trims its last 1e-3 of duty over a fraction of a ms: 3.7 x here (1.8 x the search's online IAE)
+        limit = 4.0 if scenario.name == "load_change" else 2.0
+        assert ours["iae_Vs"] <= limit * theirs["iae_Vs"], scenario.name
 
 
 def test_distillation_is_deterministic(expert, tmp_path):
@@ -225,6 +230,35 @@ def test_distillation_is_deterministic(expert, tmp_path):
     assert files[0].read_bytes() == files[1].read_bytes()
     assert set(timings) == {"identification_nnpc_s", "distillation_episodes_s", "distillation_training_s"}
     assert timings["distillation_episodes_s"] > 0 and timings["distillation_training_s"] > 0
+
+
+def test_the_expert_labels_with_the_default_optimizer_unless_told_another(expert, monkeypatch):
+    """DistillationSettings.expert_optimizer None: the expert plans with the workbench's default optimizer at the
+    time of the distillation (the RTI; the search inside default_optimizer("search"), as the benchmark's search run
+    does), a named one whatever the default; the policy file records which; an unknown name is refused first."""
+    from cosim.study import distillation
+    from cosim.study.experiments import default_optimizer
+
+    built = []
+    real_nnpc = distillation.nnpc
+
+    def spy(model, period, *args, optimizer=None, **kwargs):
+        built.append(optimizer)
+        return real_nnpc(model, period, *args, optimizer=optimizer, **kwargs)
+
+    monkeypatch.setattr(distillation, "nnpc", spy)
+    tiny = replace(SMALL_DISTILLATION, rounds=0, episodes=1, samples=100)
+    binding = plant_binding("nominal", "averaged")
+    recorded = []
+    for settings, default in ((tiny, "rti"), (tiny, "search"), (replace(tiny, expert_optimizer="search"), "rti")):
+        with default_optimizer(default):
+            policy = distill(expert, binding, SWITCHING_PERIOD, settings, log=None)
+        recorded.append(policy.metadata["distillation"]["expert_optimizer"])
+    assert built[0] == recorded[0] == "rti" and built[1] == recorded[1] == "search"
+    assert built[2] == recorded[2] == "search"
+    with pytest.raises(ConfigError, match="expert optimizer 'newton' is unknown: expected one of rti, search"):
+        distill(expert, binding, SWITCHING_PERIOD, replace(tiny, expert_optimizer="newton"), log=None)
+    assert len(built) == 3
 
 
 def test_the_exported_fmu_driven_by_the_master_gives_the_python_duty_at_every_sample(distilled, tmp_path):

@@ -26,6 +26,7 @@ from cosim.study.vocabulary import (
     DITHER_FAST,
     DITHER_SLOW,
     ENVELOPE_DITHER,
+    OPTIMIZERS,
     PAPER_PERIOD,
     TRANSIENT_WITHIN_SAMPLE_PERIOD,
 )
@@ -156,7 +157,8 @@ def cmd_distill(args) -> int:
     except ValueError as error:
         raise ConfigError(str(error)) from None
     settings = replace(FULL_DISTILLATION, rounds=args.rounds, episodes=args.episodes, samples=args.samples,
-                       seed=args.seed, policy=policy_config)
+                       seed=args.seed, policy=policy_config,
+                       expert_optimizer=args.expert_optimizer)
     settings.check()
     output_file(args.out, MODEL_SUFFIXES, "the policy is written as a torch archive")
     source = input_file(args.model, "model file", "train one with buck-cosim train")
@@ -278,7 +280,7 @@ def add_distill_parser(sub) -> None:
                    help="closed-loop episodes per round (default: %(default)s)")
     p.add_argument("--samples", type=bounded(int, MIN_SAMPLES, 10**6), default=600,
                    help="control samples per episode (default: %(default)s, 8 ms at 13.33 us); each costs one NNPC "
-                        "label, about 1 ms at 13.33 us")
+                        "label and one plant step")
     p.add_argument("--hidden", type=bounded(int, 1, 32), nargs="+", default=list(PolicyConfig.hidden),
                    help=f"tanh units per hidden layer of the policy (default: {' '.join(map(str, PolicyConfig.hidden))}"
                         f"; 7 inputs, so {PolicyConfig().macs()} MACs per step)")
@@ -287,6 +289,11 @@ def add_distill_parser(sub) -> None:
                         "control period: 200 at 13.33 us, 2.67 at 1 ms)")
     p.add_argument("--integral-band", type=bounded(float, 0.0, 1.0), default=PolicyConfig.integral_band,
                    help="integrate only while |reference - vo| <= band x reference [1] (default: %(default)g)")
+    p.add_argument("--expert-optimizer", choices=OPTIMIZERS, default=None,
+                   help="the optimizer of the online NNPC whose first moves label the states (default: the "
+                        "workbench's, the RTI, as make reproduce: microseconds per label at 13.33 us; search: about "
+                        "1 ms; their policies side by side on every seed: results/explicit-every-seed.md and "
+                        "explicit-every-seed-search-labels.md)")
     p.add_argument("--seed", type=seed_value, default=0, help=f"random seed, 0 .. {SEED_MAX} (default: 0)")
     _add_plant_options(p)
     p.set_defaults(func=cmd_distill)

@@ -173,19 +173,22 @@ def report_section(out_dir: Path, metrics: pd.DataFrame, pipelines: list[str]) -
     if not tags:
         return []
     lines = ["## Explicit NNPC (a policy distilled from the online NNPC)", "",
-             "The online NNPC searches thousands of candidate duty sequences per sample; the explicit NNPC is one "
+             "The online NNPC plans a duty sequence per sample on its NN model (the real-time iteration, with the "
+             "search over thousands of candidate sequences as its start-up fallback); the explicit NNPC is one "
              "forward pass of a small tanh network trained to return the online NNPC's first move, plus an integral "
              "term near the reference that makes it offset-free (`controllers/explicit_policy.py`, C twin "
              "`controllers/c/explicit_policy.c`). It is distilled per plant with DAgger on the plant FMU "
              "(`cosim/study/distillation.py`): the expert drives seeded random episodes first (references 3-20 V, "
              "loads 4-100 Ohm, start-ups from rest), then the policy drives more and more of them while the online "
-             "NNPC's C twin labels every visited state in shadow; the labels are aggregated and the policy retrained "
+             "NNPC's C twin, as it runs by default (the RTI), labels every visited state in shadow; the labels are "
+             "aggregated and the policy retrained "
              "after each round. At 1 ms it is not distilled: the online NNPC's one-step optimisation already fits "
              "the budget there (benchmarks.md). The reproduction distills seed 0's NNPC only: the table below and the "
              "targets are that one policy's. The same targets for the NNPC of every identification seed, each "
-             "distilled with this budget, are in [explicit-every-seed.md](explicit-every-seed.md) (`make every-seed`, "
-             "after `make reproduce`: about a minute of distillation per plant and seed, so not part of the "
-             "reproduction).", ""]
+             "distilled with this budget, are in [explicit-every-seed.md](explicit-every-seed.md), and with the "
+             "search's labels instead in [explicit-every-seed-search-labels.md](explicit-every-seed-search-labels.md) "
+             "(`make every-seed`, after `make reproduce`: about 40 s of distillation per plant and seed with the RTI's "
+             "labels, 80 s with the search's, so not part of the reproduction).", ""]
     rows = []
     for tag in tags:
         m = metrics[metrics["pipeline"] == tag]

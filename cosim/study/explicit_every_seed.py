@@ -6,7 +6,11 @@ steady-state error <= 0.2 % -- are one seed's. :func:`every_seed` repeats them f
 study seed's data on each pipeline at one switching period: seed 0 with the reproduction's own policy file (so its
 rows are the reproduction's), every other seed distilled here with the reproduction's budget
 (:data:`~cosim.study.distillation.FULL_DISTILLATION`, DAgger seed = the identification seed, as the reproduction
-pairs them) and kept in a cache keyed by the expert network, so a rerun only simulates. The (pipeline, seed) jobs
+pairs them) and kept in a cache keyed by the expert network and the expert's optimizer, so a rerun only simulates.
+With ``expert_optimizer`` other than the reproduction's (:data:`~cosim.study.distillation.FULL_DISTILLATION`'s: the
+workbench's default, the RTI) every seed, 0 too, is distilled here with that optimizer labelling the states, and the
+tables are named for it (``explicit-every-seed-search-labels.*``): the same targets, side by side with the
+reproduction's labels. The (pipeline, seed) jobs
 run as dask tasks on a LocalCluster (:mod:`cosim.study.cluster`), one job per task.
 
 Distillation is the cost: about 2.5 minutes per plant and seed on a core (two workers), so this is not part of ``make
@@ -28,7 +32,8 @@ import pandas as pd
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.study.explicit import IAE_RATIO_TARGET, OVERSHOOT_TARGET_PCT, STEADY_STATE_TARGET_PCT, policy_path
 
-#: the files :func:`write_tables` writes into the results folder
+#: the files :func:`write_tables` writes into the results folder (with the reproduction's expert optimizer;
+#: :func:`file_names` for another)
 TABLE_NAME, REPORT_NAME = "explicit-every-seed.csv", "explicit-every-seed.md"
 #: the record period of the runs [s]: the reproduction's (cosim.batch.run_batch's default), so seed 0's rows are its
 RECORD_PERIOD = 1e-5
@@ -48,24 +53,45 @@ def fast_pipelines(tags: list[str] | None = None) -> list:
             and (tags is None or p.tag in tags)]
 
 
-def cached_policy_path(cache: Path, tag: str, seed: int, expert: str) -> Path:
-    """Where a seed's policy is kept: named by its pipeline, seed and expert network (a retrained NNPC is not
-    taken for the one a cached policy imitates)."""
-    return Path(cache) / f"{tag}__seed{seed}__nnpc-explicit__expert-{expert}.pt"
+def reproduction_labels(expert_optimizer: str | None) -> bool:
+    """Whether ``expert_optimizer`` (None: the reproduction's) labels the states as the reproduction's do."""
+    from cosim.study.distillation import FULL_DISTILLATION
+
+    return expert_optimizer in (None, FULL_DISTILLATION.resolved().expert_optimizer)
 
 
-def seed_policy(pipeline, seed: int, model, out_dir: Path, cache: Path, log: Callable[[str], None] | None = None):
-    """The explicit policy distilled from ``model`` (seed ``seed``'s NNPC on ``pipeline``) and where it comes from:
-    seed 0 the reproduction's policy file (refused if it imitates another network than ``model``), other seeds
-    the cache's or a new distillation (then cached)."""
+def file_names(expert_optimizer: str | None) -> tuple[str, str]:
+    """The CSV and markdown :func:`write_tables` writes: :data:`TABLE_NAME` and :data:`REPORT_NAME` with the
+    reproduction's expert optimizer, ``explicit-every-seed-<optimizer>-labels.*`` with another."""
+    if reproduction_labels(expert_optimizer):
+        return TABLE_NAME, REPORT_NAME
+    stem = f"explicit-every-seed-{expert_optimizer}-labels"
+    return f"{stem}.csv", f"{stem}.md"
+
+
+def cached_policy_path(cache: Path, tag: str, seed: int, expert: str, expert_optimizer: str) -> Path:
+    """Where a seed's policy is kept: named by its pipeline, seed, expert network (a retrained NNPC is not
+    taken for the one a cached policy imitates) and the optimizer that labelled it."""
+    return Path(cache) / f"{tag}__seed{seed}__nnpc-explicit__expert-{expert}__{expert_optimizer}-labels.pt"
+
+
+def seed_policy(pipeline, seed: int, model, out_dir: Path, cache: Path, log: Callable[[str], None] | None = None,
+                expert_optimizer: str | None = None):
+    """The explicit policy distilled from ``model`` (seed ``seed``'s NNPC on ``pipeline``) with ``expert_optimizer``
+    labelling the states (None: the reproduction's) and where it comes from: seed 0 with the reproduction's labels
+    the reproduction's policy file (refused if it imitates another network than ``model``), the others the cache's
+    or a new distillation (then cached)."""
     from controllers.explicit_policy import load_policy, save_policy
     from cosim.base.errors import ConfigError
     from cosim.study.distillation import FULL_DISTILLATION, expert_fingerprint, settings_dict
     from cosim.study.distillation import distill as run_distillation
 
     expert = expert_fingerprint(model)
-    settings = replace(FULL_DISTILLATION, seed=seed)
-    if seed == 0:
+    settings = replace(FULL_DISTILLATION, seed=seed,
+                       expert_optimizer=expert_optimizer or FULL_DISTILLATION.expert_optimizer)
+    settings.check()
+    settings = settings.resolved()  # as the policy's metadata records them
+    if seed == 0 and reproduction_labels(expert_optimizer):
         path = policy_path(out_dir, pipeline.tag)
         if not path.is_file():
             raise ConfigError(f"{path}: no explicit policy there (run make reproduce first)")
@@ -74,7 +100,7 @@ def seed_policy(pipeline, seed: int, model, out_dir: Path, cache: Path, log: Cal
             raise ConfigError(f"{path}: distilled from another network (expert {policy.metadata.get('expert_model')}) "
                               f"than {out_dir}/models/{pipeline.tag}__nnpc.pt ({expert}): run make reproduce again")
         return policy, "reproduction"
-    path = cached_policy_path(cache, pipeline.tag, seed, expert)
+    path = cached_policy_path(cache, pipeline.tag, seed, expert, settings.expert_optimizer)
     if path.is_file():
         policy = load_policy(path, expect_period=pipeline.control_period)
         recorded = policy.metadata.get("distillation", {})
@@ -99,7 +125,8 @@ def check_results(out_dir: Path, pipelines: list) -> None:
         seed_policy(pipeline, 0, model, out_dir, Path(out_dir), log=None)  # seed 0: reads and checks, never distills
 
 
-def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict], dict]:
+def seed_job(tag: str, seed: int, out_dir: Path, cache: Path,
+             expert_optimizer: str | None = None) -> tuple[list[dict], dict]:
     """One (pipeline, seed) of :func:`every_seed`, as a dask task: the seed's NNPC (identified if not cached), its
     policy, and both on the paper's scenarios (their C twins, as the reproduction runs them). The rows (``policy``:
     "reproduction" for seed 0's file, else "distilled here"), and for the log the job's wall-clock seconds and
@@ -114,7 +141,8 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict
     (pipeline,) = fast_pipelines([tag])
     period, binding = pipeline.control_period, pipeline.binding()
     model = seed_model(pipeline, seed, Path(out_dir), Path(cache))
-    policy, origin = seed_policy(pipeline, seed, model, Path(out_dir), Path(cache), log=None)
+    policy, origin = seed_policy(pipeline, seed, model, Path(out_dir), Path(cache), log=None,
+                                 expert_optimizer=expert_optimizer)
     # the table names the policy's recipe, not whether this run took it from the cache (the same bytes on a rerun)
     recipe = "reproduction" if origin == "reproduction" else "distilled here"
     rows = []
@@ -136,11 +164,12 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path) -> tuple[list[dict
 
 def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
                workers: int | None = None, log: Callable[[str], None] = print,
-               on_rows: Callable[[list[dict]], None] | None = None) -> list[dict]:
+               on_rows: Callable[[list[dict]], None] | None = None, expert_optimizer: str | None = None) -> list[dict]:
     """:func:`seed_job` for every fast pipeline (or those in ``pipelines``) and every study seed (or those in
     ``seeds``) on a LocalCluster of ``workers`` processes (default: one per core). ``on_rows(rows)`` gets the rows so
     far after each job (to save them as they come); the rows come back in (pipeline, seed, scenario) order, whatever
-    order the jobs finished in."""
+    order the jobs finished in. ``expert_optimizer``: the optimizer labelling the distillation's states (None: the
+    reproduction's)."""
     from distributed import as_completed
 
     from cosim.study.cluster import dask_client
@@ -153,7 +182,8 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
         return [row for job in jobs if job in done for row in done[job]]
 
     with dask_client(workers=workers, worker_saturation=1.0) as client:
-        futures = {client.submit(seed_job, tag, seed, Path(out_dir), Path(cache), pure=False): (tag, seed)
+        futures = {client.submit(seed_job, tag, seed, Path(out_dir), Path(cache), expert_optimizer, pure=False):
+                   (tag, seed)
                    for tag, seed in jobs}
         for future in as_completed(list(futures), loop=client.loop):
             tag, seed = futures[future]
@@ -211,17 +241,32 @@ def verdict(rows: list[dict]) -> list[dict]:
     return lines
 
 
-def report(rows: list[dict], complete: bool, command: str) -> str:
+def report(rows: list[dict], complete: bool, command: str, expert_optimizer: str | None = None) -> str:
     """The markdown summary: per pipeline, each target's verdict over the seeds with its spread and the value of
     every seed; then the online NNPC's start-up overshoot per seed beside the explicit's (the comparison the
-    overshoot target is read against)."""
-    lines = [f"# The explicit NNPC on every seed{'' if complete else ' (INCOMPLETE: the run was stopped)'}", "",
-             f"Command: `{command}`. Per run: `{TABLE_NAME}` (one line per pipeline, seed and scenario: the online "
-             "NNPC and the explicit NNPC distilled from it, their C twins, on the paper's four scenarios). Seed 0's "
-             "policy is the reproduction's (`models/<pipeline>__nnpc-explicit.pt`), so its rows are those of "
-             "`REPORT.md`; every other seed's NNPC is identified from that seed's data with the reproduction's recipe "
-             "and distilled with the reproduction's budget (DAgger seed = identification seed). A target holds only "
-             "if it holds for every seed; spreads are min / median / max over the seeds.", "",
+    overshoot target is read against). ``expert_optimizer``: what labelled the states (None: the reproduction's)."""
+    from cosim.study.distillation import FULL_DISTILLATION
+
+    table_name = file_names(expert_optimizer)[0]
+    names = {"rti": "RTI"}  # the optimizers as the prose names them
+    default = names.get(FULL_DISTILLATION.resolved().expert_optimizer, FULL_DISTILLATION.resolved().expert_optimizer)
+    if reproduction_labels(expert_optimizer):
+        title, recipe = "", (
+            "Seed 0's policy is the reproduction's (`models/<pipeline>__nnpc-explicit.pt`), so its rows are those of "
+            "`REPORT.md`; every other seed's NNPC is identified from that seed's data with the reproduction's recipe "
+            "and distilled with the reproduction's budget (DAgger seed = identification seed), the online NNPC with "
+            f"the {default} labelling the states.")
+    else:
+        other = names.get(expert_optimizer, expert_optimizer)
+        title, recipe = f", its labels from the {other}", (
+            f"Every seed's policy, seed 0's too, is distilled here with the online NNPC planned by the "
+            f"{other} labelling the states instead of the reproduction's {default}, with the reproduction's budget (DAgger seed = identification "
+            f"seed); each seed's NNPC is the reproduction's recipe's, so the online columns are those of "
+            f"`{TABLE_NAME}`.")
+    lines = [f"# The explicit NNPC on every seed{title}{'' if complete else ' (INCOMPLETE: the run was stopped)'}",
+             "", f"Command: `{command}`. Per run: `{table_name}` (one line per pipeline, seed and scenario: the online "
+             "NNPC and the explicit NNPC distilled from it, their C twins, on the paper's four scenarios). " + recipe +
+             " A target holds only if it holds for every seed; spreads are min / median / max over the seeds.", "",
              "| pipeline | target | every seed | min / median / max | per seed | seeds that miss it |",
              "|---|---|---|---|---|---|"]
     pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
@@ -251,10 +296,13 @@ def table(rows: list[dict]) -> pd.DataFrame:
     return pd.DataFrame.from_records(rows, columns=list(COLUMNS))
 
 
-def write_tables(out_dir: Path, rows: list[dict], complete: bool, command: str) -> None:
-    """``out_dir/explicit-every-seed.csv`` and ``.md`` (atomic writes; the markdown says when the rows are
-    incomplete, as after each job while the evaluation goes on)."""
+def write_tables(out_dir: Path, rows: list[dict], complete: bool, command: str,
+                 expert_optimizer: str | None = None) -> None:
+    """``out_dir/explicit-every-seed.csv`` and ``.md`` (:func:`file_names`: another name for another
+    ``expert_optimizer``; atomic writes; the markdown says when the rows are incomplete, as after each job while the
+    evaluation goes on)."""
     out_dir = Path(out_dir)
     frame = table(rows)
-    atomic_write(out_dir / TABLE_NAME, lambda tmp: frame.to_csv(tmp, index=False, float_format="%.10g"))
-    atomic_write_text(out_dir / REPORT_NAME, report(rows, complete, command))
+    table_name, report_name = file_names(expert_optimizer)
+    atomic_write(out_dir / table_name, lambda tmp: frame.to_csv(tmp, index=False, float_format="%.10g"))
+    atomic_write_text(out_dir / report_name, report(rows, complete, command, expert_optimizer))
