@@ -101,32 +101,39 @@ def test_a_seed_0_policy_of_another_network_is_refused_before_any_job(tmp_path):
                        log=lambda line: pytest.fail(f"a job ran: {line}"))
 
 
-def test_a_seeds_policy_is_distilled_once_and_taken_from_the_cache_while_its_expert_and_budget_match(tmp_path,
-                                                                                                      monkeypatch):
-    """The distillation itself is the reproduction's (tests/test_distillation.py); here it is replaced by one that
-    returns the committed policy under the metadata a distillation writes, to count the calls."""
+def fake_distillation(calls: list):
+    """A stand-in for cosim.study.distillation.distill that returns the committed policy under the metadata a
+    distillation writes and appends (seed, expert optimizer) of each call to ``calls``."""
     from controllers.explicit_policy import load_policy
-    from controllers.nn_model import load_model
     from cosim.study import distillation
 
-    calls = []
-
     def fake_distill(model, binding, period, settings, *, log=None, metadata=None):
-        calls.append(settings.seed)
+        calls.append((settings.seed, settings.expert_optimizer))
         policy = load_policy(ROOT / "results" / "models" / f"{FAST}__nnpc-explicit.pt")
         policy.metadata = {**policy.metadata, "expert_model": distillation.expert_fingerprint(model),
                            "distillation": {**distillation.settings_dict(settings), "labels": 1, "history": []}}
         return policy
 
-    monkeypatch.setattr(distillation, "distill", fake_distill)
+    return fake_distill
+
+
+def test_a_seeds_policy_is_distilled_once_and_taken_from_the_cache_while_its_expert_and_budget_match(tmp_path,
+                                                                                                      monkeypatch):
+    """The distillation itself is the reproduction's (tests/test_distillation.py); here it is replaced by one that
+    returns the committed policy under the metadata a distillation writes, to count the calls."""
+    from controllers.nn_model import load_model
+    from cosim.study import distillation
+
+    calls = []
+    monkeypatch.setattr(distillation, "distill", fake_distillation(calls))
     (pipeline,) = ees.fast_pipelines([FAST])
     model = load_model(ROOT / "results" / "models" / f"{FAST}__nnpc__seed1.pt")
     origins = [ees.seed_policy(pipeline, 1, model, ROOT / "results", tmp_path)[1] for _ in range(2)]
-    assert origins == ["distilled", "cache"] and calls == [1]
+    assert origins == ["distilled", "cache"] and calls == [(1, "rti")]
     assert ees.cached_policy_path(tmp_path, FAST, 1, distillation.expert_fingerprint(model), "rti").is_file()
     monkeypatch.setattr(distillation, "FULL_DISTILLATION", replace(distillation.FULL_DISTILLATION, rounds=5))
     assert ees.seed_policy(pipeline, 1, model, ROOT / "results", tmp_path)[1] == "distilled"  # another budget
-    assert calls == [1, 1]
+    assert calls == [(1, "rti")] * 2
 
 
 def test_with_another_expert_optimizer_every_seed_0_too_is_distilled_with_it_and_cached_apart(tmp_path, monkeypatch):
@@ -134,20 +141,11 @@ def test_with_another_expert_optimizer_every_seed_0_too_is_distilled_with_it_and
     labelling the states, cached under its own name beside the RTI's; the tables are named for the labels and say
     so; naming the reproduction's optimizer is the reproduction's labels; an unknown optimizer is refused before
     any work."""
-    from controllers.explicit_policy import load_policy
     from controllers.nn_model import load_model
     from cosim.study import distillation
 
     used = []
-
-    def fake_distill(model, binding, period, settings, *, log=None, metadata=None):
-        used.append((settings.seed, settings.expert_optimizer))
-        policy = load_policy(ROOT / "results" / "models" / f"{FAST}__nnpc-explicit.pt")
-        policy.metadata = {**policy.metadata, "expert_model": distillation.expert_fingerprint(model),
-                           "distillation": {**distillation.settings_dict(settings), "labels": 1, "history": []}}
-        return policy
-
-    monkeypatch.setattr(distillation, "distill", fake_distill)
+    monkeypatch.setattr(distillation, "distill", fake_distillation(used))
     (pipeline,) = ees.fast_pipelines([FAST])
     model = load_model(ROOT / "results" / "models" / f"{FAST}__nnpc.pt")
     expert = distillation.expert_fingerprint(model)
