@@ -45,8 +45,8 @@ from cosim.base.errors import ConfigError
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
-from cosim.study.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
 from cosim.study import experiments
+from cosim.study.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
 from cosim.study.experiments import NOMINAL_OPERATING_POINT, explicit_nnpc, implemented, nnpc
 from cosim.study.vocabulary import OPTIMIZERS
 

@@ -13,9 +13,9 @@ tables are named for it (``explicit-every-seed-search-labels.*``): the same targ
 reproduction's labels. The (pipeline, seed) jobs
 run as dask tasks on a LocalCluster (:mod:`cosim.study.cluster`), one job per task.
 
-Distillation is the cost: about 2.5 minutes per plant and seed on a core (two workers), so this is not part of ``make
-reproduce``; ``make every-seed`` runs it (``scripts/explicit_every_seed.py``) after the reproduction. Nothing in
-the workbench imports this module.
+Distillation is the cost: about 40 s per plant and seed on a core (two workers; 80 s with the search's labels), so
+this is not part of ``make reproduce``; ``make every-seed`` runs it (``scripts/explicit_every_seed.py``) after the
+reproduction. Nothing in the workbench imports this module.
 """
 
 from __future__ import annotations
@@ -164,7 +164,8 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path,
 
 def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, seeds: tuple[int, ...] | None = None,
                workers: int | None = None, log: Callable[[str], None] = print,
-               on_rows: Callable[[list[dict]], None] | None = None, expert_optimizer: str | None = None) -> list[dict]:
+               on_rows: Callable[[list[dict]], None] | None = None,
+               expert_optimizer: str | None = None) -> list[dict]:
     """:func:`seed_job` for every fast pipeline (or those in ``pipelines``) and every study seed (or those in
     ``seeds``) on a LocalCluster of ``workers`` processes (default: one per core). ``on_rows(rows)`` gets the rows so
     far after each job (to save them as they come); the rows come back in (pipeline, seed, scenario) order, whatever
@@ -260,8 +261,9 @@ def report(rows: list[dict], complete: bool, command: str, expert_optimizer: str
         other = names.get(expert_optimizer, expert_optimizer)
         title, recipe = f", its labels from the {other}", (
             f"Every seed's policy, seed 0's too, is distilled here with the online NNPC planned by the "
-            f"{other} labelling the states instead of the reproduction's {default}, with the reproduction's budget (DAgger seed = identification "
-            f"seed); each seed's NNPC is the reproduction's recipe's, so the online columns are those of "
+            f"{other} labelling the states instead of the reproduction's {default}, with the reproduction's "
+            "budget (DAgger seed = identification seed); each seed's NNPC is the reproduction's recipe's, so the "
+            "online columns are those of "
             f"`{TABLE_NAME}`.")
     lines = [f"# The explicit NNPC on every seed{title}{'' if complete else ' (INCOMPLETE: the run was stopped)'}",
              "", f"Command: `{command}`. Per run: `{table_name}` (one line per pipeline, seed and scenario: the online "
