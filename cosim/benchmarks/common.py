@@ -87,14 +87,17 @@ def _c_and_python_step_us(controller, measurements, replayed) -> tuple[float, fl
             _p99(python) * 1e-3)
 
 
-def instruction_row(what: str, controller, measurements: np.ndarray, planned: np.ndarray) -> BenchRow:
-    """x86-64 instructions per C step of ``controller`` on the samples ``planned`` marks (the RTI's), counted by
-    callgrind replaying ``measurements`` once from a reset -- the timed passes' path, each of them starting from a
-    reset too: what the step costs whatever the machine's speed, so a change to the C code is judged by it across
-    runs (:mod:`cosim.benchmark_harness.instruction_count`); one row saying why where valgrind is missing."""
+def instruction_row(what: str, controller, measurements: np.ndarray, planned: np.ndarray | None = None) -> BenchRow:
+    """x86-64 instructions per C step of ``controller`` on the samples ``planned`` marks (the RTI's; None: every
+    sample, a controller without a fallback), counted by callgrind replaying ``measurements`` once from a reset --
+    the timed passes' path, each of them starting from a reset too: what the step costs whatever the machine's
+    speed, so a change to the C code is judged by it across runs (:mod:`cosim.benchmark_harness.instruction_count`);
+    one row saying why where valgrind is missing."""
     from controllers.native import NativeBuildError
     from cosim.benchmark_harness.instruction_count import InstructionCountError, instruction_counts, problem
 
+    every = planned is None
+    planned = np.ones(len(measurements), dtype=bool) if every else planned
     reason = problem()
     if reason is None and not planned.any():
         reason = "the RTI planned none of the replayed samples"
@@ -106,6 +109,11 @@ def instruction_row(what: str, controller, measurements: np.ndarray, planned: np
     if reason:
         return BenchRow(f"{what}: not measured", math.nan, None, "", note=reason)
     chosen, others = counts[planned], counts[~planned]
+    if every:
+        return BenchRow(f"{what} (callgrind; every one of the {len(chosen)} samples of one pass; p99 column: max)",
+                        float(np.median(chosen)), float(np.max(chosen)), "count",
+                        note="the same in every run on this machine (another CPU may take other variants of libm's "
+                             "tanh)")
     other = (f"p50 {float(np.median(others)):.4g}, max {float(np.max(others)):.4g}" if len(others) else "none")
     return BenchRow(f"{what} (callgrind; the {int(planned.sum())} RTI samples of one pass; p99 column: max)",
                     float(np.median(chosen)), float(np.max(chosen)), "count",
