@@ -19,12 +19,12 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     Each do-mpc solve is paired with one C pass timed right after it (the whole closed loop's steps, a few ms, in
     its own harness process after an untimed warm-up pass), and the ratio is the median over the solves of each
     solve's time over its pass's p50 (:func:`paired_ratio`). The C step's p50 is bimodal on this VM, ~5 us or ~9 us,
-    flipping in streaks of a few passes (tens of ms; with ASLR off as well, so not the process's layout), and a
+    flipping in streaks of a few passes (tens of ms; in a scratch check with ASLR off as well), and a
     C pass every ~40 solves, the earlier design, drew a different mix of the two levels from one run to the next
     (the load change's ratio 953 x in one run, 1 814 x in another). Pairing makes each ratio one moment's. It does
-    not make the verdict independent of the level: the do-mpc solves paired with slow C passes took only ~4 %
-    longer than those paired with fast ones (one run, both scenarios: rank correlation ~0.2), so the slow level is
-    the C step's own. The ratio row's note therefore gives the ratio at the slow passes alone (the conservative
+    not make the verdict independent of the level: the do-mpc solves paired with slow C passes took only a few %
+    longer than those paired with fast ones (the ratio row's note gives both medians), so the slow level is the C
+    step's own. The ratio row's note therefore gives the ratio at the slow passes alone (the conservative
     figure), the ratio of the two overall medians and the passes' p50 spread. The first solve (IPOPT's set-up) is
     not paired. Each scenario's instructions per RTI step (callgrind) are a row of their own, the step's cost
     whatever the VM's state."""
@@ -69,9 +69,12 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
         passes = [replay.ns * 1e-3 for _, replay in paired]  # [us]
         timed = pairs[-1][1]  # the RTI's counters: every pass replays the same steps from a reset
         c_us = np.concatenate(passes)
-        ratio = paired_ratio(solve, passes)
         pass_medians = np.array([np.median(p) for p in passes])
+        ratio = paired_ratio(solve, pass_medians)
         slow = pass_medians > SLOW_LEVEL * np.min(pass_medians)
+        solve_by_level = (f"do-mpc's solves paired with the slow passes p50 {np.median(solve[slow]) / 1e3:.3g} ms, "
+                          f"with the others {np.median(solve[~slow]) / 1e3:.3g} ms" if slow.any() and (~slow).any()
+                          else "the passes all on one level")
         reweighted_share = float(np.mean(timed.reweighted[timed.rti] > 0)) if timed.rti.any() else 0.0
         iae_rti, iae_peer = run_metrics(result_rti)["iae_Vs"], run_metrics(result_peer)["iae_Vs"]
         label = f"{scenario.name}, {period_text(period, ascii_only=True)}, nominal switched plant"
@@ -89,8 +92,8 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
                      f"it (paired_ratio); the two overall p50s' ratio {np.median(solve) / np.median(c_us):.4g}; the "
                      f"passes' p50 {np.min(pass_medians):.3g}-{np.max(pass_medians):.3g} us; at the "
                      f"{100 * np.mean(slow):.2g} % of the passes slower than {SLOW_LEVEL} x the fastest "
-                     + (f"alone {paired_ratio(solve[slow], [p for p, x in zip(passes, slow) if x]):.4g} x"
-                        if slow.any() else "(none)")),
+                     + (f"alone {paired_ratio(solve[slow], pass_medians[slow]):.4g} x" if slow.any() else "(none)")
+                     + f"; {solve_by_level}"),
             BenchRow(f"closed-loop IAE, C RTI / do-mpc, {label}", iae_rti / iae_peer, None, "ratio", "<= 1.02",
                      iae_rti / iae_peer <= 1.02, f"IAE {iae_rti:.4g} V s (RTI), {iae_peer:.4g} V s (do-mpc); the RTI's "
                                                  f"reweighted QPs at {100 * reweighted_share:.2g} % of its samples"),
@@ -111,15 +114,16 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
 SLOW_LEVEL = 1.5
 
 
-def paired_ratio(solve_us: np.ndarray, passes_us: list[np.ndarray]) -> float:
-    """The median over the pairs of ``solve_us[k]`` over the median of ``passes_us[k]`` (both [us]): the peer's
-    solve over the C step's p50 in the pass timed right after it. Each pair is measured within ~10 ms, so a
-    machine state that slows both alike cancels in each ratio, which a ratio of the two overall medians (drawn at
-    different moments) does not give."""
-    if len(solve_us) != len(passes_us) or not len(solve_us):
-        raise ValueError(f"paired_ratio: {len(solve_us)} solves and {len(passes_us)} C passes, expected as many and "
-                         "at least one")
-    return float(np.median([s / np.median(p) for s, p in zip(solve_us, passes_us)]))
+def paired_ratio(solve_us: np.ndarray, pass_p50_us: np.ndarray) -> float:
+    """The median over the pairs of ``solve_us[k] / pass_p50_us[k]`` (both [us]): the peer's solve over the C
+    step's p50 in the pass timed right after it. Each pair is measured within ~10 ms, so a machine state that
+    slows both alike cancels in each ratio, which a ratio of the two overall medians (drawn at different moments)
+    does not give."""
+    solve_us, pass_p50_us = np.asarray(solve_us, dtype=float), np.asarray(pass_p50_us, dtype=float)
+    if solve_us.shape != pass_p50_us.shape or not solve_us.size:
+        raise ValueError(f"paired_ratio: {solve_us.size} solves and {pass_p50_us.size} C passes, expected as many "
+                         "and at least one")
+    return float(np.median(solve_us / pass_p50_us))
 
 
 class PlanCosts:
