@@ -165,13 +165,15 @@ def test_the_reproductions_worker_time_is_split_by_whether_an_optimizer_plans_in
             ("envelope map", "", "1800 runs: worker time", 50.0),
             ("envelope map", "", "last part written after its first task", 90.0),
             ("envelope map", "", "tables and figures", 3.0),
+            ("ssp agreement", "", "4 parts: worker time", 40.0),
+            ("ssp agreement", "", "tables, figures and report section", 5.0),
             ("stage", "a", "identification_nnpc_s", 100.0), ("stage", "a", "runs_s", 20.0),
             ("stage", "a", "distillation_episodes_s", 30.0), ("stage", "a", "distillation_training_s", 40.0),
             ("stage", "b", "identification_nnpc_s", 7.0), ("stage", "b", "optimizer_ablation_s", 2.0),
             ("controller p50", "a", "startup / NNPC", 5.0)]
     table = pd.DataFrame(rows, columns=["kind", "pipeline", "what", "value"]).assign(unit="s")
     table.loc[len(table)] = ["stage", "b", "identification_ablation_s", 4.0, "s"]
-    assert worker_seconds(table) == {"planning": 10.0 + 50.0 + 20.0 + 30.0 + 2.0, "optimizer_free": 147.0,
+    assert worker_seconds(table) == {"planning": 10.0 + 50.0 + 40.0 + 20.0 + 30.0 + 2.0, "optimizer_free": 147.0,
                                      "mixed": 4.0, "search_by_design": 2.0}
     table.loc[len(table)] = ["stage", "b", "new_study_s", 1.0, "s"]
     with pytest.raises(ValueError, match="new_study_s in none of PLANNING_STAGES, OPTIMIZER_FREE_STAGES and "

@@ -196,6 +196,9 @@ def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):
     text = (reproduction / "timings.md").read_text()
     assert "## Timing targets" in text and "Whole reproduction <= 120 s on 2 cores" in text
     assert "| yes |" in text.split("Whole reproduction <= 120 s on 2 cores")[1].splitlines()[0]  # quick: far below
+    ssp = timings[timings["kind"] == "ssp agreement"].set_index("what")["value"]  # its parts ran on the cluster
+    assert list(ssp.index) == ["4 parts: worker time", "tables, figures and report section"] and (ssp > 0).all()
+    assert "The SSP agreement's 4 parts took" in text
     metrics = pd.read_csv(reproduction / "metrics" / "metrics_all.csv")
     assert not any(c.startswith("controller_p") for c in metrics.columns)
     wall = pd.read_csv(reproduction / "metrics" / "metrics_all.timing.csv")
@@ -204,6 +207,57 @@ def test_wall_clock_figures_live_in_the_timings_files_only(reproduction):
     assert "ctrl p99" not in report and "Wall time" not in report and "[timings.md](timings.md)" in report
     summary = json.loads((reproduction / "pipelines" / f"{QUICK.pipelines[0]}.json").read_text())
     assert "timings" not in summary
+
+
+def test_the_ssp_agreement_run_on_the_cluster_equals_one_run_in_this_process(reproduction, tmp_path):
+    """The reproduction runs the SSP agreement's four (plant, controller) parts as tasks beside its jobs and merges
+    them: its tables and report section are the ones the study writes when it runs here, part after part."""
+    import shutil
+
+    from cosim.study.ssp_agreement import agreement_section
+
+    for folder in ("tuning", "models"):  # the designs the study exports as FMUs
+        shutil.copytree(reproduction / folder, tmp_path / folder)
+    section = agreement_section(tmp_path, quick=True)
+    for name in ("metrics", "equality", "convergence"):
+        table = pd.read_csv(tmp_path / "ssp" / f"ssp_{name}.csv")
+        assert len(table) and (tmp_path / "ssp" / f"ssp_{name}.csv").read_bytes() == (
+            reproduction / "ssp" / f"ssp_{name}.csv").read_bytes(), name
+    assert set(pd.read_csv(tmp_path / "ssp" / "ssp_equality.csv")[["plant", "controller"]].itertuples(
+        index=False, name=None)) == {(m, c) for m in ("averaged", "switched") for c in ("PI", "NNPC")}
+    assert section.startswith("## The loop as an SSP") and section in (reproduction / "REPORT.md").read_text()
+
+
+def test_each_drift_seed_reuses_the_nnpc_its_mismatch_seed_job_identified(tmp_path, monkeypatch):
+    """The drift study of every seed runs after the mismatch plant's job of that seed at 1/fsw and reads the NNPC
+    that job saved (one identification fewer per seed), the same network as identified again: same summary. A file
+    identified for other settings (another design key) is identified again rather than reused."""
+    from dataclasses import replace
+
+    from cosim.study import reproduce
+    from cosim.study.design_cache import seed_model_file
+    from cosim.study.reproduce import DRIFT_PIPELINE, FULL, plan_jobs, run_drift, run_seed
+
+    drift = {job.seed: job.after for job in plan_jobs(list(reproduce.PIPELINES), FULL, 0, None) if job.kind == "drift"}
+    assert drift == {0: DRIFT_PIPELINE.tag, **{s: f"{DRIFT_PIPELINE.tag}__seed{s}" for s in FULL.seeds[1:]}}
+    alone = plan_jobs([p for p in reproduce.PIPELINES if p != DRIFT_PIPELINE], FULL, 0, None)
+    assert {job.after for job in alone if job.kind == "drift"} == {None}  # nothing to reuse: identified there
+
+    profile = replace(QUICK, scenarios=("startup",), ablations=False)
+    identified = []
+    identify = reproduce.identify
+    monkeypatch.setattr(reproduce, "identify", lambda binding, *a, **k: identified.append(binding.tag)
+                        or identify(binding, *a, **k))
+    seed_job = run_seed(DRIFT_PIPELINE, tmp_path, profile, 1)
+    saved = seed_model_file(tmp_path, DRIFT_PIPELINE.plant_tag, DRIFT_PIPELINE.control_period, 1)
+    assert saved.is_file() and identified == [DRIFT_PIPELINE.plant_tag]
+    identified.clear()
+    reused = run_drift(tmp_path, profile, 1, reuse=True, first=False)
+    assert identified == [f"{DRIFT_PIPELINE.plant_tag}-drifted"]  # the drifted plant's only
+    assert reused.models["nnpc (seed 1)"] == seed_job.models["nnpc (seed 1)"]
+    identified.clear()
+    run_drift(tmp_path, replace(profile, samples=profile.samples + 1), 1, reuse=True, first=False)
+    assert identified == [DRIFT_PIPELINE.plant_tag, f"{DRIFT_PIPELINE.plant_tag}-drifted"]
 
 
 def test_the_1ms_compute_target_reads_the_c_twins_benchmark_row_not_the_python_references(tmp_path):

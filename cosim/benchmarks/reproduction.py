@@ -69,8 +69,8 @@ def _timed_reproduction(quick: bool, **options) -> TimedReproduction:
 
 
 #: the reproduction's stages (timings.csv, kind "stage"; a job's stages are disjoint) in which a predictive
-#: controller plans -- the time the predictive controllers' optimizer can change -- besides the tolerance study's and
-#: the envelope map's runs
+#: controller plans -- the time the predictive controllers' optimizer can change -- besides the runs of the tolerance
+#: study, the envelope map and the SSP agreement (PI and NNPC loops, as the tolerance study's)
 PLANNING_STAGES = ("runs_s", "optimizer_ablation_s", "distillation_episodes_s")
 #: the stages no predictive controller's optimizer enters: the trainings (torch), the PI's tuning, the classical
 #: designs, the frequency responses (PI, current-mode, Type-III)
@@ -88,7 +88,7 @@ SEARCH_BY_DESIGN_STAGES = ("optimizer_ablation_s",)
 
 def worker_seconds(timings: pd.DataFrame) -> dict[str, float]:
     """A reproduction's worker time [s] from its timings table: ``planning`` (:data:`PLANNING_STAGES`, the
-    tolerance study's and the envelope map's runs), ``optimizer_free`` (:data:`OPTIMIZER_FREE_STAGES`), ``mixed``
+    runs of the tolerance study, the envelope map and the SSP agreement), ``optimizer_free`` (:data:`OPTIMIZER_FREE_STAGES`), ``mixed``
     (:data:`MIXED_STAGES`) and, within planning, ``search_by_design`` (:data:`SEARCH_BY_DESIGN_STAGES`). Raises
     ValueError on a stage in none of the lists, so that a new stage is placed before it is counted."""
     stages = timings[timings["kind"] == "stage"]
@@ -97,7 +97,7 @@ def worker_seconds(timings: pd.DataFrame) -> dict[str, float]:
     if unknown:
         raise ValueError(f"timings.csv has stage(s) {', '.join(unknown)} in none of PLANNING_STAGES, "
                          "OPTIMIZER_FREE_STAGES and MIXED_STAGES (cosim/benchmarks/reproduction.py)")
-    studies = timings[timings["kind"].isin(["tolerance study", "envelope map"])
+    studies = timings[timings["kind"].isin(["tolerance study", "envelope map", "ssp agreement"])
                       & timings["what"].str.endswith("worker time")]
 
     def total(names) -> float:
@@ -181,8 +181,8 @@ def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
     for optimizer, text in (("rti", "the RTI"), ("search", "the search")):
         rows += [BenchRow(f"worker time where a predictive controller plans, {text} the default{scope}",
                           work[optimizer]["planning"], None, "s",
-                          note="stages " + ", ".join(PLANNING_STAGES) + ", the tolerance study's and the envelope "
-                               "map's runs (timings.csv); of which with the search whatever the default ("
+                          note="stages " + ", ".join(PLANNING_STAGES) + ", the runs of the tolerance study, the "
+                               "envelope map and the SSP agreement (timings.csv); of which with the search whatever the default ("
                                + ", ".join(SEARCH_BY_DESIGN_STAGES) + f"): {work[optimizer]['search_by_design']:.4g} s"),
                  BenchRow(f"worker time no optimizer enters, {text} the default{scope}",
                           work[optimizer]["optimizer_free"], None, "s",

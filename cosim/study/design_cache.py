@@ -147,3 +147,9 @@ def model_file(out_dir: Path, plant_tag: str, control_period: float, name: str) 
     """An identified network (``name``: nnpc, nnpc-paper) or distilled policy (nnpc-explicit):
     ``models/<tag>__<period>__<name>.pt``."""
     return Path(out_dir) / "models" / f"{pipeline_tag(plant_tag, control_period)}__{name}.pt"
+
+
+def seed_model_file(out_dir: Path, plant_tag: str, control_period: float, seed: int) -> Path:
+    """The NNPC a reproduction's seed job identified from seed ``seed``'s data, where another job reads it (the
+    envelope map, the drift study): ``models/<tag>__<period>__nnpc__seed<seed>.pt``."""
+    return model_file(out_dir, plant_tag, control_period, f"nnpc__seed{seed}")

@@ -38,6 +38,7 @@ import pyarrow as pa
 from cosim.base.files import atomic_write
 from cosim.scenarios import Scenario, ScenarioEvent
 from cosim.study.claims import target_row
+from cosim.study.design_cache import model_file, pi_file, seed_model_file
 from cosim.study.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSpec, Threshold
 from cosim.study.vocabulary import (
     CURRENT_MODE,
@@ -108,7 +109,7 @@ def step_scenarios(settings: MapSettings = FULL_MAP) -> tuple[Scenario, Scenario
 
 def seed_model_path(out_dir: Path, seed: int) -> Path:
     """The NN model of the map plant's seed job ``seed`` (written by the seed job, read by the map)."""
-    return Path(out_dir) / "models" / f"{pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)}__nnpc__seed{seed}.pt"
+    return seed_model_file(out_dir, MAP_PLANT, SWITCHING_PERIOD, seed)
 
 
 def seed_job_keys(seeds) -> list[str]:
@@ -120,7 +121,6 @@ def seed_job_keys(seeds) -> list[str]:
 def pipeline_files(out_dir: Path) -> dict[str, Path]:
     """The files of the nominal switched pipeline at 1/fsw the map's controllers come from."""
     from cosim.study.classical_design import design_files
-    from cosim.study.design_cache import model_file, pi_file
 
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
     out_dir = Path(out_dir)

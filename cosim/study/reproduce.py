@@ -55,7 +55,7 @@ from cosim.study import (
 )
 from cosim.study.controller_factory import external_controllers, external_name
 from cosim.study.data_collection import collect, save_samples
-from cosim.study.design_cache import data_file, model_file, pi_file
+from cosim.study.design_cache import data_file, model_file, pi_file, seed_model_file
 from cosim.study.envelope_identification import coverage
 from cosim.study.experiments import (
     PAPER_NNPC_OPTIMIZER,
@@ -191,6 +191,9 @@ PIPELINES = tuple(Pipeline(variant, mode, period)
                   for variant, mode in (("nominal", "averaged"), ("nominal", "switched"), ("mismatch", "switched")))
 DRIFT_PIPELINE = Pipeline("mismatch", "switched", SWITCHING_PERIOD)
 DRIFT_KEY = DRIFT_STUDY  # the drift study's job key and its rows' "pipeline" in the metrics tables
+#: the pipelines whose seed jobs save their NNPC (design_cache.seed_model_file) for another job: the envelope
+#: map's plant at one switching period (the map runs every seed's NNPC), the drift study's (reused there)
+SEED_MODEL_PIPELINES = (pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD), DRIFT_PIPELINE.tag)
 
 
 @dataclass(frozen=True)
@@ -475,17 +478,18 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     pi = _tuned(pipeline, out_dir, profile)
     start = time.perf_counter()
     config = nn_configs(period)["nnpc"]
-    identified = identify(binding, pi.controller(), period, config, seed, _recipe(profile))
+    identified = identify(binding, pi.controller(), period, config, seed, _recipe(profile),
+                          metadata={"design": _network_design("nnpc", binding, period, seed, profile, pi)})
     timings["identification_nnpc_s"] = time.perf_counter() - start
     name = seed_variant(NNPC, seed)
     start = time.perf_counter()
     batch = Batch(binding, _scenarios(pipeline, binding, profile))
     metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
     meta = {name.lower(): _model_summary(identified.model, config)}
-    if pipeline.tag == pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD):  # the envelope map runs it too
+    if pipeline.tag in SEED_MODEL_PIPELINES:  # another job runs this NNPC too: the envelope map, the drift study
         from controllers.nn_model import save_model
 
-        save_model(identified.model, envelope.seed_model_path(out_dir, seed))
+        save_model(identified.model, seed_model_file(out_dir, pipeline.plant_tag, period, seed))
     if profile.ablations and pipeline.identification_ablation:
         start_ablation = time.perf_counter()
         ablation, extra = _identification_ablation(identified, binding, period, seed, batch, out_dir, run_batch,
@@ -534,8 +538,9 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     data, without and with online adaptation, and one identified offline on the drifted plant (same
     seed), on the drift scenario.
 
-    ``reuse``: the mismatch-study pipeline at this rate has run in this reproduction, so its NNPC
-    (the same recipe and seed) is read from its model file instead of being identified again.
+    ``reuse``: the mismatch-study pipeline at this rate (``first``), or its seed job for ``seed``, has run in this
+    reproduction, so its NNPC (the same recipe and seed) is read from its model file instead of being identified
+    again (identified here after all if the file's design key is not the one wanted).
     ``first``: the reproduction's own seed (plain controller names, job key ``drift``)."""
     import torch
 
@@ -552,11 +557,12 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     start = time.perf_counter()
     design = _network_design("nnpc", binding, period, seed, profile, pi)
     before_model = None
-    if reuse and model_file(out_dir, pipeline.plant_tag, period, "nnpc").is_file():
+    reused = (model_file(out_dir, pipeline.plant_tag, period, "nnpc") if first
+              else seed_model_file(out_dir, pipeline.plant_tag, period, seed))
+    if reuse and reused.is_file():
         from controllers.nn_model import load_model
 
-        before_model = load_model(model_file(out_dir, pipeline.plant_tag, period, "nnpc"), expect_period=period,
-                                  expect_config=config)
+        before_model = load_model(reused, expect_period=period, expect_config=config)
         if (before_model.metadata.get("design") or {}).get("key") != design["key"]:
             before_model = None  # identified for another plant or recipe: not the drift study's NNPC
     if before_model is None:
@@ -642,6 +648,13 @@ class _Failed:
     error: WorkbenchError
 
 
+def _timed(function, *args) -> tuple[object, float]:
+    """``function(*args)`` and its wall time [s] (a task whose worker time timings.csv records)."""
+    start = time.perf_counter()
+    result = function(*args)
+    return result, time.perf_counter() - start
+
+
 def _guarded(function, *args):
     try:
         return function(*args)
@@ -690,16 +703,18 @@ def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_fil
     jobs = [Job("pipeline", p, seed, controllers=(controllers or {}).get(p.control_period, ())) for p in selected]
     if not binding_file:
         jobs += [Job("seed", p, seed + offset) for p in selected if p.seed_study for offset in profile.seeds[1:]]
-        if profile.drift:  # the reproduction's seed reuses the mismatch pipeline's NNPC (same recipe and seed)
-            after = DRIFT_PIPELINE.tag if DRIFT_PIPELINE in selected else None
-            jobs.append(Job("drift", DRIFT_PIPELINE, seed, after))
-            jobs += [Job("drift", DRIFT_PIPELINE, seed + offset, first_drift=False) for offset in profile.seeds[1:]]
+        if profile.drift:  # each seed reuses the NNPC of the mismatch pipeline or its seed job (same recipe and seed)
+            planned = DRIFT_PIPELINE in selected
+            jobs.append(Job("drift", DRIFT_PIPELINE, seed, DRIFT_PIPELINE.tag if planned else None))
+            jobs += [Job("drift", DRIFT_PIPELINE, seed + offset, f"{DRIFT_PIPELINE.tag}__seed{seed + offset}"
+                         if planned else None, first_drift=False) for offset in profile.seeds[1:]]
     return jobs
 
 
 #: dask priorities (higher first): the tolerance study's source pipeline, then the pipelines longest
-#: first (so the workers finish together), the study's tasks whenever no pipeline waits for a worker
-SOURCE_PRIORITY, STUDY_PRIORITY = 100, -10
+#: first (so the workers finish together), the SSP agreement's parts (a few seconds to tens of seconds each) once
+#: every job has started, the studies' tasks (many, short: they fill the end) whenever no other task waits
+SOURCE_PRIORITY, SSP_PRIORITY, STUDY_PRIORITY = 100, 0, -10
 
 
 def _default_optimizer_plugin(optimizer: str):
@@ -720,11 +735,15 @@ def _default_optimizer_plugin(optimizer: str):
 
 def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
                     implementation: str, workers: int, resume: bool, study_wanted: bool, map_wanted: bool = False,
-                    optimizer: str | None = None):
+                    optimizer: str | None = None, ssp_parts: dict | None = None):
     """The reproduction as dask tasks on a LocalCluster: the PI tunings first (every job of a plant
     and rate needs its gains), then the jobs (longest first, so the workers finish together; a job
     that depends on another is submitted when that one finishes), and the tolerance study's tasks as
-    soon as its source pipeline is done. Returns the study and its execution counts (or None, None).
+    soon as its source pipeline is done (the envelope map's likewise). ``ssp_parts``: a dict to fill with the SSP
+    agreement study's parts (:func:`cosim.study.ssp_agreement.run_loops` by (mode, controller), each with its
+    worker time [s]), run as tasks once
+    its source pipelines are done, after every job has started (None: not wanted). Returns the tolerance study and
+    its execution counts (or None, None), and the envelope map and its execution (or None, None).
     On a fault or an interrupt the cluster is closed at once (its worker processes end with it)."""
     from distributed import as_completed
 
@@ -742,10 +761,12 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
         waiting = [job for job in todo if job.after is not None and job.after in keys]
         # submitted in the order they should start (idle workers take the first ones at once; the
         # rest wait in the scheduler's queue by priority): the study's source pipeline, then longest first
-        sources = (tolerance_study.SOURCE_PIPELINE, pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD))
+        sources = (tolerance_study.SOURCE_PIPELINE, pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD),
+                   *(ssp_agreement.SOURCE_PIPELINES if ssp_parts is not None else ()))
         order = sorted((job for job in todo if job not in waiting),
                        key=lambda job: (job.key not in sources, -job.cost()))
         futures: dict[str, Job] = {}
+        ssp_futures: dict[str, tuple[str, str]] = {}
         queue = as_completed(loop=client.loop)
 
         def submit(job: Job, priority: int) -> None:
@@ -781,7 +802,23 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
             for future in envelope_execution.submit(client, priority=STUDY_PRIORITY):
                 queue.add(future)
 
+        ssp_started = False
+
+        def start_ssp():  # the SSP agreement's parts, once its source pipelines have written their designs
+            nonlocal ssp_started
+            ssp_started = True
+            for mode, controller in ssp_agreement.PARTS:
+                future = client.submit(_guarded, _timed, ssp_agreement.run_loops, out_dir, mode, controller,
+                                       profile.quick, pure=False, key=f"buck-cosim-ssp-{mode}-{controller}",
+                                       priority=SSP_PRIORITY)
+                ssp_futures[future.key] = (mode, controller)
+                queue.add(future)
+            log(f"  SSP agreement: {len(ssp_agreement.PARTS)} part(s) on the same cluster")
+
         def maybe_start():
+            if (ssp_parts is not None and not ssp_started
+                    and set(ssp_agreement.SOURCE_PIPELINES) <= set(finished_pipelines())):
+                start_ssp()
             if study_wanted and study is None and tolerance_study.ready(finished_pipelines()):
                 start_study()
             if map_wanted and envelope_map is None and envelope.ready((job.key for job in outputs), map_seeds):
@@ -795,6 +832,11 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
                 if owner is not None:
                     for new in owner.handle(future):
                         queue.add(new)
+                    continue
+                if future.key in ssp_futures:
+                    mode, controller = ssp_futures.pop(future.key)
+                    ssp_parts[mode, controller] = _task_result(future, f"the SSP agreement's {controller} loops on "
+                                                               f"the {mode} plant", out_dir)
                     continue
                 job = futures.pop(future.key)
                 what = f"pipeline {job.key}" if job.kind == "pipeline" else f"the {job.kind} job {job.key}"
@@ -892,12 +934,14 @@ def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementat
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
     study_wanted = not binding_file and tolerance_study.SOURCE_PIPELINE in {p.tag for p in selected}
     map_wanted = not binding_file and pipeline_tag(envelope.MAP_PLANT, SWITCHING_PERIOD) in {p.tag for p in selected}
+    ssp_wanted = not binding_file and set(ssp_agreement.SOURCE_PIPELINES) <= {p.tag for p in selected}
+    ssp_parts: dict = {}
     study = study_counts = envelope_map = map_execution = None
     if todo or study_wanted or map_wanted:
         try:
             study, study_counts, envelope_map, map_execution = _run_on_cluster(
                 todo, tunings, outputs, out_dir, profile, implementation, workers, resume, study_wanted, map_wanted,
-                optimizer)
+                optimizer, ssp_parts if ssp_wanted else None)
         finally:
             remove_temporary_files(out_dir)  # what unfinished writes left, once the workers are gone
     map_started = time.perf_counter()
@@ -914,11 +958,16 @@ def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementat
     pipelines = _per_pipeline(selected, jobs, outputs)
     drift = [outputs[job] for job in jobs if job.kind == "drift"]
     report = write_report(out_dir, pipelines, metrics, profile=profile, seed=seed, drift=drift, tolerance=tolerance)
-    if not binding_file and set(ssp_agreement.SOURCE_PIPELINES) <= {p.tag for p in selected}:
-        ssp_agreement.append_to_report(out_dir, report, quick=profile.quick)  # the loop as an SSP (issue 17)
+    ssp_timing = None
+    if ssp_wanted:  # the loop as an SSP (issue 17): its parts ran on the cluster (here if no cluster ran)
+        section_started = time.perf_counter()
+        parts = [ssp_parts[part][0] for part in ssp_agreement.PARTS] if ssp_parts else None
+        ssp_agreement.append_to_report(out_dir, report, quick=profile.quick, parts=parts)
+        ssp_timing = {"parts": len(ssp_parts), "worker_s": sum(seconds for _, seconds in ssp_parts.values()),
+                      "section_s": time.perf_counter() - section_started} if ssp_parts else None
     elapsed = time.perf_counter() - started
     write_timings(out_dir, ordered, metrics, elapsed, workers, tolerance=_study_timing(study, study_counts),
-                  envelope=map_timing)
+                  envelope=map_timing, ssp=ssp_timing)
     log(f"reproduction finished in {elapsed:.1f} s; report: {report}")
     return report
 

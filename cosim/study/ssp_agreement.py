@@ -21,9 +21,10 @@ and run by the three engines of :mod:`cosim.ssp.engines` at the archive's commun
    (max |dvo| ~ tau max |dvo/dt|). Checked over a ladder of communication steps.
 4. The metrics from all three engines side by side, and an overlay figure.
 
-:func:`agreement_section` runs it all and returns the report section (Markdown) and writes its
-tables (``ssp/*.csv``) and figures (``figures/ssp_*.png``) under the output folder;
-:func:`append_to_report` is the reproduction's one-line hook.
+:func:`run_loops` runs one controller's loops on one plant (the reproduction runs the four as tasks on
+its cluster, beside its jobs); :func:`write_section` merges them, writes the tables (``ssp/*.csv``)
+and figures (``figures/ssp_*.png``) under the output folder and returns the report section (Markdown);
+:func:`agreement_section` does both in one process; :func:`append_to_report` is the reproduction's hook.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ CONTROLLER_NAMES = (PI, NNPC)
 LADDER = (1e-3, 1e-4, 5e-5, 2e-5, 1e-5, 5e-6, 2e-6, 1e-6)
 QUICK_LADDER = (2e-5, 1e-5)
 QUICK_SCENARIOS = ("reference_up",)  # the quick profile (the test suite runs it three times)
+OVERLAY_SCENARIO = "reference_up"  # the scenario of the overlay figure (the engines' trajectories)
 #: where the whole duty response is delayed (a reference step: the controller's input jumps at the
 #: sample), the predicted difference is the workbench's trajectory shifted by the delay
 SHIFTED = ("reference_up", "reference_down")
@@ -240,7 +242,7 @@ def run_cases(cases: list[Case], controllers: dict, work: Path, ladder: tuple[fl
 # Figures
 
 
-def _overlay_figure(frames: dict, path: Path, scenario: str = "reference_up") -> Path:
+def _overlay_figure(frames: dict, path: Path, scenario: str) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -350,36 +352,56 @@ def _slopes(convergence: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def agreement_section(out_dir: Path, quick: bool = False) -> str:
-    """Run the agreement study into ``out_dir`` (tables ``ssp/*.csv``, figures
-    ``figures/ssp_*.png``) and return its report section (Markdown)."""
+def run_loops(out_dir: Path, mode: str, controller: str, quick: bool = False) -> dict:
+    """One controller's loops on one plant (``mode``), every scenario: its FMU exported from the reproduction's
+    design in ``out_dir``, an SSP per scenario, each run by every engine (:func:`run_cases`). The reproduction runs
+    the four (mode, controller) parts as tasks on its cluster, next to its jobs, once the source pipelines have
+    written the designs; :func:`write_section` merges them. Returns :func:`run_cases`' tables, and its frames of
+    :data:`OVERLAY_SCENARIO` only (the overlay figure's; the others would only travel back to be dropped)."""
+    from cosim.fmi.controller_export import export_controller
+
     out_dir = Path(out_dir)
     scenarios = QUICK_SCENARIOS if quick else PAPER_SCENARIOS
-    ladder = QUICK_LADDER if quick else LADDER
-    controllers = {mode: controllers_for(out_dir, mode, quick) for mode in PLANT_MODES}
+    controllers = {mode: controllers_for(out_dir, mode, quick)}
+    binding = plant_binding("nominal", mode)
     with tempfile.TemporaryDirectory(prefix="buck-cosim-ssp-study-") as tmp:
         work = Path(tmp)
+        fmu = export_controller(controllers[mode][controller], work / f"{controller}.fmu")[0]
         cases = []
-        from cosim.fmi.controller_export import export_controller
+        for scenario in scenarios_for(PAPER_PERIOD, scenarios):
+            path = work / f"{scenario.name}__{controller}__{mode}.ssp"
+            export_ssp(scenario, binding, fmu, path)
+            cases.append(Case(scenario.name, mode, controller, path, work / f"{controller}-{mode}.fmu"))
+        fmu.rename(work / f"{controller}-{mode}.fmu")
+        results = run_cases(cases, controllers, work, QUICK_LADDER if quick else LADDER, scenarios)
+    results["frames"] = {case: runs for case, runs in results["frames"].items() if case.scenario == OVERLAY_SCENARIO}
+    return results
 
-        for mode in PLANT_MODES:
-            binding = plant_binding("nominal", mode)
-            for name in CONTROLLER_NAMES:
-                fmu = export_controller(controllers[mode][name], work / f"{name}.fmu")[0]
-                for scenario in scenarios_for(PAPER_PERIOD, scenarios):
-                    path = work / f"{scenario.name}__{name}__{mode}.ssp"
-                    export_ssp(scenario, binding, fmu, path)
-                    cases.append(Case(scenario.name, mode, name, path, work / f"{name}-{mode}.fmu"))
-                fmu.rename(work / f"{name}-{mode}.fmu")
-        results = run_cases(cases, controllers, work, ladder,
-                            scenarios)
+
+#: the study's parts in the order their rows appear in its tables: every (mode, controller)
+PARTS = tuple((mode, controller) for mode in PLANT_MODES for controller in CONTROLLER_NAMES)
+
+
+def write_section(out_dir: Path, parts: list[dict], quick: bool = False) -> str:
+    """Merge :func:`run_loops`' ``parts`` (in :data:`PARTS`' order), write the tables (``ssp/*.csv``) and
+    figures (``figures/ssp_*.png``) under ``out_dir`` and return the report section (Markdown)."""
+    out_dir = Path(out_dir)
+    results = {name: pd.concat([part[name] for part in parts if len(part[name])], ignore_index=True)
+               for name in ("metrics", "equality", "convergence")}
+    results["frames"] = {case: runs for part in parts for case, runs in part["frames"].items()}
     tables = out_dir / "ssp"
     for name in ("metrics", "equality", "convergence"):
         frame = results[name]
         atomic_write(tables / f"ssp_{name}.csv", lambda tmp, frame=frame: frame.to_csv(tmp, index=False))
-    overlay = _overlay_figure(results["frames"], out_dir / "figures" / "ssp_overlay.png")
+    overlay = _overlay_figure(results["frames"], out_dir / "figures" / "ssp_overlay.png", OVERLAY_SCENARIO)
     converge = _convergence_figure(results["convergence"], out_dir / "figures" / "ssp_convergence.png")
     return _section_text(results, overlay.relative_to(out_dir), converge.relative_to(out_dir), quick)
+
+
+def agreement_section(out_dir: Path, quick: bool = False) -> str:
+    """Run the agreement study into ``out_dir`` (tables ``ssp/*.csv``, figures
+    ``figures/ssp_*.png``) in this process, one part after the other, and return its report section (Markdown)."""
+    return write_section(out_dir, [run_loops(out_dir, mode, controller, quick) for mode, controller in PARTS], quick)
 
 
 def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> str:
@@ -497,10 +519,11 @@ def _section_text(results: dict, overlay: Path, converge: Path, quick: bool) -> 
     return "\n".join(lines)
 
 
-def append_to_report(out_dir: Path, report: Path, quick: bool = False) -> Path:
-    """The reproduction's hook: run the study and insert its section into ``report`` before
-    "## Reproducing" (or at the end)."""
-    section = agreement_section(out_dir, quick=quick)
+def append_to_report(out_dir: Path, report: Path, quick: bool = False, parts: list[dict] | None = None) -> Path:
+    """The reproduction's hook: insert the study's section into ``report`` before "## Reproducing" (or at the
+    end), from :func:`run_loops`' ``parts`` (in :data:`PARTS`' order) where the reproduction's cluster ran them,
+    else running the study here."""
+    section = write_section(out_dir, parts, quick) if parts is not None else agreement_section(out_dir, quick=quick)
     text = Path(report).read_text(encoding="utf-8")
     marker = "\n## Reproducing"
     text = text.replace(marker, "\n" + section + marker, 1) if marker in text else text.rstrip("\n") + "\n\n" + section

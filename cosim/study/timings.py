@@ -29,9 +29,11 @@ def machine_line() -> str:
 
 
 def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float, workers: int,
-                  tolerance: dict | None = None, envelope: dict | None = None) -> Path:
+                  tolerance: dict | None = None, envelope: dict | None = None, ssp: dict | None = None) -> Path:
     """Write ``timings.md`` (tables) and ``timings.csv`` (one row per figure: kind, pipeline,
-    what, value, unit). ``tolerance``: the tolerance study's runs, worker time and last part [s]."""
+    what, value, unit). ``tolerance``: the tolerance study's runs, worker time and last part [s]; ``envelope``
+    the envelope map's likewise, and its tables and figures [s]; ``ssp``: the SSP agreement's parts, their worker
+    time and the report section's merge, tables and figures [s] (``parts``, ``worker_s``, ``section_s``)."""
     out_dir = Path(out_dir)
     targets = TimingTargets(metrics, elapsed, out_dir).frame()
     stages = pd.DataFrame([{"job": getattr(o, "key", "") or o.pipeline.tag, **o.timings} for o in outputs])
@@ -50,6 +52,11 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
                   "value": envelope["last_part_s"], "unit": "s"},
                  {"kind": "envelope map", "pipeline": "", "what": "tables and figures",
                   "value": envelope.get("outputs_s", 0.0), "unit": "s"}]
+    if ssp:
+        rows += [{"kind": "ssp agreement", "pipeline": "", "what": f"{ssp['parts']} parts: worker time",
+                  "value": ssp["worker_s"], "unit": "s"},
+                 {"kind": "ssp agreement", "pipeline": "", "what": "tables, figures and report section",
+                  "value": ssp["section_s"], "unit": "s"}]
     for o in outputs:
         rows += [{"kind": "stage", "pipeline": getattr(o, "key", "") or o.pipeline.tag, "what": stage, "value": seconds,
                   "unit": "s"}
@@ -70,7 +77,9 @@ def write_timings(out_dir: Path, outputs, metrics: pd.DataFrame, elapsed: float,
                 "shared with the pipelines still running." if tolerance else "")
              + (f" The envelope map's {envelope['runs']} runs took {envelope['worker_s']:.1f} s of worker time "
                 f"(its last part {envelope['last_part_s']:.1f} s after its first task; tables and figures "
-                f"{envelope.get('outputs_s', 0.0):.1f} s)." if envelope else ""), "",
+                f"{envelope.get('outputs_s', 0.0):.1f} s)." if envelope else "")
+             + (f" The SSP agreement's {ssp['parts']} parts took {ssp['worker_s']:.1f} s of worker time (its tables, "
+                f"figures and report section {ssp['section_s']:.1f} s)." if ssp else ""), "",
              machine_line(), "",
              "## Timing targets", ""]
     lines += markdown_table(targets, TARGET_COLUMNS)
