@@ -33,6 +33,8 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "floor of the RTI / search ratio, an optimizer that took no time anywhere",
                 "worker time where a predictive controller plans, the search the default",
                 "floor of the RTI / search ratio, a default optimizer that took no time",
+                "worker time with the RTI / with the search, the parts issue 24's target names in parentheses",
+                "share of the wall time the 2 workers were busy, the RTI the default",
                 "x86-64 instructions per C RTI step, load_change" + (": not measured" if counting_problem() else ""),
                 "NNPC IAE / oracle-MPC IAE, startup", "C step, NNPC, 1 ms", "speed-up of C over Python, NNPC",
                 "NNPC 1 ms per RTI step on a 170 MHz Cortex-M4F", "NNPC 13.33 us per RTI step: tanh calls",
@@ -174,7 +176,7 @@ def test_the_reproductions_worker_time_is_split_by_whether_an_optimizer_plans_in
     table = pd.DataFrame(rows, columns=["kind", "pipeline", "what", "value"]).assign(unit="s")
     table.loc[len(table)] = ["stage", "b", "identification_ablation_s", 4.0, "s"]
     assert worker_seconds(table) == {"planning": 10.0 + 50.0 + 40.0 + 20.0 + 30.0 + 2.0, "optimizer_free": 147.0,
-                                     "mixed": 4.0, "search_by_design": 2.0}
+                                     "mixed": 4.0, "search_by_design": 2.0, "named": 20.0 + 30.0 + 50.0}
     table.loc[len(table)] = ["stage", "b", "new_study_s", 1.0, "s"]
     with pytest.raises(ValueError, match="new_study_s in none of PLANNING_STAGES, OPTIMIZER_FREE_STAGES and "
                                          "MIXED_STAGES"):
