@@ -99,3 +99,26 @@ def test_every_built_in_pipeline_is_evaluated_on_every_study_seed_and_an_externa
     assert {p.study_seeds for p in PIPELINES} == {FULL.seeds}
     external = Pipeline("bound", "switched", 1e-3, binding_file=str(ROOT / "no-such-binding.toml"))
     assert external.study_seeds == (0,)
+
+
+def test_a_seed_network_the_reproduction_saved_is_loaded_not_identified_again(tmp_path, monkeypatch):
+    """The drift study's and the envelope map's plants at one switching period: a seed's network is the one the
+    reproduction's seed job saved in models/ (the same weights a new identification gives), so the evaluation reads
+    it instead of identifying it into its cache."""
+    import shutil
+
+    from cosim.study import identification
+    from cosim.study.optimizer_every_seed import seed_model
+    from cosim.study.reproduce import DRIFT_PIPELINE, SEED_MODEL_PIPELINES
+
+    def never(*args, **kwargs):
+        raise AssertionError("identified again")
+
+    monkeypatch.setattr(identification, "identify", never)
+    name = f"{DRIFT_PIPELINE.tag}__nnpc__seed2.pt"
+    (tmp_path / "models").mkdir()
+    shutil.copy(ROOT / "results" / "models" / name, tmp_path / "models" / name)
+    assert DRIFT_PIPELINE.tag in SEED_MODEL_PIPELINES
+    model = seed_model(DRIFT_PIPELINE, 2, tmp_path, tmp_path / "cache")
+    assert model.metadata["seed"] == 2 and model.metadata["design"]["key"]
+    assert not (tmp_path / "cache").exists()

@@ -87,12 +87,14 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
 
 def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
     """The NNPC network of ``pipeline`` (a :class:`cosim.study.reproduce.Pipeline`) identified from study seed
-    ``seed``'s data: seed 0 the reproduction's (``out_dir/models``), the envelope map's plant's other seeds the
-    reproduction's seed jobs' files; any other identified here with the reproduction's recipe and tuned PI and kept
+    ``seed``'s data: seed 0 the reproduction's (``out_dir/models``), the other seeds of the pipelines whose seed jobs
+    save their network (``reproduce.SEED_MODEL_PIPELINES``: the envelope map's plant and the drift study's at one
+    switching period) the reproduction's seed jobs' files; any other identified here with the reproduction's recipe and tuned PI and kept
     in ``cache`` under a name holding the network and its data region (a cache of another recipe is not taken for it),
     so a rerun only loads it."""
     from controllers.nn_model import load_model, save_model
-    from cosim.study import envelope, reproduce
+    from cosim.study import reproduce
+    from cosim.study.design_cache import seed_model_file
     from cosim.study.experiments import network_region, nn_configs
     from cosim.study.identification import identify
 
@@ -100,8 +102,8 @@ def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
     config = nn_configs(period)["nnpc"]
     if seed == 0:
         path = out_dir / "models" / f"{pipeline.tag}__nnpc.pt"
-    elif pipeline.tag == envelope.pipeline_tag(envelope.MAP_PLANT, envelope.SWITCHING_PERIOD):
-        path = envelope.seed_model_path(out_dir, seed)  # the reproduction's seed job wrote it
+    elif pipeline.tag in reproduce.SEED_MODEL_PIPELINES:
+        path = seed_model_file(out_dir, pipeline.plant_tag, period, seed)  # the reproduction's seed job wrote it
     else:
         region = network_region("nnpc", period)
         path = cache / f"{pipeline.tag}__seed{seed}__nnpc__{re.sub(r'[^A-Za-z0-9]+', '_', config.label)}__{region}.pt"
