@@ -90,11 +90,11 @@ NAMED_STAGES = ("runs_s", "distillation_episodes_s")
 
 
 def worker_seconds(timings: pd.DataFrame) -> dict[str, float]:
-    """A reproduction's worker time [s] from its timings table: ``planning`` (:data:`PLANNING_STAGES`, the
-    runs of the tolerance study, the envelope map and the SSP agreement), ``optimizer_free`` (:data:`OPTIMIZER_FREE_STAGES`), ``mixed``
-    (:data:`MIXED_STAGES`) and, within planning, ``search_by_design`` (:data:`SEARCH_BY_DESIGN_STAGES`) and ``named``
-    (:data:`NAMED_STAGES` and the envelope map's runs). Raises
-    ValueError on a stage in none of the lists, so that a new stage is placed before it is counted."""
+    """A reproduction's worker time [s] from its timings table: ``planning`` (:data:`PLANNING_STAGES`, the runs of
+    the tolerance study, the envelope map and the SSP agreement), ``optimizer_free`` (:data:`OPTIMIZER_FREE_STAGES`),
+    ``mixed`` (:data:`MIXED_STAGES`) and, within planning, ``search_by_design`` (:data:`SEARCH_BY_DESIGN_STAGES`) and
+    ``named`` (:data:`NAMED_STAGES` and the envelope map's runs). Raises ValueError on a stage in none of the lists,
+    so that a new stage is placed before it is counted."""
     stages = timings[timings["kind"] == "stage"]
     known = set(PLANNING_STAGES) | set(OPTIMIZER_FREE_STAGES) | set(MIXED_STAGES)
     unknown = sorted(set(stages["what"]) - known)
@@ -188,8 +188,9 @@ def bench_reproduction_optimizer(quick: bool) -> list[BenchRow]:
         rows += [BenchRow(f"worker time where a predictive controller plans, {text} the default{scope}",
                           work[optimizer]["planning"], None, "s",
                           note="stages " + ", ".join(PLANNING_STAGES) + ", the runs of the tolerance study, the "
-                               "envelope map and the SSP agreement (timings.csv); of which with the search whatever the default ("
-                               + ", ".join(SEARCH_BY_DESIGN_STAGES) + f"): {work[optimizer]['search_by_design']:.4g} s"),
+                               "envelope map and the SSP agreement (timings.csv); of which with the search whatever "
+                               "the default (" + ", ".join(SEARCH_BY_DESIGN_STAGES)
+                               + f"): {work[optimizer]['search_by_design']:.4g} s"),
                  BenchRow(f"worker time no optimizer enters, {text} the default{scope}",
                           work[optimizer]["optimizer_free"], None, "s",
                           note="stages " + ", ".join(OPTIMIZER_FREE_STAGES) + " (timings.csv)")]

@@ -89,9 +89,9 @@ def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
     """The NNPC network of ``pipeline`` (a :class:`cosim.study.reproduce.Pipeline`) identified from study seed
     ``seed``'s data: seed 0 the reproduction's (``out_dir/models``), the other seeds of the pipelines whose seed jobs
     save their network (``reproduce.SEED_MODEL_PIPELINES``: the envelope map's plant and the drift study's at one
-    switching period) the reproduction's seed jobs' files; any other identified here with the reproduction's recipe and tuned PI and kept
-    in ``cache`` under a name holding the network and its data region (a cache of another recipe is not taken for it),
-    so a rerun only loads it."""
+    switching period) the reproduction's seed jobs' files; any other identified here with the reproduction's recipe
+    and tuned PI and kept in ``cache`` under a name holding the network and its data region (a cache of another
+    recipe is not taken for it), so a rerun only loads it."""
     from controllers.nn_model import load_model, save_model
     from cosim.study import reproduce
     from cosim.study.design_cache import seed_model_file

@@ -557,9 +557,11 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     start = time.perf_counter()
     design = _network_design("nnpc", binding, period, seed, profile, pi)
     before_model = None
-    reused = (model_file(out_dir, pipeline.plant_tag, period, "nnpc") if first
-              else seed_model_file(out_dir, pipeline.plant_tag, period, seed))
-    if reuse and reused.is_file():
+    reused = None
+    if reuse:  # the mismatch pipeline's own network (the reproduction's seed) or its seed job's
+        reused = (model_file(out_dir, pipeline.plant_tag, period, "nnpc") if first
+                  else seed_model_file(out_dir, pipeline.plant_tag, period, seed))
+    if reused is not None and reused.is_file():
         from controllers.nn_model import load_model
 
         before_model = load_model(reused, expect_period=period, expect_config=config)
@@ -741,9 +743,9 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
     that depends on another is submitted when that one finishes), and the tolerance study's tasks as
     soon as its source pipeline is done (the envelope map's likewise). ``ssp_parts``: a dict to fill with the SSP
     agreement study's parts (:func:`cosim.study.ssp_agreement.run_loops` by (mode, controller), each with its
-    worker time [s]), run as tasks once
-    its source pipelines are done, after every job has started (None: not wanted). Returns the tolerance study and
-    its execution counts (or None, None), and the envelope map and its execution (or None, None).
+    worker time [s]), run as tasks once its source pipelines are done, after every job has started (None: not
+    wanted). Returns the tolerance study and its execution counts (or None, None), and the envelope map and its
+    execution (or None, None).
     On a fault or an interrupt the cluster is closed at once (its worker processes end with it)."""
     from distributed import as_completed
 
