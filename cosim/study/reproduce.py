@@ -708,8 +708,9 @@ def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_fil
         if profile.drift:  # each seed reuses the NNPC of the mismatch pipeline or its seed job (same recipe and seed)
             planned = DRIFT_PIPELINE in selected
             jobs.append(Job("drift", DRIFT_PIPELINE, seed, DRIFT_PIPELINE.tag if planned else None))
-            jobs += [Job("drift", DRIFT_PIPELINE, seed + offset, f"{DRIFT_PIPELINE.tag}__seed{seed + offset}"
-                         if planned else None, first_drift=False) for offset in profile.seeds[1:]]
+            jobs += [Job("drift", DRIFT_PIPELINE, seed + offset,
+                         Job("seed", DRIFT_PIPELINE, seed + offset).key if planned else None, first_drift=False)
+                     for offset in profile.seeds[1:]]
     return jobs
 
 
