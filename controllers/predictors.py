@@ -146,7 +146,7 @@ class NNPredictor:
     def describe(self) -> dict:
         meta = self.model.metadata
         return {"type": "neural network", "architecture": self.model.config.label,
-                "trained_on": meta.get("plant"), "data_file": meta.get("data_file"),
+                "trained_on": meta.get("plant"), "data_domain": data_domain(meta), "data_file": meta.get("data_file"),
                 "held_out_rmse": meta.get("held_out_rmse"), "design_key": (meta.get("design") or {}).get("key")}
 
 
@@ -165,6 +165,36 @@ class CircuitParameters:
     diode_forward_voltage: float = 0.0
     capacitor_esr: float = 0.0
 
+
+
+#: the operating signals of a network's data domain, with their units
+DOMAIN_UNITS = {"input_voltage": "V", "load_conductance": "S", "reference": "V"}
+
+
+def data_domain(metadata: dict) -> dict[str, list[float]] | None:
+    """The operating ranges a network's identification data were drawn over, from its metadata's ``collection``
+    settings (cosim.study.data_collection): the supply [V] (its fixed value or its range), the load conductance 1/R
+    [S] (of the load range) and the reference [V] (its range; the rests at 0 V are no operating point). None for a
+    network without that record (e.g. trained from a data file of unknown origin)."""
+    collection = metadata.get("collection") if isinstance(metadata, dict) else None
+    if not isinstance(collection, dict):
+        return None
+    try:
+        supply = collection.get("input_voltage_range") or [collection["input_voltage"]] * 2
+        low_load, high_load = collection["load_range"]
+        return {"input_voltage": [float(supply[0]), float(supply[1])],
+                "load_conductance": [1.0 / float(high_load), 1.0 / float(low_load)],
+                "reference": [float(v) for v in collection["reference_range"]]}
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        return None
+
+
+def domain_text(domain: dict[str, list[float]]) -> str:
+    """A data domain in words: ``supply 36-60 V, loads 4-100 Ohm (0.01-0.25 S), references 0-20 V``."""
+    vs, g, r = domain["input_voltage"], domain["load_conductance"], domain["reference"]
+    supply = f"{vs[0]:g} V" if vs[0] == vs[1] else f"{vs[0]:g}-{vs[1]:g} V"
+    return (f"supply {supply}, loads {1 / g[1]:.4g}-{1 / g[0]:.4g} Ohm ({g[0]:.3g}-{g[1]:.3g} S), "
+            f"references {r[0]:g}-{r[1]:g} V")
 
 
 def circuit_matrix(p: CircuitParameters, load: float, switch_resistance: float) -> np.ndarray:

@@ -17,6 +17,7 @@ from controllers.base import Controller
 from cosim.base.errors import ConfigError, RunInterrupted
 from cosim.base.files import atomic_write
 from cosim.base.labels import period_label, slug
+from cosim.data_domain import checked_metadata
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import RunFailed, check_plant_supports, check_set_up, run_checked
@@ -114,7 +115,8 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
                 target = out_dir / "runs" / f"{stem}.parquet" if stream else None
                 try:
                     result = run_checked(plant, controller, scenario, record_period=record_period, seed=seed,
-                                         progress=progress, extra_metadata=extra_metadata, stream_to=target)
+                                         progress=progress, stream_to=target,
+                                         extra_metadata=checked_metadata(controller, scenario, extra_metadata))
                 except (RunFailed, RunInterrupted) as error:
                     if error.partial is not None and not stream:  # a streamed run wrote its rows already
                         files.extend(write_run(error.partial, out_dir / "runs", stem).values())

@@ -396,13 +396,17 @@ def simulate(binding: PlantBinding | str | Path, controller: Controller, scenari
              record_period: float = 1e-5, seed: int | None = None, progress: bool = False,
              relative_tolerance: float = 1e-8, extra_metadata: dict | None = None) -> RunResult:
     """Open the plant, run one scenario, and always free the FMU, even on error. ``binding`` may be a binding file's
-    path and ``scenario`` a shipped scenario's name or a scenario file's path, as the command line takes them."""
+    path and ``scenario`` a shipped scenario's name or a scenario file's path, as the command line takes them (resolved
+    against the plant's converter spec, :mod:`cosim.converter_spec`)."""
     if isinstance(binding, (str, Path)):
         binding = load_binding(binding)
     if isinstance(scenario, (str, Path)):
-        scenario = load_scenario(scenario)
+        scenario = load_scenario(scenario, binding.converter, warn=True)
     if isinstance(controller, type):
         raise TypeError(f"controller {controller.__name__} is a class: pass an instance, {controller.__name__}(...)")
+    from cosim.data_domain import checked_metadata
+
+    extra_metadata = checked_metadata(controller, scenario, extra_metadata)
     with open_plant(binding, interface=interface, relative_tolerance=relative_tolerance) as plant:
         return run(plant, controller, scenario, record_period=record_period, seed=seed, progress=progress,
                    extra_metadata=extra_metadata)

@@ -19,8 +19,12 @@ Example (``cosim/scenarios/load_change.toml``)::
 Top-level keys: ``name`` (text), ``description`` (text), ``duration`` (> 0 s), ``settle`` (>= 0 s,
 default 0, rounded to whole control periods), ``analysis_start`` (s, default: the first event
 time, or 0 without events; metrics start here). ``[initial]`` keys: ``reference`` (>= 0 V),
-``load_resistance`` (> 0 Ohm, default: Table II's 6 Ohm), ``input_voltage`` (> 0 V, default: Table II's
-48 V). Each
+``load_resistance`` (> 0 Ohm, default: the converter spec's nominal load), ``input_voltage`` (> 0 V, default:
+the converter spec's nominal supply). A signal's value may be a template instead of a number: ``"nominal"`` (the
+converter spec's nominal value, :mod:`cosim.converter_spec`; the nominal output for a reference) or ``"nominal * F"``
+(F a number or a fraction a/b, computed exactly) -- the shipped scenarios are such templates, so they run any
+converter at its own operating points (on the built-in plant, Table II, the paper's numbers). A description may name
+the resolved values: ``{initial.reference:g}``, ``{events[0].load_resistance:g}`` (events in the file's order). Each
 ``[[events]]`` entry has ``time`` (0 <= time < duration) and at least one of ``reference``,
 ``load_resistance``, ``input_voltage``, ``parameters``. The plant starts at rest (zero current and
 voltage) at the beginning of the settle interval. Reference changes reach the controller at its
@@ -45,6 +49,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -52,7 +57,7 @@ from typing import Mapping
 from cosim.base.errors import ConfigError
 from cosim.base.toml_files import parse_toml
 from cosim.base.toml_files import where as _where
-from plant_fmu.table_ii import TABLE_II
+from cosim.converter_spec import ConverterSpec
 
 SHIPPED_DIR = Path(__file__).parent / "scenarios"
 EVENT_SIGNALS = ("reference", "load_resistance", "input_voltage")
@@ -145,8 +150,61 @@ def _number(value, path, locator, key, label, table=None, index=None) -> float:
     return value
 
 
-def parse_scenario(text: str, path: Path | None = None) -> Scenario:
-    """Parse and validate scenario TOML; raise :class:`ConfigError` naming file, key and line."""
+def _signal_value(raw, path, loc, key, label, table, index, spec: ConverterSpec | None) -> float:
+    """A signal's value: a number, or a template (``"nominal"``, ``"nominal * 5/6"``) resolved against ``spec``."""
+    if isinstance(raw, str):
+        at = _where(path, loc, key, table, index)
+        if spec is None:
+            raise ConfigError(f"{at}: {label} = {raw!r} is relative to a converter's nominal value, but no converter "
+                              "spec is given (a plant binding's [converter] table)")
+        return spec.resolve(raw, key, f"{at}: {label}")
+    return _number(raw, path, loc, key, label, table, index)
+
+
+def _nominal(key: str, path, loc, spec: ConverterSpec | None) -> float:
+    """An initial load or supply a scenario leaves out: the converter's nominal one."""
+    at = _where(path, loc, None, "initial")
+    if spec is None:
+        raise ConfigError(f"{at}: initial.{key} is not given and no converter spec gives a nominal {key}: give "
+                          f"initial.{key} in {SIGNAL_UNITS[key]}")
+    return float(spec.require(key, f"{at} (initial.{key}, not given)"))
+
+
+def _describe(template: str, initial: dict, events: list, path, loc) -> str:
+    """The description with its placeholders filled: ``{initial.reference:g}``, ``{events[0].load_resistance:g}``
+    (the values in the file's order of events), so a template's text names the numbers it resolved to."""
+    if "{" not in template:
+        return template
+    from types import SimpleNamespace
+
+    try:
+        return template.format(initial=SimpleNamespace(**initial),
+                               events=[SimpleNamespace(**e.changes) for e in events])
+    except (KeyError, IndexError, AttributeError, ValueError) as error:
+        raise ConfigError(f"{_where(path, loc, 'description')}: description placeholder {error} names no value: "
+                          "expected {initial.<signal>} or {events[N].<signal>}") from None
+
+
+def warn_outside(scenario: "Scenario", spec: ConverterSpec | None) -> list[str]:
+    """One warning line on stderr per scenario value outside the converter spec's ranges (its output, supply and load
+    envelope); returns the lines. A scenario outside the envelope still runs -- the designs were made inside it."""
+    if spec is None:
+        return []
+    found = []
+    for when, values in [("initially", scenario.initial),
+                         *((f"at t = {e.time:g} s", e.changes) for e in scenario.events)]:
+        for signal, value in values.items():
+            text = spec.outside(signal, value)
+            if text is not None:
+                found.append(f"warning: {scenario.place('name')}: {text} ({when})")
+    for line in dict.fromkeys(found):
+        print(line, file=sys.stderr)
+    return found
+
+
+def parse_scenario(text: str, path: Path | None = None, spec: ConverterSpec | None = None) -> Scenario:
+    """Parse and validate scenario TOML; raise :class:`ConfigError` naming file, key and line. ``spec``: the converter
+    a template's values (``"nominal * F"``) and a left-out initial load or supply are resolved against."""
     name_for_errors = str(path) if path else "<scenario>"
     data, loc = parse_toml(text, path, TOP_KEYS, unnamed=name_for_errors)
     for key in ("name", "duration", "initial"):
@@ -178,10 +236,12 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
             )
     if "reference" not in initial_table:
         raise ConfigError(f"{_where(path, loc, None, 'initial')}: missing required key 'initial.reference'")
-    initial = {"reference": None, "load_resistance": TABLE_II.load_resistance, "input_voltage": TABLE_II.input_voltage}
-    for key in INITIAL_KEYS:
+    initial = {}
+    for key in ("reference", "load_resistance", "input_voltage"):
         if key in initial_table:
-            initial[key] = _number(initial_table[key], path, loc, key, f"initial.{key}", "initial")
+            initial[key] = _signal_value(initial_table[key], path, loc, key, f"initial.{key}", "initial", None, spec)
+        else:  # the converter's nominal load and supply: never a number of the paper's
+            initial[key] = _nominal(key, path, loc, spec)
         _check_signal(key, initial[key], path, loc, f"initial.{key}", key, "initial", None)
 
     raw_events = data.get("events", [])
@@ -209,7 +269,7 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
         changes = {}
         for key in EVENT_SIGNALS:
             if key in entry:
-                value = _number(entry[key], path, loc, key, f"{label}.{key}", "events", i)
+                value = _signal_value(entry[key], path, loc, key, f"{label}.{key}", "events", i, spec)
                 _check_signal(key, value, path, loc, f"{label}.{key}", key, "events", i)
                 changes[key] = value
         parameters = _parameters(entry.get("parameters"), path, loc, label, i) if "parameters" in entry else {}
@@ -231,6 +291,7 @@ def parse_scenario(text: str, path: Path | None = None) -> Scenario:
                 raise ConfigError(
                     f"{_where(path, loc, 'time', 'events', i)}: events[{i}] sets {key} at t = {event.time} s, as "
                     f"events[{first}] does: one of the two would be dropped -- merge them or give them different times")
+    description = _describe(description, initial, events, path, loc)
     events.sort(key=lambda e: e.time)
 
     analysis_start = None
@@ -357,8 +418,10 @@ def _check_signal(signal, value, path, loc, label, key, table, index) -> None:
         )
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load a scenario file, or a shipped scenario by name (see :func:`shipped_scenarios`)."""
+def load_scenario(name_or_path: str | Path, spec: ConverterSpec | None = None, warn: bool = False) -> Scenario:
+    """Load a scenario file, or a shipped scenario by name (see :func:`shipped_scenarios`), resolved against the
+    converter ``spec`` (the shipped scenarios are templates: start-up to the nominal output, a load step to 5/6 of
+    the nominal load, ...). ``warn``: a line on stderr for each value outside the spec's ranges."""
     path = Path(name_or_path)
     if path.is_dir():
         raise ConfigError(f"scenario {path} is a folder: expected a scenario file (.toml) or a shipped scenario name")
@@ -373,7 +436,10 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
         raise ConfigError(f"{path}: cannot read scenario file ({error})") from None
-    return parse_scenario(text, path)
+    scenario = parse_scenario(text, path, spec)
+    if warn:
+        warn_outside(scenario, spec)
+    return scenario
 
 
 def shipped_scenario_names() -> list[str]:
@@ -384,5 +450,23 @@ def shipped_scenario_names() -> list[str]:
 PAPER_SCENARIOS = ("startup", "load_change", "reference_up", "reference_down")
 
 
-def shipped_scenarios() -> list[Scenario]:
-    return [load_scenario(name) for name in shipped_scenario_names()]
+def shipped_scenarios(spec: ConverterSpec) -> list[Scenario]:
+    """Every shipped scenario resolved against ``spec``."""
+    return [load_scenario(name, spec) for name in shipped_scenario_names()]
+
+
+def set_up_scenario(binding) -> Scenario:
+    """A scenario at rest (reference 0 V) at the plant's nominal load and supply, its converter spec's (for a binding
+    file: the ``[converter]`` table's, else the FMU's start values): what ``inspect`` sets the FMU up with to check a
+    binding, needing no output reference. A load or supply the plant binds and no spec gives is refused, naming the key;
+    one it does not bind is never written to the FMU (1 stands in for it)."""
+    spec = binding.converter
+    initial = {"reference": 0.0}
+    for key in ("load_resistance", "input_voltage"):
+        value = getattr(spec, key)
+        if value is None:
+            if binding.has(key):
+                spec.require(key, "setting the FMU up")
+            value = 1.0
+        initial[key] = float(value)
+    return Scenario(name="set_up", description="the plant at rest, set up as a run's", duration=1e-3, initial=initial)

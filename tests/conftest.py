@@ -19,6 +19,7 @@ import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+from cosim.study.vocabulary import PAPER_SPEC
 from plant_fmu.table_ii import TABLE_II  # noqa: E402
 
 # Params of the paper's Table II
@@ -244,6 +245,12 @@ def faulty_fmu(tmp_path_factory) -> Path:
     return Path(FmuBuilder.build_FMU(CORPUS / "faulty_buck.py", dest=out))
 
 
+#: the ``[converter]`` table of the test corpus's plants (the paper's 48 V -> 12 V at 6 Ohm), appended to their
+#: binding files' texts (at the end: the line numbers the tests name stay where they are)
+PLANT_CONVERTER = ("[converter]\noutput_voltage = 12.0\ninput_voltage = 48.0\nload_resistance = 6.0\n"
+                   "output_voltage_range = [3.0, 20.0]\ninput_voltage_range = [36.0, 60.0]\n"
+                   "load_resistance_range = [4.0, 100.0]\n")
+
 FAULTY_BINDING = """\
 fmu = "{fmu}"
 [roles.duty_cycle]
@@ -254,7 +261,7 @@ variable = "Vout"
 variable = "IL"
 [parameters]
 {fault_kind}fault_time = 0.0103
-"""
+{converter}"""
 
 
 def faulty_binding(fmu: Path, kind: int | None = None) -> str:
@@ -263,7 +270,8 @@ def faulty_binding(fmu: Path, kind: int | None = None) -> str:
     (tests/corpus/faulty_buck.py: 0 none, 1 discard, 2 error, 3 NaN, 4 SIGSEGV, 5 hang, 6 memory without
     bound); without ``kind`` it leaves fault_kind to the FMU's default or to a sweep. fault_kind is on line 9,
     fault_time on the last line."""
-    return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n")
+    return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n",
+                                 converter=PLANT_CONVERTER)
 
 
 #: the roles the workbench's own plant FMU names its variables after (a binding file binds each to itself)
@@ -272,12 +280,15 @@ PLANT_ROLES = ("duty_cycle", "output_voltage", "inductor_current", "load_resista
 CONTROLLER_ROLES = ("reference", "measured_output_voltage", "duty_cycle")
 
 
-def role_named_binding(fmu, roles: tuple[str, ...] = PLANT_ROLES, parameters: str | None = None, **keys) -> str:
+def role_named_binding(fmu, roles: tuple[str, ...] = PLANT_ROLES, parameters: str | None = None,
+                       converter: bool = True, **keys) -> str:
     """The text of a binding file for an FMU whose variables carry the workbench's role names (its own plant FMU,
     an exported controller FMU): line 1 ``fmu``, then a line per ``keys`` item in order (strings quoted, booleans
     as TOML's, numbers as Python writes them), two lines per role (``[roles.R]``, ``variable = "R"``), then, where
     ``parameters`` is given, ``[parameters]`` and that text. With k keys and r roles ``[parameters]`` is on line
-    2 + k + 2 r and its first key on the next."""
+    2 + k + 2 r and its first key on the next. A plant binding (``output_voltage`` among the roles) ends with the
+    test corpus's ``[converter]`` table (:data:`PLANT_CONVERTER`) unless ``converter`` is false (a text more
+    ``[parameters]`` lines are appended to)."""
     def value(item):
         if isinstance(item, (str, Path)):
             return f'"{item}"'
@@ -285,7 +296,10 @@ def role_named_binding(fmu, roles: tuple[str, ...] = PLANT_ROLES, parameters: st
 
     text = f'fmu = "{fmu}"\n' + "".join(f"{key} = {value(item)}\n" for key, item in keys.items())
     text += "".join(f'[roles.{role}]\nvariable = "{role}"\n' for role in roles)
-    return text if parameters is None else f"{text}[parameters]\n{parameters}"
+    text = text if parameters is None else f"{text}[parameters]\n{parameters}"
+    if converter and "output_voltage" in roles:  # a plant binding: the converter of its scenarios
+        text = f"{text.rstrip()}\n{PLANT_CONVERTER}"
+    return text
 
 
 # ------------------------------------------------------------------ the command line, as a user runs it
@@ -359,7 +373,7 @@ def nnpc_1ms():
     from cosim.study.plants import plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
-                   collection_settings(1e-3, samples=800, seed=3))
+                   collection_settings(1e-3, samples=800, seed=3, spec=PAPER_SPEC))
     model = train(data, nn_configs(1e-3)["nnpc"], TrainingSettings(seed=3, max_iterations=100),
                   metadata={"control_period_s": 1e-3})
     return nnpc(model, 1e-3)

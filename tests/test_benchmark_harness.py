@@ -24,13 +24,14 @@ from cosim.benchmark_harness import (
 )
 from cosim.study.experiments import implemented, nnpc, scenarios_for
 from cosim.study.plants import plant_binding
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
 
 @pytest.fixture(scope="module")
 def measurements(nnpc_1ms):
-    scenario = scenarios_for(1e-3, ["load_change"])[0]
+    scenario = scenarios_for(1e-3, ["load_change"], spec=PAPER_SPEC)[0]
     return record_measurements(plant_binding("nominal", "averaged"), implemented(nnpc_1ms), scenario)
 
 

@@ -43,7 +43,7 @@ from controllers.predictors import (
     measured_from_state,
 )
 from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import NOMINAL
+from cosim.study.vocabulary import NOMINAL, PAPER_SPEC
 from plant_fmu.table_ii import TABLE_II
 
 TS = TABLE_II.switching_period
@@ -625,7 +625,7 @@ def test_sse2_and_scalar_pairs_give_the_online_nnpc_the_same_steps(nnpc_1ms, mon
 
     model = nnpc_1ms.predictor.model
     for controller, plant in ((nnpc_1ms, "averaged"), (nnpc(model, SWITCHING_PERIOD), "switched")):
-        scenario = random_scenario(collection_settings(controller.sample_period, 600, seed=11),
+        scenario = random_scenario(collection_settings(controller.sample_period, 600, seed=11, spec=PAPER_SPEC),
                                    controller.sample_period)
         rows = record_measurements(plant_binding("nominal", plant), implemented(controller), scenario)
         runs = {}
@@ -824,7 +824,7 @@ def fast_scenarios():
 
     out = []
     for name in PAPER_SCENARIOS:
-        s = load_scenario(name)
+        s = load_scenario(name, PAPER_SPEC)
         if s.events:
             s = replace(s, duration=0.0012, settle=0.001, events=tuple(replace(e, time=0.0004) for e in s.events))
         else:
@@ -841,7 +841,7 @@ def model_1ms() -> NNPlantModel:
     from cosim.study.plants import plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
-                   collection_settings(1e-3, samples=800, seed=3))
+                   collection_settings(1e-3, samples=800, seed=3, spec=PAPER_SPEC))
     return train(data, nn_configs(1e-3)["nnpc"], TrainingSettings(seed=3, max_iterations=100))
 
 
@@ -877,8 +877,8 @@ def _replay_case(name: str, model_1ms):
         from cosim.study.data_collection import random_scenario
         from cosim.study.experiments import collection_settings
 
-        scenarios = [load_scenario(n) for n in PAPER_SCENARIOS]
-        scenarios.append(random_scenario(collection_settings(1e-3, samples=200, seed=9), 1e-3))
+        scenarios = [load_scenario(n, PAPER_SPEC) for n in PAPER_SCENARIOS]
+        scenarios.append(random_scenario(collection_settings(1e-3, samples=200, seed=9, spec=PAPER_SPEC), 1e-3))
         return plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3), scenarios
     if name == "nnpc-13us":  # 2 delays, horizon 23, move blocking: the reproduction's network
         model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
@@ -980,11 +980,11 @@ def test_native_nnpc_drives_the_plant_like_the_python_one(rate, optimizer, model
 
     if rate == "1ms":
         binding, controller = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3, optimizer=optimizer)
-        scenario = load_scenario("startup")
+        scenario = load_scenario("startup", PAPER_SPEC)
     else:
         model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
         binding, controller = plant_binding("mismatch", "switched"), nnpc(model, TS, optimizer=optimizer)
-        scenario = replace(load_scenario("startup"), duration=0.0015)
+        scenario = replace(load_scenario("startup", PAPER_SPEC), duration=0.0015)
     assert (controller.rti is not None) == (optimizer == "rti")
     twin = native.NativePredictiveController.from_python(controller)
     period = controller.sample_period
@@ -1059,7 +1059,7 @@ load_resistance = 5.0
 [[events]]
 time = 0.0018
 reference = 12.0
-""")
+""", spec=PAPER_SPEC)
     python = adaptive_nnpc(model, TS, optimizer=optimizer)
     twin = native.native_twin(adaptive_nnpc(model, TS, optimizer=optimizer))
     assert (twin.inner.rti is None) == (optimizer == "search")
@@ -1095,7 +1095,7 @@ def test_mpc_without_the_disturbance_estimate_twin_keeps_the_model_error():
     controller = model_mpc(NOMINAL, TS, "MPC-nominal (no disturbance estimate)", binding=binding, offset_free=False)
     assert controller.settings.bias_filter == 0.0
     twin = native.NativePredictiveController.from_python(controller)
-    scenario = replace(load_scenario("startup"), duration=0.0015)
+    scenario = replace(load_scenario("startup", PAPER_SPEC), duration=0.0015)
     runs = [simulate(binding, c, scenario, record_period=TS) for c in (controller, twin)]
     duties = [r.frame.loc[r.frame["control_sample"], "duty_cycle"].to_numpy() for r in runs]
     assert np.max(np.abs(duties[1] - duties[0])) <= DUTY_TOLERANCE

@@ -36,7 +36,7 @@ from cosim.study.classical_design import (
     targets_for,
 )
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import MISMATCH, NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import MISMATCH, NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
 
 TS = SWITCHING_PERIOD
 NOMINAL_POINT = OperatingPoint(12.0, 6.0, 48.0)
@@ -233,7 +233,7 @@ def test_twins_on_the_switched_plant_and_as_controller_fmus(designs, tmp_path):
     from cosim.study.experiments import scenarios_for
 
     binding = plant_binding("nominal", "switched")
-    scenario = scenarios_for(TS, ("load_change",))[0]
+    scenario = scenarios_for(TS, ("load_change",), spec=PAPER_SPEC)[0]
     for design in designs:
         python = design.controller
         fmu, _ = export_controller(python, tmp_path / f"{design.kind}.fmu")
@@ -267,10 +267,10 @@ def test_the_mismatched_circuit_moves_the_design(designs):
 
 
 def test_envelope_pi_tuning_quick_and_its_errors():
-    from cosim.study.pi_tuning import ENVELOPE_POINTS, tune_pi_envelope
+    from cosim.study.pi_tuning import envelope_points, tune_pi_envelope
 
     binding = plant_binding("nominal", "averaged")
-    tuning = tune_pi_envelope(binding, TS, points=ENVELOPE_POINTS[:2], quick=True)
+    tuning = tune_pi_envelope(binding, TS, points=envelope_points(binding.converter)[:2], quick=True)
     assert tuning.kp >= 0 and tuning.ki > 0 and tuning.evaluations == 10
     assert "max over operating points (3, 4, 48), (3, 100, 48)" in tuning.method
     with pytest.raises(ValueError, match="aggregate 'mean' is unknown"):

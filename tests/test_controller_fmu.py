@@ -23,7 +23,7 @@ from cosim.master import simulate
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
 from cosim.study.experiments import nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 CORPUS = Path(__file__).parent / "corpus"
@@ -115,7 +115,7 @@ def test_pi_and_nnpc_fmus_give_the_python_duty_at_every_sample_at_1_ms(fmus, pi,
         fmu = open_controller(str(fmus[name]))
         assert fmu.sample_period == python.sample_period and fmu.duty_limits == python.duty_limits
         for scenario in PAPER_SCENARIOS:
-            s = load_scenario(scenario)
+            s = load_scenario(scenario, PAPER_SPEC)
             reference, exported = (_duties(simulate(binding, c, s)) for c in (python, fmu))
             assert len(exported) == len(reference) > 25
             assert np.max(np.abs(exported - reference)) <= DUTY_TOLERANCE, (name, scenario)
@@ -135,7 +135,8 @@ def test_the_nnpc_fmu_gives_the_python_duty_at_every_sample_at_one_switching_per
     binding = plant_binding("mismatch", mode)
     name, python = ("nnpc_fast", nnpc_fast) if mode == "switched" else ("nnpc_fast_search", nnpc_fast_search)
     fmu = open_controller(str(fmus[name]))
-    for scenario in scenarios_for(SWITCHING_PERIOD)[:2] if mode == "averaged" else scenarios_for(SWITCHING_PERIOD):
+    scenarios = scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC)
+    for scenario in scenarios[:2] if mode == "averaged" else scenarios:
         short = replace(scenario, duration=min(scenario.duration, 0.003), settle=min(scenario.settle, 0.001))
         reference, exported = (_duties(simulate(binding, c, short)) for c in (python, fmu))
         assert len(exported) > 200
@@ -355,7 +356,7 @@ def test_a_pythonfmu_pi_under_other_names_matches_the_built_in_pi(python_pi_fmu,
     controller = FmuController(load_controller_binding(path))
     assert controller.sample_period == 1e-3 and controller.name == "PI (pythonfmu)"
     for scenario in ("startup", "reference_up"):
-        s = load_scenario(scenario)
+        s = load_scenario(scenario, PAPER_SPEC)
         reference = _duties(simulate(plant_binding("nominal", "switched"), pi, s))
         other = _duties(simulate(plant_binding("nominal", "switched"), controller, s))
         np.testing.assert_allclose(other, reference, rtol=0, atol=1e-12)
@@ -450,7 +451,7 @@ def test_controller_fmu_faults_end_in_one_line(tmp_path, fmus):
 
     with pytest.raises(RunFailed, match=r"needs a finite inductor current|measured_inductor_current is not finite"
                        ) as failure:
-        simulate(plant, controller, load_scenario("startup"))
+        simulate(plant, controller, load_scenario("startup", PAPER_SPEC))
     assert isinstance(failure.value.cause, ControllerError) and failure.value.exit_code == 3
     assert failure.value.partial.complete is False
 

@@ -19,7 +19,7 @@ from cosim.benchmark_harness import cortex_m4, record_measurements
 from cosim.benchmark_harness.cortex_m4 import CYCLE_TABLE, CYCLE_TABLE_LOW, count_steps
 from cosim.study.experiments import explicit_nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -147,7 +147,7 @@ def test_the_cycle_table_follows_the_trm(mnemonic, operands, taken, previous, up
 def _recorded(controller, count: int = 150):
     """A short closed loop on the nominal switched plant: start-up from rest (saturation, the load estimate's
     threshold) and a load step."""
-    scenarios = scenarios_for(SWITCHING_PERIOD, ("startup", "load_change"))
+    scenarios = scenarios_for(SWITCHING_PERIOD, ("startup", "load_change"), spec=PAPER_SPEC)
     rows = [record_measurements(plant_binding("nominal", "switched"), native.native_twin(controller),
                                 replace(s, duration=0.001)) for s in scenarios]
     return np.concatenate(rows)[: 2 * count]

@@ -10,7 +10,8 @@ from controllers.pi import PIController
 from cosim.base.errors import ConfigError
 from cosim.fmi.binding import builtin_binding
 from cosim.results import read_parquet
-from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, random_scenario
+from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, completed, random_scenario
+from cosim.study.vocabulary import PAPER_SPEC
 
 PI = PIController(0.003, 14.0, 1e-3)
 
@@ -31,7 +32,7 @@ def test_one_row_per_control_sample_with_the_documented_columns(samples):
 
 
 def test_random_levels_are_held_for_the_documented_intervals():
-    settings = CollectionSettings(samples=5000, seed=1, rest_probability=0.2)
+    settings = completed(CollectionSettings(samples=5000, seed=1, rest_probability=0.2), PAPER_SPEC)
     scenario = random_scenario(settings, 1e-3)
     for signal, (lo, hi) in (("reference", (0.0, 20.0)), ("load_resistance", (4.0, 10.0))):
         schedule = scenario.schedule(signal)
@@ -122,8 +123,9 @@ def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth(
 
     binding = plant_binding("nominal", "switched")
     pi = PIController(0.007026878992716469, 172.92168103154324, SWITCHING_PERIOD)  # results/tuning/pi__nominal-switched__13p33us
-    envelope = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="envelope"))
-    paper = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="paper"))
+    envelope = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="envelope",
+                                                        spec=PAPER_SPEC))
+    paper = collect(binding, pi, collection_settings(SWITCHING_PERIOD, 10_000, 0, region="paper", spec=PAPER_SPEC))
     e, p = coverage(envelope), coverage(paper)
     assert MIN_CELL_SAMPLES == 20 and e["cells"] == p["cells"] == 48
     assert e["cells_covered"] >= 44 and p["cells_covered"] == 8
@@ -141,15 +143,15 @@ def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth(
 
 def test_envelope_collection_settings_are_checked():
     with pytest.raises(ConfigError, match=r"input voltage range \(60.0, 36.0\) V is invalid"):
-        CollectionSettings(input_voltage_range=(60.0, 36.0)).check()
+        completed(CollectionSettings(input_voltage_range=(60.0, 36.0)), PAPER_SPEC).check()
     with pytest.raises(ConfigError, match="dither 'pink' is unknown: expected one of gaussian, am-prbs"):
-        CollectionSettings(dither="pink").check()
+        completed(CollectionSettings(dither="pink"), PAPER_SPEC).check()
     with pytest.raises(ConfigError, match=r"dither hold \(0, 4\) samples is invalid"):
-        CollectionSettings(dither_hold=(0, 4)).check()
+        completed(CollectionSettings(dither_hold=(0, 4)), PAPER_SPEC).check()
     from cosim.study.experiments import collection_settings
 
     with pytest.raises(ConfigError, match="collection region 'moon' is unknown: expected one of paper, envelope"):
-        collection_settings(1e-3, region="moon")
+        collection_settings(1e-3, region="moon", spec=PAPER_SPEC)
 
 
 def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_the_supply():
@@ -158,7 +160,8 @@ def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_
     from cosim.study.experiments import collection_settings, nn_configs
     from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
 
-    fast, slow = collection_settings(SWITCHING_PERIOD), collection_settings(PAPER_PERIOD)
+    fast = collection_settings(SWITCHING_PERIOD, spec=PAPER_SPEC)
+    slow = collection_settings(PAPER_PERIOD, spec=PAPER_SPEC)
     assert (fast.reference_range, fast.load_range, fast.input_voltage_range) == ((3.0, 20.0), (4.0, 100.0), (36.0, 60.0))
     assert fast.dither == "am-prbs" and fast.excitation == 0.2 and fast.dither_hold == (1, 8)
     assert (slow.reference_range, slow.load_range, slow.input_voltage_range) == ((0.0, 20.0), (4.0, 10.0), None)
@@ -168,7 +171,8 @@ def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_
 
 
 def test_a_plant_without_a_supply_input_keeps_its_supply():
-    settings = CollectionSettings(samples=400, seed=2, input_voltage_range=(36.0, 60.0), hold_range=(20, 50))
+    settings = completed(CollectionSettings(samples=400, seed=2, input_voltage_range=(36.0, 60.0), hold_range=(20, 50)),
+                         PAPER_SPEC)
     varied = random_scenario(settings, 1e-3)
     assert len(varied.schedule("input_voltage")) > 3
     kept = random_scenario(settings, 1e-3, vary_supply=False)

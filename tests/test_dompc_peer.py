@@ -12,7 +12,7 @@ from conftest import random_model
 
 from controllers.nn_config import NNConfig
 from controllers.nn_model import load_model
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -55,7 +55,7 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
     peer = DoMpcNnpc(model, SWITCHING_PERIOD, horizon_settings(SWITCHING_PERIOD), **NOMINAL_OPERATING_POINT)
-    scenario = replace(load_scenario("startup"), duration=0.0004)
+    scenario = replace(load_scenario("startup", PAPER_SPEC), duration=0.0004)
     binding = plant_binding("mismatch", "switched")
     rti = nnpc(model, SWITCHING_PERIOD, optimizer="rti")
     rti.rti = replace(rti.rti, startup_region=0.0)

@@ -30,7 +30,7 @@ from cosim.metrics import run_metrics
 from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
 from cosim.study.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 EXPERT = FIXTURES / "nnpc_nominal_averaged_13p33us.pt"
@@ -102,7 +102,8 @@ def test_the_integral_term_removes_the_offset_of_a_policy_with_the_wrong_steady_
         policy = ExplicitPolicy(PolicyConfig(hidden=(1,), integral_gain=gain), weights, [np.zeros(1), np.array([0.3])],
                                 SWITCHING_PERIOD)
         result = simulate(plant_binding("nominal", "averaged"), implemented(explicit_nnpc(policy)),
-                          replace(scenarios_for(SWITCHING_PERIOD, ("reference_up",))[0], settle=0.02, duration=0.02))
+                          replace(scenarios_for(SWITCHING_PERIOD, ("reference_up",), spec=PAPER_SPEC)[0], settle=0.02,
+                                  duration=0.02))
         errors[gain] = run_metrics(result)["steady_state_error_pct"]
     assert 0.3 < errors[0.0] < 1.5  # the policy alone: vo below the reference
     assert abs(errors[200.0]) < 0.02
@@ -208,7 +209,7 @@ def test_a_small_distillation_regulates_the_averaged_plant_at_one_switching_peri
     explicit = implemented(explicit_nnpc(distilled))
     online = implemented(nnpc(expert, SWITCHING_PERIOD))
     assert distilled.metadata["distillation"]["expert_optimizer"] == "rti"
-    for scenario in scenarios_for(SWITCHING_PERIOD):
+    for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
         ours, theirs = (run_metrics(simulate(binding, c, scenario)) for c in (explicit, online))
         assert abs(ours["steady_state_error_pct"]) <= 0.2, scenario.name
         assert ours["overshoot_pct"] <= 10.0, scenario.name
@@ -270,7 +271,7 @@ def test_the_exported_fmu_driven_by_the_master_gives_the_python_duty_at_every_sa
     assert binary.is_file() and source.is_file()
     fmu = open_controller(str(binary))
     for mode in ("averaged", "switched"):
-        for scenario in scenarios_for(SWITCHING_PERIOD, ("startup", "load_change")):
+        for scenario in scenarios_for(SWITCHING_PERIOD, ("startup", "load_change"), spec=PAPER_SPEC):
             short = replace(scenario, duration=0.002, settle=min(scenario.settle, 0.001))
             duties = [simulate(plant_binding("nominal", mode), c, short).frame for c in (python, fmu)]
             reference, exported = (f.loc[f["control_sample"], "duty_cycle"].to_numpy() for f in duties)

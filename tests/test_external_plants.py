@@ -10,7 +10,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from conftest import cli, one_line_error
+from conftest import PLANT_CONVERTER, cli, one_line_error
 
 from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.cli import main
@@ -20,6 +20,7 @@ from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.results import read_run
 from cosim.scenarios import load_scenario
+from cosim.study.vocabulary import PAPER_SPEC
 
 PYTHON_BINDING = """\
 fmu = "{fmu}"
@@ -47,7 +48,8 @@ variable = "Iout"
 
 [parameters]
 rL = 0.15
-"""
+
+""" + PLANT_CONVERTER
 
 ME_BINDING = """\
 fmu = "{fmu}"
@@ -64,7 +66,8 @@ variable = "inductor_current"
 
 [parameters]
 plant_mode = 0
-"""
+
+""" + PLANT_CONVERTER
 
 
 def write(tmp_path: Path, text: str, name: str = "plant.toml") -> Path:
@@ -91,7 +94,7 @@ def pi(period=1e-3):
 def test_pi_start_up_settles_on_the_pythonfmu_plant(python_binding):
     binding = load_binding(python_binding)
     assert binding.interface is None and binding.roles["duty_cycle"].scale == 100.0
-    result = simulate(binding, pi(), load_scenario("startup"))
+    result = simulate(binding, pi(), load_scenario("startup", PAPER_SPEC))
     metrics = run_metrics(result)
     assert abs(metrics["steady_state_error_pct"]) < 0.1 and metrics["settling_time_ms"] < 10
     assert result.metadata["plant"]["binding_file"] == str(python_binding.resolve())
@@ -100,7 +103,7 @@ def test_pi_start_up_settles_on_the_pythonfmu_plant(python_binding):
 
 def test_pi_start_up_settles_on_the_model_exchange_only_fmu(tmp_path, me_only_fmu):
     binding = load_binding(write(tmp_path, ME_BINDING.format(fmu=me_only_fmu)))
-    result = simulate(binding, pi(), load_scenario("startup"))
+    result = simulate(binding, pi(), load_scenario("startup", PAPER_SPEC))
     assert result.metadata["plant"]["interface"] == "model-exchange"
     assert abs(run_metrics(result)["steady_state_error_pct"]) < 0.1
 
@@ -187,7 +190,7 @@ def test_an_fmu_or_a_controller_binding_given_as_the_plant_binding_is_named_as_w
         load_binding(write(python_binding.parent, text))
     from cosim.fmi.controller import load_controller_binding
 
-    with pytest.raises(ConfigError, match=r"plant.toml:\d+: role '\w+' is a plant role: this is a plant "
+    with pytest.raises(ConfigError, match=r"plant.toml:\d+: \[converter\] is a plant binding's table: this is a plant "
                                           r"binding file, given where a controller binding is expected$"):
         load_controller_binding(python_binding)
 
@@ -202,7 +205,7 @@ def test_a_scenario_needing_a_missing_role_is_refused_before_the_run(tmp_path, m
     path = write(tmp_path, ME_BINDING.format(fmu=me_only_fmu))
     with pytest.raises(ConfigError, match=r"scenario load_change changes load_resistance, but binding file .*plant.toml "
                                           r"binds no variable to the role 'load_resistance'"):
-        simulate(load_binding(path), pi(), load_scenario("load_change"))
+        simulate(load_binding(path), pi(), load_scenario("load_change", PAPER_SPEC))
     done = subprocess.run([sys.executable, "-m", "cosim.cli", "run", "load_change", "--plant", str(path), "--kp", "0",
                            "--ki", "14", "--out", str(tmp_path / "out")], capture_output=True, text=True)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1

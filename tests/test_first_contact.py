@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from cosim.cli import main
+from cosim.study.vocabulary import PAPER_SPEC
 
 # ------------------------------------------------------------------ 1. cached designs keyed by what they depend on
 
@@ -34,6 +35,7 @@ def own_plant(tmp_path, buck_fmu) -> Path:
     fmu = tmp_path / "my.fmu"
     shutil.copy(buck_fmu, fmu)
     toml = write_draft_binding(fmu, tmp_path / "my.toml")
+    toml.write_text(toml.read_text().replace("# output_voltage = 12.0 ", "output_voltage = 12.0 "))  # its converter
     return Path(toml)
 
 
@@ -224,7 +226,7 @@ def open_loop_switched():
 
     from cosim import builtin_binding, load_scenario, simulate
 
-    scenario = replace(load_scenario("startup"), duration=6e-3)
+    scenario = replace(load_scenario("startup", PAPER_SPEC), duration=6e-3)
     return simulate(builtin_binding("switched"), FixedDuty(), scenario, record_period=1 / 75e3 / 40)
 
 
@@ -248,7 +250,8 @@ def test_the_averaged_plant_has_no_ripple():
 
     from cosim import builtin_binding, load_scenario, run_metrics, simulate
 
-    result = simulate(builtin_binding("averaged"), FixedDuty(), replace(load_scenario("startup"), duration=6e-3))
+    result = simulate(builtin_binding("averaged"), FixedDuty(),
+                      replace(load_scenario("startup", PAPER_SPEC), duration=6e-3))
     m = run_metrics(result)
     assert m["inductor_current_ripple_A"] < 1e-6 and m["output_voltage_ripple_mV"] < 1e-3
 
@@ -342,6 +345,9 @@ def test_a_duty_in_percent_bound_without_its_scale_warns_in_inspect_and_run(pyth
     assert len(warnings) == 1 and "no unit for D (duty_cycle)" in warnings[0] and "scale = 100" in warnings[0]
     draft = (tmp_path / "draft.toml").read_text()
     assert 'variable = "D"' in draft and "scale = 100" not in draft.split('variable = "D"')[1].split("[")[0]
+    assert "# output_voltage = 12.0" in draft  # the converter table: every key there, commented out
+    draft = draft.replace("# output_voltage = 12.0 ", "output_voltage = 12.0 ")
+    (tmp_path / "draft.toml").write_text(draft)
 
     done = cli("run", "reference_down", "--plant", "draft.toml", "--kp", "0.0017", "--ki", "15.6", "--out", "out",
                "--no-figures", cwd=tmp_path)
@@ -539,7 +545,7 @@ def test_plot_and_compare_overlay_runs_from_different_folders_and_formats(tmp_pa
                  "--no-figures"]) == 0
     assert main(["--no-progress", "run", "startup", "--kp", "0.0008", "--ki", "8", "--out", str(tmp_path / "b"),
                  "--no-figures"]) == 0
-    own = simulate(builtin_binding("averaged"), FixedDuty(), load_scenario("startup"))
+    own = simulate(builtin_binding("averaged"), FixedDuty(), load_scenario("startup", PAPER_SPEC))
     write_run(own, tmp_path / "mine", "startup__fixed")
     runs = [str(tmp_path / "a" / "runs" / "startup__pi__nominal-averaged__1ms.csv"),
             str(tmp_path / "b" / "runs" / "startup__pi__nominal-averaged__1ms.parquet"),

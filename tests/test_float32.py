@@ -25,7 +25,7 @@ from cosim.metrics import run_metrics
 from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
 from cosim.study.experiments import explicit_nnpc, nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 MODES = ("averaged", "switched")
@@ -80,7 +80,7 @@ def closed_loop():
     for mode in MODES:
         binding = plant_binding("nominal", mode)
         for controller in controllers(mode):
-            for scenario in scenarios_for(SWITCHING_PERIOD):
+            for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
                 for precision in native.PRECISIONS:
                     twin = Recording(native.native_twin(controller, precision))
                     metrics = run_metrics(simulate(binding, twin, scenario))
@@ -216,7 +216,7 @@ def test_the_explicit_nnpc_steps_within_the_derived_bound_on_recorded_inputs(clo
         p = policy(mode)
         controller = explicit_nnpc(p)
         twin64, twin32 = (native.native_twin(controller, precision) for precision in ("float64", "float32"))
-        for scenario in scenarios_for(SWITCHING_PERIOD):
+        for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
             rows = closed_loop[(mode, scenario.name, controller.name)]["float64"][1]
             twin64.reset()
             for m, recorded in rows:
@@ -235,7 +235,7 @@ def test_the_pi_steps_within_the_derived_bound_on_recorded_inputs(closed_loop):
     for mode in MODES:
         pi = controllers(mode)[0]
         twin64, twin32 = (native.NativePIController.from_python(pi, precision=p) for p in ("float64", "float32"))
-        for scenario in scenarios_for(SWITCHING_PERIOD):
+        for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
             twin64.reset()
             for m, _ in closed_loop[(mode, scenario.name, pi.name)]["float64"][1]:
                 bound = float32.pi_step_bound(pi.kp, pi.ki, pi.sample_period, pi.duty_limits, twin64.integral,
@@ -258,7 +258,7 @@ def test_the_classical_twins_step_within_the_derived_bound_on_recorded_inputs(cl
         controller = controllers(mode)[index]
         assert controller.coefficients.computation_delay if index == 3 else controller.gains.computation_delay
         twin64, twin32 = (native.native_twin(controller, precision) for precision in native.PRECISIONS)
-        for scenario in scenarios_for(SWITCHING_PERIOD):
+        for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
             twin64.reset()
             for m, recorded in closed_loop[(mode, scenario.name, controller.name)]["float64"][1]:
                 bound = bound_of(controller, m, twin64.state)
@@ -302,7 +302,7 @@ def test_the_nn_forward_pass_is_within_the_derived_bound_on_recorded_inputs(clos
     configs = {p: native.nn_config(model, p) for p in native.PRECISIONS}
     rows = []
     for mode in MODES:
-        for scenario in scenarios_for(SWITCHING_PERIOD):
+        for scenario in scenarios_for(SWITCHING_PERIOD, spec=PAPER_SPEC):
             record = closed_loop[(mode, scenario.name, "NNPC-explicit")]["float64"][1]
             g = 1 / 6.0
             for (m1, d1), (m2, d2) in zip(record[1:], record[:-1]):
@@ -347,7 +347,8 @@ def test_the_float32_controller_fmus_give_the_float32_twins_duties(tmp_path):
         assert "float32 build" in fmu.describe()["description"]
         twin = native.native_twin(controller, "float32")
         for mode in MODES:
-            scenario = replace(scenarios_for(SWITCHING_PERIOD, ("reference_up",))[0], duration=0.002, settle=0.001)
+            scenario = replace(scenarios_for(SWITCHING_PERIOD, ("reference_up",), spec=PAPER_SPEC)[0], duration=0.002,
+                               settle=0.001)
             frames = [simulate(plant_binding("nominal", mode), c, scenario).frame for c in (twin, fmu)]
             ours, exported = (f.loc[f["control_sample"], "duty_cycle"].to_numpy() for f in frames)
             assert len(ours) == 151 and np.array_equal(ours, exported), (controller.name, mode)

@@ -22,6 +22,7 @@ from cosim.fmi.binding_file import load_binding
 from cosim.master import simulate
 from cosim.results import read_run
 from cosim.scenarios import load_scenario
+from cosim.study.vocabulary import PAPER_SPEC
 
 PI_GAINS = (0.0017, 15.6)  # a stable 1 ms PI on the built-in plant and the pythonfmu bucks
 
@@ -105,7 +106,10 @@ diode = true
 
 def bound(tmp_path: Path, template: str, fmu: Path, name: str, extra: str = "") -> Path:
     path = tmp_path / name
-    path.write_text(template.format(fmu=fmu, extra=extra))
+    text = template.format(fmu=fmu, extra=extra)
+    if "[converter]" not in text:  # the converter its runs resolve the shipped scenarios against, at the end
+        text = f"{text.rstrip()}\n[converter]\noutput_voltage = 12.0\n"
+    path.write_text(text)
     return path
 
 
@@ -168,8 +172,9 @@ def test_the_fmi3_plant_equals_the_fmi2_plant_run_by_run(buck_fmu3, mode, interf
     binding2 = builtin_binding(mode, interface=interface)
     binding3 = replace(binding2, fmu_path=buck_fmu3)
     chosen = parse_scenario('name = "short_load_step"\nduration = 0.008\n[initial]\nreference = 12.0\n'
-                            '[[events]]\ntime = 0.004\nload_resistance = 5.0\n') if scenario == "short_load_step" \
-        else load_scenario(scenario)
+                            '[[events]]\ntime = 0.004\nload_resistance = 5.0\n',
+                            spec=PAPER_SPEC) if scenario == "short_load_step" \
+        else load_scenario(scenario, PAPER_SPEC)
     runs = [simulate(b, pi(), chosen) for b in (binding2, binding3)]
     assert runs[1].metadata["plant"]["interface"] == interface
     assert numeric_difference(runs[0].frame, runs[1].frame) <= 1e-12
@@ -184,14 +189,14 @@ def test_an_fmi3_plant_refuses_a_binding_value_at_its_line_before_any_run_and_st
     from cosim.fmi.plant import open_plant
     from cosim.master import check_set_up, preflight, run
 
-    text = role_named_binding(buck_fmu3, parameters="", interface=interface, isolate=False)
+    text = role_named_binding(buck_fmu3, parameters="", converter=False, interface=interface, isolate=False)
     (tmp_path / "bad.toml").write_text(text + "capacitance = 4.7e-6\ninductance = -1\n")
     with pytest.raises(ConfigError, match=r"bad.toml:16: parameters.inductance = -1: the plant FMU refuses its "
                                           r"set-up with this value \(fmi3SetFloat64 failed"):
-        check_set_up(load_binding(tmp_path / "bad.toml"), [load_scenario("startup")])
+        check_set_up(load_binding(tmp_path / "bad.toml"), [load_scenario("startup", PAPER_SPEC)])
     (tmp_path / "good.toml").write_text(text + "capacitance = 4.7e-6\n")
     good = load_binding(tmp_path / "good.toml")
-    startup = load_scenario("startup")
+    startup = load_scenario("startup", PAPER_SPEC)
     refused = replace(startup, initial={**startup.initial, "load_resistance": -1.0})
     with open_plant(good) as plant:
         with pytest.raises(ConfigError, match="refuses its set-up at the start of scenario startup"):
@@ -278,9 +283,9 @@ def test_a_pythonfmu3_plant_runs_pi_and_nnpc_like_its_fmi2_twin(tmp_path, python
     assert check_fmu(twin3.fmu_path).fmi_major == 3 and check_fmu(twin2.fmu_path).fmi_major == 2
     for controller, scenario in ((pi(), "startup"), (nnpc_1ms, "reference_up"), (nnpc_1ms, "load_change")):
         controller.reset()
-        run2 = simulate(twin2, controller, load_scenario(scenario))
+        run2 = simulate(twin2, controller, load_scenario(scenario, PAPER_SPEC))
         controller.reset()
-        run3 = simulate(twin3, controller, load_scenario(scenario))
+        run3 = simulate(twin3, controller, load_scenario(scenario, PAPER_SPEC))
         assert numeric_difference(run2.frame, run3.frame) <= 1e-12, (controller.name, scenario)
         final = run3.frame.iloc[-1]
         assert abs(final["output_voltage"] / final["reference"] - 1) < 0.01, (controller.name, scenario)
@@ -417,7 +422,7 @@ def test_a_failing_fmi3_plant_ends_the_run_and_keeps_the_rows(tmp_path, faulty_f
     binding = tmp_path / "faulty.toml"
     binding.write_text("isolate = false\n" + faulty_binding(faulty_fmu3, kind))
     with pytest.raises(RunFailed) as failure:
-        simulate(load_binding(binding), pi(), load_scenario("startup"), record_period=1e-4)
+        simulate(load_binding(binding), pi(), load_scenario("startup", PAPER_SPEC), record_period=1e-4)
     assert message in str(failure.value) and failure.value.exit_code == 3
     partial = failure.value.partial
     assert partial.metadata["complete"] is False and 0.0099 < partial.frame["time"].max() < 0.0104
@@ -442,7 +447,7 @@ def test_fmi3_controller_fmus_equal_their_fmi2_editions(tmp_path, nnpc_1ms):
             adapter = FmuController(builtin_controller_binding(binary))
             assert type(adapter).__name__ == ("FmuController" if version == 2 else "FmuController3")
             try:
-                runs.append(simulate(builtin_binding("averaged"), adapter, load_scenario(scenario)).frame)
+                runs.append(simulate(builtin_binding("averaged"), adapter, load_scenario(scenario, PAPER_SPEC)).frame)
             finally:
                 adapter.close()
         assert numeric_difference(runs[0], runs[1]) == 0.0, name
@@ -454,7 +459,7 @@ def test_fmi3_controller_fmus_equal_their_fmi2_editions(tmp_path, nnpc_1ms):
     bound_pi = open_controller(str(tmp_path / "pi3.toml"))
     try:
         assert bound_pi.sample_period == 1e-3
-        run = simulate(builtin_binding("averaged"), bound_pi, load_scenario("reference_up")).frame
+        run = simulate(builtin_binding("averaged"), bound_pi, load_scenario("reference_up", PAPER_SPEC)).frame
         assert numeric_difference(run, first["pi"]) == 0.0
     finally:
         bound_pi.close()
@@ -487,7 +492,7 @@ def test_an_ssp_loop_of_fmi3_components_runs_in_the_workbench_engine_only(tmp_pa
     for version, binding in ((2, builtin_binding("averaged")),
                              (3, replace(builtin_binding("averaged"), fmu_path=buck_fmu3))):
         controller, _ = export_controller(pi(), tmp_path / f"pi{version}.fmu", fmi_version=version)
-        export_ssp(load_scenario("reference_up"), binding, controller, tmp_path / f"loop{version}.ssp")
+        export_ssp(load_scenario("reference_up", PAPER_SPEC), binding, controller, tmp_path / f"loop{version}.ssp")
         runs[version] = run_ssp(tmp_path / f"loop{version}.ssp", "workbench").frame
     loop = read_ssp(tmp_path / "loop3.ssp")
     assert {name: c.fmi_version for name, c in loop.components.items()} == \

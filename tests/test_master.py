@@ -17,6 +17,7 @@ from cosim.fmi.binding import RoleMap, builtin_binding
 from cosim.fmi.plant import open_plant
 from cosim.master import RunFailed, run, simulate
 from cosim.scenarios import load_scenario, parse_scenario
+from cosim.study.vocabulary import PAPER_SPEC
 from cosim.timeline import CONTROL, EVENT, RECORD, build_timeline
 
 DEADBEAT_KI = 0.7 / (VS * 1e-3)  # integral pole 0.3 at 1 ms
@@ -52,7 +53,7 @@ settle = {settle}
 [initial]
 reference = {reference}
 {text_events}
-""")
+""", spec=PAPER_SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +63,7 @@ def averaged():
 
 def test_cs_and_me_agree_on_a_pi_start_up(averaged):
     pi = PIController(0.0, DEADBEAT_KI, 1e-3)
-    startup = load_scenario("startup")
+    startup = load_scenario("startup", PAPER_SPEC)
     cs = simulate(averaged, pi, startup, interface="cs").frame
     me = simulate(averaged, pi, startup, interface="me", relative_tolerance=1e-9).frame
     assert len(cs) == len(me)
@@ -74,7 +75,7 @@ def test_cs_and_me_agree_on_a_pi_start_up(averaged):
 def test_switched_cs_and_me_agree_on_a_pi_start_up():
     binding = builtin_binding("switched")
     pi = PIController(0.0, DEADBEAT_KI, 1e-3)
-    short = replace(load_scenario("startup"), duration=0.006)
+    short = replace(load_scenario("startup", PAPER_SPEC), duration=0.006)
     cs = simulate(binding, pi, short, interface="cs").frame
     me = simulate(binding, pi, short, interface="me", relative_tolerance=1e-9).frame
     np.testing.assert_allclose(me["output_voltage"], cs["output_voltage"], rtol=1e-3, atol=1e-3 * 12)
@@ -143,7 +144,7 @@ def test_every_control_sample_is_recorded_with_its_compute_time(averaged):
 
 def test_settle_interval_is_not_recorded_and_shifts_time(averaged):
     pi = PIController(0.0, DEADBEAT_KI, 1e-3)
-    result = simulate(averaged, pi, load_scenario("load_change"))
+    result = simulate(averaged, pi, load_scenario("load_change", PAPER_SPEC))
     frame = result.frame
     assert frame["time"].iloc[0] == 0.0
     assert frame["output_voltage"].iloc[0] == pytest.approx(12.0, abs=0.01)  # settled before t = 0
@@ -205,12 +206,12 @@ def test_scenario_needing_a_missing_role_is_refused_before_the_run(averaged):
     reduced = replace(averaged, roles=roles)
     with pytest.raises(ConfigError, match=r"scenario load_change changes load_resistance, but plant FMU .* "
                                           r"binds no variable to the role 'load_resistance'"):
-        simulate(reduced, Probe(), load_scenario("load_change"))
+        simulate(reduced, Probe(), load_scenario("load_change", PAPER_SPEC))
 
 
 def test_one_plant_instance_serves_many_runs_identically(averaged):
     pi = PIController(0.0, DEADBEAT_KI, 1e-3)
-    s = load_scenario("reference_up")
+    s = load_scenario("reference_up", PAPER_SPEC)
     with open_plant(averaged) as plant:
         first = run(plant, pi, s).frame
         second = run(plant, pi, s).frame
@@ -236,7 +237,7 @@ def test_role_scaling_converts_units(averaged):
 def test_windows_partition_the_timeline_exactly():
     from cosim.timeline import plan_timeline
 
-    s = load_scenario("load_change")
+    s = load_scenario("load_change", PAPER_SPEC)
     for control, record in ((1e-3, 1e-5), (1 / 75e3, 1e-5), (1e-3, 3e-6)):
         whole = build_timeline(s, control, record)
         parts = list(plan_timeline(s, control, record).windows(size=1000))
@@ -324,7 +325,7 @@ def test_a_value_the_fmu_refuses_stops_the_run_before_its_first_step(averaged, t
     probe = Probe()
     with pytest.raises(ConfigError, match=r"zero.toml:8: events\[0\].parameters \(capacitance\): the plant FMU "
                                           r"refuses the value: fmi2SetReal: capacitance = 0 F is invalid"):
-        simulate(averaged, probe, load_scenario(path))
+        simulate(averaged, probe, load_scenario(path, PAPER_SPEC))
     assert probe.seen == []  # not a single step
 
 
@@ -341,7 +342,7 @@ def test_an_isolated_plant_applies_parameter_events_like_the_in_process_plant(tm
                     'parameters = { capacitance = 0.0 }\n')
     with pytest.raises(ConfigError, match=r"zero.toml:8: events\[0\].parameters \(capacitance\): the plant FMU "
                                           r"refuses the value: fmi2SetReal: capacitance = 0 F is invalid"):
-        simulate(replace(builtin_binding("averaged"), isolate=True), Probe(), load_scenario(path))
+        simulate(replace(builtin_binding("averaged"), isolate=True), Probe(), load_scenario(path, PAPER_SPEC))
 
 
 @pytest.mark.parametrize("isolate", [False, True])

@@ -13,6 +13,7 @@ import torch
 from controllers.nn_config import NNConfig, TrainingSettings
 from controllers.nn_model import build_dataset, load_model, save_model, train
 from cosim.base.errors import ModelFileError
+from cosim.study.vocabulary import PAPER_SPEC
 
 PHI = np.array([[0.9, -0.05], [0.3, 0.8]])  # a stable linear "plant", sampled
 GAIN = np.array([2.0, 4.0])
@@ -175,7 +176,8 @@ def switched_data():
 
     period = 1 / 75e3
     pi = PIController(0.336 / 48, 0.111 / (period * 48), period)
-    return collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 4000, seed=0, region="paper"))
+    return collect(plant_binding("nominal", "switched"), pi,
+                   collection_settings(period, 4000, seed=0, region="paper", spec=PAPER_SPEC))
 
 
 SWITCHED_NN = NNConfig(hidden=(7,), delays=2, extra_signals=("load_conductance",))

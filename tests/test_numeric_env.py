@@ -14,6 +14,7 @@ import pytest
 
 from cosim.base import numeric_env
 from cosim.base.errors import ConfigError
+from cosim.study.vocabulary import PAPER_SPEC
 
 ROOT = Path(__file__).resolve().parents[1]
 JOB = Path(__file__).with_name("numeric_env_job.py")
@@ -114,7 +115,8 @@ def test_training_writes_the_same_bytes_on_an_emulated_cpu_of_another_kind(tmp_p
     pipeline = Pipeline("nominal", "averaged", PAPER_PERIOD)
     pi = _tuned(pipeline, tmp_path, FULL)
     data = tmp_path / "data.parquet"
-    collect(pipeline.binding(), pi.controller(), collection_settings(PAPER_PERIOD, FULL.samples, 2)).to_parquet(data)
+    settings = collection_settings(PAPER_PERIOD, FULL.samples, 2, spec=PAPER_SPEC)
+    collect(pipeline.binding(), pi.controller(), settings).to_parquet(data)
     env = _environment({})
     job = [sys.executable, str(JOB), "train", str(data)]
     here = subprocess.run([*job, str(tmp_path / "host")], env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)

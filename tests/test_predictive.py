@@ -25,7 +25,7 @@ from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
 from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import LC_PERIOD, NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import LC_PERIOD, NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
 from plant_fmu.table_ii import TABLE_II
 
 TS = SWITCHING_PERIOD
@@ -151,7 +151,7 @@ def test_mismatched_model_mpc_is_offset_free_on_the_plant():
                                            "inductance": 264e-6, "capacitance": 8e-6})
     mpc = PredictiveController(AveragedModelPredictor(NOMINAL, 1e-3), 1e-3,
                                HorizonSettings(horizon=1, levels=33), name="MPC-mismatched", **OPERATING_POINT)
-    m = run_metrics(simulate(binding, mpc, load_scenario("reference_up")))
+    m = run_metrics(simulate(binding, mpc, load_scenario("reference_up", PAPER_SPEC)))
     assert abs(m["steady_state_error_pct"]) < 0.05
     assert m["settling_time_ms"] < 5.0
 
@@ -166,7 +166,7 @@ def test_oracle_mpc_at_the_switching_rate_beats_the_tuned_pi_on_start_up():
     from controllers.pi import PIController
 
     binding = builtin_binding("averaged")
-    startup = replace(load_scenario("startup"), duration=0.004)
+    startup = replace(load_scenario("startup", PAPER_SPEC), duration=0.004)
     mpc = PredictiveController(AveragedModelPredictor(NOMINAL, TS), TS,
                                HorizonSettings(horizon=ripple_free_horizon(TS, LC_PERIOD)), name="MPC-oracle",
                                **OPERATING_POINT)
@@ -237,7 +237,7 @@ def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_swi
     from cosim.study.experiments import horizon_settings, model_mpc
 
     binding = builtin_binding("switched")
-    startup = replace(load_scenario("startup"), duration=0.001)
+    startup = replace(load_scenario("startup", PAPER_SPEC), duration=0.001)
     oracle = model_mpc(NOMINAL, TS, "MPC-oracle", binding=binding)
     assert isinstance(oracle.predictor, SwitchedModelPredictor)
     m = run_metrics(simulate(binding, oracle, startup))

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.study.vocabulary import PAPER_SPEC
+
 README = Path(__file__).resolve().parents[1] / "docs" / "guide" / "python-controller.md"
 
 
@@ -60,7 +62,7 @@ def test_simulate_refuses_a_controller_whose_duty_limits_are_not_a_fraction():
 
     with pytest.raises(ConfigError, match=r"^controller percent: duty limits \(0.0, 100.0\) are invalid: expected "
                                           r"0 <= min < max <= 1$"):
-        simulate(builtin_binding("averaged"), Percent(), load_scenario("startup"))
+        simulate(builtin_binding("averaged"), Percent(), load_scenario("startup", PAPER_SPEC))
 
 
 def test_simulate_takes_names_and_paths_as_the_command_line_does_and_names_the_mistakes_it_cannot_take(tmp_path):
@@ -74,7 +76,7 @@ def test_simulate_takes_names_and_paths_as_the_command_line_does_and_names_the_m
 
     pi = PIController(0.0017, 15.6, 1e-3)
     by_name = simulate(builtin_binding("averaged"), pi, "startup")
-    by_object = simulate(builtin_binding("averaged"), pi, load_scenario("startup"))
+    by_object = simulate(builtin_binding("averaged"), pi, load_scenario("startup", PAPER_SPEC))
     np.testing.assert_array_equal(by_name.frame["output_voltage"], by_object.frame["output_voltage"])
     with pytest.raises(TypeError, match=r"^controller PIController is a class: pass an instance, PIController\(\.\.\.\)$"):
         simulate(builtin_binding("averaged"), PIController, "startup")

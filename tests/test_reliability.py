@@ -16,6 +16,7 @@ import pytest
 from conftest import cli, faulty_binding, no_temporary_files, one_line_error, role_named_binding
 
 from cosim.results import read_run
+from cosim.study.vocabulary import PAPER_SPEC
 
 
 def ends_in_one_line_error(done, code: int, message: str) -> None:
@@ -66,15 +67,15 @@ def test_runs_whose_files_would_overwrite_each_other_are_refused_before_any_run(
     from cosim.scenarios import load_scenario
     from cosim.study.plants import plant_binding
 
-    shipped = load_scenario("startup")
+    shipped = load_scenario("startup", PAPER_SPEC)
     (tmp_path / "mine.toml").write_text(shipped.source.read_text().replace("load_resistance = 6.0",
                                                                            "load_resistance = 10.0"))
     binding = plant_binding("nominal", "averaged")
     with pytest.raises(ConfigError, match=r"^\S*mine.toml:\d+: scenario name 'startup' is the name of "
                                           r"\S*startup.toml:\d+ too: the runs' files are named after it"):
-        Batch(binding, [shipped, load_scenario(str(tmp_path / "mine.toml"))])
+        Batch(binding, [shipped, load_scenario(str(tmp_path / "mine.toml"), PAPER_SPEC)])
     with pytest.raises(ConfigError, match=r"^scenario \S*startup.toml is given twice$"):
-        Batch(binding, [shipped, load_scenario("startup")])
+        Batch(binding, [shipped, load_scenario("startup", PAPER_SPEC)])
     pi = [PIController(0.01, 14.0, 1e-3), PIController(0.02, 14.0, 1e-3)]
     with pytest.raises(ConfigError, match=r"^controller PI is given twice$"):
         run_batch(Batch(binding, [shipped]), pi, tmp_path / "out")
@@ -177,7 +178,8 @@ from cosim.master import RunFailed, run
 from cosim.scenarios import parse_scenario
 
 plant = open_plant(load_binding(sys.argv[1]))
-scenario = parse_scenario('name = "s"\\nduration = 0.02\\n[initial]\\nreference = 12.0\\n')
+scenario = parse_scenario('name = "s"\\nduration = 0.02\\n[initial]\\nreference = 12.0\\nload_resistance = 6.0\\n'
+                          'input_voltage = 48.0\\n')
 try:
     run(plant, PIController(0.0, 14.0, 1e-3), scenario)
 except RunFailed as error:
@@ -231,7 +233,7 @@ def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
             return {"type": "broken", "name": self.name, "duty_limits": [0.0, 1.0]}
 
     with pytest.raises(RunFailed, match=r"controller broken returned duty cycle inf at t = 0.004 s"):
-        run_batch(Batch(replace(builtin_binding("averaged"), tag_override="x"), [load_scenario("startup")]),
+        run_batch(Batch(replace(builtin_binding("averaged"), tag_override="x"), [load_scenario("startup", PAPER_SPEC)]),
                   [Broken()], tmp_path)
     meta = json.loads((tmp_path / "runs" / "startup__broken__x__1ms.json").read_text())
     assert meta["complete"] is False and meta["rows"] > 300
@@ -401,6 +403,7 @@ def rss_mb():
     return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
 
 scenario = parse_scenario('name = "short"\\nduration = 0.003\\n[initial]\\nreference = 12.0\\n'
+                          'load_resistance = 6.0\\ninput_voltage = 48.0\\n'
                           '[[events]]\\ntime = 0.001\\nload_resistance = 5.0\\n')
 binding, pi = builtin_binding("switched"), PIController(0.0, 14.0, 1e-3)
 growth = {}

@@ -14,11 +14,13 @@ from cosim.master import simulate
 from cosim.recorder import COLUMNS
 from cosim.results import read_run, write_run
 from cosim.scenarios import load_scenario
+from cosim.study.vocabulary import PAPER_SPEC
 
 
 @pytest.fixture(scope="module")
 def result():
-    return simulate(builtin_binding("switched"), PIController(0.0, 14.0, 1e-3), load_scenario("reference_up"), seed=7)
+    scenario = load_scenario("reference_up", PAPER_SPEC)
+    return simulate(builtin_binding("switched"), PIController(0.0, 14.0, 1e-3), scenario, seed=7)
 
 
 def test_frame_has_the_documented_columns_and_metadata(result):
@@ -68,7 +70,7 @@ def test_csv_has_a_json_sidecar_and_the_values_as_text(result, tmp_path):
 def test_same_run_twice_gives_byte_identical_tables(tmp_path):
     pi = PIController(0.0, 14.0, 1e-3)
     for folder in ("a", "b"):
-        r = simulate(builtin_binding("averaged"), pi, load_scenario("load_change"), seed=1)
+        r = simulate(builtin_binding("averaged"), pi, load_scenario("load_change", PAPER_SPEC), seed=1)
         write_run(r, tmp_path / folder, "run")
     for name in ("run.csv", "run.parquet", "run.json"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()

@@ -35,7 +35,7 @@ from controllers.predictors import (
     SwitchedModelPredictor,
 )
 from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
 from plant_fmu.table_ii import TABLE_II
 
 TS = SWITCHING_PERIOD
@@ -571,7 +571,7 @@ def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
-    scenarios = [replace(load_scenario("startup"), duration=0.0008)]
+    scenarios = [replace(load_scenario("startup", PAPER_SPEC), duration=0.0008)]
     rows = compare(plant_binding("mismatch", "switched"), lambda optimizer: nnpc(model, TS, optimizer=optimizer),
                    scenarios)
     (row,) = rows

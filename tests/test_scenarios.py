@@ -6,6 +6,7 @@ import pytest
 
 from cosim.base.errors import ConfigError
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario, parse_scenario, shipped_scenarios
+from cosim.study.vocabulary import PAPER_SPEC
 
 GOOD = """\
 name = "custom"
@@ -29,16 +30,16 @@ input_voltage = 40.0
 
 
 def test_shipped_scenarios_are_the_papers_four_plus_extras():
-    names = {s.name for s in shipped_scenarios()}
+    names = {s.name for s in shipped_scenarios(PAPER_SPEC)}
     assert set(PAPER_SCENARIOS) <= names
-    startup = load_scenario("startup")
+    startup = load_scenario("startup", PAPER_SPEC)
     assert startup.initial == {"reference": 12.0, "load_resistance": 6.0, "input_voltage": 48.0}
     assert startup.events == () and startup.metrics_start == 0.0
-    load = load_scenario("load_change")
+    load = load_scenario("load_change", PAPER_SPEC)
     assert load.events[0].changes == {"load_resistance": 5.0} and load.required_roles() == {"load_resistance"}
-    assert load_scenario("reference_up").events[0].changes == {"reference": 15.0}
-    assert load_scenario("reference_down").events[0].changes == {"reference": 9.0}
-    ageing = load_scenario("capacitor_ageing")  # the drift study's: the mismatch plant's C and DCR drift
+    assert load_scenario("reference_up", PAPER_SPEC).events[0].changes == {"reference": 15.0}
+    assert load_scenario("reference_down", PAPER_SPEC).events[0].changes == {"reference": 9.0}
+    ageing = load_scenario("capacitor_ageing", PAPER_SPEC)  # the drift study's: the mismatch plant's C and DCR drift
     drift = [e.parameters for e in ageing.parameter_events]
     assert len(drift) == 8 and drift[-1] == pytest.approx({"capacitance": 5.6e-6, "inductor_resistance": 0.3})
     assert all(a["capacitance"] > b["capacitance"] for a, b in zip(drift, drift[1:]))
@@ -48,7 +49,7 @@ def test_shipped_scenarios_are_the_papers_four_plus_extras():
 def test_a_user_scenario_parses_with_sorted_events_and_schedules(tmp_path):
     path = tmp_path / "custom.toml"
     path.write_text(GOOD)
-    s = load_scenario(path)
+    s = load_scenario(path, PAPER_SPEC)
     assert [e.time for e in s.events] == [0.01, 0.02]
     assert s.schedule("reference") == [(0.0, 12.0), (0.02, 15.0)]
     assert s.schedule("input_voltage") == [(0.0, 48.0), (0.01, 40.0)]
@@ -79,27 +80,28 @@ def write(tmp_path, text):
 def test_mistakes_name_file_key_and_line(tmp_path, edit, message):
     path = write(tmp_path, GOOD.replace(*edit, 1))
     with pytest.raises(ConfigError, match=message):
-        load_scenario(path)
+        load_scenario(path, PAPER_SPEC)
 
 
 def test_event_without_changes_and_missing_keys(tmp_path):
     with pytest.raises(ConfigError, match=r"bad.toml:10: events\[0\] changes nothing"):
-        load_scenario(write(tmp_path, GOOD.replace("reference = 15.0\n", "")))
+        load_scenario(write(tmp_path, GOOD.replace("reference = 15.0\n", "")), PAPER_SPEC)
     with pytest.raises(ConfigError, match=r"missing required key 'duration'"):
-        load_scenario(write(tmp_path, GOOD.replace("duration = 0.05\n", "")))
+        load_scenario(write(tmp_path, GOOD.replace("duration = 0.05\n", "")), PAPER_SPEC)
     with pytest.raises(ConfigError, match=r"missing required key 'initial.reference'"):
-        load_scenario(write(tmp_path, GOOD.replace("reference = 12.0\n", "")))
+        load_scenario(write(tmp_path, GOOD.replace("reference = 12.0\n", "")), PAPER_SPEC)
 
 
 def test_a_scenario_saved_with_a_byte_order_mark_reads_as_without_one(tmp_path):
     """Windows editors save UTF-8 with a BOM; tomllib refused it as an "invalid statement" at line 1."""
-    plain = load_scenario(write(tmp_path, GOOD))
+    plain = load_scenario(write(tmp_path, GOOD), PAPER_SPEC)
     path = tmp_path / "bom.toml"
     path.write_bytes(b"\xef\xbb\xbf" + GOOD.encode("utf-8"))
-    assert load_scenario(path).events == plain.events and load_scenario(path).duration == plain.duration
+    again = load_scenario(path, PAPER_SPEC)
+    assert again.events == plain.events and again.duration == plain.duration
     with pytest.raises(ConfigError, match=r"bom.toml:10: events\[0\] changes nothing"):  # its lines count as before
         path.write_bytes(b"\xef\xbb\xbf" + GOOD.replace("reference = 15.0\n", "").encode("utf-8"))
-        load_scenario(path)
+        load_scenario(path, PAPER_SPEC)
 
 
 def test_two_changes_of_one_signal_at_one_instant_are_refused(tmp_path):
@@ -109,19 +111,20 @@ def test_two_changes_of_one_signal_at_one_instant_are_refused(tmp_path):
             '[[events]]\ntime = 0.005\nreference = 9.0\n')
     with pytest.raises(ConfigError, match=r"^\S*bad.toml:9: events\[1\] sets reference at t = 0.005 s, as events\[0\] "
                                           r"does: one of the two would be dropped"):
-        load_scenario(write(tmp_path, same))
-    both = load_scenario(write(tmp_path, same.replace("reference = 9.0", "load_resistance = 9.0")))
+        load_scenario(write(tmp_path, same), PAPER_SPEC)
+    both = load_scenario(write(tmp_path, same.replace("reference = 9.0", "load_resistance = 9.0")), PAPER_SPEC)
     assert [dict(e.changes) for e in both.events] == [{"reference": 15.0}, {"load_resistance": 9.0}]
 
 
 def test_unknown_scenario_name_lists_the_shipped_ones():
     with pytest.raises(ConfigError, match=r"'nope' is neither a file nor a shipped scenario \(capacitor_ageing, load_change"):
-        load_scenario("nope")
+        load_scenario("nope", PAPER_SPEC)
 
 
 def test_analysis_start_must_be_inside_the_run():
     with pytest.raises(ConfigError, match=r"analysis_start = 1.0 s is outside"):
-        parse_scenario('name = "x"\nduration = 0.1\nanalysis_start = 1.0\n[initial]\nreference = 1.0\n')
+        parse_scenario('name = "x"\nduration = 0.1\nanalysis_start = 1.0\n[initial]\nreference = 1.0\n',
+                       spec=PAPER_SPEC)
 
 
 # ------------------------------------------------------------------------------------------ parameter events
@@ -146,7 +149,7 @@ parameters = { capacitance = 7e-6, inductor_resistance = 0.3 }
 def test_parameter_events_parse_with_their_line(tmp_path):
     path = tmp_path / "drift.toml"
     path.write_text(DRIFT)
-    s = load_scenario(path)
+    s = load_scenario(path, PAPER_SPEC)
     event = s.events[1]
     assert event.parameters == {"capacitance": 7e-6, "inductor_resistance": 0.3} and event.changes == {}
     assert event.where == f"{path}:13" and event.plant_event and not s.events[0].plant_event
@@ -166,7 +169,7 @@ def test_parameter_event_mistakes_name_file_key_and_line(tmp_path, value, messag
     path = tmp_path / "drift.toml"
     path.write_text(DRIFT.replace("{ capacitance = 7e-6, inductor_resistance = 0.3 }", value))
     with pytest.raises(ConfigError, match=message):
-        load_scenario(path)
+        load_scenario(path, PAPER_SPEC)
 
 
 @pytest.mark.parametrize("parameters,message", [
@@ -185,4 +188,4 @@ def test_parameter_events_the_fmu_cannot_take_are_refused_before_the_run(tmp_pat
     path = tmp_path / "drift.toml"
     path.write_text(DRIFT.replace("{ capacitance = 7e-6, inductor_resistance = 0.3 }", parameters))
     with pytest.raises(ConfigError, match=message):
-        Batch(builtin_binding("averaged"), [load_scenario(path)])
+        Batch(builtin_binding("averaged"), [load_scenario(path, PAPER_SPEC)])

@@ -27,6 +27,7 @@ from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp
 from cosim.ssp.scenario_source import OUTPUTS, scenario_fmu, scenario_toml, settle_time
 from cosim.study.experiments import implemented, scenarios_for
 from cosim.study.plants import plant_binding
+from cosim.study.vocabulary import PAPER_SPEC
 
 # ------------------------------------------------------------------ the scenario FMU
 
@@ -56,7 +57,7 @@ def _sample_scenario_fmu(path: Path, times: list[float]) -> np.ndarray:
 def test_the_scenario_fmu_follows_the_events_as_the_master_applies_them(name):
     from cosim.timeline import build_timeline, signal_at
 
-    scenario = load_scenario(name)
+    scenario = load_scenario(name, PAPER_SPEC)
     path = scenario_fmu(scenario, 1e-3)
     assert fmpy.validation.validate_fmu(str(path)) == []
     md = fmpy.read_model_description(str(path))
@@ -69,10 +70,10 @@ def test_the_scenario_fmu_follows_the_events_as_the_master_applies_them(name):
 
 
 def test_the_scenario_is_rounded_to_whole_control_periods_and_survives_its_toml_form():
-    [scenario] = scenarios_for(1e-3, ["load_change"])
+    [scenario] = scenarios_for(1e-3, ["load_change"], spec=PAPER_SPEC)
     assert settle_time(scenario, 1e-3) == pytest.approx(0.015)
     assert settle_time(scenario, 0.4e-3) == pytest.approx(0.0152)  # 38 control periods
-    again = parse_scenario(scenario_toml(scenario))
+    again = parse_scenario(scenario_toml(scenario), spec=PAPER_SPEC)
     assert (again.initial, again.events, again.duration, again.settle) == \
         (scenario.initial, scenario.events, scenario.duration, scenario.settle)
 
@@ -90,7 +91,7 @@ GAINS = (0.0015, 15.6)
 
 
 def short(name: str):
-    return parse_scenario(SHORT[name])
+    return parse_scenario(SHORT[name], spec=PAPER_SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -443,7 +444,7 @@ def test_an_external_plant_with_other_units_travels_as_linear_transformations(py
                                       'scale = 100.0\n[roles.output_voltage]\nvariable = "Vout"\n'
                                       '[roles.inductor_current]\nvariable = "IL_mA"\nscale = 1000.0\n'
                                       '[roles.load_resistance]\nvariable = "Rload"\n[roles.load_current]\n'
-                                      'variable = "Iout"\n')
+                                      'variable = "Iout"\n[converter]\noutput_voltage = 12.0\ninput_voltage = 48.0\n')
     binding = load_binding(tmp_path / "py.toml")
     scenario = short("load_step")
     path = export_ssp(scenario, binding, pi_fmu, tmp_path / "py.ssp").archive

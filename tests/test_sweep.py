@@ -26,6 +26,7 @@ from cosim.study.sweeps import dataset
 from cosim.study.sweeps.plan import SweepPlan, at_operating_point
 from cosim.study.sweeps.spec import load_sweep, parse_sweep
 from cosim.study.sweeps.summary import spec_mask, wilson_interval
+from cosim.study.vocabulary import PAPER_SPEC
 
 PI_GAINS = "kp = 0.0015, ki = 15.6"  # near the tuned 1 ms gains: the tests need a PI, not its tuning
 
@@ -437,7 +438,8 @@ def test_operating_point_axes_move_the_scenario_and_run_ids_hash_the_whole_run(t
     from cosim.scenarios import load_scenario
     from cosim.study.sweeps.recipes import ControllerRecipe
 
-    moved = at_operating_point(load_scenario("load_change"), {"load_resistance": 12.0, "input_voltage": 40.0})
+    moved = at_operating_point(load_scenario("load_change", PAPER_SPEC),
+                               {"load_resistance": 12.0, "input_voltage": 40.0})
     assert moved.initial["load_resistance"] == 12.0 and moved.initial["input_voltage"] == 40.0
     assert moved.events[0].changes == {"load_resistance": 10.0}  # 6 -> 5 Ohm becomes 12 -> 10 Ohm
     spec = parse_sweep('scenarios = ["startup", "load_change"]\ncontrollers = ["pi"]\nsamples = 3\n'
@@ -869,7 +871,7 @@ def _plant_kind(recipe, queue) -> None:
     from cosim.study.sweeps.worker import _plant
 
     plant, binding = _plant(recipe)
-    scenario = parse_scenario('name = "s"\nduration = 0.002\n[initial]\nreference = 12.0\n')
+    scenario = parse_scenario('name = "s"\nduration = 0.002\n[initial]\nreference = 12.0\n', spec=PAPER_SPEC)
     metadata = run(plant, PIController(0.0, 14.0, 1e-3), scenario).metadata
     queue.put((type(plant).__name__, binding.isolate, metadata["plant"]["isolated"]))
     plant.close()

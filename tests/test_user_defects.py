@@ -23,6 +23,7 @@ from controllers.nn_config import NNConfig, TrainingSettings
 from controllers.nn_model import _checksum, load_model, save_model, train
 from cosim.base.errors import ModelFileError
 from cosim.results import read_run, write_parquet
+from cosim.study.vocabulary import PAPER_SPEC
 
 
 def strict_json(path: Path):
@@ -246,7 +247,7 @@ def test_refused_first_inputs_are_named_as_the_scenarios_not_a_binding_value(tmp
     from cosim.scenarios import load_scenario
 
     (tmp_path / "plant.toml").write_text(role_named_binding(buck_fmu, parameters="capacitance = 4.7e-6\n"))
-    startup = load_scenario("startup")
+    startup = load_scenario("startup", PAPER_SPEC)
     refused = replace(startup, initial={**startup.initial, "load_resistance": -1.0})  # past the file's own checks
     with pytest.raises(ConfigError) as caught:
         check_set_up(replace(load_binding(tmp_path / "plant.toml"), isolate=False), [startup, refused])
@@ -426,7 +427,8 @@ def test_isolation_gives_the_same_run_as_in_process(tmp_path, faulty_fmu):
     binding.write_text(faulty_binding(faulty_fmu, 0))
     plant = load_binding(binding)
     assert plant.isolate is True  # binding files default to isolation
-    runs = [simulate(replace_isolate(plant, isolate), PIController(0.0, 14.0, 1e-3), load_scenario("startup"),
+    startup = load_scenario("startup", PAPER_SPEC)
+    runs = [simulate(replace_isolate(plant, isolate), PIController(0.0, 14.0, 1e-3), startup,
                      record_period=1e-4) for isolate in (True, False)]
     pd.testing.assert_frame_equal(runs[0].frame.drop(columns="controller_compute_time"),
                                   runs[1].frame.drop(columns="controller_compute_time"))

@@ -7,7 +7,7 @@ import numpy as np
 from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow, _p99, instruction_row
 from cosim.benchmarks.subjects import _nn_model
-from cosim.study.vocabulary import NNPC, SWITCHING_PERIOD
+from cosim.study.vocabulary import NNPC, PAPER_SPEC, SWITCHING_PERIOD
 
 
 def bench_dompc(quick: bool) -> list[BenchRow]:
@@ -45,7 +45,7 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     binding = plant_binding("nominal", "switched")
     model, origin = _nn_model("nnpc", period, quick)
     rows = []
-    for scenario in scenarios_for(period, ("startup", "load_change")):
+    for scenario in scenarios_for(period, ("startup", "load_change"), spec=PAPER_SPEC):
         if quick:
             scenario = replace_scenario(scenario, 0.0003)
         rti = nnpc(model, period, NNPC, optimizer="rti")

@@ -6,8 +6,7 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow, _median_time
 from cosim.benchmarks.subjects import _nn_model
-from cosim.study.vocabulary import NOMINAL, PAPER_PERIOD
-from plant_fmu.table_ii import TABLE_II
+from cosim.study.vocabulary import NOMINAL, PAPER_PERIOD, PAPER_SPEC
 
 
 def bench_inference(quick: bool) -> list[BenchRow]:
@@ -29,7 +28,7 @@ def bench_inference(quick: bool) -> list[BenchRow]:
     generic = _median_time(lambda: fast_model.rollout(np.repeat(history[None], 100, axis=0), duties,
                                                       np.repeat(extras[None], 100, axis=0)), repeats // 10 + 1)
     shared = _median_time(lambda: fast_model.rollout_shared(history, duties, extras), repeats // 10 + 1)
-    a = circuit_matrix(NOMINAL, TABLE_II.load_resistance, 0.0)
+    a = circuit_matrix(NOMINAL, PAPER_SPEC.load_resistance, 0.0)
     scipy_time = _median_time(lambda: expm(a * PAPER_PERIOD), repeats)
     closed_time = _median_time(lambda: expm2(a, PAPER_PERIOD), repeats)
     return [

@@ -49,7 +49,8 @@ def _master_step(step: float, count: int, isolate: bool = False) -> float:
     from cosim.master import run
     from cosim.scenarios import parse_scenario
 
-    scenario = parse_scenario(f'name = "bench"\nduration = {count * step!r}\n[initial]\nreference = 12.0\n')
+    scenario = parse_scenario(f'name = "bench"\nduration = {count * step!r}\n[initial]\nreference = 12.0\n'
+                              'load_resistance = 6.0\ninput_voltage = 48.0\n')
     with open_plant(builtin_binding("averaged"), isolate=isolate) as plant:
         start = time.perf_counter()
         result = run(plant, _Constant(step), scenario, record_period=step)

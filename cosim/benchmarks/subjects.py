@@ -9,8 +9,7 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-from cosim.study.vocabulary import SWITCHING_PERIOD, transient_within_sample
-from plant_fmu.table_ii import TABLE_II
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD, transient_within_sample
 
 #: where the reproduction's trained models are looked for (:func:`reading_models_from` sets it: ``OUT/models``
 #: or ``--models``); a group finds none there and trains or distils its own
@@ -65,7 +64,7 @@ def _benchmark_pi(period: float):
     from controllers.pi import PIController
 
     a, b = (0.072, 0.75) if transient_within_sample(period) else (0.336, 0.111)
-    vs = TABLE_II.input_voltage
+    vs = PAPER_SPEC.input_voltage
     return PIController(a / vs, b / (period * vs), period)
 
 
@@ -78,7 +77,7 @@ def _mixed_scenario(period: float, samples: int):
     from cosim.study.data_collection import random_scenario
     from cosim.study.experiments import collection_settings
 
-    return random_scenario(collection_settings(period, samples, seed=11), period)
+    return random_scenario(collection_settings(period, samples, seed=11, spec=PAPER_SPEC), period)
 
 
 def _nn_model(name: str, period: float, quick: bool):
@@ -100,7 +99,8 @@ def _nn_model(name: str, period: float, quick: bool):
             pass
 
     pi = _benchmark_pi(period)
-    data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000))
+    data = collect(plant_binding("nominal", "switched"), pi, collection_settings(period, 400 if quick else 3000,
+                                                                                spec=PAPER_SPEC))
     return (train(data, config, TrainingSettings(max_iterations=100 if quick else 3000),
                   metadata={"control_period_s": period}), "trained for the benchmark")
 

@@ -59,10 +59,12 @@ def cmd_collect(args) -> int:
 
     output_file(args.out, (".parquet",), "the samples are written as Parquet, with their metadata")
     work_dir = cache_dir(args.work_dir)
-    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation, args.region)
-    settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     binding = _plant_binding(args)
-    check_set_up(binding, [load_scenario("startup")])  # what the FMU refuses, even where the PI tuning is cached
+    settings = collection_settings(args.control_period, args.samples, args.seed, args.excitation, args.region,
+                                   spec=binding.converter)
+    settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
+    # what the FMU refuses, even where the PI tuning is cached
+    check_set_up(binding, [load_scenario("startup", binding.converter)])
     from cosim.study.controller_factory import tuned_pi  # scipy.optimize: after the checks
 
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)

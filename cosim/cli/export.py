@@ -105,8 +105,8 @@ def cmd_export_ssp(args) -> int:
         if given:
             raise ConfigError(f"{', '.join(given)} design a built-in controller, but --controller {args.controller} "
                               f"is a controller FMU, which brings its own: drop {', '.join(given)}")
-    scenario = load_scenario(args.scenario)
     binding = _plant_binding(args)
+    scenario = load_scenario(args.scenario, binding.converter, warn=True)
     if args.fmi_version == 3 and binding.source is None:  # the built-in plant's FMI 3.0 edition
         from dataclasses import replace
 

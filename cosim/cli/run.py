@@ -33,8 +33,9 @@ OTHER_IMAGE_FORMATS = (".pdf", ".eps", ".ps", ".jpg", ".jpeg", ".tif", ".tiff", 
 def cmd_scenarios(args) -> int:
     from cosim.scenarios import SHIPPED_DIR, shipped_scenarios
 
-    print(f"Shipped scenarios ({SHIPPED_DIR}):")
-    for s in shipped_scenarios():
+    binding = _plant_binding(args)
+    print(f"Shipped scenarios ({SHIPPED_DIR}), resolved against {binding.converter.origin}:")
+    for s in shipped_scenarios(binding.converter):
         events = ", ".join(f"{e.time * 1e3:g} ms: " + ", ".join(
             [f"{k}={v:g}" for k, v in e.changes.items()] + [f"{k}={v:g}" for k, v in e.parameters.items()])
             for e in s.events) or "none"
@@ -51,7 +52,9 @@ def cmd_run(args) -> int:
     optimizer, rti_changes = optimizer_options(args)
     out_dir = output_dir(args.out)
     args.controller = args.controller or ["pi"]
-    batch = Batch(_plant_binding(args), [load_scenario(s) for s in (args.scenarios or PAPER_SCENARIOS)])
+    binding = _plant_binding(args)
+    scenarios = [load_scenario(s, binding.converter, warn=True) for s in (args.scenarios or PAPER_SCENARIOS)]
+    batch = Batch(binding, scenarios)
     batch.check_rates(args.control_period, args.record_period)
     batch.check_plant(args.interface)
     # the batch is checked: now the (possibly long) tuning and training. Imported here, not above: torch takes
@@ -107,12 +110,12 @@ def cmd_inspect(args) -> int:
     if Path(args.fmu).suffix.lower() == ".toml":  # a binding file: its FMU, and the binding checked against it
         from cosim.fmi.binding_file import load_binding
         from cosim.master import check_set_up
-        from cosim.scenarios import load_scenario
+        from cosim.scenarios import set_up_scenario
 
         if args.draft_binding:
             raise ConfigError(f"--draft-binding drafts a binding for an FMU; {args.fmu} is a binding already")
         binding = load_binding(args.fmu)  # every check, and a warning line if units contradict roles
-        check_set_up(binding, [load_scenario("startup")])  # its parameters on the FMU, set up as a start-up run's
+        check_set_up(binding, [set_up_scenario(binding)])  # its parameters on the FMU, set up as a run's
         print(describe_fmu(binding.fmu_path))
         roles = [f"{role} -> {m.variable}" + (f" x {m.scale:g}" if m.scale != 1 else "")
                  + (f" + {m.offset:g}" if m.offset else "") for role, m in binding.roles.items()]
@@ -186,7 +189,11 @@ def cmd_compare(args) -> int:
 
 def add_scenarios_parser(sub) -> None:
     p = sub.add_parser("scenarios", help="list the shipped scenarios",
-                       description="List the shipped scenario files (TOML) with their events.")
+                       description="List the shipped scenario files (TOML) with their events, resolved against a "
+                                   "plant's converter spec (the shipped scenarios are templates: the start-up to the "
+                                   "nominal output, the load step to 5/6 of the nominal load, ...): the built-in "
+                                   "plant's Table II, or a binding file's [converter] table with --plant.")
+    _add_plant_options(p)
     p.set_defaults(func=cmd_scenarios)
 
 

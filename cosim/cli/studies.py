@@ -33,7 +33,8 @@ def cmd_reproduce(args) -> int:
 
         binding = load_binding(args.plant)
         for period in args.control_period or (PAPER_PERIOD,):
-            scenarios = [s for s in scenarios_for(period) if s.required_roles() <= set(binding.roles)]
+            scenarios = [s for s in scenarios_for(period, spec=binding.converter)
+                         if s.required_roles() <= set(binding.roles)]
             Batch(binding, scenarios).check_rates(period, 1e-5)
     from cosim.study.reproduce import FULL, QUICK, reproduce  # the whole study (torch, scipy): after the checks
 

@@ -16,6 +16,11 @@ from typing import Mapping
 
 from cosim.base.errors import ConfigError
 from cosim.base.labels import did_you_mean, slug
+from cosim.converter_spec import ConverterSpec
+from plant_fmu.table_ii import TABLE_II
+
+#: the built-in plant's converter spec: the paper's Table II (the one module that reads it)
+BUILTIN_SPEC: ConverterSpec = TABLE_II
 
 INPUT_ROLES = ("duty_cycle", "input_voltage", "load_resistance")
 OUTPUT_ROLES = ("output_voltage", "inductor_current", "load_current", "measured_output_voltage",
@@ -78,6 +83,9 @@ class PlantBinding:
     #: isolated only: the plant process's resident memory limit [MB], None: half the machine's memory
     #: (cosim.fmi.isolation.memory_limit_bytes); a plant process above it is stopped, a fault
     memory_limit: float | None = None
+    #: the converter under study (:mod:`cosim.converter_spec`): a binding file's ``[converter]`` table with the FMU's
+    #: start values as defaults, the built-in plant's Table II; None: none given (designs then refuse, naming the key)
+    spec: ConverterSpec | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
@@ -86,7 +94,7 @@ class PlantBinding:
     def __reduce__(self):  # read-only mappings do not pickle: rebuild from plain dicts (worker processes)
         return (PlantBinding, (self.fmu_path, dict(self.roles), self.interface, dict(self.parameters), self.max_step,
                                self.source, self.label, self.tag_override, self.isolate, self.step_timeout,
-                               self.memory_limit))
+                               self.memory_limit, self.spec))
 
     def has(self, role: str) -> bool:
         return role in self.roles
@@ -119,7 +127,13 @@ class PlantBinding:
             "isolated": self.isolate,
             "step_timeout_s": self.step_timeout,
             "memory_limit_mb": self.memory_limit,
+            **({"converter": self.spec.describe()} if self.spec is not None else {}),
         }
+
+    @property
+    def converter(self) -> ConverterSpec:
+        """The converter spec, or a spec that gives nothing (every design needing a value then refuses, naming it)."""
+        return self.spec if self.spec is not None else ConverterSpec(label=self.label, origin=self.origin)
 
 
 def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int] | None = None,
@@ -147,6 +161,7 @@ def builtin_binding(mode: str = "averaged", parameters: Mapping[str, float | int
         interface=interface,
         parameters=values,
         label=f"BuckConverter (built-in, {mode})",
+        spec=BUILTIN_SPEC,
     )
 
 

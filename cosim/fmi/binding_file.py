@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -51,6 +51,7 @@ from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
 from cosim.base.labels import did_you_mean
 from cosim.base.toml_files import TomlLocator, parse_toml, where
+from cosim.converter_spec import ConverterSpec, parse_converter_table
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import (
     CONTROLLER_ROLES,
@@ -69,7 +70,7 @@ from cosim.fmi.binding import (
 from cosim.fmi.plant_fmi2 import normalise_interface
 
 TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "step_timeout", "memory_limit", "roles",
-            "parameters"}
+            "parameters", "converter"}
 ROLE_KEYS = {"variable", "scale", "offset"}
 
 
@@ -233,11 +234,52 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
                            max_step=max_step, source=path, label=label, isolate=isolate, step_timeout=step_timeout,
                            memory_limit=memory_limit)
     _check_variables(binding, checked, loc)
+    binding = replace(binding, spec=converter_spec(data.get("converter"), binding, checked.model_description, loc))
     problems = unit_problems(binding, checked.model_description)
     if problems:
         print(f"warning: {path}: implausible binding: {'; '.join(problems)} "
               "(fmu_value = scale * workbench_value + offset)", file=sys.stderr)
     return binding
+
+
+def converter_spec(table, binding: PlantBinding, model_description, loc: TomlLocator) -> ConverterSpec:
+    """The binding file's ``[converter]`` table (:mod:`cosim.converter_spec`) with the FMU's defaults: the nominal
+    supply and load are the start values of the variables bound to input_voltage and load_resistance (in workbench
+    units, through the role's scale and offset) where the table does not give them; a circuit value given as an FMU
+    parameter's name is the binding's ``[parameters]`` value, else that parameter's start value."""
+    path = binding.source
+    variables = {v.name: v for v in model_description.modelVariables}
+    defaults = {}
+    for role in ("input_voltage", "load_resistance"):
+        mapping = binding.roles.get(role)
+        variable = variables.get(mapping.variable) if mapping is not None else None
+        if variable is not None and variable.start is not None:
+            value = (float(variable.start) - mapping.offset) / mapping.scale
+            defaults[role] = (value, f"the start value of {mapping.variable!r}, bound to {role}")
+
+    def parameter_value(name: str, scale: float, at: str) -> float:
+        variable = variables.get(name)
+        if variable is None or variable.causality != "parameter" or not is_float(variable):
+            choices = sorted(v.name for v in model_description.modelVariables
+                             if v.causality == "parameter" and is_float(v))
+            raise ConfigError(f"{at}: {binding.fmu_path.name} has no Real parameter {name!r} (its Real parameters: "
+                              f"{', '.join(choices) or 'none'})")
+        value = binding.parameters.get(name)
+        if value is None:  # the FMU's start value (the model description's text)
+            try:
+                value = float(variable.start)
+            except (TypeError, ValueError):
+                value = None
+        if value is None or isinstance(value, (bool, str)):
+            raise ConfigError(f"{at}: the FMU parameter {name!r} has no numeric value: set it under [parameters] or "
+                              "give the circuit value as a number")
+        return float(value) / scale
+
+    def place(key, table):
+        return where(path, loc, key, table) if key is not None else where(path, loc, "converter")
+
+    return parse_converter_table(table, f"binding file {path}", place, defaults, parameter_value,
+                                 label=binding.label)
 
 
 #: the quantity of each role's workbench value (SI; the duty 0..1)
@@ -439,7 +481,48 @@ def draft_binding_text(fmu_path: Path, binding_path: Path) -> str:
                 value = f'"{value}"'
             name = v.name if re.fullmatch(r"[A-Za-z0-9_-]+", v.name) else f'"{v.name}"'
             lines.append(f"# {name} = {value}")
+    lines += ["", *_draft_converter(md, guesses)]
     return "\n".join(lines) + "\n"
+
+
+def _draft_converter(model_description, guesses) -> list[str]:
+    """The draft's ``[converter]`` table (:mod:`cosim.converter_spec`), every key commented out: the nominal supply
+    and load default to the start values of their guessed variables; the output, the ranges and the circuit are the
+    user's to give."""
+    variables = {v.name: v for v in model_description.modelVariables}
+    parameters = [v for v in model_description.modelVariables if v.causality == "parameter" and is_float(v)]
+
+    def circuit(key: str, pattern: str, example: str, unit: str) -> str:
+        found = next((v for v in parameters if re.fullmatch(pattern, v.name, re.IGNORECASE)), None)
+        if found is None:
+            return f"# {key} = {example:<24} # [{unit}] a number, or the name of the FMU parameter that holds it"
+        quoted = f'"{found.name}"'
+        return f"# {key} = {quoted:<24} # [{unit}] the FMU parameter {found.name} (start {found.start})"
+
+    def start(role: str) -> str:
+        name = guesses.get(role, (None,))[0]
+        value = variables[name].start if name in variables else None
+        return f"default: the start value of {name}, {value}" if value is not None else "no start value to default to"
+
+    return [
+        "# The converter under study: the shipped scenarios, the PI tuning, the NNPC's identification data and the",
+        "# classical and MPC designs work at these operating points (docs/guide/external-plants.md). Give at least",
+        "# output_voltage; the ranges (the operating envelope) are needed by the identification, the envelope designs",
+        "# and the map; the circuit by the model-based designs (mpc-nominal, current-mode, type-iii).",
+        "[converter]",
+        "# output_voltage = 12.0                # [V] nominal output, the regulated reference (required)",
+        f"# input_voltage = 48.0                 # [V] nominal supply ({start('input_voltage')})",
+        f"# load_resistance = 6.0                # [Ohm] nominal load ({start('load_resistance')})",
+        "# output_voltage_range = [3.0, 20.0]   # [V] references",
+        "# input_voltage_range = [36.0, 60.0]   # [V] supplies",
+        "# load_resistance_range = [4.0, 100.0] # [Ohm] loads",
+        "# control_periods = [1e-3]             # [s]",
+        "# inductor_current_limit = 8.0         # [A]",
+        "# [converter.circuit]                  # the nominal circuit: numbers in SI, or an FMU parameter's name",
+        circuit("inductance", r"l|ind\w*|l_\w+", "100e-6", "H"),
+        circuit("capacitance", r"c|cap\w*|c_\w+", "47e-6", "F"),
+        circuit("switching_frequency", r"f_?sw|fs|f_?s|sw\w*_?freq\w*|switching_?frequency", "100e3", "Hz"),
+    ]
 
 
 def write_draft_binding(fmu_path: str | Path, out_path: str | Path) -> Path:

@@ -175,7 +175,10 @@ def _warn_once(line: str) -> None:
 
 def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
     """Parse and check a controller-binding file's text (``path`` locates the FMU and names errors)."""
-    data, loc = parse_toml(text, path, TOP_KEYS)
+    data, loc = parse_toml(text, path, TOP_KEYS | {"converter"})
+    if "converter" in data:  # a plant binding's converter spec: say what the file is, not that the key is unknown
+        raise ConfigError(f"{where(path, loc, None, 'converter')}: [converter] is a plant binding's table: this is a "
+                          "plant binding file, given where a controller binding is expected")
     fmu_path = fmu_path_of(data, path, loc)
     label = data.get("label", f"{fmu_path.stem} (bound by {path.name})")
     if not isinstance(label, str):

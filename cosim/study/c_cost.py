@@ -57,7 +57,7 @@ def count_nnpc_operations(model_path: Path, period: float, scenario_names) -> di
     controller = nnpc(load_model(model_path, expect_period=period), period, NNPC)
     counting = _CountingTwin(implemented(controller, "c"))
     binding = plant_binding("nominal", "switched")
-    for scenario in scenarios_for(period, scenario_names):
+    for scenario in scenarios_for(period, scenario_names, spec=binding.converter):
         simulate(binding, counting, scenario, record_period=period)
     if controller.rti is not None:
         counts = rti_operation_counts(controller, np.array(counting.rti), np.array(counting.qp_iterations),

@@ -54,7 +54,7 @@ from controllers.small_signal import (
     unit_circle,
 )
 from cosim.base.files import atomic_write_text, json_text
-from plant_fmu.table_ii import TABLE_II
+from cosim.study.vocabulary import PAPER_SPEC
 
 METHOD_CURRENT_MODE = (
     "average-current-mode control: inner PI crossover at the target (fsw/10) or the highest frequency below it with "
@@ -79,11 +79,12 @@ CANDIDATES = 120  # crossover candidates per design, log-spaced from the target 
 
 @dataclass(frozen=True)
 class Envelope:
-    """The operating envelope a design is checked over (its corners)."""
+    """The operating envelope a design is checked over (its corners); the defaults are the paper study's (Table II's
+    envelope), a plant's come from its converter spec (:func:`targets_for`)."""
 
-    references: tuple[float, float] = (3.0, 20.0)  # [V]
-    loads: tuple[float, float] = (4.0, 100.0)  # [Ohm]
-    supplies: tuple[float, float] = (36.0, 60.0)  # [V]
+    references: tuple[float, float] = PAPER_SPEC.output_voltage_range  # [V]
+    loads: tuple[float, float] = PAPER_SPEC.load_resistance_range  # [Ohm]
+    supplies: tuple[float, float] = PAPER_SPEC.input_voltage_range  # [V]
 
     def corners(self) -> list[OperatingPoint]:
         return [OperatingPoint(v, r, s) for v in self.references for r in self.loads for s in self.supplies]
@@ -114,8 +115,8 @@ ENVELOPE = Envelope()
 class DesignTargets:
     """What the designs are asked for (SI units)."""
 
-    sample_period: float = TABLE_II.switching_period  # [s] one sample per PWM period
-    switching_frequency: float = TABLE_II.switching_frequency  # [Hz]
+    sample_period: float = PAPER_SPEC.switching_period  # [s] one sample per PWM period
+    switching_frequency: float = PAPER_SPEC.switching_frequency  # [Hz]
     inner_crossover_fraction: float = 0.1  # current loop (and Type-III) crossover target, of fsw
     outer_crossover_ratio: float = 0.2  # the voltage loop's target, of the inner loop's achieved crossover
     phase_margin_deg: float = 60.0  # every loop: the current-mode controller's inner and outer, the Type-III's
@@ -124,9 +125,9 @@ class DesignTargets:
     computation_delay: int = 1  # [samples]
     sensor: str = "average"  # what the controller reads (controllers.small_signal.SENSORS)
     modulator: str = "trailing-edge"  # how the duty reaches the circuit (controllers.small_signal.MODULATORS)
-    operating_point: OperatingPoint = OperatingPoint(TABLE_II.output_voltage, TABLE_II.load_resistance,
-                                                     TABLE_II.input_voltage)
-    current_limit: float = 8.0  # [A] the current-mode controller's inductor-current limit
+    operating_point: OperatingPoint = OperatingPoint(PAPER_SPEC.output_voltage, PAPER_SPEC.load_resistance,
+                                                     PAPER_SPEC.input_voltage)
+    current_limit: float = PAPER_SPEC.inductor_current_limit  # [A] the current-mode controller's inductor-current limit
     duty_limits: tuple[float, float] = (0.0, 1.0)
     envelope: Envelope = ENVELOPE
 
@@ -465,13 +466,23 @@ __all__ = ["DesignTargets", "Envelope", "Design", "design_current_mode", "design
 
 
 def targets_for(binding, control_period: float) -> DesignTargets:
-    """The design targets for a built-in plant binding at ``control_period``: the sensor it gives the
-    controllers (the switched FMU's period mean, the averaged FMU's plain outputs = a sample), its
-    modulator (the switched FMU's sawtooth PWM, the averaged FMU's held duty) and the one-sample
-    computation delay. Designs need one sample per PWM period (a ValueError otherwise)."""
-    if abs(control_period * TABLE_II.switching_frequency - 1) > 1e-9:
-        raise ValueError(f"the classical designs sample once per PWM period ({TABLE_II.switching_period:.6g} s), not "
+    """The design targets for a plant binding at ``control_period``, at its converter spec's nominal point, switching
+    frequency, inductor-current limit and envelope corners (:mod:`cosim.converter_spec`; each refused, naming its key,
+    where the spec does not give it): the sensor it gives the controllers (the built-in switched FMU's period mean,
+    else its plain outputs = a sample), its modulator (the built-in switched FMU's sawtooth PWM, else a held duty) and
+    the one-sample computation delay. Designs need one sample per PWM period (a ValueError otherwise)."""
+    spec = binding.converter
+    purpose = "the classical designs"
+    switching_frequency = spec.require("switching_frequency", purpose)
+    if abs(control_period * switching_frequency - 1) > 1e-9:
+        raise ValueError(f"the classical designs sample once per PWM period ({1 / switching_frequency:.6g} s), not "
                          f"every {control_period:.6g} s")
+    point = OperatingPoint(*(spec.require(key, purpose) for key in ("output_voltage", "load_resistance",
+                                                                      "input_voltage")))
+    envelope = Envelope(*(spec.operating_range(key, purpose) for key in ("output_voltage", "load_resistance",
+                                                                         "input_voltage")))
+    spec_values = dict(switching_frequency=switching_frequency, operating_point=point, envelope=envelope,
+                       current_limit=spec.require("inductor_current_limit", "the current-mode design's current limit"))
     from cosim.fmi.binding import PLANT_MODE_CODES
 
     switched = binding.parameters.get("plant_mode") == PLANT_MODE_CODES["switched"]
@@ -479,7 +490,7 @@ def targets_for(binding, control_period: float) -> DesignTargets:
         binding.roles["measured_output_voltage"].variable.startswith("average")
     sawtooth = binding.parameters.get("pwm_carrier", 0) == 0
     return DesignTargets(sample_period=control_period, sensor="average" if (switched and averaging) else "sample",
-                         modulator="trailing-edge" if (switched and sawtooth) else "zoh")
+                         modulator="trailing-edge" if (switched and sawtooth) else "zoh", **spec_values)
 
 
 def design_files(out_dir: Path, tag: str) -> dict[str, Path]:
@@ -520,7 +531,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
-    if pipeline.binding_file or abs(period * TABLE_II.switching_frequency - 1) > 1e-9:
+    if pipeline.binding_file or abs(period * PAPER_SPEC.switching_frequency - 1) > 1e-9:
         return []
     start = time.perf_counter()
     tag = pipeline_tag(pipeline.plant_tag, period)

@@ -46,7 +46,6 @@ from cosim.study.vocabulary import (
     ON_DEMAND_SAMPLES,
     PREDICTIVE_CONTROLLERS,
 )
-from plant_fmu.table_ii import TABLE_II
 
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
@@ -120,13 +119,13 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
         announce(path, reason, f"identifying {config.label} again")
     pi = tuned_pi(binding, period, out_dir, progress)
     region = network_region(name, period)
-    settings = collection_settings(period, samples, seed, region=region)
+    settings = collection_settings(period, samples, seed, region=region, spec=binding.converter)
     say(f"collecting {samples} samples on {binding.label} and identifying {config.label} (saved to {path}) ...")
     data = collect(binding, pi.controller(), settings, progress=progress)
     data_path = data_file(out_dir, binding.tag, period, None if region == default_region(period) else region)
     data.attrs["metadata"]["seed"] = seed
     save_samples(data, data_path)
-    meta = {"control_period_s": period, "plant": binding.label, "seed": seed,
+    meta = {"control_period_s": period, "plant": binding.label, "seed": seed, "converter": binding.converter.describe(),
             "collection": json.loads(json.dumps(asdict(settings))), "data_file": str(data_path),
             "design": wanted.describe()}
     if name == "nnpc":
@@ -151,7 +150,7 @@ def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, 
     from controllers.explicit_policy import load_policy, save_policy
     from cosim.study.distillation import FULL_DISTILLATION, distill, expert_fingerprint, settings_dict
 
-    settings = replace(FULL_DISTILLATION, seed=seed)
+    settings = replace(FULL_DISTILLATION, seed=seed).for_converter(binding.converter)
     path = model_file(out_dir, binding.tag, period, "nnpc-explicit")
     wanted = design_key("nnpc-explicit", binding, period, seed=seed, settings=settings_dict(settings),
                         depends_on={"expert_weights": expert_fingerprint(model),
@@ -181,6 +180,12 @@ def true_parameters(binding: PlantBinding) -> CircuitParameters:
     fields = ("inductance", "capacitance", "inductor_resistance", "switch_on_resistance", "diode_forward_voltage",
               "capacitor_esr")
     return CircuitParameters(**{f: float(p.get(f, getattr(NOMINAL, f))) for f in fields})
+
+
+def nominal_circuit(binding: PlantBinding, purpose: str) -> CircuitParameters:
+    """The nominal circuit of the plant's converter spec (``[converter.circuit]``; Table II for the built-in plant) that
+    a model-based design of ``purpose`` believes -- refused, naming the key, where the spec gives no L or C."""
+    return CircuitParameters(**binding.converter.circuit(purpose))
 
 
 def make_controllers(names: list[str], binding: PlantBinding, period: float, out_dir: Path, *,
@@ -239,9 +244,15 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
         raise ConfigError(str(error)) from None
     needs_current = [n for n in names if n in (*NETWORKS, "nnpc-adaptive", "nnpc-explicit", "current-mode")]
     designed = [n for n in names if n in ("current-mode", "type-iii")]
-    if designed and abs(period * TABLE_II.switching_frequency - 1) > 1e-9:
-        raise ConfigError(f"{designed[0]} is designed for one sample per PWM period (--control-period 1/75e3), not "
-                          f"{period:.6g} s")
+    if designed:
+        f_sw = binding.converter.require("switching_frequency",
+                                         f"{designed[0]} (designed for one sample per PWM period)")
+        if abs(period * f_sw - 1) > 1e-9:
+            raise ConfigError(f"{designed[0]} is designed for one sample per PWM period (--control-period 1/{f_sw:g}), "
+                              f"not {period:.6g} s")
+        binding.converter.circuit(f"{designed[0]} (designed on the nominal circuit)")
+    if "mpc-nominal" in names:
+        binding.converter.circuit("mpc-nominal (it predicts with the nominal circuit)")
     if needs_current and not binding.has("inductor_current"):
         raise ConfigError(f"{needs_current[0]} needs the inductor_current role, which {binding.origin} does not bind")
     trains = [n for n in names if n in NETWORKS or n == "nnpc-adaptive" or (n == "nnpc-explicit" and not policy_path)]
@@ -284,7 +295,7 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                                                model_path=None, progress=progress)
                 factory = adaptive_nnpc if name == "nnpc-adaptive" else nnpc
                 controllers.append(factory(model, period, CONTROLLERS[name], duty_limits=duty_limits,
-                                           **planned_with(name, optimizer, rti_changes)))
+                                           spec=binding.converter, **planned_with(name, optimizer, rti_changes)))
             elif name == "nnpc-explicit":
                 if not policy_path:
                     if tuple(duty_limits) != (0.0, 1.0):
@@ -292,11 +303,11 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                     model = given or trained_model("nnpc", binding, period, out_dir, samples=samples, seed=seed,
                                                    model_path=None, progress=progress)
                     policy = distilled_policy(model, binding, period, out_dir, seed=seed, progress=progress)
-                controllers.append(explicit_nnpc(policy, NNPC_EXPLICIT))
+                controllers.append(explicit_nnpc(policy, NNPC_EXPLICIT, spec=binding.converter))
             elif name in ("current-mode", "type-iii"):
                 from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
 
-                parameters = true_parameters(binding) if binding.source is None else NOMINAL
+                parameters = true_parameters(binding) if binding.source is None else nominal_circuit(binding, name)
                 design = (design_current_mode if name == "current-mode" else design_type_iii)(
                     parameters, replace(targets_for(binding, period), duty_limits=tuple(duty_limits)), CONTROLLERS[name])
                 controllers.append(design.controller)
@@ -306,7 +317,8 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                 tuning = tune_pi_envelope(binding, period, progress=progress)
                 controllers.append(tuning.controller(duty_limits, name=CONTROLLERS[name]))
             elif name in ("mpc-oracle", "mpc-nominal"):
-                parameters, label = (oracle, MPC_ORACLE) if name == "mpc-oracle" else (NOMINAL, MPC_NOMINAL)
+                parameters, label = (oracle, MPC_ORACLE) if name == "mpc-oracle" else \
+                    (nominal_circuit(binding, name), MPC_NOMINAL)
                 controllers.append(model_mpc(parameters, period, label, duty_limits, binding,
                                              **planned_with(name, optimizer, rti_changes)))
             elif name in python:  # the user's own Python controller, at its own sample period

@@ -20,7 +20,8 @@ away) and whose held full-amplitude runs are the full-duty and braking moves the
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
+from fractions import Fraction
 
 import numpy as np
 import pandas as pd
@@ -28,13 +29,13 @@ import pandas as pd
 from controllers.base import Measurement, check_duty_limits
 from controllers.load_estimate import conductance_series
 from cosim.base.errors import ConfigError, RunInterrupted
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.recorder import UNITS
 from cosim.results import write_parquet
 from cosim.scenarios import Scenario, ScenarioEvent
-from plant_fmu.table_ii import TABLE_II
 
 SAMPLE_COLUMNS = ("time", "measured_inductor_current", "measured_output_voltage", "duty_cycle", "reference",
                   "load_resistance", "input_voltage", "load_current", "measured_load_current", "load_conductance",
@@ -51,18 +52,24 @@ DITHERS = ("gaussian", "am-prbs")
 @dataclass(frozen=True)
 class CollectionSettings:
     samples: int = 10_000
-    reference_range: tuple[float, float] = (0.0, 20.0)  # [V], uniform
-    load_range: tuple[float, float] = (4.0, 10.0)  # [Ohm], log-uniform
+    #: [V], uniform; None: the paper's region of the plant's converter (:func:`paper_region`)
+    reference_range: tuple[float, float] | None = None
+    load_range: tuple[float, float] | None = None  # [Ohm], log-uniform; None: as reference_range
     hold_range: tuple[int, int] = (5, 40)  # control periods a random level is held, uniform
     excitation: float = 0.01  # standard deviation of the duty dither [1]
     rest_probability: float = 0.15  # chance that a new reference level is 0 V, so start-ups recur
-    input_voltage: float = TABLE_II.input_voltage  # [V] the supply (its first level with input_voltage_range)
+    #: [V] the supply (its first level with input_voltage_range); None: the converter's nominal supply
+    input_voltage: float | None = None
     seed: int = 0
     input_voltage_range: tuple[float, float] | None = None  # [V], uniform held levels; None: the supply is fixed
     dither: str = "gaussian"  # one of DITHERS
     dither_hold: tuple[int, int] = (1, 1)  # samples an am-prbs level is held, uniform
 
     def check(self) -> None:
+        for key in ("reference_range", "load_range", "input_voltage"):
+            if getattr(self, key) is None:
+                raise ConfigError(f"collection settings: {key} is not given (collect() takes it from the plant's "
+                                  "converter spec)")
         if self.samples < MIN_SAMPLES:
             raise ConfigError(f"samples = {self.samples} is too few: expected >= {MIN_SAMPLES}")
         lo, hi = self.reference_range
@@ -89,6 +96,33 @@ class CollectionSettings:
             raise ConfigError(f"dither hold ({lo}, {hi}) samples is invalid: expected 1 <= min <= max")
 
 
+#: the paper's experiment scaled to a converter: references from 0 V (rests) to the envelope's highest output, loads
+#: from the envelope's smallest to this many times the nominal load (Table II: 0-20 V and 4-10 Ohm at 48 V)
+PAPER_LOAD_FACTOR = Fraction(5, 3)
+
+
+def paper_region(spec: ConverterSpec) -> dict:
+    """The paper's identification region (Section IV) for the converter ``spec``: reference_range 0 V to the top of its
+    output range, load_range from its smallest load to :data:`PAPER_LOAD_FACTOR` x its nominal load (at most its
+    largest), the supply at its nominal value -- on Table II exactly the paper's 0-20 V, 4-10 Ohm at 48 V."""
+    purpose = "the identification data's region"
+    top = spec.operating_range("output_voltage", purpose)[1]
+    low, high = spec.operating_range("load_resistance", purpose)
+    nominal_load = spec.require("load_resistance", purpose)
+    return {"reference_range": (0.0, top), "load_range": (low, min(float(Fraction(nominal_load) * PAPER_LOAD_FACTOR),
+                                                                    high)),
+            "input_voltage": float(spec.require("input_voltage", purpose))}
+
+
+def completed(settings: CollectionSettings, spec: ConverterSpec) -> CollectionSettings:
+    """``settings`` with the region values it leaves out (None) from the converter ``spec`` (:func:`paper_region`)."""
+    missing = [key for key in ("reference_range", "load_range", "input_voltage") if getattr(settings, key) is None]
+    if not missing:
+        return settings
+    region = paper_region(spec)
+    return replace(settings, **{key: region[key] for key in missing})
+
+
 def random_scenario(settings: CollectionSettings, control_period: float, vary_load: bool = True,
                     vary_supply: bool = True) -> Scenario:
     """Random references and loads (and supplies, with ``input_voltage_range``) held for random whole
@@ -97,6 +131,7 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
     ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value;
     ``vary_supply=False`` (one bound without a supply input) the supply at ``input_voltage``.
     """
+    settings.check()
     rng = np.random.default_rng(settings.seed)
     duration = (settings.samples - 1) * control_period
 
@@ -173,7 +208,9 @@ class DitheredController:
 
 def collect(binding: PlantBinding, controller, settings: CollectionSettings = CollectionSettings(),
             progress: bool = False) -> pd.DataFrame:
-    """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`)."""
+    """Run the identification experiment; return one row per control sample (:data:`SAMPLE_COLUMNS`). Region values
+    ``settings`` leaves out come from the plant's converter spec (:func:`completed`)."""
+    settings = completed(settings, binding.converter)
     settings.check()
     period = controller.sample_period
     scenario = random_scenario(settings, period, vary_load=binding.has("load_resistance"),
@@ -191,7 +228,8 @@ def collect(binding: PlantBinding, controller, settings: CollectionSettings = Co
     frame["load_conductance"] = conductance_series(frame["measured_output_voltage"].to_numpy(),
                                                    frame["measured_load_current"].to_numpy(),
                                                    frame["measured_inductor_current"].to_numpy(),
-                                                   initial=1.0 / TABLE_II.load_resistance)
+                                                   initial=1.0 / binding.converter.require(
+                                                       "load_resistance", "the load estimate's start"))
     frame = frame[list(SAMPLE_COLUMNS)]
     frame.attrs["metadata"] = {
         "description": "NN identification data: one row per control sample (paper Section IV)",

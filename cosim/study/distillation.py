@@ -42,12 +42,13 @@ from controllers.explicit_policy import (
 )
 from controllers.nn_model import NNPlantModel
 from cosim.base.errors import ConfigError
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
 from cosim.study import experiments
 from cosim.study.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
-from cosim.study.experiments import NOMINAL_OPERATING_POINT, explicit_nnpc, implemented, nnpc
+from cosim.study.experiments import explicit_nnpc, implemented, nnpc, operating_point
 from cosim.study.vocabulary import OPTIMIZERS
 
 
@@ -60,8 +61,9 @@ class DistillationSettings:
     # (4 + 1) x 6 = 18 000 the nominal plant's reference step down or the mismatch plant's load change ended at
     # 1.065-1.080 x the online NNPC's IAE, depending on the network)
     samples: int = 600  # control samples per episode (600 at 13.33 us: 8 ms)
-    reference_range: tuple[float, float] = (3.0, 20.0)  # [V], uniform
-    load_range: tuple[float, float] = (4.0, 100.0)  # [Ohm], log-uniform
+    #: [V], uniform; None: the converter's envelope (its output_voltage_range; Table II: 3-20 V), see for_converter
+    reference_range: tuple[float, float] | None = None
+    load_range: tuple[float, float] | None = None  # [Ohm], log-uniform; None: its load_resistance_range (4-100 Ohm)
     hold_range: tuple[int, int] = (20, 100)  # control periods a level is held (short: many transients per label;
     # (40, 200) gave 8-16 % reference-step overshoot where this gives 3 %, nominal switched plant)
     rest_probability: float = 0.1  # chance that a new reference is 0 V (so start-ups recur)
@@ -81,7 +83,16 @@ class DistillationSettings:
         if self.expert_optimizer is not None and self.expert_optimizer not in OPTIMIZERS:
             raise ConfigError(f"expert optimizer {self.expert_optimizer!r} is unknown: expected one of "
                               f"{', '.join(OPTIMIZERS)}")
-        self.collection(0).check()
+        # the region and the supply come from the converter at distillation time (for_converter): stand-ins here
+        replace(self.collection(0), reference_range=self.reference_range or (0.0, 1.0),
+                load_range=self.load_range or (1.0, 2.0), input_voltage=1.0).check()
+
+    def for_converter(self, spec: ConverterSpec) -> DistillationSettings:
+        """These settings with the episodes' region the converter ``spec``'s envelope where they leave it out (the
+        references over its output range, the loads over its load range): what a policy's design key holds."""
+        purpose = "the explicit NNPC's distillation episodes"
+        return replace(self, reference_range=self.reference_range or spec.operating_range("output_voltage", purpose),
+                       load_range=self.load_range or spec.operating_range("load_resistance", purpose))
 
     def resolved(self) -> DistillationSettings:
         """These settings with the expert's optimizer named: None becomes the workbench's default now
@@ -93,10 +104,11 @@ class DistillationSettings:
     def labels(self) -> int:
         return (self.rounds + 1) * self.episodes * self.samples
 
-    def collection(self, seed: int) -> CollectionSettings:
+    def collection(self, seed: int, input_voltage: float | None = None) -> CollectionSettings:
+        """One episode's random references and loads (``input_voltage`` [V]: its supply)."""
         return CollectionSettings(samples=self.samples, reference_range=self.reference_range,
                                   load_range=self.load_range, hold_range=self.hold_range, excitation=0.0,
-                                  rest_probability=self.rest_probability, seed=seed)
+                                  rest_probability=self.rest_probability, seed=seed, input_voltage=input_voltage)
 
 
 #: the reproduction's budget (33 600 labels per plant) and the small one of the tests
@@ -192,16 +204,18 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
     policy's trainings (``distillation_training_s``) and of all the rest (``distillation_episodes_s``: the labelled
     episodes -- the plant, the expert and the learner -- and their set-up)."""
     settings.check()  # torch trains on one thread (train_policy), and nothing else here uses it
-    settings = settings.resolved()  # the metadata names the expert's optimizer
+    settings = settings.resolved().for_converter(binding.converter)  # the metadata names the optimizer and region
     # by default the labels come from the online NNPC as it runs, the RTI (with the search as its fallback at
     # start-ups): on every identification seed and plant its policies met the explicit NNPC's targets as often as or
     # more often than the search's, whose labels had been kept for their plans' cost (the RTI's cost > 1 % more than
     # the search's at 3-7.5 % of these episodes' samples, right at the steps) -- worst-scenario IAE / online median
     # 1.016 vs 1.043 (nominal switched), 1.014 vs 1.028 (mismatch), start-up overshoot 6.74 vs 8.22 % and
     # 0.90 vs 4.09 %: results/explicit-every-seed.md and -search-labels.md (make every-seed) -- in half the time
-    online = nnpc(model, control_period, optimizer=settings.expert_optimizer)
+    spec = binding.converter
+    online = nnpc(model, control_period, optimizer=settings.expert_optimizer, spec=spec)
     expert = ShadowExpert(implemented(online, "c"))
-    nominal_load = NOMINAL_OPERATING_POINT["nominal_load"]
+    point = operating_point(spec)
+    nominal_load = point["nominal_load"]
     features = np.empty((0, 7))
     labels = np.empty(0)
     policy: ExplicitPolicy | None = None
@@ -217,11 +231,12 @@ def distill(model: NNPlantModel, binding: PlantBinding, control_period: float,
         with open_plant(binding) as plant:
             for round_index in range(settings.rounds + 1):
                 beta = 1.0 if round_index == 0 else settings.expert_mixing ** round_index
-                learner = None if policy is None else explicit_nnpc(policy)
+                learner = None if policy is None else explicit_nnpc(policy, spec=spec)
                 new_x, new_y, applied = [], [], 0
                 for episode in range(settings.episodes):
                     seed = settings.seed + 1000 * round_index + episode
-                    scenario = random_scenario(settings.collection(seed), control_period)
+                    scenario = random_scenario(settings.collection(seed, point["nominal_input_voltage"]),
+                                               control_period)
                     loop = DaggerEpisode(expert, learner, beta, seed, nominal_load)
                     run(plant, loop, scenario, record_period=control_period, seed=seed)
                     new_x += loop.features

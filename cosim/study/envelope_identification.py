@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cosim.study.vocabulary import ENVELOPE_LOADS, ENVELOPE_REFERENCES, ENVELOPE_SUPPLIES, SWITCHING_PERIOD
-from plant_fmu.table_ii import TABLE_II
+from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
 
 #: the envelope the map measures (cosim.study.envelope.FULL_MAP spans it) and the envelope collection draws from
-REFERENCES, LOADS, SUPPLIES = ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES
+REFERENCES, LOADS, SUPPLIES = (PAPER_SPEC.output_voltage_range, PAPER_SPEC.load_resistance_range,
+                              PAPER_SPEC.input_voltage_range)
 #: coverage cells: 4 reference bins (linear) x 4 load bins (log) x 3 supply bins (linear)
 REFERENCE_BINS, LOAD_BINS, SUPPLY_BINS = 4, 4, 3
 #: samples a cell must hold to count as covered (a held level lasts 20-200 samples at 13.33 us)
@@ -63,7 +63,7 @@ def in_dcm(frame: pd.DataFrame) -> np.ndarray:
     vs = frame["input_voltage"].to_numpy(dtype=float)
     vo = np.clip(frame["measured_output_voltage"].to_numpy(dtype=float), 0.0, None)
     duty = np.clip(vo / vs, 0.0, 0.999)
-    boundary = 2 * TABLE_II.inductance * TABLE_II.switching_frequency / (1 - duty)
+    boundary = 2 * PAPER_SPEC.inductance * PAPER_SPEC.switching_frequency / (1 - duty)
     return frame["load_resistance"].to_numpy(dtype=float) > boundary
 
 
@@ -120,11 +120,12 @@ def test_sets(binding, pi, samples: int = TEST_SAMPLES) -> dict[str, pd.DataFram
     from cosim.study.experiments import collection_settings, implemented, model_mpc
 
     oracle = implemented(model_mpc(true_parameters(binding), SWITCHING_PERIOD, "MPC-oracle", binding=binding))
-    envelope = replace(collection_settings(SWITCHING_PERIOD, samples, TEST_SEED, region="envelope"),
+    envelope = replace(collection_settings(SWITCHING_PERIOD, samples, TEST_SEED, region="envelope",
+                                           spec=binding.converter),
                        dither="gaussian", excitation=TEST_DITHER)
     return {"envelope (oracle MPC)": collect(binding, oracle, envelope),
             "paper region (PI)": collect(binding, pi, collection_settings(SWITCHING_PERIOD, samples, TEST_SEED,
-                                                                          region="paper"))}
+                                                                          region="paper", spec=binding.converter))}
 
 
 def prediction_errors(model, tests: dict[str, pd.DataFrame], horizon: int) -> list[dict]:
@@ -148,7 +149,7 @@ def nominal_scenarios(binding, model, name: str) -> list[dict]:
     from cosim.study.experiments import implemented, nnpc, scenarios_for
 
     rows = []
-    for scenario in scenarios_for(SWITCHING_PERIOD):
+    for scenario in scenarios_for(SWITCHING_PERIOD, spec=binding.converter):
         m = run_metrics(simulate(binding, implemented(nnpc(model, SWITCHING_PERIOD, name)), scenario,
                                  record_period=1e-5))
         rows.append({"controller": name, "scenario": scenario.name, "iae_Vs": m["iae_Vs"],
@@ -161,10 +162,11 @@ def variant_settings(collection: str, seed: int, samples: int):
     from cosim.study.experiments import collection_settings
 
     if collection == "envelope, white dither":
-        paper = collection_settings(SWITCHING_PERIOD, samples, seed, region="paper")
-        return replace(collection_settings(SWITCHING_PERIOD, samples, seed, region="envelope"), dither="gaussian",
+        paper = collection_settings(SWITCHING_PERIOD, samples, seed, region="paper", spec=PAPER_SPEC)
+        return replace(collection_settings(SWITCHING_PERIOD, samples, seed, region="envelope", spec=PAPER_SPEC),
+                       dither="gaussian",
                        dither_hold=(1, 1), excitation=paper.excitation)
-    return collection_settings(SWITCHING_PERIOD, samples, seed, region=collection)
+    return collection_settings(SWITCHING_PERIOD, samples, seed, region=collection, spec=PAPER_SPEC)
 
 
 def variant_config(variant: str):

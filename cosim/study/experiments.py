@@ -26,25 +26,23 @@ from controllers.predictors import (
 )
 from cosim.base.errors import ConfigError
 from cosim.base.labels import did_you_mean
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding
 from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
-from cosim.study.data_collection import CollectionSettings
+from cosim.study.data_collection import CollectionSettings, paper_region
 from cosim.study.vocabulary import (
     COLLECTION_REGIONS,
     DEFAULT_IMPLEMENTATION,
     ENVELOPE_DITHER,
     ENVELOPE_DITHER_HOLD,
-    ENVELOPE_LOADS,
-    ENVELOPE_REFERENCES,
-    ENVELOPE_SUPPLIES,
     FAST_RATE_COMPRESSION,
     IMPLEMENTATIONS,
     LC_PERIOD,
     OPTIMIZERS,
+    PAPER_SPEC,
     identification_dither,
     transient_within_sample,
 )
-from plant_fmu.table_ii import TABLE_II
 
 if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained or read
     from controllers.nn_model import NNPlantModel
@@ -101,7 +99,8 @@ def network_region(name: str, control_period: float) -> str:
 
 
 def collection_settings(control_period: float, samples: int = 10_000, seed: int = 0,
-                        excitation: float | None = None, region: str | None = None) -> CollectionSettings:
+                        excitation: float | None = None, region: str | None = None, *,
+                        spec: ConverterSpec) -> CollectionSettings:
     """Identification settings per rate (paper Section IV, random levels held for random intervals).
 
     At 1 ms levels are held 5-40 samples and the PI's duty is dithered with sigma 0.01. At faster
@@ -109,9 +108,12 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
     is 0.1: the NNPC there plans 23-sample duty sequences (full and zero duty, then braking) far
     from the PI's own trajectories, and the network must have seen such moves.
 
-    ``region`` (one of :data:`COLLECTION_REGIONS`; None: :func:`default_region`): ``"paper"`` -- references
-    0-20 V, loads 4-10 Ohm at 48 V; ``"envelope"`` -- references 3-20 V (rests at 0 V), loads 4-100 Ohm and
-    supplies 36-60 V, with the amplitude-modulated random binary dither (``excitation`` its largest amplitude).
+    ``region`` (one of :data:`COLLECTION_REGIONS`; None: :func:`default_region`), over the converter ``spec``'s
+    operating points: ``"paper"`` -- the paper's experiment scaled to it
+    (:func:`~cosim.study.data_collection.paper_region`; Table II: references 0-20 V, loads 4-10 Ohm at 48 V);
+    ``"envelope"`` -- its envelope: references over its output range (rests at 0 V), loads and supplies over its
+    ranges (Table II: 3-20 V, 4-100 Ohm, 36-60 V), with the amplitude-modulated random binary dither (``excitation``
+    its largest amplitude).
     """
     region = default_region(control_period) if region is None else region
     if region not in COLLECTION_REGIONS:
@@ -119,11 +121,14 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
     slow = transient_within_sample(control_period)
     settings = CollectionSettings(samples=samples, seed=seed, hold_range=(5, 40) if slow else (20, 200),
                                   excitation=excitation if excitation is not None else
-                                  identification_dither(control_period))
+                                  identification_dither(control_period), **paper_region(spec))
     if region == "paper":
         return settings
-    return replace(settings, reference_range=ENVELOPE_REFERENCES, load_range=ENVELOPE_LOADS,
-                   input_voltage_range=ENVELOPE_SUPPLIES, dither="am-prbs", dither_hold=ENVELOPE_DITHER_HOLD,
+    purpose = "the identification data over the envelope"
+    return replace(settings, reference_range=spec.operating_range("output_voltage", purpose),
+                   load_range=spec.operating_range("load_resistance", purpose),
+                   input_voltage_range=spec.operating_range("input_voltage", purpose), dither="am-prbs",
+                   dither_hold=ENVELOPE_DITHER_HOLD,
                    excitation=excitation if excitation is not None else ENVELOPE_DITHER)
 
 
@@ -336,39 +341,62 @@ def implemented(controller, implementation: str = DEFAULT_IMPLEMENTATION):
         raise ConfigError(f"{controller.name}: {error} (run it with --implementation python)") from None
 
 
-#: what the predictive controllers assume before their sensors tell them (Table II)
-NOMINAL_OPERATING_POINT = {"nominal_load": TABLE_II.load_resistance, "nominal_input_voltage": TABLE_II.input_voltage}
+def operating_point(spec: ConverterSpec) -> dict[str, float]:
+    """What the predictive controllers assume before their sensors tell them: the converter's nominal load [Ohm] and
+    supply [V] (refused, naming the key, where the spec gives neither)."""
+    purpose = "the predictive controllers' start (their load and supply before the first measurement)"
+    return {"nominal_load": float(spec.require("load_resistance", purpose)),
+            "nominal_input_voltage": float(spec.require("input_voltage", purpose))}
+
+
+#: the paper study's operating point (Table II's 6 Ohm and 48 V)
+NOMINAL_OPERATING_POINT = operating_point(PAPER_SPEC)
+
+
+def network_operating_point(model: NNPlantModel, spec: ConverterSpec | None) -> dict[str, float]:
+    """The operating point an NNPC on ``model`` starts from: ``spec``'s if given, else the one the network's
+    identification recorded (``converter`` in its metadata), else the paper's -- a network without that record was
+    identified before converter specs existed, on the paper's converter."""
+    if spec is not None:
+        return operating_point(spec)
+    recorded = model.metadata.get("converter") if isinstance(model.metadata, dict) else None
+    if isinstance(recorded, dict) and recorded.get("load_resistance") and recorded.get("input_voltage"):
+        return {"nominal_load": float(recorded["load_resistance"]),
+                "nominal_input_voltage": float(recorded["input_voltage"])}
+    return NOMINAL_OPERATING_POINT
 
 
 def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon: int | None = None,
          duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None,
-         rti_changes: Mapping[str, object] | None = None) -> PredictiveController:
+         rti_changes: Mapping[str, object] | None = None, spec: ConverterSpec | None = None) -> PredictiveController:
     """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`);
-    ``rti_changes``: fields of the rate's RTI settings replaced (:func:`rti_settings`)."""
+    ``rti_changes``: fields of the rate's RTI settings replaced (:func:`rti_settings`); ``spec``: the converter it
+    regulates, whose nominal load and supply it starts from (None: :func:`network_operating_point`)."""
     return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
-                                duty_limits, name=name, **NOMINAL_OPERATING_POINT,
+                                duty_limits, name=name, **network_operating_point(model, spec),
                                 rti=rti_settings(control_period, optimizer, duty_limits, rti_changes))
 
 
 def adaptive_nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC-adaptive",
                   settings: AdaptationSettings = AdaptationSettings(),
                   duty_limits: tuple[float, float] = (0.0, 1.0), optimizer: str | None = None,
-                  rti_changes: Mapping[str, object] | None = None) -> AdaptiveNNPC:
+                  rti_changes: Mapping[str, object] | None = None, spec: ConverterSpec | None = None) -> AdaptiveNNPC:
     """The NNPC whose output layer follows the plant online (:mod:`controllers.adaptation`), on its
     own copy of ``model`` (the adaptation rewrites the output layer in place); ``optimizer`` and ``rti_changes``
     as :func:`nnpc`'s."""
     own = copy.deepcopy(model)
     return AdaptiveNNPC(nnpc(own, control_period, name, duty_limits=duty_limits, optimizer=optimizer,
-                             rti_changes=rti_changes), own, settings,
-                        name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+                             rti_changes=rti_changes, spec=spec), own, settings,
+                        name, nominal_load=network_operating_point(model, spec)["nominal_load"])
 
 
-def explicit_nnpc(policy, name: str = "NNPC-explicit"):
+def explicit_nnpc(policy, name: str = "NNPC-explicit", spec: ConverterSpec | None = None):
     """The explicit NNPC (:mod:`controllers.explicit_policy`) of a distilled policy; its load estimate
-    starts from the nominal load, as the online NNPC's does."""
+    starts from the nominal load of ``spec`` (None: the paper study's), as the online NNPC's does."""
     from controllers.explicit_policy import ExplicitPolicyController
 
-    return ExplicitPolicyController(policy, name, nominal_load=NOMINAL_OPERATING_POINT["nominal_load"])
+    point = operating_point(spec) if spec is not None else NOMINAL_OPERATING_POINT
+    return ExplicitPolicyController(policy, name, nominal_load=point["nominal_load"])
 
 
 def model_predictor(parameters: CircuitParameters, control_period: float, name: str,
@@ -386,7 +414,7 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
         synchronous = binding.roles["measured_output_voltage"].variable == "output_voltage"
         try:
             return SwitchedModelPredictor(parameters, control_period, float(p.get("switching_frequency",
-                                                                                  TABLE_II.switching_frequency)),
+                                                                                  PAPER_SPEC.switching_frequency)),
                                           carrier="triangle" if p.get("pwm_carrier") == 1 else "sawtooth",
                                           sensor="period_start" if synchronous else "period_average", name=name)
         except ValueError:  # not a whole number of PWM periods: the averaged model is the best there is
@@ -403,19 +431,21 @@ def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
     ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`); ``horizon``: samples
     (None: the rate's, :func:`horizon_settings`); ``rti_changes`` as :func:`nnpc`'s."""
     settings = horizon_settings(control_period, horizon)
+    point = operating_point(binding.converter) if binding is not None else NOMINAL_OPERATING_POINT
     if not offset_free:
         settings = replace(settings, bias_filter=0.0)
     return PredictiveController(model_predictor(parameters, control_period, name, binding), control_period,
-                                settings, duty_limits, name=name, **NOMINAL_OPERATING_POINT,
+                                settings, duty_limits, name=name, **point,
                                 rti=rti_settings(control_period, optimizer, duty_limits, rti_changes))
 
 
-def scenarios_for(control_period: float, names=PAPER_SCENARIOS) -> list[Scenario]:
-    """The paper's scenarios at a control rate. The shipped files suit 1 ms; where the transient is
-    shaped within a sample the controllers settle within about a millisecond, so the runs are
+def scenarios_for(control_period: float, names=PAPER_SCENARIOS, *, spec: ConverterSpec) -> list[Scenario]:
+    """The paper's scenarios at a control rate, resolved against the converter ``spec`` (templates: the start-up to
+    its nominal output, the load step to 5/6 of its nominal load, ...). The shipped files suit 1 ms; where the
+    transient is shaped within a sample the controllers settle within about a millisecond, so the runs are
     compressed (:data:`~cosim.study.vocabulary.FAST_RATE_COMPRESSION`: still 675 samples at
     13.33 us) to keep them affordable."""
-    scenarios = [load_scenario(name) for name in names]
+    scenarios = [load_scenario(name, spec) for name in names]
     if transient_within_sample(control_period):
         return scenarios
     c = FAST_RATE_COMPRESSION

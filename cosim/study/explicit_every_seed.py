@@ -90,7 +90,7 @@ def seed_policy(pipeline, seed: int, model, out_dir: Path, cache: Path, log: Cal
     settings = replace(FULL_DISTILLATION, seed=seed,
                        expert_optimizer=expert_optimizer or FULL_DISTILLATION.expert_optimizer)
     settings.check()
-    settings = settings.resolved()  # as the policy's metadata records them
+    settings = settings.resolved().for_converter(pipeline.binding().converter)  # as the policy's metadata records them
     if seed == 0 and reproduction_labels(expert_optimizer):
         path = policy_path(out_dir, pipeline.tag)
         if not path.is_file():
@@ -146,7 +146,7 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path,
     # the table names the policy's recipe, not whether this run took it from the cache (the same bytes on a rerun)
     recipe = "reproduction" if origin == "reproduction" else "distilled here"
     rows = []
-    for scenario in scenarios_for(period):
+    for scenario in scenarios_for(period, spec=binding.converter):
         online, explicit = (run_metrics(simulate(binding, implemented(controller), scenario,
                                                  record_period=RECORD_PERIOD, seed=seed))
                             for controller in (nnpc(model, period, NNPC), explicit_nnpc(policy, NNPC_EXPLICIT)))

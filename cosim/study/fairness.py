@@ -45,7 +45,7 @@ def nominal(controllers) -> pd.DataFrame:
     binding = plant_binding("nominal", "switched")
     rows = []
     for controller in controllers:
-        for scenario in scenarios_for(SWITCHING_PERIOD):
+        for scenario in scenarios_for(SWITCHING_PERIOD, spec=binding.converter):
             m = run_metrics(simulate(binding, implemented(controller), scenario, record_period=1e-5))
             rows.append({"controller": controller.name, "scenario": scenario.name, "iae_Vs": m["iae_Vs"],
                          "overshoot_pct": m["overshoot_pct"], "settling_time_ms": m["settling_time_ms"]})

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 import pandas as pd
 
 from controllers.nn_config import NNConfig, TrainingSettings
+from controllers.predictors import data_domain, domain_text
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import CollectionSettings, collect
 from cosim.study.design_cache import DesignKey, design_key
@@ -82,7 +83,8 @@ def network_design(name: str, binding: PlantBinding, control_period: float, conf
     :func:`identify` with ``recipe`` (the workbench's NNPC), else by one ``train`` with ``training``
     on the PI data (the paper's network); ``samples`` of PI data collected with ``seed`` by the PI
     whose design key is ``pi_key`` (:mod:`cosim.study.design_cache`)."""
-    collection = collection_settings(control_period, samples, seed, region=network_region(name, control_period))
+    collection = collection_settings(control_period, samples, seed, region=network_region(name, control_period),
+                                     spec=binding.converter)
     if recipe is not None:
         training = training_settings(control_period, seed, recipe.multi_step_iterations)
     settings = {"network": asdict(config), "collection": asdict(collection),
@@ -110,7 +112,8 @@ def identify(binding: PlantBinding, pi_controller, control_period: float, config
     """
     from controllers.nn_model import train
 
-    settings = collection if collection is not None else collection_settings(control_period, recipe.samples, seed)
+    settings = collection if collection is not None else collection_settings(control_period, recipe.samples, seed,
+                                                                                spec=binding.converter)
     if data is None:
         data = collect(binding, pi_controller, settings, progress=progress)
     training = training_settings(control_period, seed, recipe.multi_step_iterations)
@@ -152,7 +155,7 @@ def closed_loop_round(identified: Identified, binding: PlantBinding, control_per
     training = training_settings(control_period, seed, recipe.multi_step_iterations)
     loop = implemented(nnpc(identified.model, control_period), recipe.implementation)
     closed = collection_settings(control_period, recipe.closed_loop_samples, seed + CLOSED_LOOP_SEED_OFFSET * r,
-                                 excitation=recipe.closed_loop_dither)
+                                 excitation=recipe.closed_loop_dither, spec=binding.converter)
     extra = [*identified.closed_loop, collect(binding, loop, closed, progress=progress)]
     refine = replace(training, multi_step_iterations=min(training.multi_step_iterations, recipe.closed_loop_iterations))
     meta = dict(metadata if metadata is not None else
@@ -225,8 +228,10 @@ def identification_figure(model: NNPlantModel, data: pd.DataFrame):
     if ax_loss.lines:
         ax_loss.legend(fontsize=8)
     rmse = model.metadata.get("held_out_rmse", {})
-    ax_loss.set_title(f"{model.config.label}\nidentified on {model.metadata.get('plant', '?')}: held-out one-step RMSE "
-                      f"{rmse.get('one_step_rmse_current_A', float('nan')) * 1e3:.3g} mA, "
+    domain = data_domain(model.metadata)
+    ax_loss.set_title(f"{model.config.label}\nidentified on {model.metadata.get('plant', '?')}"
+                      + (f"\ndata: {domain_text(domain)}" if domain else "")
+                      + f"\nheld-out one-step RMSE {rmse.get('one_step_rmse_current_A', float('nan')) * 1e3:.3g} mA, "
                       f"{rmse.get('one_step_rmse_voltage_V', float('nan')) * 1e3:.3g} mV", fontsize=9)
     if len(held_out) > model.config.delays + 1:
         x, y = build_dataset(held_out, model.config)

@@ -54,7 +54,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
         if pipelines is not None and pipeline.tag not in pipelines:
             continue
         period, binding = pipeline.control_period, pipeline.binding()
-        scenarios = scenarios_for(period)
+        scenarios = scenarios_for(period, spec=binding.converter)
         for seed in [s for s in pipeline.study_seeds if seeds is None or s in seeds]:
             model = seed_model(pipeline, seed, out_dir, cache)
             makers = {NNPC: lambda optimizer, model=model: nnpc(model, period, NNPC, optimizer=optimizer)}

@@ -1,12 +1,13 @@
-"""Repeatable PI tuning on the plant FMU, redone for every control rate.
+"""Repeatable PI tuning on the plant FMU, redone for every control rate and for the plant's converter.
 
-Method: minimise the total ISE of the start-up and both reference steps (12 -> 15 V, 12 -> 9 V)
-simulated on the plant FMU at the given control period, subject to overshoot and undershoot
-<= 5 % (quadratic penalty) and a steady-state error <= 0.5 % (penalty). The search runs in the
-normalised gains a = Kp Vs (proportional loop gain) and b = Ki Ts Vs (integral gain per sample):
-a grid over a in {0, 0.03, 0.1, 0.3} and b log-spaced over [1e-3, 1] (6 points), then at most 40
-Nelder-Mead evaluations from the best grid point. Everything is deterministic, so the same plant and period give the same
-gains.
+Method: minimise the total ISE of the start-up and both reference steps (the shipped templates resolved against the
+plant's converter spec, :mod:`cosim.converter_spec`: to the nominal output, then up and down by a quarter -- 12 -> 15 V
+and 12 -> 9 V on Table II) simulated on the plant FMU at the given control period at the spec's nominal load and
+supply, subject to overshoot and undershoot <= 5 % (quadratic penalty) and a steady-state error <= 0.5 % (penalty).
+The search runs in the normalised gains a = Kp Vs (proportional loop gain; Vs the spec's nominal supply) and
+b = Ki Ts Vs (integral gain per sample): a grid over a in {0, 0.03, 0.1, 0.3} and b log-spaced over [1e-3, 1]
+(6 points), then at most 40 Nelder-Mead evaluations from the best grid point. Everything is deterministic, so the
+same plant, converter and period give the same gains.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 import math
 import time
 from dataclasses import asdict, dataclass, replace
+from fractions import Fraction
 from pathlib import Path
 from typing import Callable
 
@@ -24,13 +26,13 @@ from scipy.optimize import minimize
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError, PlantError, WorkbenchError
 from cosim.base.files import json_text
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import preflight, run
 from cosim.metrics import run_metrics
 from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
 from cosim.study.design_cache import DesignKey, announce, design_key, stale_reason
-from plant_fmu.table_ii import TABLE_II
 
 TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
 OVERSHOOT_LIMIT_PCT = 5.0
@@ -79,10 +81,10 @@ class PITuning:
         return cls(**json.loads(text))
 
 
-def _tuning_scenarios():
+def _tuning_scenarios(spec: ConverterSpec):
     scenarios = []
     for name in TUNING_SCENARIOS:
-        s = load_scenario(name)
+        s = load_scenario(name, spec)
         events = tuple(e for e in s.events if e.time < TUNING_DURATION)
         scenarios.append(replace(s, duration=TUNING_DURATION, settle=TUNING_SETTLE if s.settle else 0.0,
                                  events=events))
@@ -97,11 +99,17 @@ def _nelder_mead_evaluations(quick: bool) -> int:
     return 6 if quick else 40
 
 
+def nominal_supply(binding: PlantBinding, input_voltage: float | None, purpose: str) -> float:
+    """``input_voltage`` [V] if given, else the nominal supply of the plant's converter spec (refused without one)."""
+    return float(input_voltage if input_voltage is not None else binding.converter.require("input_voltage", purpose))
+
+
 def pi_design(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
-              input_voltage: float = TABLE_II.input_voltage, quick: bool = False) -> DesignKey:
+              input_voltage: float | None = None, quick: bool = False) -> DesignKey:
     """The design key of :func:`tune_pi` with these arguments: the plant, the rate, the tuning
-    scenarios and every setting of the search (no tuning is done)."""
-    return design_key("pi", binding, control_period, scenarios=_tuning_scenarios(),
+    scenarios (resolved against the plant's converter spec) and every setting of the search (no tuning is done)."""
+    input_voltage = nominal_supply(binding, input_voltage, "the PI tuning")
+    return design_key("pi", binding, control_period, scenarios=_tuning_scenarios(binding.converter),
                       settings={"method": METHOD, "record_period_s": record_period, "input_voltage_V": input_voltage,
                                 "grid": _grid(quick), "nelder_mead_evaluations": _nelder_mead_evaluations(quick)})
 
@@ -113,16 +121,18 @@ def tuning_evaluations(quick: bool = False) -> int:
 
 
 def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
-            input_voltage: float = TABLE_II.input_voltage, progress: bool = False, quick: bool = False,
+            input_voltage: float | None = None, progress: bool = False, quick: bool = False,
             on_estimate: Callable[[float], None] | None = None) -> PITuning:
     """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring.
 
+    ``input_voltage`` [V]: the supply the gains are normalised by (None: the converter spec's nominal supply).
     ``quick`` (smoke tests only) searches a 2 x 2 grid and 6 Nelder-Mead evaluations.
     ``on_estimate``: called once, with the wall-clock seconds of the second evaluation (the first
     also loads the plant), for an estimate of the whole tuning: at most :func:`tuning_evaluations`.
     """
+    input_voltage = nominal_supply(binding, input_voltage, "the PI tuning")
     design = pi_design(binding, control_period, record_period=record_period, input_voltage=input_voltage, quick=quick)
-    scenarios = _tuning_scenarios()
+    scenarios = _tuning_scenarios(binding.converter)
     evaluations = 0
     failures: list[str] = []  # the runs that failed, as their errors say
     worst: dict[tuple[float, float], float] = {}
@@ -199,10 +209,25 @@ def _refuse_if_nothing_ran(evaluations: int, failures: list[str], binding: Plant
                          f"through the tuning scenarios ({why})")
 
 
-#: the envelope PI's operating points: (reference [V], load [Ohm], supply [V]) -- the envelope's corners in
-#: reference and load (CCM and deep DCM), the nominal point, the lightly damped 25 Ohm, and both supply extremes
-ENVELOPE_POINTS = ((3.0, 4.0, 48.0), (3.0, 100.0, 48.0), (12.0, 6.0, 48.0), (12.0, 25.0, 48.0), (20.0, 4.0, 36.0),
-                   (20.0, 100.0, 60.0))
+#: the lightly damped point of the envelope PI: this many times the nominal load (25 Ohm on Table II's 6 Ohm, an LC
+#: quality factor of about 5 there), at most the envelope's largest load
+LIGHT_LOAD_FACTOR = Fraction(25, 6)
+
+
+def envelope_points(spec: ConverterSpec) -> tuple[tuple[float, float, float], ...]:
+    """The envelope PI's operating points of a converter spec: (reference [V], load [Ohm], supply [V]) -- the envelope's
+    corners in reference and load at the nominal supply (CCM and deep DCM), the nominal point, a lightly damped load
+    (:data:`LIGHT_LOAD_FACTOR` x nominal), and the highest reference at both supply extremes (the smallest load at the
+    lowest supply, the largest at the highest). On Table II: (3, 4, 48), (3, 100, 48), (12, 6, 48), (12, 25, 48),
+    (20, 4, 36), (20, 100, 60)."""
+    purpose = "the envelope PI's operating points"
+    r_low, r_high = spec.operating_range("output_voltage", purpose)
+    load_low, load_high = spec.operating_range("load_resistance", purpose)
+    vs_low, vs_high = spec.operating_range("input_voltage", purpose)
+    r, load, vs = (spec.require(key, purpose) for key in ("output_voltage", "load_resistance", "input_voltage"))
+    light = min(float(Fraction(load) * LIGHT_LOAD_FACTOR), load_high)
+    return ((r_low, load_low, vs), (r_low, load_high, vs), (r, load, vs), (r, light, vs), (r_high, load_low, vs_low),
+            (r_high, load_high, vs_high))
 ENVELOPE_AGGREGATES = ("max", "sum")
 METHOD_ENVELOPE = (
     "minimise the {aggregate} over operating points {points} (reference V, load Ohm, supply V) of ISE / r^2 of a "
@@ -220,14 +245,17 @@ def envelope_scenario(reference: float, load: float, supply: float) -> Scenario:
                     events=(ScenarioEvent(4e-3, {"reference": reference}), ScenarioEvent(8e-3, {"load_resistance": load})))
 
 
-def tune_pi_envelope(binding: PlantBinding, control_period: float, points=ENVELOPE_POINTS, aggregate: str = "max",
-                     *, record_period: float = 1e-5, input_voltage: float = TABLE_II.input_voltage,
+def tune_pi_envelope(binding: PlantBinding, control_period: float, points=None, aggregate: str = "max",
+                     *, record_period: float = 1e-5, input_voltage: float | None = None,
                      quick: bool = False, progress: bool = False) -> PITuning:
-    """The PI tuned for the envelope: the nominal method's ISE and penalties at each of ``points``,
+    """The PI tuned for the envelope: the nominal method's ISE and penalties at each of ``points`` (None: the
+    :func:`envelope_points` of the plant's converter spec),
     normalised by r^2 (so every point weighs alike), aggregated by ``aggregate`` ("max": min-max, or
     "sum"); the same grid and Nelder-Mead search. ``quick`` (smoke tests): a 2 x 2 grid, 6 evaluations."""
     if aggregate not in ENVELOPE_AGGREGATES:
         raise ValueError(f"aggregate {aggregate!r} is unknown: expected one of {', '.join(ENVELOPE_AGGREGATES)}")
+    input_voltage = nominal_supply(binding, input_voltage, "the envelope PI's tuning")
+    points = envelope_points(binding.converter) if points is None else points
     scenarios = [(r, envelope_scenario(r, load, vs)) for r, load, vs in points]
     evaluations = 0
     failures: list[str] = []  # the runs that failed, as their errors say

@@ -76,6 +76,7 @@ from cosim.study.vocabulary import (
     NNPC_SMALL_ONE_STEP,
     ONE_STEP_ITERATIONS,
     PAPER_PERIOD,
+    PAPER_SPEC,
     PI,
     STUDY_PERIODS,
     SWITCHING_PERIOD,
@@ -83,12 +84,11 @@ from cosim.study.vocabulary import (
     horizon_variant,
     seed_variant,
 )
-from plant_fmu.table_ii import TABLE_II
 
 
-def lc_physics(resistance: float = TABLE_II.load_resistance) -> dict[str, float]:
+def lc_physics(resistance: float = PAPER_SPEC.load_resistance) -> dict[str, float]:
     """Natural frequency, damping, overshoot and 2 % settling of the open-loop LC step (Table II)."""
-    l, c = TABLE_II.inductance, TABLE_II.capacitance
+    l, c = PAPER_SPEC.inductance, PAPER_SPEC.capacitance
     wn = 1 / math.sqrt(l * c)
     zeta = math.sqrt(l / c) / (2 * resistance)
     return {"f0_Hz": wn / (2 * math.pi), "zeta": zeta,
@@ -298,7 +298,7 @@ def _seeds(outputs, metrics, models) -> list[str]:
             *markdown_table(pd.DataFrame(rows), list(rows[0]), digits=3)]
 def _setup(physics: dict) -> list[str]:
     slow, fast = horizon_settings(PAPER_PERIOD), horizon_settings(SWITCHING_PERIOD)
-    t = TABLE_II
+    t = PAPER_SPEC
     return [
         "- **Plant**: the project's BuckConverter FMU (FMI 2.0, co-simulation, exact piecewise steps), "
         f"Table II: Vs {t.input_voltage:g} V, L {t.inductance * 1e6:g} uH, C {t.capacitance * 1e6:g} uF, "

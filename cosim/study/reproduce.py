@@ -111,6 +111,7 @@ from cosim.study.vocabulary import (
     NNPC_SMALL_ONE_STEP,
     NOMINAL,
     PAPER_PERIOD,
+    PAPER_SPEC,
     PLANT_VARIANTS,
     STUDY_PERIODS,
     STUDY_SEEDS,
@@ -301,7 +302,7 @@ def _runner(implementation: str):
 
 def _scenarios(pipeline: Pipeline, binding, profile: Profile) -> list:
     scenarios = []
-    for scenario in scenarios_for(pipeline.control_period, profile.scenarios):
+    for scenario in scenarios_for(pipeline.control_period, profile.scenarios, spec=binding.converter):
         missing = scenario.required_roles() - set(binding.roles)
         if missing:
             log(f"  {pipeline.tag}: skipping {scenario.name}: {binding.origin} binds no {', '.join(sorted(missing))}")
@@ -343,7 +344,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     if network_region("nnpc-paper", period) != default_region(period):  # the paper's network keeps the paper's data
         region = network_region("nnpc-paper", period)
         datasets["nnpc-paper"] = collect(binding, pi.controller(),
-                                         collection_settings(period, profile.samples, seed, region=region))
+                                         collection_settings(period, profile.samples, seed, region=region,
+                                                             spec=binding.converter))
         datasets["nnpc-paper"].attrs["metadata"]["seed"] = seed
         paper_file = data_file(out_dir, pipeline.plant_tag, period, region)
         save_samples(datasets["nnpc-paper"], paper_file)
@@ -508,7 +510,7 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
 
 def drift_scenario(profile: Profile):
     """The shipped drift scenario (shortened for the quick profile)."""
-    scenario = load_scenario(DRIFT_SCENARIO)
+    scenario = load_scenario(DRIFT_SCENARIO, PAPER_SPEC)
     if profile.drift_duration is not None:
         end = profile.drift_duration
         scenario = replace(scenario, duration=end, events=tuple(e for e in scenario.events if e.time < end),
@@ -574,7 +576,7 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
     after = identify(after_binding, pi.controller(), period, config, seed, _recipe(profile))
     timings["identification_nnpc_s"] = time.perf_counter() - start
     scenario = drift_scenario(profile)
-    final = load_scenario(DRIFT_SCENARIO).parameter_events[-1].parameters
+    final = load_scenario(DRIFT_SCENARIO, PAPER_SPEC).parameter_events[-1].parameters
     for name, value in final.items():  # the scenario ends where the offline identification's plant is
         if not math.isclose(value, after_binding.parameters[name], rel_tol=1e-6):
             raise ValueError(f"{DRIFT_SCENARIO}: {name} ends at {value}, the drifted plant has "

@@ -49,7 +49,7 @@ from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import export_ssp
 from cosim.study.experiments import implemented, nnpc, scenarios_for
 from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD, pipeline_tag, plant_tag
+from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PAPER_SPEC, PI, SWITCHING_PERIOD, pipeline_tag, plant_tag
 
 PLANT_MODES = ("averaged", "switched")
 #: the reproduction's pipelines whose PI and NNPC the study runs as FMUs: it is part of a reproduction that runs both
@@ -200,7 +200,7 @@ def run_cases(cases: list[Case], controllers: dict, work: Path, ladder: tuple[fl
     """Every case with every engine, the equality and agreement checks, and the ladder."""
     rows, equality, convergence, frames = [], [], [], {}
     for case in cases:
-        [scenario] = scenarios_for(PAPER_PERIOD, [case.scenario])
+        [scenario] = scenarios_for(PAPER_PERIOD, [case.scenario], spec=PAPER_SPEC)
         binding = plant_binding("nominal", case.mode)
         normal = simulate(binding, implemented(controllers[case.mode][case.controller]), scenario)
         runs = {engine: run_ssp(case.ssp, engine) for engine in ENGINES}
@@ -368,7 +368,7 @@ def run_loops(out_dir: Path, mode: str, controller: str, quick: bool = False) ->
         work = Path(tmp)
         fmu = export_controller(controllers[mode][controller], work / f"{controller}.fmu")[0]
         cases = []
-        for scenario in scenarios_for(PAPER_PERIOD, scenarios):
+        for scenario in scenarios_for(PAPER_PERIOD, scenarios, spec=PAPER_SPEC):
             path = work / f"{scenario.name}__{controller}__{mode}.ssp"
             export_ssp(scenario, binding, fmu, path)
             cases.append(Case(scenario.name, mode, controller, path, work / f"{controller}-{mode}.fmu"))

@@ -23,13 +23,17 @@ from dataclasses import dataclass
 
 from controllers.predictors import CircuitParameters
 from cosim.base.labels import period_label
-from plant_fmu.table_ii import TABLE_II
+from cosim.fmi.binding import BUILTIN_SPEC
+
+#: the converter the paper studies: the built-in plant's spec, Table II (cosim.converter_spec) -- the study's one name
+#: for it; the design steps take the spec of the plant they design for
+PAPER_SPEC = BUILTIN_SPEC
 
 # ---------------------------------------------------------------------------------------------
 # Rates
 
 PAPER_PERIOD = 1e-3  # [s] the paper's sample period
-SWITCHING_PERIOD = TABLE_II.switching_period  # [s] one PWM period, 13.33 us
+SWITCHING_PERIOD = PAPER_SPEC.switching_period  # [s] one PWM period, 13.33 us
 STUDY_PERIODS = (PAPER_PERIOD, SWITCHING_PERIOD)
 #: at control periods this long or longer the LC transient (about 0.48 ms at Table II) is over
 #: within one sample, so one step of prediction decides the move ("the paper's regime")
@@ -75,7 +79,7 @@ ON_DEMAND_SAMPLES = 10_000
 # Plants
 
 #: the circuit of Table II, ideal (no parasitics)
-NOMINAL = CircuitParameters(inductance=TABLE_II.inductance, capacitance=TABLE_II.capacitance)
+NOMINAL = CircuitParameters(**PAPER_SPEC.circuit("the study's nominal circuit"))
 #: the mismatch-study plant: L +20 %, C -20 % and realistic parasitics
 MISMATCH = CircuitParameters(inductance=264e-6, capacitance=8e-6, inductor_resistance=0.15,
                              switch_on_resistance=0.1, diode_forward_voltage=0.7, capacitor_esr=0.05)
@@ -83,7 +87,7 @@ PLANT_VARIANTS = {"nominal": NOMINAL, "mismatch": MISMATCH}
 #: what the controllers' sensors read: the mean over the last PWM period, or a synchronous sample
 SENSORS = ("average", "synchronous")
 #: one LC ringing period of the nominal circuit [s] (about 0.295 ms)
-LC_PERIOD = 2 * math.pi * math.sqrt(TABLE_II.inductance * TABLE_II.capacitance)
+LC_PERIOD = 2 * math.pi * math.sqrt(PAPER_SPEC.inductance * PAPER_SPEC.capacitance)
 
 
 def pipeline_tag(plant: str, control_period: float) -> str:
@@ -230,12 +234,12 @@ class TimeCompression:
 FAST_RATE_COMPRESSION = TimeCompression()
 
 
-#: where the identification data come from: the paper's region (references 0-20 V, loads 4-10 Ohm, 48 V) or the
-#: operating envelope of the map (cosim.study.envelope_identification)
+#: where the identification data come from, over the converter spec's operating points: the paper's region scaled
+#: to it (Table II: references 0-20 V, loads 4-10 Ohm, 48 V) or its operating envelope (Table II: references 3-20 V,
+#: loads 4-100 Ohm, supplies 36-60 V; cosim.study.envelope_identification)
 COLLECTION_REGIONS = ("paper", "envelope")
-#: the envelope collection: references (and rests at 0 V), loads (log-uniform), supplies [V, Ohm, V]; its dither:
-#: the amplitude-modulated random binary sequence, levels +-a with a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
-ENVELOPE_REFERENCES, ENVELOPE_LOADS, ENVELOPE_SUPPLIES = (3.0, 20.0), (4.0, 100.0), (36.0, 60.0)
+#: the envelope collection's dither: the amplitude-modulated random binary sequence, levels +-a with
+#: a ~ U(0, ENVELOPE_DITHER), held 1-8 samples
 ENVELOPE_DITHER, ENVELOPE_DITHER_HOLD = 0.2, (1, 8)
 
 

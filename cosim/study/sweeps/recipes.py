@@ -23,6 +23,7 @@ from functools import cached_property
 from pathlib import Path
 
 from cosim.base.digests import digest
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PlantBinding, RoleMap
 
 
@@ -42,6 +43,9 @@ class PlantRecipe:
     isolate: bool = False  # step the FMU in a child process (a binding file's default): a crash is that run's row
     step_timeout: float | None = None  # isolated: a step's wall-time limit [s] (None: derived from the step)
     memory_limit: float | None = None  # isolated: the plant process's memory limit [MB] (None: half the machine's)
+    #: the converter spec (cosim.converter_spec) the controllers are designed for and start from; not part of
+    #: identity(): it decides no plant response (the controllers' recipes hold what they take from it)
+    spec: ConverterSpec | None = None
 
     @classmethod
     def of(cls, binding: PlantBinding) -> "PlantRecipe":
@@ -51,7 +55,7 @@ class PlantRecipe:
                    parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
                    label=binding.label, tag=binding.tag, isolate=binding.isolate, step_timeout=binding.step_timeout,
-                   memory_limit=binding.memory_limit)
+                   memory_limit=binding.memory_limit, spec=binding.spec)
 
     @cached_property
     def fmu_digest(self) -> str:
@@ -63,7 +67,7 @@ class PlantRecipe:
                             interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
                             source=Path(self.source) if self.source else None, label=self.label,
                             tag_override=self.tag, isolate=self.isolate, step_timeout=self.step_timeout,
-                            memory_limit=self.memory_limit)
+                            memory_limit=self.memory_limit, spec=self.spec)
 
     def identity(self) -> dict:
         """What decides a run's result (not where the files are)."""

@@ -400,11 +400,12 @@ def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
     if not isinstance(scenarios_list, list) or not scenarios_list or not all(isinstance(s, str) for s in scenarios_list):
         r.fail(r.at("scenarios"), "scenarios must be a non-empty list of scenario names or files")
     scenarios = []
+    converter = _plant_spec(plant)
     for entry in scenarios_list:
         candidate = base / entry
         source = candidate if entry.endswith(".toml") or candidate.is_file() else entry
         try:
-            scenario = load_scenario(source)
+            scenario = load_scenario(source, converter, warn=True)
         except ConfigError as error:
             r.fail(r.at("scenarios"), f"scenarios: {error}")
         if scenario.name in {s.name for s in scenarios}:
@@ -451,6 +452,17 @@ def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
         r.fail(r.name, f"the sweep has {spec.run_count} runs ({spec.grid_points} grid points x {samples} samples x "
                        f"{len(scenarios)} scenarios x {len(controllers)} controllers): expected at most {MAX_RUNS}")
     return spec
+
+
+def _plant_spec(plant: PlantChoice):
+    """The converter spec the sweep's scenarios are resolved against: the binding file's, or the built-in plant's."""
+    if plant.binding is not None:
+        from cosim.fmi.binding_file import load_binding
+
+        return load_binding(plant.binding).converter
+    from cosim.study.vocabulary import PAPER_SPEC
+
+    return PAPER_SPEC
 
 
 def _plant(r: _Reader, table, base: Path) -> PlantChoice:
