@@ -3,12 +3,14 @@
 Layers, lowest first (a module belongs to the longest prefix that names it):
 
 0. ``cosim.base``            errors, labels, atomic files, line-aware TOML -- everyone may use them
-1. ``controllers``, ``plant_fmu``   algorithms (no FMI) and the plant FMU's sources and build
+1. ``controllers``, ``plant_fmu``   algorithms (no FMI) and the plant FMU's sources and build;
+   ``cosim.converter_spec``  the converter under study (Table II is the built-in plant's)
 2. ``cosim.fmi``             FMU adapters, archive checks, bindings and binding files, inspect
 3. ``cosim`` (the rest)      core: master, timeline, scenarios, recorder, results, metrics, plots, batch;
    ``cosim.ssp``             with the core: the scenario FMU, the SSP archive and the engines that run it
 4. ``cosim.study``           the paper study: vocabulary, experiments, tuning, data, reproduction, report
-5. ``cosim.cli``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points and the C timing harness
+5. ``cosim.cli``, ``cosim.api``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points (the command line,
+   the design steps' Python API) and the C timing harness
 
 Every import counts, also one inside a function (the lazy imports that keep the command line
 fast): a lazy upward import is still an upward dependency.
@@ -29,6 +31,7 @@ LAYERS = {
     "cosim.base": 0,
     "controllers": 1,
     "plant_fmu": 1,
+    "cosim.converter_spec": 1,
     "cosim.fmi": 2,
     "cosim": 3,
     "cosim.ssp": 3,
@@ -36,6 +39,7 @@ LAYERS = {
     "cosim.cli": 5,
     "cosim.benchmarks": 5,
     "cosim.benchmark_harness": 5,
+    "cosim.api": 5,
 }
 
 
