@@ -1,5 +1,5 @@
 # The two commands of the README. Each creates .venv and installs everything it needs.
-.PHONY: reproduce test bench bootstrap docs every-seed
+.PHONY: reproduce test bench bootstrap docs every-seed examples
 
 bootstrap:
 	@bash scripts/bootstrap.sh
@@ -33,3 +33,8 @@ every-seed: bootstrap
 	nice .venv/bin/python scripts/optimizer_every_seed.py --results results --out results
 	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results
 	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results --expert-optimizer search
+
+# The second converter's FMUs (examples/pol_buck/): the workbench's C plant and the pythonfmu one, into build/ there.
+examples: bootstrap
+	.venv/bin/buck-cosim build-fmu --output examples/pol_buck/build
+	.venv/bin/pythonfmu build -f examples/pol_buck/pol_buck.py -d examples/pol_buck/build

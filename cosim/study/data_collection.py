@@ -65,11 +65,15 @@ class CollectionSettings:
     dither: str = "gaussian"  # one of DITHERS
     dither_hold: tuple[int, int] = (1, 1)  # samples an am-prbs level is held, uniform
 
-    def check(self) -> None:
+    def check_region(self) -> None:
+        """The region's values are given (``collect`` takes what is left out from the plant's converter spec)."""
         for key in ("reference_range", "load_range", "input_voltage"):
             if getattr(self, key) is None:
                 raise ConfigError(f"collection settings: {key} is not given (collect() takes it from the plant's "
                                   "converter spec)")
+
+    def check(self) -> None:
+        self.check_region()
         if self.samples < MIN_SAMPLES:
             raise ConfigError(f"samples = {self.samples} is too few: expected >= {MIN_SAMPLES}")
         lo, hi = self.reference_range
@@ -131,7 +135,7 @@ def random_scenario(settings: CollectionSettings, control_period: float, vary_lo
     ``vary_load=False`` (a plant bound without a load input) keeps the load at its initial value;
     ``vary_supply=False`` (one bound without a supply input) the supply at ``input_voltage``.
     """
-    settings.check()
+    settings.check_region()
     rng = np.random.default_rng(settings.seed)
     duration = (settings.samples - 1) * control_period
 
