@@ -15,7 +15,7 @@ A plant-binding file gives its converter's spec in a ``[converter]`` table (SI u
     input_voltage_range = [20.0, 28.0] # [V]   the operating envelope: supplies ...
     output_voltage_range = [2.0, 8.0]  # [V]   ... references ...
     load_resistance_range = [2.0, 30.0]  # [Ohm] ... and loads
-    control_periods = [1e-3, 1e-5]     # [s]   the rates a study runs (default: none named)
+    control_periods = [1e-3, 1e-5]     # [s]   the rates it is controlled at (default: none named)
     duty_limits = [0.0, 0.95]          # [1]   the duty's range (default: [0, 1])
     inductor_current_limit = 8.0       # [A]   optional: the inductor current the design may not exceed
 
@@ -55,7 +55,7 @@ OPERATING_KEYS = {
 CIRCUIT_KEYS = {
     "inductance": ("H", (1e-9, 1.0), "a value in uH or mH?"),
     "capacitance": ("F", (1e-12, 1.0), "a value in uF or nF?"),
-    "switching_frequency": ("Hz", (100.0, 1e9), "a value in kHz or MHz?"),
+    "switching_frequency": ("Hz", (1e3, 1e9), "a value in kHz or MHz?"),
     "inductor_resistance": ("Ohm", (0.0, 100.0), "a value in mOhm?"),
     "switch_on_resistance": ("Ohm", (0.0, 100.0), "a value in mOhm?"),
     "diode_forward_voltage": ("V", (0.0, 10.0), "a value in mV?"),
@@ -225,8 +225,7 @@ def _plausible(value: float, key: str, unit: str, place: str, strictly_positive:
 def _range(value, key: str, unit: str, place: str) -> tuple[float, float]:
     if not isinstance(value, list) or len(value) != 2:
         raise ConfigError(f"{place}: {key} = {value!r} is invalid: expected [min, max] in {unit}")
-    low = _plausible(_number(value[0], f"{key}[0]", place), f"{key}[0]", unit, place,
-                     strictly_positive=unit != "V" or key != "output_voltage_range")
+    low = _plausible(_number(value[0], f"{key}[0]", place), f"{key}[0]", unit, place)
     high = _plausible(_number(value[1], f"{key}[1]", place), f"{key}[1]", unit, place)
     if not low < high:
         raise ConfigError(f"{place}: {key} = [{low:g}, {high:g}] {unit} is inverted or empty: expected min < max")
@@ -261,7 +260,10 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
             places[key] = at
         elif defaults and key in defaults:
             values[key], places[key] = defaults[key]
-            _plausible(values[key], key, unit, f"{origin} ({defaults[key][1]})")
+            try:
+                _plausible(values[key], key, unit, f"{origin} ({defaults[key][1]})")
+            except ConfigError as error:  # the FMU's value, not the user's: say where to give the right one
+                raise ConfigError(f"{error}; give converter.{key} in {unit} under [converter]") from None
         if range_key in table:
             at = place(range_key, "converter")
             values[range_key] = _range(table[range_key], range_key, unit, at)
@@ -363,7 +365,17 @@ def check_consistent(spec: ConverterSpec) -> None:
 
 
 def with_values(spec: ConverterSpec, **changes) -> ConverterSpec:
-    """``spec`` with some values replaced, checked again (a study's variant converter)."""
+    """``spec`` with some values replaced (SI units, ranges as (min, max)), every value checked again as a
+    ``[converter]`` table's is: a variant converter in Python (docs/guide/design-api.md)."""
     changed = replace(spec, **changes)
-    check_consistent(changed)
-    return changed
+    values = changed.identity()
+    table = {k: v for k, v in values.items() if v is not None and k not in CIRCUIT_KEYS}
+    table["circuit"] = {k: values[k] for k in CIRCUIT_KEYS if values[k] is not None}
+    if table.get("duty_limits") == [0.0, 1.0]:
+        del table["duty_limits"]
+
+    def place(key, _table):
+        return f"{changed.origin} ({key})" if key else changed.origin
+
+    checked = parse_converter_table(table, changed.origin, place)
+    return replace(checked, places={**spec.places, **checked.places})

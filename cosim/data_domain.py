@@ -22,8 +22,16 @@ def _domain_of(controller) -> dict | None:
         description = controller.describe()
     except Exception:  # a user's controller whose describe() fails has no domain to check here
         return None
-    predictor = description.get("predictor") if isinstance(description, dict) else None
-    return predictor.get("data_domain") if isinstance(predictor, dict) else None
+    # the NNPC's predictor; the adaptive NNPC's inner NNPC's; the explicit NNPC's expert (the network it imitates:
+    # its predictor's description, as the policy file records it)
+    if not isinstance(description, dict):
+        return None
+    inner, expert = description.get("inner"), description.get("expert")
+    for predictor in (description.get("predictor"), inner.get("predictor") if isinstance(inner, dict) else None,
+                      expert):
+        if isinstance(predictor, dict) and predictor.get("data_domain"):
+            return predictor["data_domain"]
+    return None
 
 
 def outside_data_domain(controller, scenario) -> list[dict]:

@@ -93,9 +93,12 @@ def test_a_binding_file_gives_its_converter_with_the_fmus_values_as_defaults(my2
      r"my24.toml:\d+: load_resistance_range = \[30, 2\] Ohm is inverted or empty: expected min < max"),
     (("{extra}", "control_periods = [1.0]"), r"my24.toml:\d+: control_periods\[0\] = 1 s is implausible: expected "
                                              r"seconds between 1e-08 and 0.1 \(a period in ms or us\?\)"),
-    (("switching_frequency = 100e3", "switching_frequency = 100"), None),  # 100 Hz is plausible enough for the check
+    (("switching_frequency = 100e3", "switching_frequency = 100"),  # kHz written as Hz
+     r"converter.circuit.switching_frequency = 100 Hz is implausible: expected Hz between 1000 and 1e\+09"),
+    (("output_voltage_range = [2.0, 8.0]", "output_voltage_range = [0.0, 8.0]"),  # rests at 0 V are no operating point
+     r"my24.toml:\d+: output_voltage_range\[0\] = 0 V is invalid: expected > 0"),
     (("switching_frequency = 100e3", "switching_frequency = 100e-3"),
-     r"my24.toml:\d+: converter.circuit.switching_frequency = 0.1 Hz is implausible: expected Hz between 100 and "
+     r"my24.toml:\d+: converter.circuit.switching_frequency = 0.1 Hz is implausible: expected Hz between 1000 and "
      r"1e\+09 "
      r"\(a value in kHz or MHz\?\)"),
     (("inductance = \"L\"", "inductance = 100"), r"converter.circuit.inductance = 100 H is implausible.*uH or mH"),
@@ -110,12 +113,38 @@ def test_a_binding_file_gives_its_converter_with_the_fmus_values_as_defaults(my2
 ])
 def test_a_bad_spec_value_is_refused_in_one_line_naming_file_key_and_line(tmp_path, python_buck_fmu, edit, message):
     path = my24(tmp_path, python_buck_fmu, text=MY24.replace(*edit).format(fmu=python_buck_fmu, extra=""))
-    if message is None:
-        load_binding(path)
-        return
     with pytest.raises(ConfigError, match=message) as raised:
         load_binding(path)
     assert "\n" not in str(raised.value)
+
+
+def test_a_spec_built_in_python_is_checked_like_a_table():
+    from cosim.converter_spec import with_values
+
+    assert with_values(PAPER_SPEC) == PAPER_SPEC
+    for bad, message in ((dict(inductance=220.0), r"inductance = 220 H is implausible"),
+                         (dict(control_periods=(1.0,)), r"control_periods\[0\] = 1 s is implausible"),
+                         (dict(output_voltage=50.0), r"output_voltage = 50 V is outside output_voltage_range")):
+        with pytest.raises(ConfigError, match=message):
+            with_values(PAPER_SPEC, **bad)
+
+
+def test_a_zero_start_value_is_no_nominal_value(my24_binding):
+    """Exported FMUs often start their inputs at 0: that is no nominal load or supply -- not given, so a design that
+    needs it names the key, instead of the binding failing to load."""
+    from types import SimpleNamespace
+
+    from cosim.base.toml_files import TomlLocator
+    from cosim.fmi.binding_file import converter_spec
+
+    variables = [SimpleNamespace(name="Vin", start="0", causality="input", type="Real"),
+                 SimpleNamespace(name="Rload", start="not a number", causality="input", type="Real")]
+    spec = converter_spec({"output_voltage": 5.0}, my24_binding, SimpleNamespace(modelVariables=variables),
+                          TomlLocator(""))
+    assert (spec.input_voltage, spec.load_resistance, spec.output_voltage) == (None, None, 5.0)
+    with pytest.raises(ConfigError, match=r"the PI tuning needs input_voltage, which neither \[converter\] nor the "
+                                          r"FMU gives"):
+        spec.require("input_voltage", "the PI tuning")
 
 
 def test_a_design_needing_a_value_the_spec_does_not_give_is_refused_naming_the_key(tmp_path, python_buck_fmu):
@@ -297,6 +326,23 @@ def test_a_run_outside_the_networks_data_warns_once_and_says_so_in_its_metadata(
     on_table_ii = load_scenario("load_change", PAPER_SPEC)
     assert outside_data_domain(_Network(), on_table_ii) == []
     assert checked_metadata(_Network(), on_table_ii, None) is None
+
+
+def test_the_adaptive_and_the_explicit_nnpc_are_checked_against_their_networks_data(my24_binding):
+    from cosim.data_domain import outside_data_domain
+
+    class Wrapped:
+        def __init__(self, key):
+            self.name, self.key = "wrapped", key
+
+        def describe(self):  # the adaptive NNPC nests the NNPC's description, a policy its expert's predictor's
+            inner = _Network().describe()
+            return {"type": "wrapped", self.key: inner if self.key == "inner" else inner["predictor"]}
+
+    scenario = load_scenario("load_change", my24_binding.converter)
+    for key in ("inner", "expert"):  # the adaptive NNPC's inner NNPC; the explicit NNPC's expert
+        assert [f["signal"] for f in outside_data_domain(Wrapped(key), scenario)] == ["input_voltage",
+                                                                                      "load_conductance"]
 
 
 def test_the_identification_figure_states_the_datas_true_ranges():

@@ -196,11 +196,14 @@ def add_collect_data_parser(sub) -> None:
     p = sub.add_parser("collect-data", help="collect NN training data with the tuned PI (paper Section IV)",
                        description="Drive the plant with the tuned PI under random references and loads (and, over "
                                    "the envelope, supplies) held for random intervals, its duty dithered; write one "
-                                   "row per control sample (iL, vo, d, ...) as Parquet. The region: 'paper' -- "
-                                   "references 0-20 V, loads 4-10 Ohm at 48 V, a white dither (the paper's "
-                                   "experiment); 'envelope' -- references 3-20 V, loads 4-100 Ohm, supplies 36-60 V "
-                                   "(a plant binding without an input_voltage role keeps its supply), an "
-                                   "amplitude-modulated random binary dither. Default: the workbench's recipe, "
+                                   "row per control sample (iL, vo, d, ...) as Parquet. The region, over the "
+                                   "plant's converter spec (a binding file's [converter] table; Table II for the "
+                                   "built-in plant): 'paper' -- the paper's experiment scaled to it (references 0 V "
+                                   "to the top of its output range, loads from its smallest to 5/3 x its nominal load "
+                                   "at its nominal supply; Table II: 0-20 V, 4-10 Ohm at 48 V), a white dither; "
+                                   "'envelope' -- references, loads and supplies over its ranges (Table II: 3-20 V, "
+                                   "4-100 Ohm, 36-60 V; a plant binding without an input_voltage role keeps its "
+                                   "supply), an amplitude-modulated random binary dither. Default: the workbench's recipe, "
                                    "'paper' at control periods >= 1 ms, 'envelope' faster (train such data with "
                                    "--extra load_conductance input_voltage).")
     _add_plant_options(p)
@@ -265,7 +268,8 @@ def add_distill_parser(sub) -> None:
     p = sub.add_parser("distill", help="distill the NNPC into an explicit policy network (DAgger on the plant FMU)",
                        description="Train a small policy network to return the online NNPC's first move: DAgger on "
                                    "the plant FMU -- the current policy drives seeded random episodes (references "
-                                   "3-20 V, loads 4-100 Ohm, start-ups from rest), the NNPC's C twin labels every "
+                                   "and loads over the plant's converter envelope, Table II: 3-20 V, 4-100 Ohm; "
+                                   "start-ups from rest), the NNPC's C twin labels every "
                                    "visited state, labels are aggregated and the policy retrained, for a few rounds. "
                                    "The policy adds an integral term near the reference (offset-free) and saturates "
                                    "to the duty limits; run it with --controller nnpc-explicit --policy POLICY.pt or "

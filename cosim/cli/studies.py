@@ -72,11 +72,19 @@ def cmd_frequency_response(args) -> int:
     from cosim.study.frequency_response import ResponseSettings, measure, write_outputs
     from cosim.study.sweeps.spec import ControllerEntry
 
-    settings = ResponseSettings(injection=args.injection, low=args.low, high=args.high, points=args.points,
-                                amplitude=args.amplitude, reference=args.reference, load=args.load,
-                                input_voltage=args.input_voltage, settle=args.settle)
-    settings.check(args.control_period)  # every setting before the cluster or a design
     binding = _plant_binding(args)
+    spec = binding.converter  # the operating point and the rate not given: the plant's converter's
+    purpose = "the frequency response's operating point (or give --reference, --load, --input-voltage)"
+    reference, load, supply = (given if given is not None else spec.require(key, purpose)
+                               for given, key in ((args.reference, "output_voltage"), (args.load, "load_resistance"),
+                                                  (args.input_voltage, "input_voltage")))
+    if args.control_period is None:
+        args.control_period = 1.0 / spec.require("switching_frequency",
+                                                 "the frequency response's rate (or give --control-period)")
+    settings = ResponseSettings(injection=args.injection, low=args.low, high=args.high, points=args.points,
+                                amplitude=args.amplitude, reference=reference, load=load, input_voltage=supply,
+                                settle=args.settle)
+    settings.check(args.control_period)  # every setting before the cluster or a design
     out = output_dir(args.out)
     names = args.controller or ["pi"]
     for name in names:
@@ -178,17 +186,21 @@ def add_frequency_response_parser(sub) -> None:
     _add_optimizer_options(p, RESPONSE_PREDICTIVE)
     p.add_argument("--injection", choices=["duty", "reference", "load"], default="duty",
                    help="where the sine goes in (default: duty)")
-    p.add_argument("--control-period", type=parse_period, default=1 / 75e3, metavar="SECONDS",
-                   help="controller sample period in s (default: 1/75e3)")
+    p.add_argument("--control-period", type=parse_period, default=None, metavar="SECONDS",
+                   help="controller sample period in s (default: one switching period of the plant's converter, "
+                        "1/75e3 for the built-in plant)")
     p.add_argument("--low", type=float, default=100.0, metavar="HZ", help="lowest frequency [Hz] (default: 100)")
     p.add_argument("--high", type=float, default=30e3, metavar="HZ", help="highest frequency [Hz] (default: 30e3)")
     p.add_argument("--points", type=int, default=24, metavar="N", help="log-spaced frequencies (default: 24)")
     p.add_argument("--amplitude", type=float, default=None,
                    help="injection amplitude: duty [1] (default 0.01), reference [V] (0.1), load [relative "
                         "conductance change] (0.05)")
-    p.add_argument("--reference", type=float, default=12.0, metavar="V", help="operating point: reference [V] (default 12)")
-    p.add_argument("--load", type=float, default=6.0, metavar="OHM", help="operating point: load [Ohm] (default 6)")
-    p.add_argument("--input-voltage", type=float, default=48.0, metavar="V", help="operating point: supply [V] (default 48)")
+    p.add_argument("--reference", type=float, default=None, metavar="V",
+                   help="operating point: reference [V] (default: the converter's nominal output, 12 V built-in)")
+    p.add_argument("--load", type=float, default=None, metavar="OHM",
+                   help="operating point: load [Ohm] (default: the converter's nominal load, 6 Ohm built-in)")
+    p.add_argument("--input-voltage", type=float, default=None, metavar="V",
+                   help="operating point: supply [V] (default: the converter's nominal supply, 48 V built-in)")
     p.add_argument("--settle", type=float, default=15e-3, metavar="SECONDS",
                    help="closed loop from rest before the injection starts [s] (default: 0.015)")
     p.add_argument("--workers", type=bounded(int, 1), metavar="N", help="local dask workers (default: one per core)")

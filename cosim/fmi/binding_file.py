@@ -253,8 +253,11 @@ def converter_spec(table, binding: PlantBinding, model_description, loc: TomlLoc
     for role in ("input_voltage", "load_resistance"):
         mapping = binding.roles.get(role)
         variable = variables.get(mapping.variable) if mapping is not None else None
-        if variable is not None and variable.start is not None:
+        try:
             value = (float(variable.start) - mapping.offset) / mapping.scale
+        except (AttributeError, TypeError, ValueError):  # no variable, no start value, or not a number
+            continue
+        if value > 0:  # a start value of 0 (a placeholder in many exported FMUs) is no nominal value: not given
             defaults[role] = (value, f"the start value of {mapping.variable!r}, bound to {role}")
 
     def parameter_value(name: str, scale: float, at: str) -> float:

@@ -205,7 +205,7 @@ def measure(binding, entry, control_period: float, settings: ResponseSettings, o
             implementation: str = DEFAULT_IMPLEMENTATION, progress: bool = False,
             record_period: float | None = None) -> pd.DataFrame:
     """Measure one controller's response (module docstring); returns the points table (also written)."""
-    from cosim.study.controller_factory import true_parameters
+    from cosim.study.controller_factory import nominal_circuit, true_parameters
     from cosim.study.sweeps.execute import SweepExecution, execute
     from cosim.study.sweeps.plan import BatchTask
     from cosim.study.sweeps.worker import RunSettings, run_batch
@@ -243,7 +243,8 @@ def measure(binding, entry, control_period: float, settings: ResponseSettings, o
         raise ConfigError(f"{len(failed)} of {len(rows)} frequency-response runs failed: {failed['error'].iloc[0]}")
     measured = np.array([_ratio(row, settings.injection) for _, row in rows.iterrows()])
     python = build(base, binding, "python")
-    parameters = true_parameters(binding) if binding.source is None else _nominal()
+    parameters = true_parameters(binding) if binding.source is None else \
+        nominal_circuit(binding, "the closed-form loop gain (the nominal circuit)")
     targets = _targets(binding, control_period)
     sensor, modulator = targets.sensor, targets.modulator
     model = closed_form(python, parameters, settings, control_period, sensor, rows["frequency_hz"].to_numpy(),
@@ -288,22 +289,16 @@ def measure(binding, entry, control_period: float, settings: ResponseSettings, o
     return table
 
 
-def _nominal():
-    from cosim.study.vocabulary import NOMINAL
-
-    return NOMINAL
-
-
 def _targets(binding, control_period: float):
     """The sensor and modulator of the closed form: those the classical designs assume for this plant."""
     from dataclasses import replace
 
-    from cosim.study.classical_design import DesignTargets, targets_for
+    from cosim.study.classical_design import targets_for
 
     try:
         return targets_for(binding, control_period)
     except ValueError:  # another rate: the sensor and modulator alone
-        period = 1.0 / DesignTargets().switching_frequency
+        period = 1.0 / binding.converter.require("switching_frequency", "the closed-form loop gain's modulator")
         return replace(targets_for(binding, period), sample_period=control_period)
 
 

@@ -153,7 +153,7 @@ def closed_loop_round(identified: Identified, binding: PlantBinding, control_per
 
     r = len(identified.closed_loop) + 1
     training = training_settings(control_period, seed, recipe.multi_step_iterations)
-    loop = implemented(nnpc(identified.model, control_period), recipe.implementation)
+    loop = implemented(nnpc(identified.model, control_period, spec=binding.converter), recipe.implementation)
     closed = collection_settings(control_period, recipe.closed_loop_samples, seed + CLOSED_LOOP_SEED_OFFSET * r,
                                  excitation=recipe.closed_loop_dither, spec=binding.converter)
     extra = [*identified.closed_loop, collect(binding, loop, closed, progress=progress)]

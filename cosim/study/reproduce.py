@@ -53,7 +53,7 @@ from cosim.study import (
     ssp_agreement,
     tolerance_study,
 )
-from cosim.study.controller_factory import external_controllers, external_name
+from cosim.study.controller_factory import external_controllers, external_name, nominal_circuit
 from cosim.study.data_collection import collect, save_samples
 from cosim.study.design_cache import data_file, model_file, pi_file, seed_model_file
 from cosim.study.envelope_identification import coverage
@@ -365,11 +365,12 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
         log(f"  {tag}: {name} {configs[name].label}: held-out RMSE one step {rmse['one_step_rmse_voltage_V'] * 1e3:.1f} mV, "
             f"10 steps {rmse.get('10_step_rmse_voltage_V', math.nan) * 1e3:.0f} mV")
 
-    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC),
-                   nnpc(models["nnpc-paper"], period, NNPC_PAPER, optimizer=PAPER_NNPC_OPTIMIZER)]
+    spec = binding.converter
+    controllers = [pi.controller(), nnpc(models["nnpc"], period, NNPC, spec=spec),
+                   nnpc(models["nnpc-paper"], period, NNPC_PAPER, optimizer=PAPER_NNPC_OPTIMIZER, spec=spec)]
     true_parameters = None
-    if pipeline.binding_file:  # an external plant: only the Table II model is known
-        controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL, binding=binding))
+    if pipeline.binding_file:  # an external plant: the nominal circuit of its converter spec
+        controllers.append(model_mpc(nominal_circuit(binding, "mpc-nominal"), period, MPC_NOMINAL, binding=binding))
     else:
         true_parameters = PLANT_VARIANTS[pipeline.variant]
         wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH

@@ -27,7 +27,7 @@ from cosim.fmi.binding import PlantBinding
 from cosim.study.design_cache import model_file
 from cosim.study.sweeps.recipes import ControllerRecipe
 from cosim.study.sweeps.spec import ControllerEntry
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, NOMINAL
+from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 
 def _json(settings: dict) -> str:
@@ -104,11 +104,11 @@ def _planned(recipe: ControllerRecipe) -> dict:
 
 def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
                 progress: bool) -> ControllerRecipe:
-    from cosim.study.controller_factory import true_parameters
+    from cosim.study.controller_factory import nominal_circuit, true_parameters
 
-    # the nominal plant's circuit: Table II with the variant's parasitics for the built-in FMU;
-    # for an external FMU only Table II is known
-    circuit = true_parameters(binding) if binding.source is None else NOMINAL
+    # the nominal plant's circuit: Table II with the variant's parasitics for the built-in FMU; for an external FMU the
+    # nominal circuit of its converter spec (refused, naming the key, where the spec gives none)
+    circuit = true_parameters(binding) if binding.source is None else nominal_circuit(binding, entry.kind)
     return ControllerRecipe("mpc-nominal", entry.name, period,
                             _json({"circuit": asdict(circuit), **_optimizer_settings(entry)}))
 
@@ -117,7 +117,7 @@ def _design_oracle(entry: ControllerEntry, binding: PlantBinding, period: float,
                    progress: bool) -> ControllerRecipe:
     """The MPC with the plant's own circuit: the oracle where no axis changes the plant (the sweep plan
     refuses it beside [parameters] axes)."""
-    from cosim.study.controller_factory import true_parameters
+    from cosim.study.controller_factory import nominal_circuit, true_parameters
 
     try:
         circuit = true_parameters(binding)
@@ -159,14 +159,14 @@ def _design_classical(entry: ControllerEntry, binding: PlantBinding, period: flo
         design_type_iii,
         targets_for,
     )
-    from cosim.study.controller_factory import true_parameters
+    from cosim.study.controller_factory import nominal_circuit, true_parameters
 
     try:
         if entry.design is not None:
             controller = controller_from_file(Path(entry.design), entry.name)
             origin = entry.origin or f"design file {Path(entry.design).name}"
         else:
-            parameters = true_parameters(binding) if binding.source is None else NOMINAL
+            parameters = true_parameters(binding) if binding.source is None else nominal_circuit(binding, entry.kind)
             design = (design_current_mode if entry.kind == "current-mode" else design_type_iii)(
                 parameters, targets_for(binding, period), entry.name)
             controller, origin = design.controller, "designed on the nominal plant"
@@ -255,7 +255,7 @@ def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.study.experiments import nnpc
 
     controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
-                      recipe.name, **_planned(recipe))
+                      recipe.name, spec=binding.converter, **_planned(recipe))
     shadow = recipe.settings.get("shadow_policy")
     if shadow is None:
         return controller
@@ -266,8 +266,8 @@ def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
 
     policy = _policy_from_bytes(base64.b64decode(shadow), recipe.control_period)
     # the NNPC as the worker implements it (its C twin by default), the policy in shadow beside it
-    return ShadowPolicy(implemented(controller, recipe.settings.get("implementation", "c")), explicit_nnpc(policy),
-                        start=0.0)
+    return ShadowPolicy(implemented(controller, recipe.settings.get("implementation", "c")),
+                        explicit_nnpc(policy, spec=binding.converter), start=0.0)
 
 
 def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
@@ -301,7 +301,7 @@ def _policy_from_bytes(blob: bytes, period: float):
 def _build_explicit(recipe: ControllerRecipe, binding: PlantBinding):
     from cosim.study.experiments import explicit_nnpc
 
-    return explicit_nnpc(_policy_from_bytes(recipe.blob, recipe.control_period), recipe.name)
+    return explicit_nnpc(_policy_from_bytes(recipe.blob, recipe.control_period), recipe.name, spec=binding.converter)
 
 
 def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):
