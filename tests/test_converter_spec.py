@@ -174,6 +174,17 @@ def test_the_cli_refuses_a_bad_spec_before_anything_runs(tmp_path, python_buck_f
     assert not (tmp_path / "out" / "runs").exists()
 
 
+def test_reproduce_on_a_plant_without_a_nominal_circuit_is_refused_before_any_work(tmp_path, python_buck_fmu):
+    from conftest import cli
+
+    text = MY24.format(fmu=python_buck_fmu, extra="").split("[converter.circuit]")[0]
+    done = cli("reproduce", "--quick", "--plant", str(my24(tmp_path, python_buck_fmu, text=text)), "--out",
+               str(tmp_path / "out"))
+    line = one_line_error(done, 2, "my24.toml: reproduce --plant (its MPC baseline predicts with the nominal circuit) "
+                                   "needs inductance")
+    assert "[converter.circuit]" in line and not (tmp_path / "out" / "tuning").exists()
+
+
 # ------------------------------------------------------------------ scenarios relative to the spec
 
 

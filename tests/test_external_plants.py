@@ -49,7 +49,12 @@ variable = "Iout"
 [parameters]
 rL = 0.15
 
-""" + PLANT_CONVERTER
+""" + PLANT_CONVERTER + """[converter.circuit]
+inductance = "L"
+capacitance = "C"
+inductor_resistance = "rL"
+capacitor_esr = "rC"
+"""
 
 ME_BINDING = """\
 fmu = "{fmu}"

@@ -32,6 +32,7 @@ def cmd_reproduce(args) -> int:
         from cosim.study.experiments import scenarios_for
 
         binding = load_binding(args.plant)
+        binding.converter.circuit("reproduce --plant (its MPC baseline predicts with the nominal circuit)")
         for period in args.control_period or (PAPER_PERIOD,):
             scenarios = [s for s in scenarios_for(period, spec=binding.converter)
                          if s.required_roles() <= set(binding.roles)]
