@@ -240,8 +240,9 @@ def _add_plant_options(parser) -> None:
                              "sample at mid off-time with centre-aligned PWM")
     parser.add_argument("--plant", metavar="BINDING.toml",
                         help="drive an external FMU through a plant-binding file instead of the built-in plant "
-                             "(--mode/--variant/--sensor, which choose the built-in one, are refused with it; "
-                             "docs/guide/external-plants.md)")
+                             "(--mode/--variant/--sensor, which choose the built-in one, are refused with it); its "
+                             "[converter] table says which converter it is, and the scenarios and designs work at "
+                             "its operating points (docs/guide/external-plants.md)")
     isolation = parser.add_mutually_exclusive_group()
     isolation.add_argument("--isolate", dest="isolate", action="store_true", default=None,
                            help="step the plant FMU in a child process: a crash inside it ends the run with an error "

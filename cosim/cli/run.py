@@ -203,7 +203,10 @@ def add_run_parser(sub) -> None:
                                    "(+ JSON metadata) under OUT/runs, a metrics table under OUT/metrics and one "
                                    "figure per scenario (PNG + SVG) under OUT/figures.")
     p.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                   help="shipped scenario name or path to a scenario TOML file (default: the paper's four)")
+                   help="shipped scenario name or path to a scenario TOML file (default: the paper's four); the "
+                        "shipped ones are templates resolved against the plant's converter spec (a binding file's "
+                        "[converter] table; Table II for the built-in plant): start-up to its nominal output, load "
+                        "step to 5/6 of its nominal load, ...")
     p.add_argument("--controller", action="append", metavar="NAME|FMU|BINDING.toml|MODULE:CLASS",
                    help=f"controller(s) to run; repeat to overlay several (default: pi): {', '.join(CONTROLLERS)}, "
                         "a controller FMU with the workbench's role names (buck-cosim export-controller; named "
