@@ -251,6 +251,9 @@ PLANT_CONVERTER = ("[converter]\noutput_voltage = 12.0\ninput_voltage = 48.0\nlo
                    "output_voltage_range = [3.0, 20.0]\ninput_voltage_range = [36.0, 60.0]\n"
                    "load_resistance_range = [4.0, 100.0]\n")
 
+#: the nominal circuit the faulty plant's converter table gives the model-based designs (its own model has none)
+FAULTY_CIRCUIT = "[converter.circuit]\ninductance = 220e-6\ncapacitance = 10e-6\n"
+
 FAULTY_BINDING = """\
 fmu = "{fmu}"
 [roles.duty_cycle]
@@ -271,7 +274,7 @@ def faulty_binding(fmu: Path, kind: int | None = None) -> str:
     bound); without ``kind`` it leaves fault_kind to the FMU's default or to a sweep. fault_kind is on line 9,
     fault_time on the last line."""
     return FAULTY_BINDING.format(fmu=fmu, fault_kind="" if kind is None else f"fault_kind = {kind}\n",
-                                 converter=PLANT_CONVERTER)
+                                 converter=PLANT_CONVERTER + FAULTY_CIRCUIT)
 
 
 #: the roles the workbench's own plant FMU names its variables after (a binding file binds each to itself)
