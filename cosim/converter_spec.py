@@ -38,12 +38,12 @@ is asked for (:meth:`ConverterSpec.require`), naming the key -- no design falls 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, fields, replace
 from fractions import Fraction
 from typing import Mapping
 
 from cosim.base.errors import ConfigError
+from cosim.base.toml_files import finite_number
 
 #: the operating-point keys: nominal value -> its range key, unit and what it is
 OPERATING_KEYS = {
@@ -205,12 +205,6 @@ def parse_template(text: str, where: str) -> Fraction:
 # Reading a [converter] table
 
 
-def _number(value, key: str, place: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-        raise ConfigError(f"{place}: {key} = {value!r} is invalid: expected a finite number")
-    return float(value)
-
-
 def _plausible(value: float, key: str, unit: str, place: str, strictly_positive: bool = True) -> float:
     if value < 0 or (strictly_positive and value == 0):
         raise ConfigError(f"{place}: {key} = {value:g} {unit} is invalid: expected "
@@ -225,8 +219,8 @@ def _plausible(value: float, key: str, unit: str, place: str, strictly_positive:
 def _range(value, key: str, unit: str, place: str) -> tuple[float, float]:
     if not isinstance(value, list) or len(value) != 2:
         raise ConfigError(f"{place}: {key} = {value!r} is invalid: expected [min, max] in {unit}")
-    low = _plausible(_number(value[0], f"{key}[0]", place), f"{key}[0]", unit, place)
-    high = _plausible(_number(value[1], f"{key}[1]", place), f"{key}[1]", unit, place)
+    low = _plausible(finite_number(value[0], f"{key}[0]", place), f"{key}[0]", unit, place)
+    high = _plausible(finite_number(value[1], f"{key}[1]", place), f"{key}[1]", unit, place)
     if not low < high:
         raise ConfigError(f"{place}: {key} = [{low:g}, {high:g}] {unit} is inverted or empty: expected min < max")
     return (low, high)
@@ -256,7 +250,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
     for key, (range_key, unit, _) in OPERATING_KEYS.items():
         at = place(key, "converter")
         if key in table:
-            values[key] = _plausible(_number(table[key], key, at), key, unit, at)
+            values[key] = _plausible(finite_number(table[key], key, at), key, unit, at)
             places[key] = at
         elif defaults and key in defaults:
             values[key], places[key] = defaults[key]
@@ -276,7 +270,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
                               "e.g. [1e-3, 1e-5]")
         checked = []
         for i, period in enumerate(periods):
-            value = _number(period, f"control_periods[{i}]", at)
+            value = finite_number(period, f"control_periods[{i}]", at)
             if not PERIOD_RANGE[0] <= value <= PERIOD_RANGE[1]:
                 raise ConfigError(f"{at}: control_periods[{i}] = {value:g} s is implausible: expected seconds between "
                                   f"{PERIOD_RANGE[0]:g} and {PERIOD_RANGE[1]:g} (a period in ms or us?)")
@@ -288,7 +282,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
         limits = table["duty_limits"]
         if not isinstance(limits, list) or len(limits) != 2:
             raise ConfigError(f"{at}: duty_limits = {limits!r} is invalid: expected [min, max] within [0, 1]")
-        low, high = (_number(v, "duty_limits", at) for v in limits)
+        low, high = (finite_number(v, "duty_limits", at) for v in limits)
         if not 0 <= low < high <= 1:
             raise ConfigError(f"{at}: duty_limits = [{low:g}, {high:g}] is invalid: expected 0 <= min < max <= 1 "
                               "(a duty in percent?)")
@@ -296,7 +290,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
         places["duty_limits"] = at
     if "inductor_current_limit" in table:
         at = place("inductor_current_limit", "converter")
-        value = _number(table["inductor_current_limit"], "inductor_current_limit", at)
+        value = finite_number(table["inductor_current_limit"], "inductor_current_limit", at)
         if not 0 < value <= 1e4:
             raise ConfigError(f"{at}: inductor_current_limit = {value:g} A is invalid: expected amperes, > 0 and "
                               "<= 10 000 (a current in mA?)")
@@ -316,7 +310,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
             if not isinstance(name, str) or (isinstance(entry, dict) and set(entry) - {"parameter", "scale"}):
                 raise ConfigError(f"{at}: converter.circuit.{key} = {entry!r} is invalid: expected a number in {unit}, "
                                   "an FMU parameter's name, or { parameter = \"NAME\", scale = FACTOR }")
-            scale = _number(scale, f"converter.circuit.{key}.scale", at)
+            scale = finite_number(scale, f"converter.circuit.{key}.scale", at)
             if scale == 0:
                 raise ConfigError(f"{at}: converter.circuit.{key}.scale = 0 is invalid: expected a non-zero factor")
             if parameter_value is None:
@@ -325,7 +319,7 @@ def parse_converter_table(table, origin: str, place, defaults: Mapping[str, tupl
             value = parameter_value(name, scale, at)
             at = f"{at} (FMU parameter {name!r})"
         else:
-            value = _number(entry, f"converter.circuit.{key}", at)
+            value = finite_number(entry, f"converter.circuit.{key}", at)
         if value < 0 or (key in REQUIRED_CIRCUIT and value == 0):
             raise ConfigError(f"{at}: converter.circuit.{key} = {value:g} {unit} is invalid: expected "
                               f"{'> 0' if key in REQUIRED_CIRCUIT else '>= 0'}")

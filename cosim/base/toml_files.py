@@ -6,6 +6,7 @@ lines, which is enough for the small, hand-written files the workbench reads.
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
 from pathlib import Path
@@ -36,6 +37,14 @@ class TomlLocator:
             if key is not None and in_place and re.match(rf"{re.escape(key)}\s*=", line):
                 return number
         return None
+
+
+def finite_number(value, label: str, place: str) -> float:
+    """A configuration value that must be a finite number (not a bool, not text), as a float; else a one-line
+    :class:`ConfigError` at ``place`` (``file:line``) naming ``label``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+        raise ConfigError(f"{place}: {label} = {value!r} is invalid: expected a finite number")
+    return float(value)
 
 
 def where(path: Path | None, locator: TomlLocator, key: str, table: str | None = None, index: int | None = None) -> str:

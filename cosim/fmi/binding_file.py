@@ -50,7 +50,7 @@ from typing import Callable, Mapping
 from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
 from cosim.base.labels import did_you_mean
-from cosim.base.toml_files import TomlLocator, parse_toml, where
+from cosim.base.toml_files import TomlLocator, finite_number, parse_toml, where
 from cosim.converter_spec import ConverterSpec, parse_converter_table
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import (
@@ -74,17 +74,11 @@ TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "step_timeout", 
 ROLE_KEYS = {"variable", "scale", "offset"}
 
 
-def _number(value, label: str, place: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)):
-        raise ConfigError(f"{place}: {label} = {value!r} is invalid: expected a finite number")
-    return float(value)
-
-
 def _isolation_limit(data: dict, path: Path, loc: TomlLocator, key: str, unit: str, isolate: bool) -> float | None:
     """An optional limit of the isolated plant process (``step_timeout``, ``memory_limit``): > 0, isolated only."""
     if key not in data:
         return None
-    value = _number(data[key], key, where(path, loc, key))
+    value = finite_number(data[key], key, where(path, loc, key))
     if not value > 0:
         raise ConfigError(f"{where(path, loc, key)}: {key} = {value:g} {unit} is invalid: expected > 0")
     if not isolate:
@@ -130,8 +124,8 @@ def parse_roles(data: dict, path: Path, loc: TomlLocator, allowed: tuple[str, ..
         variable = entry.get("variable")
         if not isinstance(variable, str) or not variable:
             raise ConfigError(f"{where(path, loc, 'variable', table)}: '{table}.variable' must name an FMU variable")
-        scale = _number(entry.get("scale", 1.0), f"{table}.scale", where(path, loc, "scale", table))
-        offset = _number(entry.get("offset", 0.0), f"{table}.offset", where(path, loc, "offset", table))
+        scale = finite_number(entry.get("scale", 1.0), f"{table}.scale", where(path, loc, "scale", table))
+        offset = finite_number(entry.get("offset", 0.0), f"{table}.offset", where(path, loc, "offset", table))
         if scale == 0:
             raise ConfigError(f"{where(path, loc, 'scale', table)}: {table}.scale = 0 is invalid: expected a "
                               "non-zero factor")
@@ -205,7 +199,7 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
             raise ConfigError(f"{where(path, loc, 'interface')}: {error}") from None
     max_step = None
     if "max_step" in data:
-        max_step = _number(data["max_step"], "max_step", where(path, loc, "max_step"))
+        max_step = finite_number(data["max_step"], "max_step", where(path, loc, "max_step"))
         if max_step <= 0:
             raise ConfigError(f"{where(path, loc, 'max_step')}: max_step = {max_step} s is invalid: expected > 0")
     label = data.get("label", f"{fmu_path.stem} (bound by {path.name})")

@@ -61,7 +61,7 @@ from fmpy.fmi3 import FMU3Slave
 
 from controllers.base import Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, FmuArchiveError
-from cosim.base.toml_files import parse_toml, where
+from cosim.base.toml_files import finite_number, parse_toml, where
 from cosim.fmi.archive import CheckedFmu, check_fmu
 from cosim.fmi.binding import (
     CONTROLLER_INPUT_ROLES,
@@ -78,7 +78,6 @@ from cosim.fmi.binding import (
 from cosim.fmi.binding_file import (
     PARAMETER,
     TOGETHER,
-    _number,
     check_against,
     checked_fmu_of,
     fmu_path_of,
@@ -185,7 +184,7 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
         raise ConfigError(f"{where(path, loc, 'label')}: label has the wrong type: expected text")
     period = None
     if "sample_period" in data:
-        period = _number(data["sample_period"], "sample_period", where(path, loc, "sample_period"))
+        period = finite_number(data["sample_period"], "sample_period", where(path, loc, "sample_period"))
         if period <= 0:
             raise ConfigError(f"{where(path, loc, 'sample_period')}: sample_period = {period} s is invalid: "
                               "expected > 0")
@@ -195,7 +194,7 @@ def parse_controller_binding(text: str, path: Path) -> ControllerBinding:
         place = where(path, loc, "duty_limits")
         if not (isinstance(raw, list) and len(raw) == 2):
             raise ConfigError(f"{place}: duty_limits = {raw!r} is invalid: expected [min, max]")
-        limits = (_number(raw[0], "duty_limits[0]", place), _number(raw[1], "duty_limits[1]", place))
+        limits = (finite_number(raw[0], "duty_limits[0]", place), finite_number(raw[1], "duty_limits[1]", place))
         if not 0.0 <= limits[0] < limits[1] <= 1.0:
             raise ConfigError(f"{place}: duty_limits = [{limits[0]:g}, {limits[1]:g}] is invalid: expected 0 <= min < "
                               "max <= 1")
