@@ -41,6 +41,7 @@ from cosim.study.vocabulary import (
     OPTIMIZERS,
     PAPER_SPEC,
     identification_dither,
+    lc_period,
     transient_within_sample,
 )
 
@@ -132,12 +133,15 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
                    excitation=excitation if excitation is not None else ENVELOPE_DITHER)
 
 
-def horizon_settings(control_period: float, horizon: int | None = None) -> HorizonSettings:
+def horizon_settings(control_period: float, horizon: int | None = None,
+                     spec: ConverterSpec | None = None) -> HorizonSettings:
     """Optimizer settings per rate. At 1 ms the LC transient (~0.5 ms) is over within one sample,
     so one step of prediction decides the move (the reproduction's ablation checks N = 3 against
-    N = 1); at faster rates the horizon spans one LC ringing period."""
-    n = horizon if horizon is not None else \
-        (1 if transient_within_sample(control_period) else ripple_free_horizon(control_period, LC_PERIOD))
+    N = 1); at faster rates the horizon spans one LC ringing period of ``spec``'s nominal circuit (None: the paper
+    study's converter, Table II)."""
+    if horizon is None and not transient_within_sample(control_period):
+        horizon = ripple_free_horizon(control_period, LC_PERIOD if spec is None else lc_period(spec))
+    n = horizon if horizon is not None else 1
     return HorizonSettings(horizon=n, levels=33 if n == 1 else 21)
 
 
@@ -372,7 +376,7 @@ def nnpc(model: NNPlantModel, control_period: float, name: str = "NNPC", horizon
     """The NNPC on ``model``; ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`);
     ``rti_changes``: fields of the rate's RTI settings replaced (:func:`rti_settings`); ``spec``: the converter it
     regulates, whose nominal load and supply it starts from (None: :func:`network_operating_point`)."""
-    return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon),
+    return PredictiveController(NNPredictor(model), control_period, horizon_settings(control_period, horizon, spec),
                                 duty_limits, name=name, **network_operating_point(model, spec),
                                 rti=rti_settings(control_period, optimizer, duty_limits, rti_changes))
 
@@ -430,7 +434,7 @@ def model_mpc(parameters: CircuitParameters, control_period: float, name: str,
     drops the disturbance estimate (the paper's kind of MPC: a model error then stays an error);
     ``optimizer``: one of :data:`OPTIMIZERS` (None: :data:`DEFAULT_OPTIMIZER`); ``horizon``: samples
     (None: the rate's, :func:`horizon_settings`); ``rti_changes`` as :func:`nnpc`'s."""
-    settings = horizon_settings(control_period, horizon)
+    settings = horizon_settings(control_period, horizon, binding.converter if binding is not None else None)
     point = operating_point(binding.converter) if binding is not None else NOMINAL_OPERATING_POINT
     if not offset_free:
         settings = replace(settings, bias_filter=0.0)

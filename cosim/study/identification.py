@@ -33,6 +33,7 @@ import pandas as pd
 
 from controllers.nn_config import NNConfig, TrainingSettings
 from controllers.predictors import data_domain, domain_text
+from cosim.converter_spec import ConverterSpec
 from cosim.fmi.binding import PlantBinding
 from cosim.study.data_collection import CollectionSettings, collect
 from cosim.study.design_cache import DesignKey, design_key
@@ -55,10 +56,11 @@ if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only wher
 ONE_STEP, MULTI_STEP, CLOSED_LOOP = "one-step", "multi-step", "closed-loop"
 
 
-def training_settings(control_period: float, seed: int, iterations: int = MULTI_STEP_ITERATIONS) -> TrainingSettings:
-    """Training per rate: the simulation-error stage spans the predictive controller's horizon
-    (one sample at 1 ms, where it is the one-step loss)."""
-    horizon = horizon_settings(control_period).horizon
+def training_settings(control_period: float, seed: int, iterations: int = MULTI_STEP_ITERATIONS,
+                      spec: ConverterSpec | None = None) -> TrainingSettings:
+    """Training per rate: the simulation-error stage spans the predictive controller's horizon on ``spec``'s
+    converter (None: the paper study's; one sample at 1 ms, where it is the one-step loss)."""
+    horizon = horizon_settings(control_period, spec=spec).horizon
     if horizon == 1:  # the one-step training of the paper, as before
         return TrainingSettings(seed=seed)
     return TrainingSettings(seed=seed, max_iterations=ONE_STEP_ITERATIONS, multi_step_horizon=horizon,
@@ -86,7 +88,7 @@ def network_design(name: str, binding: PlantBinding, control_period: float, conf
     collection = collection_settings(control_period, samples, seed, region=network_region(name, control_period),
                                      spec=binding.converter)
     if recipe is not None:
-        training = training_settings(control_period, seed, recipe.multi_step_iterations)
+        training = training_settings(control_period, seed, recipe.multi_step_iterations, binding.converter)
     settings = {"network": asdict(config), "collection": asdict(collection),
                 "training": asdict(training or TrainingSettings(seed=seed)),
                 "recipe": asdict(recipe) if recipe is not None else None}
@@ -116,7 +118,7 @@ def identify(binding: PlantBinding, pi_controller, control_period: float, config
                                                                                 spec=binding.converter)
     if data is None:
         data = collect(binding, pi_controller, settings, progress=progress)
-    training = training_settings(control_period, seed, recipe.multi_step_iterations)
+    training = training_settings(control_period, seed, recipe.multi_step_iterations, binding.converter)
     rounds = recipe.rounds
     meta = {"control_period_s": control_period, "plant": binding.label, "seed": seed,
             "collection": asdict(settings), **(metadata or {})}
@@ -152,7 +154,7 @@ def closed_loop_round(identified: Identified, binding: PlantBinding, control_per
     from controllers.nn_model import train
 
     r = len(identified.closed_loop) + 1
-    training = training_settings(control_period, seed, recipe.multi_step_iterations)
+    training = training_settings(control_period, seed, recipe.multi_step_iterations, binding.converter)
     loop = implemented(nnpc(identified.model, control_period, spec=binding.converter), recipe.implementation)
     closed = collection_settings(control_period, recipe.closed_loop_samples, seed + CLOSED_LOOP_SEED_OFFSET * r,
                                  excitation=recipe.closed_loop_dither, spec=binding.converter)
