@@ -78,3 +78,40 @@ def test_on_the_c_plant_the_pi_meets_its_constraints_and_the_nnpc_beats_it_in_ev
         assert metrics.loc[(scenario, "NNPC"), "iae_Vs"] < metrics.loc[(scenario, "PI"), "iae_Vs"], scenario
     assert not any("outside_data_domain" in r.metadata for r in output.results)
     assert network.predictor.describe()["data_domain"]["input_voltage"] == [18.0, 32.0]
+
+
+def test_the_quick_study_of_the_second_converter_meets_its_targets_and_never_names_the_papers_converter(example,
+                                                                                                        tmp_path):
+    """``buck-cosim study --quick`` at one switching period, two seeds: the report's targets (the PI's constraints at
+    the nominal point, NNPC < PI in every scenario for every seed, NNPC / MPC-nominal at the median and worst seed,
+    no run outside the NNPC's data) are all met; the report states the converter's own values and none of the
+    paper's; a second run with --resume keeps every job and writes the same report."""
+    import pandas as pd
+    from conftest import cli
+
+    out = tmp_path / "study"
+    done = cli("study", "--plant", str(example / "pol_builtin.toml"), "--quick", "--control-period", "1e-5", "--out",
+               str(out), timeout=900)
+    assert done.returncode == 0, done.stderr
+    assert "[2/2] " in done.stderr and "converter study finished" in done.stderr  # progress, one line per job
+    targets = pd.read_csv(out / "targets.csv")
+    assert len(targets) == 5 and (targets["met"] == "yes").all(), targets.to_string()
+    assert targets["target"].str.contains("every scenario and seed \\(2 seeds\\)").any()
+    report = (out / "REPORT.md").read_text()
+    assert "# Study of POL buck 24 V -> 5 V" in report and "| nominal supply | 24 V | 18-32 V |" in report
+    assert "L = 47 uH, C = 27 uF, f_sw = 100 kHz" in report and "5 of 5 met" in report
+    for paper in ("48 V", "6 Ohm", "12 V", "75 kHz", "220 uH", "13.33"):
+        assert paper not in report, paper
+    metrics = pd.read_csv(out / "metrics" / "metrics_all.csv")
+    assert set(metrics["controller"]) == {"PI", "NNPC", "NNPC (seed 1)", "NNPC-paper", "MPC-nominal",
+                                          "NNPC-explicit", "CMC", "Type-III"}
+    pi_startup = metrics[(metrics["controller"] == "PI") & (metrics["scenario"] == "startup")].iloc[0]
+    assert f"overshoot {pi_startup['overshoot_pct']:.2f} %" in report
+    assert (out / "figures" / "iae_by_scenario.png").is_file()
+    assert "Whole quick study <= 3 min on 2 cores" in (out / "timings.md").read_text()
+    assert '"switching_frequency": 100000.0' in (out / "tuning" / "current-mode__bound-pol_builtin__10us.json").read_text()
+    again = cli("study", "--plant", str(example / "pol_builtin.toml"), "--quick", "--control-period", "1e-5", "--out",
+                str(out), "--resume", timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert again.stderr.count("finished earlier, kept (--resume)") == 2
+    assert (out / "REPORT.md").read_text() == report

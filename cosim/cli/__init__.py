@@ -24,7 +24,7 @@ PARSERS = (run.add_scenarios_parser, run.add_run_parser, design.add_collect_data
            design.add_distill_parser, export.add_export_controller_parser, export.add_export_ssp_parser,
            export.add_run_ssp_parser, run.add_inspect_parser, run.add_export_parser, run.add_plot_parser,
            run.add_compare_parser, export.add_build_fmu_parser,
-           design.add_tune_pi_parser, studies.add_reproduce_parser, studies.add_sweep_parser,
+           design.add_tune_pi_parser, studies.add_reproduce_parser, studies.add_study_parser, studies.add_sweep_parser,
            studies.add_frequency_response_parser, bench.add_bench_parser)
 
 

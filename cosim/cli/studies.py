@@ -1,4 +1,4 @@
-"""Commands that run studies on a dask cluster: ``reproduce``, ``sweep``, ``frequency-response``."""
+"""Commands that run studies on a dask cluster: ``reproduce``, ``study``, ``sweep``, ``frequency-response``."""
 
 from __future__ import annotations
 
@@ -43,6 +43,17 @@ def cmd_reproduce(args) -> int:
               implementation=args.implementation,
               profile=QUICK if args.quick else FULL, binding_file=args.plant,
               control_periods=tuple(args.control_period or ()), controller_files=tuple(args.controller or ()))
+    return 0
+
+
+def cmd_study(args) -> int:
+    from cosim.study.converter_study import plan_study  # checks the binding, its spec and the rates before any work
+
+    plan = plan_study(args.plant, tuple(args.control_period or ()), args.seeds, args.quick)
+    output_dir(args.out)  # then the output folder (created only for a study that will run)
+    from cosim.study.converter_study import run_study
+
+    run_study(plan, Path(args.out), workers=args.workers, resume=args.resume, implementation=args.implementation)
     return 0
 
 
@@ -145,6 +156,37 @@ def add_reproduce_parser(sub) -> None:
                         "(repeatable); its runs are in metrics/ and the figures under its name")
     _add_implementation_option(p)
     p.set_defaults(func=cmd_reproduce)
+
+
+def add_study_parser(sub) -> None:
+    from cosim.study.converter_study import DEFAULT_SEEDS, QUICK_SEEDS, QUICK_STUDY_BUDGET_S, STUDY_BUDGET_S
+
+    p = sub.add_parser("study", help="the whole study for your converter: PI, NNPC, MPC and classical baselines on "
+                                     "a bound plant FMU, with its report",
+                       description="The study make reproduce runs for the paper's converter, run for the converter "
+                                   "a binding file describes (its [converter] table): at each control period the "
+                                   "spec names, tune the PI at the nominal point, identify the NNPC from data over "
+                                   "the spec's ranges (one network per identification seed), run the paper's "
+                                   "scenarios resolved against the spec with PI, NNPC, the paper's NNPC and the MPC "
+                                   "on the nominal circuit; at one switching period also the explicit NNPC, the "
+                                   "current-mode controller and the Type-III. Writes data, models, runs, metrics, "
+                                   "figures, targets.csv, REPORT.md and timings.md under OUT. Budget on 2 cores: "
+                                   f"{STUDY_BUDGET_S / 60:g} min ({QUICK_STUDY_BUDGET_S / 60:g} min with --quick).")
+    p.add_argument("--plant", required=True, metavar="BINDING.toml",
+                   help="binding file of the plant FMU, with a [converter] table that gives the nominal circuit "
+                        "(L, C, f_sw) and the control periods")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--control-period", action="append", type=parse_period, metavar="SECONDS",
+                   help="control period(s) in s to study (repeatable; default: the spec's control_periods)")
+    p.add_argument("--seeds", type=bounded(int, 1, 20), default=None,
+                   help=f"identification seeds, 1 .. 20 (default: {DEFAULT_SEEDS}, {QUICK_SEEDS} with --quick)")
+    p.add_argument("--quick", action="store_true",
+                   help="a first look: 2 seeds, 4 000 identification samples, a small distillation")
+    p.add_argument("--workers", type=bounded(int, 1), default=2,
+                   help="worker processes of the local dask cluster the jobs run on (default: 2)")
+    p.add_argument("--resume", action="store_true", help="keep the jobs an interrupted study finished")
+    _add_implementation_option(p)
+    p.set_defaults(func=cmd_study)
 
 
 def add_sweep_parser(sub) -> None:

@@ -521,17 +521,19 @@ ENVELOPE_PIPELINE_PLANT = "nominal-switched"
 
 def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: Path, quick: bool = False,
                 timings: dict | None = None, log=None) -> list:
-    """The reproduction's hook, once per pipeline: at one sample per PWM period on a built-in plant,
-    design the current-mode controller and the Type-III for the pipeline's circuit (``parameters``),
-    tune the envelope PI on the nominal switched plant, write each design (and the nominal PI's
-    margins) to ``tuning/`` and return the controllers to run beside the others (none at 1 ms)."""
+    """The study's hook, once per pipeline: at one sample per PWM period of the plant's converter (its spec's
+    switching frequency), design the current-mode controller and the Type-III for the pipeline's circuit
+    (``parameters``: the true circuit of a built-in plant, the spec's nominal circuit of a bound one), tune the
+    envelope PI on the paper's nominal switched plant, write each design (and the PI's margins) to ``tuning/`` and
+    return the controllers to run beside the others (none at other rates)."""
     import time
 
     from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
     from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
-    if pipeline.binding_file or abs(period * PAPER_SPEC.switching_frequency - 1) > 1e-9:
+    switching_frequency = binding.converter.switching_frequency
+    if switching_frequency is None or abs(period * switching_frequency - 1) > 1e-9:
         return []
     start = time.perf_counter()
     tag = pipeline_tag(pipeline.plant_tag, period)

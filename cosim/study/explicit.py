@@ -88,17 +88,17 @@ def policy_path(out_dir: Path, tag: str) -> Path:
 
 def in_pipeline(pipeline, binding, model, pi, out_dir: Path, profile, seed: int,
                 implementation: str = DEFAULT_IMPLEMENTATION, timings: dict | None = None, log=None) -> list:
-    """The reproduction's hook, once per pipeline: at one switching period, distill the pipeline's
-    NNPC (``model``) into an explicit policy and return it as a controller to run beside the others
-    (an empty list at 1 ms)."""
+    """The study's hook, once per pipeline: where the transient is shaped within samples (one switching period),
+    distill the pipeline's NNPC (``model``) into an explicit policy and return it as a controller to run beside
+    the others (an empty list at 1 ms)."""
     period = pipeline.control_period
-    if transient_within_sample(period) or pipeline.binding_file:
+    if transient_within_sample(period):
         return []
     tag = pipeline_tag(pipeline.plant_tag, period)
     settings = replace(SMALL_DISTILLATION if profile.quick else FULL_DISTILLATION, seed=seed)
     policy = distill(model, binding, period, settings, log=log, metadata={"pipeline": tag}, timings=timings)
     save_policy(policy, policy_path(out_dir, tag))
-    return [explicit_nnpc(policy, NNPC_EXPLICIT)]
+    return [explicit_nnpc(policy, NNPC_EXPLICIT, spec=binding.converter)]
 
 
 # ---------------------------------------------------------------------------------------------

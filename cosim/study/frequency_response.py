@@ -373,21 +373,30 @@ REPRODUCTION_DIR = "frequency-response"
 
 def in_pipeline(pipeline, binding, controllers, out_dir: Path, quick: bool = False, timings: dict | None = None,
                 log=None) -> None:
-    """The reproduction's hook: on the nominal switched plant at 1/fsw, the loop gain of the PI, the
-    current-mode controller and the Type-III and the output impedance of the PI and the current-mode
-    controller, in-process (the job already runs on a dask worker), into ``frequency-response/``."""
+    """The study's hook: at one sample per PWM period, on the paper's nominal switched plant or a bound plant (its
+    classical designs are there), the loop gain of the PI, the current-mode controller and the Type-III and the
+    output impedance of the PI and the current-mode controller at the converter's nominal point from 100 Hz to 2/5
+    of its switching frequency, in-process (the job already runs on a dask worker), into ``frequency-response/``."""
     import time
 
     from cosim.study.sweeps.spec import ControllerEntry
+    from cosim.study.vocabulary import pipeline_tag
 
-    if pipeline.binding_file or pipeline.plant_tag != "nominal-switched" \
-            or abs(pipeline.control_period * 75e3 - 1) > 1e-9:
+    switching_frequency = binding.converter.switching_frequency
+    if not (pipeline.binding_file or pipeline.plant_tag == "nominal-switched") or switching_frequency is None \
+            or abs(pipeline.control_period * switching_frequency - 1) > 1e-9:
         return
     start = time.perf_counter()
+    spec = binding.converter  # measured at its nominal point, up to 2/5 of its switching frequency
+    purpose = "the frequency response's operating point"
+    operating_point = {"reference": spec.require("output_voltage", purpose),
+                       "load": spec.require("load_resistance", purpose),
+                       "input_voltage": spec.require("input_voltage", purpose)}
     folder = Path(out_dir) / REPRODUCTION_DIR
     by_name = {c.name: c for c in controllers}
     for injection, names in REPRODUCTION:
-        settings = ResponseSettings(injection=injection, points=5 if quick else 16)
+        settings = ResponseSettings(injection=injection, points=5 if quick else 16, high=2 * switching_frequency / 5,
+                                    **operating_point)
         tables = []
         for name in names:
             controller = by_name[name]
@@ -396,7 +405,7 @@ def in_pipeline(pipeline, binding, controllers, out_dir: Path, quick: bool = Fal
             else:
                 design_dir = Path(out_dir) / "tuning"
                 kind = "current-mode" if name == "CMC" else "type-iii"
-                tag = f"{pipeline.plant_tag}__13p33us"
+                tag = pipeline_tag(pipeline.plant_tag, pipeline.control_period)
                 entry = ControllerEntry(kind, name, design=design_dir / f"{kind}__{tag}.json",
                                         origin="the pipeline's design")
             tables.append(measure(binding, entry, pipeline.control_period, settings, folder / f"{injection}-{name}"))

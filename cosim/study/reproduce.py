@@ -370,7 +370,8 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                    nnpc(models["nnpc-paper"], period, NNPC_PAPER, optimizer=PAPER_NNPC_OPTIMIZER, spec=spec)]
     true_parameters = None
     if pipeline.binding_file:  # an external plant: the nominal circuit of its converter spec
-        controllers.append(model_mpc(nominal_circuit(binding, "mpc-nominal"), period, MPC_NOMINAL, binding=binding))
+        design_circuit = nominal_circuit(binding, "mpc-nominal")
+        controllers.append(model_mpc(design_circuit, period, MPC_NOMINAL, binding=binding))
     else:
         true_parameters = PLANT_VARIANTS[pipeline.variant]
         wrong_parameters = NOMINAL if pipeline.variant == "mismatch" else MISMATCH
@@ -379,13 +380,15 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
                         model_mpc(wrong_parameters, period, wrong_name, binding=binding)]
         if pipeline.variant == "mismatch":  # what the disturbance estimate buys: the paper's kind of MPC
             controllers.append(model_mpc(NOMINAL, period, MPC_NOMINAL_NO_ESTIMATE, binding=binding, offset_free=False))
+        design_circuit = true_parameters
     controllers += explicit.in_pipeline(pipeline, binding, models["nnpc"], pi.controller(), out_dir, profile, seed,
                                         implementation, timings, log)  # the explicit NNPC at 1/fsw, and its map
-    if true_parameters is not None:  # the classical baselines at 1/fsw: current-mode, Type-III, envelope PI
-        controllers += classical_design.in_pipeline(pipeline, binding, true_parameters, pi.controller(), out_dir,
-                                                    profile.quick, timings, log)
-        frequency_response.in_pipeline(pipeline, binding, [pi.controller(), *controllers], out_dir, profile.quick,
-                                       timings, log)  # loop gains and output impedances by injection
+    # the classical baselines at 1/fsw: current-mode and Type-III (on the built-in plants for their true circuit, on a
+    # bound plant for its spec's nominal one), the envelope PI on the paper's nominal switched plant
+    controllers += classical_design.in_pipeline(pipeline, binding, design_circuit, pi.controller(), out_dir,
+                                                profile.quick, timings, log)
+    frequency_response.in_pipeline(pipeline, binding, [pi.controller(), *controllers], out_dir, profile.quick,
+                                   timings, log)  # loop gains and output impedances by injection
     if controller_files:  # controller FMUs the user added (reproduce --controller), checked before any work
         from cosim.fmi.controller import FmuController, controller_binding
 
