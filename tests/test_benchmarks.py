@@ -29,6 +29,7 @@ def test_every_benchmark_runs_quickly_and_writes_both_files(tmp_path, capsys):
                 "controller compute per step, NNPC, 1 ms, Python reference",
                 "controller compute per step, MPC-mismatched, 13.33 us, C twin", "data collection, 500 samples",
                 "NN training, 3-7-2", "speed-up of numpy over torch", "end-to-end reproduction",
+                "quick converter study of the second converter (buck-cosim study --quick, smoke size",
                 "reproduction time with the RTI / with the search (same run)",
                 "floor of the RTI / search ratio, an optimizer that took no time anywhere",
                 "worker time where a predictive controller plans, the search the default",

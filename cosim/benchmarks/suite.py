@@ -18,6 +18,7 @@ from cosim.benchmarks.adaptation import bench_adaptation
 from cosim.benchmarks.c_controllers import bench_c_controllers
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.controller_compute import bench_controllers
+from cosim.benchmarks.converter_study import bench_converter_study
 from cosim.benchmarks.dompc import bench_dompc
 from cosim.benchmarks.embedded import bench_embedded
 from cosim.benchmarks.explicit import bench_explicit
@@ -46,6 +47,7 @@ BENCHMARKS: dict[str, Callable[[bool], list[BenchRow]]] = {
     "inference": bench_inference,
     "reproduction": bench_reproduction,
     "reproduction-optimizer": bench_reproduction_optimizer,
+    "converter-study": bench_converter_study,
     "sweep": bench_sweep,
     "soak": bench_soak,
 }
