@@ -2,7 +2,7 @@
 as a difference equation, with input-voltage feed-forward and anti-windup (C twin
 ``controllers/c/compensator.c``).
 
-The design (:mod:`cosim.study.classical_design`: K-factor placement, Tustin with prewarping)
+The design (:mod:`cosim.design.classical_design`: K-factor placement, Tustin with prewarping)
 gives u(z)/e(z) = (b0 + b1 z^-1 + ... + bn z^-n) / (1 + a1 z^-1 + ... + an z^-n) from the voltage
 error e = r - vo to u, the switch-node voltage [V] the loop asks for. At each sample, in direct
 form II transposed (states s_1..s_n)::

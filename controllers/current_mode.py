@@ -17,7 +17,7 @@ of the supply (the duty-to-current gain is proportional to Vs), which is what le
 over the 36-60 V envelope. ``computation_delay`` = 1 holds each computed duty for one sample before
 it is applied -- the duty of a microcontroller that samples at the period start, computes during
 the period and writes the PWM's shadow register for the next one -- and is part of the
-small-signal model the gains are designed on (:mod:`cosim.study.classical_design`).
+small-signal model the gains are designed on (:mod:`cosim.design.classical_design`).
 """
 
 from __future__ import annotations

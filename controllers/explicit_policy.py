@@ -2,7 +2,7 @@
 
 The online NNPC (:mod:`controllers.predictive`) solves a horizon optimisation at every sample --
 thousands of network steps. The explicit policy replaces that search by one forward pass of a
-small network trained (by :mod:`cosim.study.distillation`, DAgger on the plant FMU) to return the
+small network trained (by :mod:`cosim.design.distillation`, DAgger on the plant FMU) to return the
 optimizer's first move. It sees what the online NNPC sees, at sample k:
 
     features = [vo(k) - r, iL(k) - G r, vo(k-1) - r, iL(k-1) - G r, d(k-1), r, G]

@@ -16,7 +16,7 @@ previous solution shifted by one sample (warm start); then a batched pattern sea
 best candidate block by block with a shrinking step.
 
 Real-time iteration (:class:`RealTimeIteration`, :class:`RtiSettings`; the study's default at both rates, its
-settings per rate in ``cosim.study.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
+settings per rate in ``cosim.design.experiments.rti_settings``): instead of searching, a fixed number of Gauss-Newton steps on the
 blocked duties from the previous solution shifted by one sample, each a small box-constrained QP
 (:mod:`controllers.box_qp`) built from the predictor's forward sensitivities
 (:meth:`~controllers.predictors.Predictor.linearize`). Eq. 16 sums *non-squared* norms, which have
@@ -278,7 +278,7 @@ class RtiSettings:
     iterations: int = 1  # Gauss-Newton steps per sample, fixed (1..3): the step's cost is bounded and known. One step
     # is what fits a switching period in C; undamped, with the envelope-identified 8-10-2 networks, it missed the
     # quality targets at 13.33 us (2.8 x the search's IAE at worst): the study's one step is damped and hands the
-    # start-up over late (cosim.study.experiments.SWITCHING_PERIOD_RTI)
+    # start-up over late (cosim.design.experiments.SWITCHING_PERIOD_RTI)
     line_search: bool = False  # roll each trial out and take it only if its smoothed cost is not higher (else the
     # trust region shrinks); False takes every step, as acados' SQP-RTI does, and the plan's states are not rolled
     # out past the first (the step's cost: one linearisation). The reweighted model majorises the linearised cost,
@@ -301,7 +301,7 @@ class RtiSettings:
     # Unlike the Levenberg-Marquardt term, which damps the step from the shifted plan and so lags every transient,
     # it only prices the applied move: it stops the sample-to-sample alternation of the first two 1-sample blocks
     # that a model identified from PI data invites at 13.33 us (a period-2 limit cycle, see
-    # cosim.study.experiments.SWITCHING_PERIOD_RTI). It is not in eq. 16: the plan cost the ablation reports stays
+    # cosim.design.experiments.SWITCHING_PERIOD_RTI). It is not in eq. 16: the plan cost the ablation reports stays
     # eq. 16's
     qp_iterations: int = 24  # the box QP's active-set iterations, at most (controllers.box_qp)
     # fall back to the search (besides a cold start) when the reference moves more than reference_step [V], the
@@ -340,7 +340,7 @@ class RtiSettings:
     # duty quantum: the plan's blocks are rounded to multiples of it (0: not rounded); at 1 ms the study sets the
     # search's finest step, so both optimizers command duties on the same lattice (a 13-bit DPWM). Without it the
     # RTI's exact optimum differs from the search's lattice point by < 1e-4 (< 5 mV of output), which decided the
-    # IAE ratio where the IAE is that small (cosim.study.experiments.rti_settings)
+    # IAE ratio where the IAE is that small (cosim.design.experiments.rti_settings)
     duty_resolution: float = 0.0
 
     def __post_init__(self):

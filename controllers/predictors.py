@@ -173,7 +173,7 @@ DOMAIN_UNITS = {"input_voltage": "V", "load_conductance": "S", "reference": "V"}
 
 def data_domain(metadata: dict) -> dict[str, list[float]] | None:
     """The operating ranges a network's identification data were drawn over, from its metadata's ``collection``
-    settings (cosim.study.data_collection): the supply [V] (its fixed value or its range), the load conductance 1/R
+    settings (cosim.design.data_collection): the supply [V] (its fixed value or its range), the load conductance 1/R
     [S] (of the load range) and the reference [V] (its range; the rests at 0 V are no operating point). None for a
     network without that record (e.g. trained from a data file of unknown origin)."""
     collection = metadata.get("collection") if isinstance(metadata, dict) else None

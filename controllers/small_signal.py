@@ -2,7 +2,7 @@
 loop gains, margins and closed-loop responses of the linear (classical) controllers on it.
 
 Why a model of its own: a classical design is made from the small-signal model, not by search, and
-the frequency-response measurement on the plant FMU (:mod:`cosim.study.frequency_response`) is
+the frequency-response measurement on the plant FMU (:mod:`cosim.design.frequency_response`) is
 checked against exactly this closed form.
 
 **Plant.** The averaged CCM model with parasitics linearised at an operating point

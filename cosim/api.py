@@ -37,9 +37,9 @@ def tune_pi(binding: PlantBinding, control_period: float, *, spec: ConverterSpec
             quick: bool = False, progress: bool = False):
     """The PI tuned on the plant at ``control_period`` [s]: minimum ISE of the spec's start-up and reference steps (the
     shipped templates at its nominal output, load and supply) with overshoot <= 5 % and |steady-state error| <= 0.5 %
-    (:mod:`cosim.study.pi_tuning`). ``quick``: a 2 x 2 grid and 6 Nelder-Mead evaluations (examples and tests).
-    Returns a :class:`~cosim.study.pi_tuning.PITuning` (``kp`` [1/V], ``ki`` [1/(V s)], ``controller()``)."""
-    from cosim.study.pi_tuning import tune_pi as tune
+    (:mod:`cosim.design.pi_tuning`). ``quick``: a 2 x 2 grid and 6 Nelder-Mead evaluations (examples and tests).
+    Returns a :class:`~cosim.design.pi_tuning.PITuning` (``kp`` [1/V], ``ki`` [1/(V s)], ``controller()``)."""
+    from cosim.design.pi_tuning import tune_pi as tune
 
     return tune(with_spec(binding, spec), control_period, quick=quick, progress=progress)
 
@@ -49,7 +49,7 @@ def collection_settings(binding: PlantBinding, control_period: float, *, spec: C
     """The identification experiment's settings over the spec's operating points: ``region`` ``"paper"`` (the paper's
     experiment scaled to the spec) or ``"envelope"`` (its whole envelope; None: the rate's default, the paper's at
     1 ms, the envelope at faster rates). Refused, naming the key, where the spec gives no ranges."""
-    from cosim.study.experiments import collection_settings as settings
+    from cosim.design.experiments import collection_settings as settings
 
     return settings(control_period, samples, seed, region=region, spec=with_spec(binding, spec).converter)
 
@@ -60,7 +60,7 @@ def collect_data(binding: PlantBinding, control_period: float, controller, *, sp
     """Run the identification experiment (paper Section IV) with ``controller`` (e.g. ``tune_pi(...).controller()``)
     over :func:`collection_settings`: a pandas table, one row per control sample (iL, vo, duty, reference, load,
     supply, load conductance), its metadata in ``attrs["metadata"]``; written as Parquet to ``out`` if given."""
-    from cosim.study.data_collection import collect, save_samples
+    from cosim.design.data_collection import collect, save_samples
 
     bound = with_spec(binding, spec)
     data = collect(bound, controller, collection_settings(bound, control_period, samples=samples, seed=seed,
@@ -73,12 +73,12 @@ def collect_data(binding: PlantBinding, control_period: float, controller, *, sp
 def identify_network(binding: PlantBinding, control_period: float, pi_controller, *,
                      spec: ConverterSpec | None = None, samples: int = 10_000, seed: int = 0, progress: bool = False):
     """The NNPC's network identified on the plant at ``control_period`` [s] by the workbench's recipe
-    (:mod:`cosim.study.identification`: data collected with ``pi_controller`` over the spec's operating points, then
+    (:mod:`cosim.design.identification`: data collected with ``pi_controller`` over the spec's operating points, then
     one-step and simulation-error training). Returns the :class:`~controllers.nn_model.NNPlantModel`; its metadata
     records the data's ranges (``collection``) and the converter, which the NNPC starts from and a run outside them
     warns about."""
-    from cosim.study.experiments import nn_configs
-    from cosim.study.identification import Recipe, identify
+    from cosim.design.experiments import nn_configs
+    from cosim.design.identification import Recipe, identify
 
     bound = with_spec(binding, spec)
     config = nn_configs(control_period)["nnpc"]
@@ -88,7 +88,7 @@ def identify_network(binding: PlantBinding, control_period: float, pi_controller
 
 def nnpc(model, control_period: float, binding: PlantBinding, *, spec: ConverterSpec | None = None):
     """The NNPC on ``model`` for the plant's converter (it starts from the spec's nominal load and supply)."""
-    from cosim.study.experiments import nnpc as make
+    from cosim.design.experiments import nnpc as make
 
     return make(model, control_period, spec=with_spec(binding, spec).converter)
 
@@ -96,11 +96,11 @@ def nnpc(model, control_period: float, binding: PlantBinding, *, spec: Converter
 def design_classical(binding: PlantBinding, *, spec: ConverterSpec | None = None) -> dict:
     """The current-mode and Type-III controllers designed on the spec's nominal circuit at its nominal point, one
     sample per PWM period (1 / its switching frequency), checked at its envelope's corners
-    (:mod:`cosim.study.classical_design`). Returns ``{"current-mode": Design, "type-iii": Design}``; each design's
+    (:mod:`cosim.design.classical_design`). Returns ``{"current-mode": Design, "type-iii": Design}``; each design's
     ``controller`` runs, ``describe()`` gives its margins and ``meets()`` whether they meet the targets."""
     from controllers.predictors import CircuitParameters
-    from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-    from cosim.study.vocabulary import CURRENT_MODE, TYPE_III
+    from cosim.design.classical_design import design_current_mode, design_type_iii, targets_for
+    from cosim.design.vocabulary import CURRENT_MODE, TYPE_III
 
     bound = with_spec(binding, spec)
     converter = bound.converter
@@ -114,9 +114,9 @@ def design_classical(binding: PlantBinding, *, spec: ConverterSpec | None = None
 def distill_policy(model, binding: PlantBinding, control_period: float, *, spec: ConverterSpec | None = None,
                    settings=None, progress: bool = False):
     """The explicit NNPC: a policy network distilled from the online NNPC on ``model`` by DAgger on the plant, its
-    episodes' references and loads over the spec's envelope (:mod:`cosim.study.distillation`; ``settings``: a
-    :class:`~cosim.study.distillation.DistillationSettings`, default the reproduction's budget)."""
-    from cosim.study.distillation import FULL_DISTILLATION, distill
+    episodes' references and loads over the spec's envelope (:mod:`cosim.design.distillation`; ``settings``: a
+    :class:`~cosim.design.distillation.DistillationSettings`, default the reproduction's budget)."""
+    from cosim.design.distillation import FULL_DISTILLATION, distill
 
     return distill(model, with_spec(binding, spec), control_period, settings or FULL_DISTILLATION, log=None,
                    progress=progress)

@@ -21,18 +21,18 @@ Exit codes: 0 done, 2 bad arguments or results (one line, before any simulation)
 
 from __future__ import annotations
 
-import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
-
 import argparse
 import sys
 from pathlib import Path
+
+import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
 
 
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
     from cosim.base.errors import ConfigError
+    from cosim.design.vocabulary import OPTIMIZERS
     from cosim.study.explicit_every_seed import every_seed, fast_pipelines, file_names, verdict, write_tables
-    from cosim.study.vocabulary import OPTIMIZERS
 
     parser = argparse.ArgumentParser(prog="explicit_every_seed.py", description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=Path("results"),

@@ -17,16 +17,16 @@ Exit codes: 0 done, 2 bad arguments (one line, before any simulation).
 
 from __future__ import annotations
 
-import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
-
 import argparse
 import sys
 from pathlib import Path
 
+import cosim  # noqa: F401  (first: pins the numeric kernels before numpy and torch load)
+
 
 def main(argv: list[str]) -> int:
     from controllers.native import cache_dir
-    from cosim.study.experiments import rti_changes
+    from cosim.design.experiments import rti_changes
     from cosim.study.optimizer_ablation import verdict
     from cosim.study.optimizer_every_seed import every_seed, write_tables
 

@@ -371,9 +371,9 @@ def nnpc_1ms():
     from controllers.nn_config import TrainingSettings
     from controllers.nn_model import train
     from controllers.pi import PIController
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs, nnpc
-    from cosim.study.plants import plant_binding
+    from cosim.design.data_collection import collect
+    from cosim.design.experiments import collection_settings, nn_configs, nnpc
+    from cosim.design.plants import plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
                    collection_settings(1e-3, samples=800, seed=3, spec=PAPER_SPEC))

@@ -14,14 +14,13 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from cosim.study.reproduce import QUICK, Pipeline, _recipe, _tuned, run_seed  # first: pins the kernels
-
 from controllers.explicit_policy import save_policy  # noqa: E402
 from controllers.nn_model import load_model, save_model  # noqa: E402
-from cosim.study.distillation import SMALL_DISTILLATION, distill  # noqa: E402
-from cosim.study.experiments import nn_configs  # noqa: E402
-from cosim.study.identification import identify  # noqa: E402
-from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD  # noqa: E402
+from cosim.design.distillation import SMALL_DISTILLATION, distill  # noqa: E402
+from cosim.design.experiments import nn_configs  # noqa: E402
+from cosim.design.identification import identify  # noqa: E402
+from cosim.design.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD  # noqa: E402
+from cosim.study.reproduce import QUICK, Pipeline, _recipe, _tuned, run_seed  # first: pins the kernels
 
 EXPERT = Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt"
 PIPELINE = Pipeline("nominal", "averaged", PAPER_PERIOD)
@@ -41,7 +40,7 @@ def train_only(data: Path, out: Path) -> None:
     import torch
 
     from controllers.nn_model import train
-    from cosim.study.identification import training_settings
+    from cosim.design.identification import training_settings
 
     torch.set_num_threads(1)
     settings = replace(training_settings(PAPER_PERIOD, 2), max_iterations=TRAINING_ITERATIONS, multi_step_horizon=1)

@@ -15,9 +15,9 @@ from controllers.base import Measurement
 from controllers.nn_model import load_model
 from cosim.benchmark_harness import record_measurements, replay
 from cosim.benchmarks.subjects import _mixed_scenario
-from cosim.study.experiments import adaptive_nnpc
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.design.experiments import adaptive_nnpc
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import SWITCHING_PERIOD
 
 FIXTURES = Path(__file__).parent / "fixtures"
 #: guards that act within a short run: small steps and deviation (bounded), checkpoints every 100 samples

@@ -22,8 +22,8 @@ from cosim.benchmark_harness import (
     record_measurements,
     replay,
 )
-from cosim.study.experiments import implemented, nnpc, scenarios_for
-from cosim.study.plants import plant_binding
+from cosim.design.experiments import implemented, nnpc, scenarios_for
+from cosim.design.plants import plant_binding
 from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -98,7 +98,7 @@ def test_rti_tanh_counts_match_what_the_python_reference_evaluates(monkeypatch, 
 
     from controllers.cost_model import rti_operation_counts
     from controllers.nn_model import load_model
-    from cosim.study.vocabulary import SWITCHING_PERIOD
+    from cosim.design.vocabulary import SWITCHING_PERIOD
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
     controller = nnpc(model, SWITCHING_PERIOD, optimizer="rti")
@@ -177,8 +177,8 @@ def test_the_classical_controllers_operation_counts_follow_their_c_steps():
 
 
 def test_operation_counts_refuse_a_circuit_model_predictor():
-    from cosim.study.experiments import model_mpc
-    from cosim.study.vocabulary import NOMINAL
+    from cosim.design.experiments import model_mpc
+    from cosim.design.vocabulary import NOMINAL
 
     with pytest.raises(ValueError, match="NN predictor"):
         operation_counts(model_mpc(NOMINAL, 1e-3, "MPC"), np.array([1]))

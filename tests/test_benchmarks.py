@@ -108,10 +108,10 @@ def test_the_trained_models_are_read_beside_the_output_not_from_the_working_dire
     from pathlib import Path
 
     import cosim.benchmarks.suite as suite
-    import cosim.study.data_collection as data_collection
+    import cosim.design.data_collection as data_collection
     from cosim.benchmarks import BenchRow, run_benchmarks
     from cosim.benchmarks.subjects import _nn_model
-    from cosim.study.vocabulary import PAPER_PERIOD
+    from cosim.design.vocabulary import PAPER_PERIOD
 
     name = "nominal-switched__1ms__nnpc.pt"
     shutil.copy(Path(__file__).resolve().parents[1] / "results" / "models" / name, (tmp_path / "models").mkdir() or

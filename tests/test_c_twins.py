@@ -42,8 +42,9 @@ from controllers.predictors import (
     expm2_many,
     measured_from_state,
 )
-from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import NOMINAL, PAPER_SPEC
+from cosim.design.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.design.vocabulary import NOMINAL
+from cosim.study.vocabulary import PAPER_SPEC
 from plant_fmu.table_ii import TABLE_II
 
 TS = TABLE_II.switching_period
@@ -618,10 +619,10 @@ def test_sse2_and_scalar_pairs_give_the_online_nnpc_the_same_steps(nnpc_1ms, mon
     references, loads and supplies: the same duties and the same solver path, bit for bit -- at 1 ms (the line
     search) and with the 13.33 us settings (reweightings)."""
     from cosim.benchmark_harness import record_measurements
-    from cosim.study.data_collection import random_scenario
-    from cosim.study.experiments import collection_settings, implemented, nnpc
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import SWITCHING_PERIOD
+    from cosim.design.data_collection import random_scenario
+    from cosim.design.experiments import collection_settings, implemented, nnpc
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import SWITCHING_PERIOD
 
     model = nnpc_1ms.predictor.model
     for controller, plant in ((nnpc_1ms, "averaged"), (nnpc(model, SWITCHING_PERIOD), "switched")):
@@ -836,9 +837,9 @@ def fast_scenarios():
 @pytest.fixture(scope="module")
 def model_1ms() -> NNPlantModel:
     """The workbench's 1 ms network, identified quickly (800 samples, 100 L-BFGS iterations)."""
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs
-    from cosim.study.plants import plant_binding
+    from cosim.design.data_collection import collect
+    from cosim.design.experiments import collection_settings, nn_configs
+    from cosim.design.plants import plant_binding
 
     data = collect(plant_binding("nominal", "averaged"), PIController(0.0017, 15.6, 1e-3),
                    collection_settings(1e-3, samples=800, seed=3, spec=PAPER_SPEC))
@@ -847,7 +848,7 @@ def model_1ms() -> NNPlantModel:
 
 def replay_case(name: str, model_1ms):
 
-    from cosim.study.experiments import rti_settings
+    from cosim.design.experiments import rti_settings
 
     # "-rti": the same case with the study's real-time iteration at its rate (and the search as its fallback);
     # "-rti1": with RtiSettings' defaults (one Gauss-Newton step, undamped, the start-up handed over at 1 V);
@@ -868,14 +869,14 @@ def replay_case(name: str, model_1ms):
 
 
 def _replay_case(name: str, model_1ms):
+    from cosim.design.experiments import model_mpc, nnpc
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import MISMATCH
     from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-    from cosim.study.experiments import model_mpc, nnpc
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import MISMATCH
 
     if name == "nnpc-1ms":  # the paper's scenarios and random references and loads (dead-beat moves repeat)
-        from cosim.study.data_collection import random_scenario
-        from cosim.study.experiments import collection_settings
+        from cosim.design.data_collection import random_scenario
+        from cosim.design.experiments import collection_settings
 
         scenarios = [load_scenario(n, PAPER_SPEC) for n in PAPER_SCENARIOS]
         scenarios.append(random_scenario(collection_settings(1e-3, samples=200, seed=9, spec=PAPER_SPEC), 1e-3))
@@ -972,11 +973,11 @@ def test_predictive_step_twin_replays_closed_loop_measurements(case, model_1ms, 
 def test_native_nnpc_drives_the_plant_like_the_python_one(rate, optimizer, model_1ms, request):
     """Closed loop: each NNPC drives its own run of the plant FMU on the start-up scenario; the
     duty traces agree to 1e-9 at every control sample (so the output traces are the same run)."""
+    from cosim.design.experiments import nnpc
+    from cosim.design.plants import plant_binding
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import nnpc
-    from cosim.study.plants import plant_binding
 
     if rate == "1ms":
         binding, controller = plant_binding("nominal", "averaged"), nnpc(model_1ms, 1e-3, optimizer=optimizer)
@@ -1035,10 +1036,10 @@ def test_the_load_estimate_twin_follows_the_python_rule():
 def test_adaptive_nnpc_on_the_c_twin_drives_the_plant_like_on_the_python_one(optimizer):
     """The adaptation rewrites the output layer of whichever NNPC it wraps (numpy arrays or the C
     config); with a parameter event in the run, both learn the same weights and give the same duties."""
+    from cosim.design.experiments import adaptive_nnpc
+    from cosim.design.plants import plant_binding
     from cosim.master import simulate
     from cosim.scenarios import parse_scenario
-    from cosim.study.experiments import adaptive_nnpc
-    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     scenario = parse_scenario("""
@@ -1085,11 +1086,11 @@ def native_output_layer(controller):
 def test_mpc_without_the_disturbance_estimate_twin_keeps_the_model_error():
     """bias_filter = 0 (the paper's kind of MPC): no estimate in either twin, so the nominal model on
     the mismatch plant leaves a steady-state error; the duty traces agree."""
+    from cosim.design.experiments import model_mpc
+    from cosim.design.plants import plant_binding
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import model_mpc
-    from cosim.study.plants import plant_binding
 
     binding = plant_binding("mismatch", "switched")
     controller = model_mpc(NOMINAL, TS, "MPC-nominal (no disturbance estimate)", binding=binding, offset_free=False)

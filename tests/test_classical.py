@@ -27,7 +27,7 @@ from controllers.small_signal import (
     margins,
     unit_circle,
 )
-from cosim.study.classical_design import (
+from cosim.design.classical_design import (
     DesignTargets,
     controller_from_description,
     design_current_mode,
@@ -35,8 +35,9 @@ from cosim.study.classical_design import (
     design_type_iii,
     targets_for,
 )
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import MISMATCH, NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import MISMATCH, NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 TS = SWITCHING_PERIOD
 NOMINAL_POINT = OperatingPoint(12.0, 6.0, 48.0)
@@ -227,10 +228,10 @@ def test_twins_give_the_python_duty_bit_for_bit(designs):
 
 
 def test_twins_on_the_switched_plant_and_as_controller_fmus(designs, tmp_path):
+    from cosim.design.experiments import scenarios_for
     from cosim.fmi.controller import open_controller
     from cosim.fmi.controller_export import export_controller
     from cosim.master import simulate
-    from cosim.study.experiments import scenarios_for
 
     binding = plant_binding("nominal", "switched")
     scenario = scenarios_for(TS, ("load_change",), spec=PAPER_SPEC)[0]
@@ -267,7 +268,7 @@ def test_the_mismatched_circuit_moves_the_design(designs):
 
 
 def test_envelope_pi_tuning_quick_and_its_errors():
-    from cosim.study.pi_tuning import envelope_points, tune_pi_envelope
+    from cosim.design.pi_tuning import envelope_points, tune_pi_envelope
 
     binding = plant_binding("nominal", "averaged")
     tuning = tune_pi_envelope(binding, TS, points=envelope_points(binding.converter)[:2], quick=True)

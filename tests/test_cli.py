@@ -194,7 +194,7 @@ def test_the_predictive_controllers_optimizer_and_rti_settings_are_chosen_on_the
     keeps the others; the run's metadata says which optimizer planned, with its settings."""
     from dataclasses import asdict
 
-    from cosim.study.experiments import SWITCHING_PERIOD_RTI
+    from cosim.design.experiments import SWITCHING_PERIOD_RTI
 
     common = ["--no-progress", "run", "reference_up", "--controller", "mpc-oracle", "--no-figures"]
     assert main([*common, "--optimizer", "search", "--out", str(tmp_path / "search")]) == 0
@@ -233,9 +233,8 @@ def test_frequency_response_measures_the_predictive_controllers_with_the_optimiz
     minutes of a dask cluster, is tests/test_frequency_response.py's)."""
     import contextlib
 
-    import cosim.study.cluster as cluster
-    import cosim.study.frequency_response as response
-
+    import cosim.design.cluster as cluster
+    import cosim.design.frequency_response as response
     from cosim.base.errors import ConfigError
 
     entries = []
@@ -261,10 +260,10 @@ def test_each_predictive_controller_plans_with_its_own_optimizer_unless_one_is_g
     from pathlib import Path
 
     from controllers.adaptation import AdaptiveNNPC
-    from cosim.study.controller_factory import make_controllers
-    from cosim.study.experiments import SWITCHING_PERIOD_RTI
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import SWITCHING_PERIOD
+    from cosim.design.controller_factory import make_controllers
+    from cosim.design.experiments import SWITCHING_PERIOD_RTI
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import SWITCHING_PERIOD
 
     model = str(Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt")
     binding = plant_binding("nominal", "averaged")
@@ -377,7 +376,7 @@ def test_nnpc_mistakes_are_one_line_errors(tmp_path, make, args, message):
 def test_a_cached_network_is_reused_only_for_the_same_identification_settings(tmp_path, monkeypatch):
     """trained_model caches per plant, rate and network; a changed seed (or sample count, or dither
     rule) must retrain instead of silently reusing a model identified differently."""
-    import cosim.study.controller_factory as factory
+    import cosim.design.controller_factory as factory
     from cosim.fmi.binding import builtin_binding
 
     calls = []

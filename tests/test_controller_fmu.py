@@ -17,13 +17,14 @@ from fmpy.fmi2 import FMU2Slave
 
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError
+from cosim.design.experiments import nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import SWITCHING_PERIOD
 from cosim.fmi.controller import FmuController, builtin_controller_binding, load_controller_binding, open_controller
 from cosim.fmi.controller_export import MODEL_DIR, VARIABLES, export_controller
 from cosim.master import simulate
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study.experiments import nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 CORPUS = Path(__file__).parent / "corpus"

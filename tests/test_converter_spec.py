@@ -148,7 +148,7 @@ def test_a_zero_start_value_is_no_nominal_value(my24_binding):
 
 
 def test_a_design_needing_a_value_the_spec_does_not_give_is_refused_naming_the_key(tmp_path, python_buck_fmu):
-    from cosim.study.controller_factory import make_controllers
+    from cosim.design.controller_factory import make_controllers
 
     text = MY24.format(fmu=python_buck_fmu, extra="").split("[converter.circuit]")[0]  # no nominal circuit
     binding = load_binding(my24(tmp_path, python_buck_fmu, text=text))
@@ -256,7 +256,7 @@ def test_a_template_value_outside_a_buck_converters_reach_is_refused(my24_bindin
 
 
 def test_the_pi_is_tuned_at_the_converters_supply_and_scenarios(my24_binding):
-    from cosim.study.pi_tuning import pi_design
+    from cosim.design.pi_tuning import pi_design
 
     inputs = pi_design(my24_binding, 1e-3).inputs
     assert inputs["settings"]["input_voltage_V"] == 24.0  # the loop gain a = Kp Vs at the user's supply, not 48 V
@@ -268,8 +268,8 @@ def test_the_pi_is_tuned_at_the_converters_supply_and_scenarios(my24_binding):
 
 
 def test_the_identification_data_are_drawn_over_the_converters_ranges(my24_binding):
-    from cosim.study.data_collection import paper_region
-    from cosim.study.experiments import collection_settings
+    from cosim.design.data_collection import paper_region
+    from cosim.design.experiments import collection_settings
 
     envelope = collection_settings(13.33e-6, 1000, 0, region="envelope", spec=my24_binding.converter)
     assert (envelope.reference_range, envelope.load_range, envelope.input_voltage_range) == \
@@ -281,8 +281,8 @@ def test_the_identification_data_are_drawn_over_the_converters_ranges(my24_bindi
 
 
 def test_the_envelope_pi_and_the_classical_designs_take_the_converters_points(my24_binding):
-    from cosim.study.classical_design import targets_for
-    from cosim.study.pi_tuning import envelope_points
+    from cosim.design.classical_design import targets_for
+    from cosim.design.pi_tuning import envelope_points
 
     assert envelope_points(my24_binding.converter) == ((2.0, 2.0, 24.0), (2.0, 30.0, 24.0), (5.0, 3.0, 24.0),
                                                        (5.0, 12.5, 24.0), (8.0, 2.0, 20.0), (8.0, 30.0, 28.0))
@@ -298,7 +298,7 @@ def test_the_envelope_pi_and_the_classical_designs_take_the_converters_points(my
 
 
 def test_the_mpc_baseline_predicts_with_the_converters_circuit_and_starts_at_its_point(my24_binding, tmp_path):
-    from cosim.study.controller_factory import make_controllers
+    from cosim.design.controller_factory import make_controllers
 
     [mpc] = make_controllers(["mpc-nominal"], my24_binding, 1e-3, tmp_path, duty_limits=(0.0, 1.0))
     parameters = mpc.predictor.parameters

@@ -17,9 +17,10 @@ from controllers.explicit_policy import load_policy
 from controllers.pi import PIController
 from cosim.benchmark_harness import cortex_m4, record_measurements
 from cosim.benchmark_harness.cortex_m4 import CYCLE_TABLE, CYCLE_TABLE_LOW, count_steps
-from cosim.study.experiments import explicit_nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.experiments import explicit_nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -203,8 +204,8 @@ def test_the_classical_controllers_on_the_cortex_m4f_give_the_host_float32_dutie
     replay that saturates and regulates; their state is all the RAM they take beside the stack."""
     import ctypes
 
-    from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-    from cosim.study.vocabulary import NOMINAL
+    from cosim.design.classical_design import design_current_mode, design_type_iii, targets_for
+    from cosim.design.vocabulary import NOMINAL
 
     targets = targets_for(plant_binding("nominal", "switched"), SWITCHING_PERIOD)
     controller = (design_current_mode, design_type_iii)[index](NOMINAL, targets).controller
@@ -238,8 +239,8 @@ def test_a_controller_without_a_cortex_m4f_build_is_refused_by_name():
     """The MPC baselines' circuit predictors compute in double only (predictors.c); a controller without a C twin
     has no float32 build either."""
     from controllers.base import Controller
-    from cosim.study.experiments import model_mpc
-    from cosim.study.vocabulary import NOMINAL
+    from cosim.design.experiments import model_mpc
+    from cosim.design.vocabulary import NOMINAL
 
     mpc = model_mpc(NOMINAL, SWITCHING_PERIOD, "MPC-oracle")
     with pytest.raises(ValueError, match="MPC-oracle has no float32 build: its AveragedModelPredictor"):
@@ -260,7 +261,7 @@ def _online_nnpc(horizon: int | None = None):
     """The online NNPC with the real-time iteration at 13.33 us on the fixture network (7-7-2); ``horizon``: a
     shorter one keeps the search's fallback steps small enough to trace in a test."""
     from controllers.nn_model import load_model
-    from cosim.study.experiments import nnpc
+    from cosim.design.experiments import nnpc
 
     model = load_model(FIXTURES / "nnpc_nominal_averaged_13p33us.pt", expect_period=SWITCHING_PERIOD)
     return nnpc(model, SWITCHING_PERIOD, "NNPC (rti)", horizon=horizon, optimizer="rti")

@@ -8,9 +8,9 @@ import pytest
 from controllers.base import Measurement
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError
+from cosim.design.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, completed, random_scenario
 from cosim.fmi.binding import builtin_binding
 from cosim.results import read_parquet
-from cosim.study.data_collection import SAMPLE_COLUMNS, CollectionSettings, collect, completed, random_scenario
 from cosim.study.vocabulary import PAPER_SPEC
 
 PI = PIController(0.003, 14.0, 1e-3)
@@ -61,7 +61,7 @@ def test_without_dither_the_duty_is_the_pis_own():
 
 
 def test_saved_samples_keep_their_metadata(samples, tmp_path):
-    from cosim.study.data_collection import save_samples
+    from cosim.design.data_collection import save_samples
 
     save_samples(samples, tmp_path / "data.parquet")
     frame, meta = read_parquet(tmp_path / "data.parquet")
@@ -95,7 +95,7 @@ class _Constant:
 
 def test_am_prbs_dither_holds_alternating_levels_of_random_amplitude():
     """Levels +-a, a ~ U(0, sigma), each held 1-8 samples, the sign alternating at every new level."""
-    from cosim.study.data_collection import DitheredController
+    from cosim.design.data_collection import DitheredController
 
     dithered = DitheredController(_Constant(), 0.2, seed=3, shape="am-prbs", hold=(1, 8))
     m = Measurement(0.0, 12.0, 12.0)
@@ -116,10 +116,10 @@ def test_the_envelope_collection_covers_the_map_where_the_papers_covers_a_sixth(
     references, loads and supplies fill 45 of the 48 coverage cells (3-20 V x 4-100 Ohm x 36-60 V) with >= 20
     samples each, a quarter of its samples in DCM; the paper's region fills the 8 cells of 4-10 Ohm at 48 V and
     never reaches DCM."""
+    from cosim.design.experiments import collection_settings
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import SWITCHING_PERIOD
     from cosim.study.envelope_identification import MIN_CELL_SAMPLES, coverage
-    from cosim.study.experiments import collection_settings
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")
     pi = PIController(0.007026878992716469, 172.92168103154324, SWITCHING_PERIOD)  # results/tuning/pi__nominal-switched__13p33us
@@ -148,7 +148,7 @@ def test_envelope_collection_settings_are_checked():
         completed(CollectionSettings(dither="pink"), PAPER_SPEC).check()
     with pytest.raises(ConfigError, match=r"dither hold \(0, 4\) samples is invalid"):
         completed(CollectionSettings(dither_hold=(0, 4)), PAPER_SPEC).check()
-    from cosim.study.experiments import collection_settings
+    from cosim.design.experiments import collection_settings
 
     with pytest.raises(ConfigError, match="collection region 'moon' is unknown: expected one of paper, envelope"):
         collection_settings(1e-3, region="moon", spec=PAPER_SPEC)
@@ -157,8 +157,8 @@ def test_envelope_collection_settings_are_checked():
 def test_the_recipe_collects_over_the_envelope_at_13_33_us_and_the_network_sees_the_supply():
     """At one sample per PWM period the workbench's data cover the envelope and its network has the supply
     voltage as an input (the duty's effect scales with it); at 1 ms the paper's experiment stays as it is."""
-    from cosim.study.experiments import collection_settings, nn_configs
-    from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
+    from cosim.design.experiments import collection_settings, nn_configs
+    from cosim.design.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
 
     fast = collection_settings(SWITCHING_PERIOD, spec=PAPER_SPEC)
     slow = collection_settings(PAPER_PERIOD, spec=PAPER_SPEC)
@@ -200,7 +200,7 @@ import json
 import cosim
 from controllers.pi import PIController
 from cosim.fmi.binding import builtin_binding
-from cosim.study.data_collection import CollectionSettings, collect
+from cosim.design.data_collection import CollectionSettings, collect
 frame = collect(builtin_binding("averaged"), PIController(0.0017, 15.6, 1e-3),
                 CollectionSettings(samples=50_000, rest_probability=0.95, seed=3))
 duty = frame["duty_cycle"]

@@ -11,7 +11,6 @@ import tomllib
 from pathlib import Path
 
 import pytest
-
 from docs_snippets import command_lines, snippets
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,7 +12,8 @@ from conftest import random_model
 
 from controllers.nn_config import NNConfig
 from controllers.nn_model import load_model
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -46,12 +47,12 @@ def test_do_mpc_drives_the_plant_with_the_workbenchs_problem():
     cost is what the workbench's rollout gives, and the closed loop lands near the RTI NNPC's IAE (the RTI
     alone from the cold start on: without the start-up region, where the search would plan): the RTI within
     issue 24's 2 % of do-mpc's or better (measured 0.356 against 0.410 mV s), do-mpc within 25 % of the RTI's."""
+    from cosim.design.experiments import NOMINAL_OPERATING_POINT, horizon_settings, nnpc
+    from cosim.design.plants import plant_binding
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.scenarios import load_scenario
     from cosim.study.dompc_peer import DoMpcNnpc
-    from cosim.study.experiments import NOMINAL_OPERATING_POINT, horizon_settings, nnpc
-    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=SWITCHING_PERIOD)
     peer = DoMpcNnpc(model, SWITCHING_PERIOD, horizon_settings(SWITCHING_PERIOD), **NOMINAL_OPERATING_POINT)

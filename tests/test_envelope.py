@@ -8,6 +8,7 @@ import math
 import pandas as pd
 import pytest
 
+from cosim.design.sweeps.plan import at_operating_point
 from cosim.study.envelope import (
     FULL_MAP,
     iae_ratios,
@@ -17,7 +18,6 @@ from cosim.study.envelope import (
     step_scenarios,
     worst_points,
 )
-from cosim.study.sweeps.plan import at_operating_point
 
 COLUMNS = ["reference_V", "load_Ohm", "input_voltage_V", "step", "controller", "status", "overshoot_pct",
            "settling_time_ms", "iae_Vs"]
@@ -70,8 +70,8 @@ def test_steps_land_on_the_grid_point():
 
 def test_sweep_files_take_anchored_reference_axes_and_refuse_the_oracle_beside_parameter_axes(tmp_path):
     from cosim.base.errors import ConfigError
-    from cosim.study.sweeps.plan import SweepPlan
-    from cosim.study.sweeps.spec import load_sweep
+    from cosim.design.sweeps.plan import SweepPlan
+    from cosim.design.sweeps.spec import load_sweep
 
     body = ('scenarios = ["reference_up"]\ncontrollers = ["mpc-oracle", "current-mode"]\ncontrol_period = "1/75e3"\n'
             '[plant]\nmode = "switched"\n'
@@ -94,11 +94,11 @@ def test_the_map_has_the_delay_free_current_mode_row_from_its_own_design_file(tm
     (no microcontroller computes in zero time)."""
     import json
 
-    from cosim.study.classical_design import design_current_mode_no_delay, targets_for, write_design
+    from cosim.design.classical_design import design_current_mode_no_delay, targets_for, write_design
+    from cosim.design.plants import plant_binding
+    from cosim.design.sweeps.designs import build, design
+    from cosim.design.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, NOMINAL, SWITCHING_PERIOD
     from cosim.study.envelope import best_classical, controllers_of, pipeline_files, target_rows
-    from cosim.study.plants import plant_binding
-    from cosim.study.sweeps.designs import build, design
-    from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, NOMINAL, SWITCHING_PERIOD
 
     files = pipeline_files(tmp_path)
     files["pi"].parent.mkdir(parents=True)
@@ -156,11 +156,11 @@ def test_a_given_network_runs_on_the_map_with_the_inputs_it_was_trained_for(tmp_
     from pathlib import Path
 
     from controllers.base import Measurement
-    from cosim.study.experiments import nn_configs
-    from cosim.study.plants import plant_binding
-    from cosim.study.sweeps.designs import build, design
-    from cosim.study.sweeps.spec import ControllerEntry
-    from cosim.study.vocabulary import SWITCHING_PERIOD
+    from cosim.design.experiments import nn_configs
+    from cosim.design.plants import plant_binding
+    from cosim.design.sweeps.designs import build, design
+    from cosim.design.sweeps.spec import ControllerEntry
+    from cosim.design.vocabulary import SWITCHING_PERIOD
 
     path = Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt"
     binding = plant_binding("nominal", "switched")

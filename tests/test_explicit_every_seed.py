@@ -102,10 +102,10 @@ def test_a_seed_0_policy_of_another_network_is_refused_before_any_job(tmp_path):
 
 
 def fake_distillation(calls: list):
-    """A stand-in for cosim.study.distillation.distill that returns the committed policy under the metadata a
+    """A stand-in for cosim.design.distillation.distill that returns the committed policy under the metadata a
     distillation writes and appends (seed, expert optimizer) of each call to ``calls``."""
     from controllers.explicit_policy import load_policy
-    from cosim.study import distillation
+    from cosim.design import distillation
 
     def fake_distill(model, binding, period, settings, *, log=None, metadata=None):
         calls.append((settings.seed, settings.expert_optimizer))
@@ -122,7 +122,7 @@ def test_a_seeds_policy_is_distilled_once_and_taken_from_the_cache_while_its_exp
     """The distillation itself is the reproduction's (tests/test_distillation.py); here it is replaced by one that
     returns the committed policy under the metadata a distillation writes, to count the calls."""
     from controllers.nn_model import load_model
-    from cosim.study import distillation
+    from cosim.design import distillation
 
     calls = []
     monkeypatch.setattr(distillation, "distill", fake_distillation(calls))
@@ -142,7 +142,7 @@ def test_with_another_expert_optimizer_every_seed_0_too_is_distilled_with_it_and
     so; naming the reproduction's optimizer is the reproduction's labels; an unknown optimizer is refused before
     any work."""
     from controllers.nn_model import load_model
-    from cosim.study import distillation
+    from cosim.design import distillation
 
     used = []
     monkeypatch.setattr(distillation, "distill", fake_distillation(used))

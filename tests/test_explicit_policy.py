@@ -25,12 +25,13 @@ from controllers.explicit_policy import (
 from controllers.nn_model import load_model
 from cosim.base.errors import ConfigError, ModelFileError
 from cosim.cli import build_parser, main
+from cosim.design.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
+from cosim.design.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import SWITCHING_PERIOD
 from cosim.master import simulate
 from cosim.metrics import run_metrics
-from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
-from cosim.study.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 EXPERT = FIXTURES / "nnpc_nominal_averaged_13p33us.pt"
@@ -237,8 +238,8 @@ def test_the_expert_labels_with_the_default_optimizer_unless_told_another(expert
     """DistillationSettings.expert_optimizer None: the expert plans with the workbench's default optimizer at the
     time of the distillation (the RTI; the search inside default_optimizer("search"), as the benchmark's search run
     does), a named one whatever the default; the policy file records which; an unknown name is refused first."""
-    from cosim.study import distillation
-    from cosim.study.experiments import default_optimizer
+    from cosim.design import distillation
+    from cosim.design.experiments import default_optimizer
 
     built = []
     real_nnpc = distillation.nnpc
@@ -334,8 +335,8 @@ def test_distill_then_run_and_export_from_the_command_line(tmp_path, capsys):
 
 
 def test_nnpc_explicit_on_demand_is_distilled_once_and_then_read_from_the_cache(tmp_path, monkeypatch, capsys):
-    import cosim.study.distillation as distillation
-    from cosim.study.controller_factory import make_controllers
+    import cosim.design.distillation as distillation
+    from cosim.design.controller_factory import make_controllers
 
     monkeypatch.setattr(distillation, "FULL_DISTILLATION", replace(SMALL_DISTILLATION, rounds=1, episodes=1,
                                                                     samples=100))

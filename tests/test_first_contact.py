@@ -20,7 +20,7 @@ from cosim.study.vocabulary import PAPER_SPEC
 def quick_tuning(monkeypatch):
     """The PI tuning on a 2 x 2 grid and 6 Nelder-Mead evaluations (its design key says so, so a cached
     tuning is reused under the same patch): the tests need a tuning, not a good one."""
-    import cosim.study.pi_tuning as tuning
+    import cosim.design.pi_tuning as tuning
 
     monkeypatch.setattr(tuning, "GRID_A", (0.0, 0.1))
     monkeypatch.setattr(tuning, "GRID_B", (0.01, 0.3))
@@ -96,7 +96,7 @@ def test_a_changed_plant_identifies_the_cached_network_again(tmp_path, quick_tun
     """The network of ``run --controller nnpc`` is cached under its design key (which names the PI's)."""
     from dataclasses import replace
 
-    import cosim.study.controller_factory as factory
+    import cosim.design.controller_factory as factory
     from cosim.fmi.binding import builtin_binding
 
     binding = builtin_binding("averaged")
@@ -118,7 +118,7 @@ def test_a_changed_plant_identifies_the_cached_network_again(tmp_path, quick_tun
 
 
 def test_design_keys_name_what_changed():
-    from cosim.study.design_cache import changed_inputs
+    from cosim.design.design_cache import changed_inputs
 
     plant = {"fmu_sha256": "a", "roles": {}, "parameters": {"L": 1}, "interface": None, "max_step_s": None}
     stored = {"plant": plant, "control_period_s": 1e-3, "seed": 0, "settings": {"x": 1}}
@@ -134,7 +134,7 @@ def _summary(rows, axes=("capacitor_esr",), controllers=("PI",), scenarios=("loa
     """A sweep summary of hand-made rows (the parts of a spec, plan and recipes it reads)."""
     from types import SimpleNamespace as NS
 
-    from cosim.study.sweeps.summary import _Summary
+    from cosim.design.sweeps.summary import _Summary
 
     spec = NS(name="study", scenarios=[NS(name=s) for s in scenarios], thresholds=thresholds, control_period=1e-3,
               samples=len(rows) // max(1, len(controllers) * len(scenarios)), grid_points=1)
@@ -168,7 +168,7 @@ def test_the_most_influential_parameter_needs_significance_and_a_magnitude():
 def test_the_sweep_panels_keep_every_label_inside_the_figure(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
-    from cosim.study.sweeps.spec import Threshold
+    from cosim.design.sweeps.spec import Threshold
 
     figures, close = [], plt.close
     monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))  # kept open to be measured
@@ -192,7 +192,7 @@ def test_the_sweep_panels_keep_every_label_inside_the_figure(monkeypatch, tmp_pa
 
 
 def test_the_yield_table_names_its_share_columns_once():
-    from cosim.study.sweeps.summary import pass_column
+    from cosim.design.sweeps.summary import pass_column
 
     assert pass_column("overshoot_pct") == "pass_overshoot_pct"
     assert pass_column("settling_time_ms") == "pass_settling_time_ms_pct"
@@ -299,10 +299,10 @@ def test_identification_writes_learning_curves_and_held_out_predictions_beside_t
     import numpy as np
     import pandas as pd
 
-    import cosim.study.controller_factory as factory
+    import cosim.design.controller_factory as factory
     from controllers.nn_model import build_dataset
+    from cosim.design.identification import identification_figure
     from cosim.fmi.binding import builtin_binding
-    from cosim.study.identification import identification_figure
 
     model = factory.trained_model("nnpc-paper", builtin_binding("averaged"), 1e-3, tmp_path, samples=300, seed=1,
                                   model_path=None)

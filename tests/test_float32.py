@@ -20,12 +20,13 @@ from controllers.base import Measurement
 from controllers.explicit_policy import load_policy
 from controllers.nn_model import load_model
 from controllers.pi import PIController
+from cosim.design.classical_design import design_current_mode, design_type_iii, targets_for
+from cosim.design.experiments import explicit_nnpc, nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import NOMINAL, SWITCHING_PERIOD
 from cosim.master import simulate
 from cosim.metrics import run_metrics
-from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-from cosim.study.experiments import explicit_nnpc, nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 FIXTURES = Path(__file__).parent / "fixtures"
 MODES = ("averaged", "switched")

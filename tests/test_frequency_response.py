@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 from conftest import cli, one_line_error
 
-from cosim.study.frequency_response import ResponseSettings, interpolated_margins, measure, plan_points
-from cosim.study.plants import plant_binding
-from cosim.study.sweeps.spec import ControllerEntry
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.design.frequency_response import ResponseSettings, interpolated_margins, measure, plan_points
+from cosim.design.plants import plant_binding
+from cosim.design.sweeps.spec import ControllerEntry
+from cosim.design.vocabulary import SWITCHING_PERIOD
 
 TS = SWITCHING_PERIOD
 PI_ENTRY = ControllerEntry("pi", "PI", kp=0.007026878992716469, ki=172.92168103154324)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from cosim.base.labels import did_you_mean, period_label, period_text, slug
+from cosim.design.vocabulary import NNPC, PAPER_PERIOD, SWITCHING_PERIOD
 from cosim.study.targets import controller_compute_benchmark
-from cosim.study.vocabulary import NNPC, PAPER_PERIOD, SWITCHING_PERIOD
 
 
 @pytest.mark.parametrize("period, label, text, ascii_text", [

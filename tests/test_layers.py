@@ -8,8 +8,11 @@ Layers, lowest first (a module belongs to the longest prefix that names it):
 2. ``cosim.fmi``             FMU adapters, archive checks, bindings and binding files, inspect
 3. ``cosim`` (the rest)      core: master, timeline, scenarios, recorder, results, metrics, plots, batch;
    ``cosim.ssp``             with the core: the scenario FMU, the SSP archive and the engines that run it
-4. ``cosim.study``           the paper study: vocabulary, experiments, tuning, data, reproduction, report
-5. ``cosim.cli``, ``cosim.api``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points (the command line,
+4. ``cosim.design``          the design steps: vocabulary, controllers by name, PI tuning, data collection,
+   identification, classical design, distillation, frequency response, design cache, sweeps
+5. ``cosim.study``           the studies built on them: the paper's reproduction, report, claims, targets,
+   ablations, every-seed evaluations, and a converter's study
+6. ``cosim.cli``, ``cosim.api``, ``cosim.benchmarks``, ``cosim.benchmark_harness``   entry points (the command line,
    the design steps' Python API) and the C timing harness
 
 Every import counts, also one inside a function (the lazy imports that keep the command line
@@ -35,11 +38,12 @@ LAYERS = {
     "cosim.fmi": 2,
     "cosim": 3,
     "cosim.ssp": 3,
-    "cosim.study": 4,
-    "cosim.cli": 5,
-    "cosim.benchmarks": 5,
-    "cosim.benchmark_harness": 5,
-    "cosim.api": 5,
+    "cosim.design": 4,
+    "cosim.study": 5,
+    "cosim.cli": 6,
+    "cosim.benchmarks": 6,
+    "cosim.benchmark_harness": 6,
+    "cosim.api": 6,
 }
 
 
@@ -158,28 +162,32 @@ def project_sources() -> dict[str, str]:
 
 def test_no_module_imports_from_a_layer_above_its_own():
     sources = project_sources()
-    assert {"cosim.master", "cosim.fmi.plant", "controllers.predictive", "cosim.study.reproduce"} <= set(sources)
+    assert {"cosim.master", "cosim.fmi.plant", "controllers.predictive", "cosim.design.pi_tuning",
+            "cosim.study.reproduce"} <= set(sources)
     assert upward_imports(sources) == []
 
 
 def test_the_check_catches_an_upward_import():
-    """The same check on a controller that reaches up into the study (lazily) and the CLI."""
+    """The same check on a controller that reaches up into the study (lazily), the CLI, and a design step that
+    reaches up into the paper's study."""
     sources = {
         "controllers.sneaky": "import math\n\ndef f():\n    from cosim.study.vocabulary import NNPC\n    return NNPC\n",
         "cosim.fmi.sneaky": "from cosim.master import run\nfrom cosim.base.errors import ConfigError\n",
         "cosim.study.fine": "from cosim.master import run\nfrom controllers.pi import PIController\n",
         "cosim.master2": "from .cli import main\n",
+        "cosim.design.sneaky": "from cosim.study.reproduce import reproduce\n",
     }
     assert upward_imports(sources) == [
-        "controllers.sneaky:4 imports cosim.study.vocabulary (layer 4 above 1)",
+        "controllers.sneaky:4 imports cosim.study.vocabulary (layer 5 above 1)",
+        "cosim.design.sneaky:1 imports cosim.study.reproduce (layer 5 above 4)",
         "cosim.fmi.sneaky:1 imports cosim.master (layer 3 above 2)",
-        "cosim.master2:1 imports cosim.cli (layer 5 above 3)",
+        "cosim.master2:1 imports cosim.cli (layer 6 above 3)",
     ]
 
 
 def test_no_modules_import_each_other_in_a_circle():
     sources = project_sources()
-    assert {"cosim.fmi.isolation", "cosim.fmi.plant", "cosim.study.sweeps.worker"} <= set(sources)
+    assert {"cosim.fmi.isolation", "cosim.fmi.plant", "cosim.design.sweeps.worker"} <= set(sources)
     assert import_circles(sources) == []
 
 
@@ -189,11 +197,12 @@ def test_the_circle_check_catches_lazy_and_indirect_circles():
     sources = {
         "cosim.fmi.plant": "def open_plant():\n    from cosim.fmi.isolation import IsolatedPlant\n",
         "cosim.fmi.isolation": "from cosim.fmi.plant import FATAL_REFUSAL, plant_signals\n",
-        "cosim.study.sweeps.worker": "from cosim.study.sweeps.designs import build\n",
-        "cosim.study.sweeps.designs": "def f():\n    from cosim.study.sweeps.worker import process_file\n",
+        "cosim.design.sweeps.worker": "from cosim.design.sweeps.designs import build\n",
+        "cosim.design.sweeps.designs": "def f():\n    from cosim.design.sweeps.worker import process_file\n",
         "cosim.a": "import cosim.b\n", "cosim.b": "from cosim import c\n", "cosim.c": "from .a import x\n",
         "plant_fmu": "from plant_fmu.build import fmu_path\n", "plant_fmu.build": "from plant_fmu import fmi3\n",
         "plant_fmu.fmi3": "import math\n",
     }
-    assert import_circles(sources) == [["cosim.a", "cosim.b", "cosim.c"], ["cosim.fmi.isolation", "cosim.fmi.plant"],
-                                       ["cosim.study.sweeps.designs", "cosim.study.sweeps.worker"]]
+    assert import_circles(sources) == [["cosim.a", "cosim.b", "cosim.c"],
+                                       ["cosim.design.sweeps.designs", "cosim.design.sweeps.worker"],
+                                       ["cosim.fmi.isolation", "cosim.fmi.plant"]]

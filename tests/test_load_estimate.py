@@ -7,8 +7,8 @@ import math
 import numpy as np
 
 from controllers.load_estimate import MIN_VOLTAGE, conductance_series, estimate_conductance
-from cosim.study.data_collection import CollectionSettings, collect
-from cosim.study.plants import plant_binding
+from cosim.design.data_collection import CollectionSettings, collect
+from cosim.design.plants import plant_binding
 
 
 def test_conductance_is_io_over_vo_else_il_over_vo_else_the_previous_estimate():

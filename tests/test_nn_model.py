@@ -170,9 +170,9 @@ def test_invalid_configurations_are_refused(kwargs, message):
 def switched_data():
     """PI identification data on the switched plant at one switching period (seeded, 4000 samples)."""
     from controllers.pi import PIController
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings
-    from cosim.study.plants import plant_binding
+    from cosim.design.data_collection import collect
+    from cosim.design.experiments import collection_settings
+    from cosim.design.plants import plant_binding
 
     period = 1 / 75e3
     pi = PIController(0.336 / 48, 0.111 / (period * 48), period)

@@ -107,10 +107,10 @@ def test_training_writes_the_same_bytes_on_an_emulated_cpu_of_another_kind(tmp_p
     (or, on a host without AVX-512, as the other vendor's AVX2 CPU) -- writes the host's bytes. Failed
     before controllers/lbfgs.py: torch's line search took torch.sqrt, whose last bits depend on the CPU."""
     from cosim.benchmark_harness import cpu_emulation
-    from cosim.study.data_collection import collect
-    from cosim.study.identification import collection_settings
+    from cosim.design.data_collection import collect
+    from cosim.design.identification import collection_settings
+    from cosim.design.vocabulary import PAPER_PERIOD
     from cosim.study.reproduce import FULL, Pipeline, _tuned
-    from cosim.study.vocabulary import PAPER_PERIOD
 
     pipeline = Pipeline("nominal", "averaged", PAPER_PERIOD)
     pi = _tuned(pipeline, tmp_path, FULL)
@@ -161,7 +161,7 @@ def test_workers_with_other_kernels_are_named_in_one_line():
 def test_a_cluster_whose_worker_runs_other_kernels_is_refused_before_any_work():
     import dask
 
-    from cosim.study.cluster import dask_client
+    from cosim.design.cluster import dask_client
 
     # a worker told to keep its own kernels (an inherited ATEN_CPU_CAPABILITY alone is re-pinned when the
     # worker imports the workbench, before torch: that worker computes the same bytes and is accepted)

@@ -107,7 +107,7 @@ def test_a_seed_network_the_reproduction_saved_is_loaded_not_identified_again(tm
     it instead of identifying it into its cache."""
     import shutil
 
-    from cosim.study import identification
+    from cosim.design import identification
     from cosim.study.optimizer_every_seed import seed_model
     from cosim.study.reproduce import DRIFT_PIPELINE, SEED_MODEL_PIPELINES
 

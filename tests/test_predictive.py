@@ -19,13 +19,14 @@ from controllers.predictors import (
     expm2_many,
     ripple_free_horizon,
 )
+from cosim.design.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.design.vocabulary import LC_PERIOD, NOMINAL, SWITCHING_PERIOD
 from cosim.fmi.binding import builtin_binding
 from cosim.fmi.plant import open_plant
 from cosim.master import simulate
 from cosim.metrics import run_metrics
 from cosim.scenarios import load_scenario
-from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import LC_PERIOD, NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 from plant_fmu.table_ii import TABLE_II
 
 TS = SWITCHING_PERIOD
@@ -234,7 +235,7 @@ def test_oracle_mpc_on_the_switched_plant_starts_up_without_overshoot_at_the_swi
     """With the exact switched model and consistent period-mean sensors (iL, vo and io), the oracle
     reaches 12 V within about 0.1 ms and overshoots less than 1 % -- the averaged model, blind to the
     sensor's half-period lag and the sawtooth's timing, overshoots several times more."""
-    from cosim.study.experiments import horizon_settings, model_mpc
+    from cosim.design.experiments import horizon_settings, model_mpc
 
     binding = builtin_binding("switched")
     startup = replace(load_scenario("startup", PAPER_SPEC), duration=0.001)
@@ -319,7 +320,7 @@ def test_a_duty_does_not_depend_on_what_the_controller_computed_before_a_reset(k
     from pathlib import Path
 
     from controllers.nn_model import load_model
-    from cosim.study.experiments import implemented, model_mpc, nnpc
+    from cosim.design.experiments import implemented, model_mpc, nnpc
 
     def make():
         if kind == "nn":
@@ -351,7 +352,7 @@ def test_the_switched_model_is_well_conditioned_over_the_operating_envelope(peri
     control period (13.33 us .. 1 ms), cond(H) stays below 100 (measured <= 60), far below the refusal
     limit MAX_SENSOR_CONDITION = 1e8."""
     from controllers.predictors import MAX_SENSOR_CONDITION
-    from cosim.study.vocabulary import MISMATCH
+    from cosim.design.vocabulary import MISMATCH
 
     worst = 0.0
     for parameters in (NOMINAL, MISMATCH):
@@ -371,7 +372,7 @@ def test_the_switched_model_refuses_a_load_where_it_cannot_rebuild_the_state(imp
     ~e^-25 over a control period: the reading no longer tells the state (H singular). The controller
     refuses with one line naming the load, the supply and what to do -- instead of numpy's "Singular
     matrix" (Python) or a silent duty of 0 (the C twin), as before."""
-    from cosim.study.experiments import implemented, model_mpc
+    from cosim.design.experiments import implemented, model_mpc
 
     controller = implemented(model_mpc(NOMINAL, 75 * TS, "MPC", binding=builtin_binding("switched")), implementation)
     with pytest.raises(ValueError, match=r"^MPC: at a load of 1 Ohm and 48 V the reading after 75 PWM period\(s\) no "

@@ -64,8 +64,8 @@ def test_runs_whose_files_would_overwrite_each_other_are_refused_before_any_run(
     from controllers.pi import PIController
     from cosim.base.errors import ConfigError
     from cosim.batch import Batch, run_batch
+    from cosim.design.plants import plant_binding
     from cosim.scenarios import load_scenario
-    from cosim.study.plants import plant_binding
 
     shipped = load_scenario("startup", PAPER_SPEC)
     (tmp_path / "mine.toml").write_text(shipped.source.read_text().replace("load_resistance = 6.0",
@@ -272,8 +272,8 @@ def test_sigterm_during_a_run_keeps_the_rows_marked_incomplete(tmp_path):
 
 
 def test_sigterm_during_data_collection_writes_no_data_file(tmp_path):
-    from cosim.study.controller_factory import tuned_pi
-    from cosim.study.plants import plant_binding
+    from cosim.design.controller_factory import tuned_pi
+    from cosim.design.plants import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached, so the run goes straight to collecting
     process = _start("collect-data", "--samples", "20000000", "--work-dir", str(tmp_path), "--out",

@@ -156,7 +156,7 @@ def test_the_tolerance_study_runs_the_pipelines_controllers_on_production_units(
     through the sweep engine; its yield table and figures in the report."""
     import hashlib
 
-    from cosim.study.sweeps.dataset import read_rows
+    from cosim.design.sweeps.dataset import read_rows
 
     study = reproduction / "tolerance-study"
     rows = read_rows(study)
@@ -234,8 +234,8 @@ def test_each_drift_seed_reuses_the_nnpc_its_mismatch_seed_job_identified(tmp_pa
     identified for other settings (another design key) is identified again rather than reused."""
     from dataclasses import replace
 
+    from cosim.design.design_cache import seed_model_file
     from cosim.study import reproduce
-    from cosim.study.design_cache import seed_model_file
     from cosim.study.reproduce import DRIFT_PIPELINE, FULL, plan_jobs, run_drift, run_seed
 
     drift = {job.seed: job.after for job in plan_jobs(list(reproduce.PIPELINES), FULL, 0, None) if job.kind == "drift"}

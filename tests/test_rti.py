@@ -34,8 +34,9 @@ from controllers.predictors import (
     PredictionContext,
     SwitchedModelPredictor,
 )
-from cosim.study.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
-from cosim.study.vocabulary import NOMINAL, PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.experiments import NOMINAL_OPERATING_POINT as OPERATING_POINT
+from cosim.design.vocabulary import NOMINAL, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 from plant_fmu.table_ii import TABLE_II
 
 TS = SWITCHING_PERIOD
@@ -178,7 +179,7 @@ def test_rti_settings_are_validated_by_name():
 
 
 def test_the_every_seed_evaluation_takes_rti_settings_by_name_and_type():
-    from cosim.study.experiments import rti_changes
+    from cosim.design.experiments import rti_changes
 
     assert rti_changes(["iterations=2", "line_search=False", "regularization=1e-3"]) == \
         {"iterations": 2, "line_search": False, "regularization": 1e-3}
@@ -565,10 +566,10 @@ def test_search_last_sample_leaves_the_controller_as_it_was():
 def test_optimizer_ablation_reports_both_optimizers_on_the_same_model():
     """The study's comparison on a short start-up and load change at 13.33 us (the fixture's NNPC on the
     mismatch switched plant): both runs exist, the audit compared every RTI sample with the search."""
+    from cosim.design.experiments import nnpc
+    from cosim.design.plants import plant_binding
     from cosim.scenarios import load_scenario
-    from cosim.study.experiments import nnpc
     from cosim.study.optimizer_ablation import compare, report_lines, verdict
-    from cosim.study.plants import plant_binding
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     scenarios = [replace(load_scenario("startup", PAPER_SPEC), duration=0.0008)]
@@ -601,8 +602,8 @@ def test_default_optimizer_switches_the_controllers_without_one_and_restores_the
     built without an optimizer take the one named; one given keeps its own; the default comes back afterwards, also
     after an error; an unknown name is refused by name before anything changes."""
     from cosim.base.errors import ConfigError
-    from cosim.study import experiments
-    from cosim.study.experiments import SWITCHING_PERIOD_RTI, default_optimizer, model_mpc, nnpc
+    from cosim.design import experiments
+    from cosim.design.experiments import SWITCHING_PERIOD_RTI, default_optimizer, model_mpc, nnpc
 
     model = load_model(FIXTURES / "nnpc_mismatch_switched_13p33us.pt", expect_period=TS)
     assert nnpc(model, TS).rti == SWITCHING_PERIOD_RTI
@@ -631,11 +632,11 @@ def test_reproduce_refuses_an_unknown_optimizer_before_any_work(tmp_path):
 def test_the_reproductions_workers_take_the_default_optimizer_it_is_given():
     """``reproduce(optimizer=...)`` sets its workers' default with a worker plugin (a restarted worker too); checked
     on a one-worker LocalCluster on loopback."""
-    from cosim.study.cluster import dask_client
+    from cosim.design.cluster import dask_client
     from cosim.study.reproduce import _default_optimizer_plugin
 
     def worker_default():
-        from cosim.study import experiments
+        from cosim.design import experiments
 
         return experiments.DEFAULT_OPTIMIZER
 

@@ -46,9 +46,9 @@ def test_both_plants_are_the_same_converter_and_nothing_of_the_papers_is_left(ex
 def test_the_pythonfmu_plant_runs_at_its_own_operating_point(example):
     """The third-party FMU's PI (a quick tuning: stepping a Python FMU is slow) at 24 V: the start-up settles at 5 V
     within the PI's constraints."""
+    from cosim.design.pi_tuning import tune_pi
     from cosim.master import simulate
     from cosim.metrics import run_metrics
-    from cosim.study.pi_tuning import tune_pi
 
     binding = load_binding(example / "pol_pythonfmu.toml")
     tuning = tune_pi(binding, 1e-3, quick=True)
@@ -64,8 +64,8 @@ def test_on_the_c_plant_the_pi_meets_its_constraints_and_the_nnpc_beats_it_in_ev
     the start-up; at one switching period the NNPC (seed 0, identified on the spec's envelope) has a lower IAE than
     the PI in each of the paper's scenarios, and no run leaves its data."""
     from cosim.batch import Batch, run_batch
-    from cosim.study.controller_factory import make_controllers
-    from cosim.study.experiments import scenarios_for
+    from cosim.design.controller_factory import make_controllers
+    from cosim.design.experiments import scenarios_for
 
     binding = load_binding(example / "pol_builtin.toml")
     pi, network = make_controllers(["pi", "nnpc"], binding, PERIOD, tmp_path, duty_limits=(0.0, 1.0), samples=6000)

@@ -19,14 +19,14 @@ from lxml import etree
 
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError
+from cosim.design.experiments import implemented, scenarios_for
+from cosim.design.plants import plant_binding
 from cosim.fmi.controller_export import export_controller
 from cosim.master import simulate
 from cosim.scenarios import load_scenario, parse_scenario
 from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import SCHEMA_DIR, export_ssp, read_ssp
 from cosim.ssp.scenario_source import OUTPUTS, scenario_fmu, scenario_toml, settle_time
-from cosim.study.experiments import implemented, scenarios_for
-from cosim.study.plants import plant_binding
 from cosim.study.vocabulary import PAPER_SPEC
 
 # ------------------------------------------------------------------ the scenario FMU

@@ -22,10 +22,10 @@ from conftest import one_line_error as cli_one_line_error
 
 from cosim.base.errors import ConfigError
 from cosim.cli import main
-from cosim.study.sweeps import dataset
-from cosim.study.sweeps.plan import SweepPlan, at_operating_point
-from cosim.study.sweeps.spec import load_sweep, parse_sweep
-from cosim.study.sweeps.summary import spec_mask, wilson_interval
+from cosim.design.sweeps import dataset
+from cosim.design.sweeps.plan import SweepPlan, at_operating_point
+from cosim.design.sweeps.spec import load_sweep, parse_sweep
+from cosim.design.sweeps.summary import spec_mask, wilson_interval
 from cosim.study.vocabulary import PAPER_SPEC
 
 PI_GAINS = "kp = 0.0015, ki = 15.6"  # near the tuned 1 ms gains: the tests need a PI, not its tuning
@@ -52,9 +52,9 @@ def cluster():
 @pytest.fixture(scope="module")
 def nn_model(tmp_path_factory) -> Path:
     """An NNPC model identified on the nominal switched plant (small data: the sweep tests need one, not a good one)."""
-    from cosim.study.controller_factory import trained_model
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import pipeline_tag, plant_tag
+    from cosim.design.controller_factory import trained_model
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import pipeline_tag, plant_tag
 
     folder = tmp_path_factory.mktemp("nn")
     trained_model("nnpc", plant_binding("nominal", "switched"), 1e-3, folder, samples=1500, seed=0, model_path=None)
@@ -435,8 +435,8 @@ def test_an_unreachable_or_malformed_scheduler_is_refused_before_any_work(tmp_pa
 
 
 def test_operating_point_axes_move_the_scenario_and_run_ids_hash_the_whole_run(tmp_path):
+    from cosim.design.sweeps.recipes import ControllerRecipe
     from cosim.scenarios import load_scenario
-    from cosim.study.sweeps.recipes import ControllerRecipe
 
     moved = at_operating_point(load_scenario("load_change", PAPER_SPEC),
                                {"load_resistance": 12.0, "input_voltage": 40.0})
@@ -464,7 +464,7 @@ def test_operating_point_axes_move_the_scenario_and_run_ids_hash_the_whole_run(t
 
 @pytest.mark.parametrize("name,runs", [("tolerance", 8000), ("tolerance-reproduction", 600), ("tolerance-fast", 1200)])
 def test_the_shipped_studies_are_valid_against_the_built_in_plant(name, runs):
-    from cosim.study.sweeps.spec import shipped_studies
+    from cosim.design.sweeps.spec import shipped_studies
 
     assert name in shipped_studies()
     spec = load_sweep(name)  # by name, like shipped scenarios
@@ -487,7 +487,7 @@ def test_wilson_interval_and_the_spec_mask():
     low, high = wilson_interval(10, 20)
     assert low == pytest.approx(0.2993, abs=1e-4) and high == pytest.approx(0.7007, abs=1e-4)
     assert wilson_interval(20, 20)[1] == 1.0
-    from cosim.study.sweeps.spec import Threshold
+    from cosim.design.sweeps.spec import Threshold
 
     rows = pd.DataFrame({"status": ["ok", "ok", "ok", "failed"], "overshoot_pct": [1.0, 6.0, 2.0, np.nan],
                          "settling_time_ms": [1.0, 1.0, np.nan, np.nan], "steady_state_error_pct": [-0.4, 0, 0, 0]})
@@ -741,7 +741,7 @@ def test_an_interrupt_shuts_the_cluster_down_and_resume_finishes_without_recompu
     kept = len(dataset.done_run_ids(out))
     assert 1 <= kept < 40 and f"{kept} of 40 runs are in" in lines[-1]
 
-    from cosim.study.sweeps.sweep import run_sweep
+    from cosim.design.sweeps.sweep import run_sweep
 
     outcome = run_sweep(path, out, scheduler=local.scheduler_address, resume=True)
     assert outcome.done_before == kept and outcome.computed == 40 - kept and outcome.failed == 0
@@ -779,7 +779,7 @@ def test_a_worker_killed_mid_sweep_loses_and_duplicates_no_run(tmp_path, cluster
             os.kill(pids[busy[0]], signal.SIGKILL)
             killed.append(busy[0])
 
-    from cosim.study.sweeps.sweep import run_sweep
+    from cosim.design.sweeps.sweep import run_sweep
 
     killer = threading.Thread(target=kill_a_busy_worker)
     killer.start()
@@ -866,9 +866,9 @@ def test_a_hanging_run_and_a_run_out_of_memory_are_rows_and_the_rest_complete(tm
 
 def _plant_kind(recipe, queue) -> None:
     from controllers.pi import PIController
+    from cosim.design.sweeps.worker import _plant
     from cosim.master import run
     from cosim.scenarios import parse_scenario
-    from cosim.study.sweeps.worker import _plant
 
     plant, binding = _plant(recipe)
     scenario = parse_scenario('name = "s"\nduration = 0.002\n[initial]\nreference = 12.0\n', spec=PAPER_SPEC)
@@ -883,8 +883,8 @@ def test_a_daemonic_worker_steps_an_isolated_binding_in_process(tmp_path, faulty
     the run's metadata says so: "isolated" states what was run, not what the binding asked for."""
     import multiprocessing
 
+    from cosim.design.sweeps.recipes import PlantRecipe
     from cosim.fmi.binding_file import load_binding
-    from cosim.study.sweeps.recipes import PlantRecipe
 
     (tmp_path / "plant.toml").write_text(faulty_binding(faulty_fmu, 0))
     recipe = PlantRecipe.of(load_binding(tmp_path / "plant.toml"))
@@ -958,9 +958,9 @@ def test_a_controller_fmu_travels_as_bytes_and_is_rebuilt_from_them(tmp_path, pi
     digest covers the bytes; the build needs only the recipe, and the C-twin step leaves the FMU as it is."""
     import pickle
 
+    from cosim.design.sweeps.designs import build, design
+    from cosim.design.sweeps.recipes import ControllerRecipe
     from cosim.fmi.controller import FmuController
-    from cosim.study.sweeps.designs import build, design
-    from cosim.study.sweeps.recipes import ControllerRecipe
 
     path = fmu_study(tmp_path, pi_fmu)
     spec = load_sweep(path)
@@ -984,7 +984,7 @@ def test_a_controller_fmu_travels_as_bytes_and_is_rebuilt_from_them(tmp_path, pi
                 assert controller.sample_period == 1e-3 and not str(controller.binding.fmu_path).startswith(str(tmp_path))
             finally:
                 controller.close()
-    from cosim.study.sweeps.worker import process_file
+    from cosim.design.sweeps.worker import process_file
 
     assert process_file("my_pi.fmu", blob, given.blob_digest) == process_file("my_pi.fmu", blob, given.blob_digest)
 
@@ -992,8 +992,8 @@ def test_a_controller_fmu_travels_as_bytes_and_is_rebuilt_from_them(tmp_path, pi
 def test_a_swept_pi_fmu_gives_the_built_in_pis_metrics_unit_by_unit(tmp_path, pi_fmu, cluster):
     """The PI given by gains and the same PI exported as an FMU (directly and through a binding
     file): per unit and scenario the same metrics, on a cluster of two worker processes."""
-    from cosim.study.sweeps.sweep import run_sweep
-    from cosim.study.sweeps.worker import DETERMINISTIC_METRICS
+    from cosim.design.sweeps.sweep import run_sweep
+    from cosim.design.sweeps.worker import DETERMINISTIC_METRICS
 
     local, _ = cluster
     path = fmu_study(tmp_path, pi_fmu)
@@ -1076,8 +1076,8 @@ def test_a_sweep_file_chooses_a_predictive_controllers_optimizer_and_rti_setting
     recipe), and leave the recipes of the controllers that give none as they were."""
     from dataclasses import replace
 
-    from cosim.study.experiments import SWITCHING_PERIOD_RTI
-    from cosim.study.sweeps.designs import build, design
+    from cosim.design.experiments import SWITCHING_PERIOD_RTI
+    from cosim.design.sweeps.designs import build, design
 
     path = sweep_file(tmp_path, """\
         scenarios = ["startup"]
@@ -1113,12 +1113,12 @@ def test_a_sweep_file_chooses_a_predictive_controllers_optimizer_and_rti_setting
 
 def test_a_swept_nnpc_plans_with_the_optimizer_its_key_has_on_the_command_line():
     """nnpc-paper plans with the search in a sweep as in the reproduction and `run` (the paper's network), nnpc with
-    the rate's RTI (cosim.study.experiments.own_optimizer)."""
-    from cosim.study.experiments import SWITCHING_PERIOD_RTI
-    from cosim.study.plants import plant_binding
-    from cosim.study.sweeps.designs import build
-    from cosim.study.sweeps.recipes import ControllerRecipe
-    from cosim.study.vocabulary import SWITCHING_PERIOD
+    the rate's RTI (cosim.design.experiments.own_optimizer)."""
+    from cosim.design.experiments import SWITCHING_PERIOD_RTI
+    from cosim.design.plants import plant_binding
+    from cosim.design.sweeps.designs import build
+    from cosim.design.sweeps.recipes import ControllerRecipe
+    from cosim.design.vocabulary import SWITCHING_PERIOD
 
     blob = (Path(__file__).parent / "fixtures" / "nnpc_nominal_averaged_13p33us.pt").read_bytes()
     binding = plant_binding("nominal", "averaged")

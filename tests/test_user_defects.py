@@ -270,8 +270,8 @@ def test_a_refused_parameter_event_stops_the_batch_before_its_first_run(tmp_path
 
 def test_a_pi_tuning_that_no_gains_can_run_is_refused_not_returned(tmp_path, faulty_fmu):
     from cosim.base.errors import PlantError
+    from cosim.design.pi_tuning import tune_pi
     from cosim.fmi.binding_file import load_binding
-    from cosim.study.pi_tuning import tune_pi
 
     (tmp_path / "faulty.toml").write_text(faulty_binding(faulty_fmu, 3))  # NaN outputs at 10.3 ms, whatever the duty
     with pytest.raises(PlantError, match=r"faulty.toml: the PI cannot be tuned on this plant: no gains of the search "
@@ -297,8 +297,8 @@ def test_the_fmus_own_exception_text_is_in_the_message(tmp_path, faulty_fmu):
 
 
 def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
-    from cosim.study.controller_factory import tuned_pi
-    from cosim.study.plants import plant_binding
+    from cosim.design.controller_factory import tuned_pi
+    from cosim.design.plants import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached: the command goes straight to collecting
     private_tmp = tmp_path / "tmp"  # where fmpy extracts the plant FMU: a folder appears once collecting starts

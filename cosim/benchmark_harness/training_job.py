@@ -38,9 +38,9 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     import controllers.nn_model as nn_model
-    from cosim.study.experiments import nn_configs
-    from cosim.study.identification import training_settings
-    from cosim.study.vocabulary import PAPER_PERIOD
+    from cosim.design.experiments import nn_configs
+    from cosim.design.identification import training_settings
+    from cosim.design.vocabulary import PAPER_PERIOD
 
     if args.line_search == "torch":
         nn_model.LBFGS = torch.optim.LBFGS  # the optimizer the module used before controllers/lbfgs.py

@@ -9,7 +9,7 @@ import numpy as np
 from cosim.base.labels import period_text
 from cosim.benchmarks.common import REPLAY_PASSES, BenchRow, _p99, instruction_row, per_sample_median_row
 from cosim.benchmarks.subjects import _mixed_scenario, _nn_model
-from cosim.study.vocabulary import SWITCHING_PERIOD
+from cosim.design.vocabulary import SWITCHING_PERIOD
 
 
 def bench_adaptation(quick: bool) -> list[BenchRow]:
@@ -17,10 +17,10 @@ def bench_adaptation(quick: bool) -> list[BenchRow]:
     layer with its guards), apart from the NNPC step it wraps: the adaptive controller's time per
     sample minus its inner NNPC's, on the mixed scenario at one switching period."""
     from controllers.adaptation import AdaptiveNNPC
+    from cosim.design.experiments import adaptive_nnpc, implemented
+    from cosim.design.plants import plant_binding
     from cosim.fmi.plant import open_plant
     from cosim.master import run
-    from cosim.study.experiments import adaptive_nnpc, implemented
-    from cosim.study.plants import plant_binding
 
     period = SWITCHING_PERIOD
     samples = 60 if quick else 1500
@@ -75,8 +75,8 @@ def _adaptive_c_step_rows(model, origin: str, samples: int) -> list[BenchRow]:
     the drifted plant (the drift study's mismatch plant) at 13.33 us; issue 24's target is on the samples the RTI
     planned, the search's fallback samples reported apart, as the c-controllers group does."""
     from cosim.benchmark_harness import record_measurements, replay
-    from cosim.study.experiments import adaptive_nnpc, implemented
-    from cosim.study.plants import plant_binding
+    from cosim.design.experiments import adaptive_nnpc, implemented
+    from cosim.design.plants import plant_binding
 
     period = SWITCHING_PERIOD
     adaptive = adaptive_nnpc(model, period, optimizer="rti")

@@ -14,7 +14,7 @@ from cosim.benchmarks.common import (
     per_sample_median_row,
 )
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
-from cosim.study.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, transient_within_sample
+from cosim.design.vocabulary import MPC_ORACLE, NNPC, NOMINAL, PAPER_PERIOD, SWITCHING_PERIOD, transient_within_sample
 
 
 def bench_c_controllers(quick: bool) -> list[BenchRow]:
@@ -30,9 +30,9 @@ def bench_c_controllers(quick: bool) -> list[BenchRow]:
         replay_interleaved,
         rti_operation_counts,
     )
-    from cosim.study.experiments import implemented, model_mpc, nnpc
+    from cosim.design.experiments import implemented, model_mpc, nnpc
+    from cosim.design.plants import plant_binding
     from cosim.study.optimizer_ablation import TWO_STEPS
-    from cosim.study.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
     rows = []

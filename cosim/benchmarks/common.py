@@ -71,7 +71,7 @@ def _c_and_python_step_us(controller, measurements, replayed) -> tuple[float, fl
     on the same inputs, timed here one step at a time: (C p50, C p99, Python p50, Python p99) in us. First
     checks that the in-process C twin gives the harness's duties, so both time the same computation."""
     from controllers.base import Measurement
-    from cosim.study.experiments import implemented
+    from cosim.design.experiments import implemented
 
     twin = implemented(controller)
     twin.reset()

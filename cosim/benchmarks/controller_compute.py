@@ -7,7 +7,7 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow, _p99
 from cosim.benchmarks.subjects import _benchmark_pi, _mixed_scenario, _nn_model
-from cosim.study.vocabulary import (
+from cosim.design.vocabulary import (
     IMPLEMENTATIONS,
     MISMATCH,
     MPC_MISMATCHED,
@@ -24,10 +24,10 @@ def bench_controllers(quick: bool) -> list[BenchRow]:
     """Each controller's ``controller_compute_time`` over the mixed scenario on the nominal switched plant, as
     the master measures it around the controller's step (for the C twin: its ctypes call included). The NNPC's
     p99 target at 1 ms is on both implementations' rows; the reproduction's timing target reads the C twin's."""
+    from cosim.design.experiments import implemented, model_mpc, nnpc
+    from cosim.design.plants import plant_binding
     from cosim.fmi.plant import open_plant
     from cosim.master import run
-    from cosim.study.experiments import implemented, model_mpc, nnpc
-    from cosim.study.plants import plant_binding
     from cosim.study.targets import NNPC_P99_TARGET_US, controller_compute_benchmark
 
     rows = []

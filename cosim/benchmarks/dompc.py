@@ -7,7 +7,8 @@ import numpy as np
 from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow, _p99, instruction_row
 from cosim.benchmarks.subjects import _nn_model
-from cosim.study.vocabulary import NNPC, PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.vocabulary import NNPC, SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 
 def bench_dompc(quick: bool) -> list[BenchRow]:
@@ -29,17 +30,17 @@ def bench_dompc(quick: bool) -> list[BenchRow]:
     not paired. Each scenario's instructions per RTI step (callgrind) are a row of their own, the step's cost
     whatever the VM's state."""
     from cosim.benchmark_harness import Recorder, Replay, replay_warm
-    from cosim.master import simulate
-    from cosim.metrics import run_metrics
-    from cosim.study.dompc_peer import DoMpcNnpc
-    from cosim.study.experiments import (
+    from cosim.design.experiments import (
         NOMINAL_OPERATING_POINT,
         horizon_settings,
         implemented,
         nnpc,
         scenarios_for,
     )
-    from cosim.study.plants import plant_binding
+    from cosim.design.plants import plant_binding
+    from cosim.master import simulate
+    from cosim.metrics import run_metrics
+    from cosim.study.dompc_peer import DoMpcNnpc
 
     period = SWITCHING_PERIOD
     binding = plant_binding("nominal", "switched")

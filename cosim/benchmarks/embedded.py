@@ -9,7 +9,7 @@ import numpy as np
 from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi, _explicit_policy, _mixed_scenario
-from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
+from cosim.design.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
 
 
 def _embedded_controllers(quick: bool):
@@ -22,10 +22,10 @@ def _embedded_controllers(quick: bool):
         pi_operation_counts,
         policy_operation_counts,
     )
-    from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
-    from cosim.study.experiments import explicit_nnpc
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import NNPC_EXPLICIT, NOMINAL
+    from cosim.design.classical_design import design_current_mode, design_type_iii, targets_for
+    from cosim.design.experiments import explicit_nnpc
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import NNPC_EXPLICIT, NOMINAL
 
     policy, origin = _explicit_policy(quick)
     pi = _benchmark_pi(SWITCHING_PERIOD)
@@ -60,8 +60,8 @@ def bench_embedded(quick: bool) -> list[BenchRow]:
         measure_tanh,
         toolchain_problem,
     )
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import NNPC_EXPLICIT
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import NNPC_EXPLICIT
 
     problem = toolchain_problem()
     if problem:
@@ -168,7 +168,7 @@ def _online_nnpc_replay(controller, period: float, samples: int) -> np.ndarray:
     RTI plans every sample but the cold start, reference steps included, so the scenario is kept whole."""
     from controllers.native import native_twin
     from cosim.benchmark_harness import record_measurements
-    from cosim.study.plants import plant_binding
+    from cosim.design.plants import plant_binding
 
     binding = plant_binding("nominal", "switched")
     if controller.rti.reference_step == 0.0:
@@ -198,8 +198,8 @@ def _online_nnpc_rows(period: float, quick: bool) -> list[BenchRow]:
         measure,
     )
     from cosim.benchmarks.subjects import _nn_model
-    from cosim.study.experiments import nnpc
-    from cosim.study.vocabulary import NNPC
+    from cosim.design.experiments import nnpc
+    from cosim.design.vocabulary import NNPC
 
     label = period_text(period, ascii_only=True)
     fast, slow = period_text(SWITCHING_PERIOD, ascii_only=True), period_text(PAPER_PERIOD, ascii_only=True)

@@ -7,7 +7,7 @@ import numpy as np
 from cosim.base.labels import period_text
 from cosim.benchmarks.common import BenchRow, _c_and_python_step_us, instruction_row
 from cosim.benchmarks.subjects import _explicit_policy, _mixed_scenario, _nn_model
-from cosim.study.vocabulary import NNPC, SWITCHING_PERIOD
+from cosim.design.vocabulary import NNPC, SWITCHING_PERIOD
 
 
 def bench_explicit(quick: bool) -> list[BenchRow]:
@@ -21,9 +21,9 @@ def bench_explicit(quick: bool) -> list[BenchRow]:
         record_measurements,
         replay,
     )
-    from cosim.study.experiments import explicit_nnpc, implemented, nnpc
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import NNPC_EXPLICIT
+    from cosim.design.experiments import explicit_nnpc, implemented, nnpc
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import NNPC_EXPLICIT
 
     period = SWITCHING_PERIOD
     label = period_text(period, ascii_only=True)

@@ -6,7 +6,8 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow, _median_time
 from cosim.benchmarks.subjects import _nn_model
-from cosim.study.vocabulary import NOMINAL, PAPER_PERIOD, PAPER_SPEC
+from cosim.design.vocabulary import NOMINAL, PAPER_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 
 def bench_inference(quick: bool) -> list[BenchRow]:

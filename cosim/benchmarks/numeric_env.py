@@ -26,7 +26,7 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi
-from cosim.study.vocabulary import PAPER_PERIOD
+from cosim.design.vocabulary import PAPER_PERIOD
 
 JOB = "cosim.benchmark_harness.training_job"
 
@@ -56,8 +56,8 @@ def _train(data: Path, out: Path, native: bool, line_search: str, iterations: in
 
 def bench_numeric_env(quick: bool) -> list[BenchRow]:
     from cosim.benchmark_harness import cpu_emulation
-    from cosim.study.data_collection import CollectionSettings, collect
-    from cosim.study.plants import plant_binding
+    from cosim.design.data_collection import CollectionSettings, collect
+    from cosim.design.plants import plant_binding
 
     samples, iterations, repeats = (2000, 50, 1) if quick else (10_000, 200, 3)
     configurations = {"pinned kernels, exact line search (the workbench)": (False, "exact"),

@@ -9,7 +9,7 @@ import numpy as np
 
 from cosim.benchmarks.common import BenchRow, _p99
 from cosim.benchmarks.subjects import _RawSlave
-from cosim.study.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
+from cosim.design.vocabulary import PAPER_PERIOD, SWITCHING_PERIOD
 
 
 def _time_do_steps(mode: int, step: float, count: int) -> np.ndarray:

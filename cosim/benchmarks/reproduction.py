@@ -10,7 +10,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.benchmarks.common import BenchRow
-from cosim.study.vocabulary import MPC_ORACLE, NNPC, PAPER_PERIOD, PI
+from cosim.design.vocabulary import MPC_ORACLE, NNPC, PAPER_PERIOD, PI
 
 #: what --quick names in the rows: the suite's smoke test runs one 1 ms pipeline of the quick profile
 SMOKE_SCOPE = ", smoke profile: one 1 ms pipeline of --quick"
@@ -49,9 +49,9 @@ def _timed_reproduction(quick: bool, **options) -> TimedReproduction:
     every reproduction it reports."""
     import tempfile
 
-    from cosim.study.experiments import DEFAULT_OPTIMIZER
+    from cosim.design.experiments import DEFAULT_OPTIMIZER
+    from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION
     from cosim.study.reproduce import reproduce
-    from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
     key = (options.get("implementation", DEFAULT_IMPLEMENTATION), options.get("optimizer", DEFAULT_OPTIMIZER),
            tuple(sorted((k, v) for k, v in options.items() if k not in ("implementation", "optimizer"))))

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi
-from cosim.study.vocabulary import PAPER_PERIOD, PI
+from cosim.design.vocabulary import PAPER_PERIOD, PI
 
 #: the soak: this many runs on 2 local workers (the issue-26 target: <= 50 MB of growth per worker and in the
 #: workbench's own process)
@@ -27,14 +27,14 @@ def bench_soak(quick: bool) -> list[BenchRow]:
     import tempfile
 
     from cosim.base.digests import canonical
+    from cosim.design.cluster import dask_client
+    from cosim.design.sweeps import dataset
+    from cosim.design.sweeps.execute import SweepExecution, execute
+    from cosim.design.sweeps.plan import SweepPlan
+    from cosim.design.sweeps.recipes import ControllerRecipe
+    from cosim.design.sweeps.spec import parse_sweep
+    from cosim.design.sweeps.worker import RunSettings, run_batch
     from cosim.fmi.isolation import resident_bytes
-    from cosim.study.cluster import dask_client
-    from cosim.study.sweeps import dataset
-    from cosim.study.sweeps.execute import SweepExecution, execute
-    from cosim.study.sweeps.plan import SweepPlan
-    from cosim.study.sweeps.recipes import ControllerRecipe
-    from cosim.study.sweeps.spec import parse_sweep
-    from cosim.study.sweeps.worker import RunSettings, run_batch
 
     runs_wanted = 2 * (SOAK_WARM_RUNS + 10) if quick else SOAK_RUNS
     spec = parse_sweep(f'scenarios = ["startup"]\ncontrollers = ["pi"]\nsamples = {runs_wanted}\nseed = 2\n'

@@ -9,7 +9,8 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD, transient_within_sample
+from cosim.design.vocabulary import SWITCHING_PERIOD, transient_within_sample
+from cosim.study.vocabulary import PAPER_SPEC
 
 #: where the reproduction's trained models are looked for (:func:`reading_models_from` sets it: ``OUT/models``
 #: or ``--models``); a group finds none there and trains or distils its own
@@ -60,7 +61,7 @@ class _RawSlave:
 
 def _benchmark_pi(period: float):
     """A PI with gains near the tuned ones at this rate, in the normalised gains a = Kp Vs and
-    b = Ki Ts Vs of :mod:`cosim.study.pi_tuning` (the benchmarks time it; they do not tune it)."""
+    b = Ki Ts Vs of :mod:`cosim.design.pi_tuning` (the benchmarks time it; they do not tune it)."""
     from controllers.pi import PIController
 
     a, b = (0.072, 0.75) if transient_within_sample(period) else (0.336, 0.111)
@@ -70,12 +71,12 @@ def _benchmark_pi(period: float):
 
 def _mixed_scenario(period: float, samples: int):
     """Random references and loads (and, at 13.33 us, supplies) held for random intervals: transients and steady
-    state mixed, drawn like the rate's identification data (:func:`cosim.study.experiments.collection_settings`'
+    state mixed, drawn like the rate's identification data (:func:`cosim.design.experiments.collection_settings`'
     default region): at 1 ms the paper's region, at 13.33 us the envelope (references 3-20 V, loads 4-100 Ohm,
     supplies 36-60 V), where the NNPC's network is identified and the envelope map runs it. Timings measured before
     the envelope data (issue 25) replayed the paper's region at 13.33 us too."""
-    from cosim.study.data_collection import random_scenario
-    from cosim.study.experiments import collection_settings
+    from cosim.design.data_collection import random_scenario
+    from cosim.design.experiments import collection_settings
 
     return random_scenario(collection_settings(period, samples, seed=11, spec=PAPER_SPEC), period)
 
@@ -85,10 +86,10 @@ def _nn_model(name: str, period: float, quick: bool):
     from controllers.nn_config import TrainingSettings
     from controllers.nn_model import load_model, train
     from cosim.base.errors import ModelFileError
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, nn_configs
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import pipeline_tag, plant_tag
+    from cosim.design.data_collection import collect
+    from cosim.design.experiments import collection_settings, nn_configs
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import pipeline_tag, plant_tag
 
     config = nn_configs(period)[name]
     path = _models_dir / f"{pipeline_tag(plant_tag('nominal', 'switched'), period)}__{name}.pt"
@@ -111,9 +112,9 @@ def _explicit_policy(quick: bool):
 
     from controllers.explicit_policy import load_policy
     from cosim.base.errors import ModelFileError
-    from cosim.study.distillation import SMALL_DISTILLATION, distill
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import pipeline_tag
+    from cosim.design.distillation import SMALL_DISTILLATION, distill
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import pipeline_tag
 
     path = _models_dir / f"{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}__nnpc-explicit.pt"
     if path.is_file() and not quick:

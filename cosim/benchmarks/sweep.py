@@ -8,7 +8,7 @@ from pathlib import Path
 
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi, _nn_model
-from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PI
+from cosim.design.vocabulary import NNPC, PAPER_PERIOD, PI
 
 SWEEP_SAMPLES = 100  # x 2 controllers (PI, NNPC) x start-up = the 200-run sweep of the benchmark
 
@@ -19,10 +19,10 @@ def _sweep_setup(quick: bool):
     import tempfile
 
     from controllers.nn_model import save_model
-    from cosim.study.sweeps.plan import SweepPlan
     from cosim.base.digests import canonical
-    from cosim.study.sweeps.recipes import ControllerRecipe
-    from cosim.study.sweeps.spec import parse_sweep
+    from cosim.design.sweeps.plan import SweepPlan
+    from cosim.design.sweeps.recipes import ControllerRecipe
+    from cosim.design.sweeps.spec import parse_sweep
 
     samples = 4 if quick else SWEEP_SAMPLES
     spec = parse_sweep(f'scenarios = ["startup"]\ncontrollers = ["pi", "nnpc"]\nsamples = {samples}\nseed = 1\n'
@@ -42,10 +42,10 @@ def _sweep_setup(quick: bool):
 def _plain_runs(plan, recipes, runs) -> float:
     """Seconds for the runs in this process without dask: one plant, each controller built once,
     parameters set and the run and its metrics computed -- the work a sweep distributes."""
+    from cosim.design.sweeps.designs import build
     from cosim.fmi.plant import open_plant
     from cosim.master import run_checked
     from cosim.metrics import run_metrics
-    from cosim.study.sweeps.designs import build
 
     binding = plan.binding
     controllers = {r.name: build(r, binding, "c") for r in recipes}
@@ -65,9 +65,9 @@ def _sweep_on(client, plan, recipes, runs, folder: Path) -> tuple[float, float]:
     """Seconds for the same runs through the sweep machinery on ``client`` (tasks, transfer, the
     workers' runs, every part written; the workers warmed up first: imports, FMU, C twins), and the
     runs' own seconds as the workers timed them (summed)."""
-    from cosim.study.sweeps import dataset
-    from cosim.study.sweeps.execute import SweepExecution, execute
-    from cosim.study.sweeps.worker import RunSettings, run_batch
+    from cosim.design.sweeps import dataset
+    from cosim.design.sweeps.execute import SweepExecution, execute
+    from cosim.design.sweeps.worker import RunSettings, run_batch
 
     settings = RunSettings(1e-5, "c", False)
     controllers = {r.name: r for r in recipes}
@@ -87,7 +87,7 @@ def _sweep_on(client, plan, recipes, runs, folder: Path) -> tuple[float, float]:
 def bench_sweep(quick: bool) -> list[BenchRow]:
     import tempfile
 
-    from cosim.study.cluster import dask_client
+    from cosim.design.cluster import dask_client
 
     plan, recipes, runs = _sweep_setup(quick)
     repeats = 1 if quick else 5

@@ -6,15 +6,15 @@ import time
 
 from cosim.benchmarks.common import BenchRow
 from cosim.benchmarks.subjects import _benchmark_pi
-from cosim.study.vocabulary import PAPER_PERIOD
+from cosim.design.vocabulary import PAPER_PERIOD
 
 
 def bench_training(quick: bool) -> list[BenchRow]:
     from controllers.nn_config import TrainingSettings
     from controllers.nn_model import train
-    from cosim.study.data_collection import CollectionSettings, collect
-    from cosim.study.experiments import nn_configs
-    from cosim.study.plants import plant_binding
+    from cosim.design.data_collection import CollectionSettings, collect
+    from cosim.design.experiments import nn_configs
+    from cosim.design.plants import plant_binding
 
     samples = 500 if quick else 10_000
     start = time.perf_counter()

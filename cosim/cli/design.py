@@ -20,8 +20,8 @@ from cosim.cli.options import (
     parse_period,
     seed_value,
 )
-from cosim.study.data_collection import MAX_EXCITATION, MIN_SAMPLES
-from cosim.study.vocabulary import (
+from cosim.design.data_collection import MAX_EXCITATION, MIN_SAMPLES
+from cosim.design.vocabulary import (
     COLLECTION_REGIONS,
     DITHER_FAST,
     DITHER_SLOW,
@@ -37,7 +37,7 @@ MODEL_SUFFIXES = (".pt", ".pth")
 
 def cmd_tune_pi(args) -> int:
     from cosim.base.files import atomic_write_text
-    from cosim.study.pi_tuning import tune_pi
+    from cosim.design.pi_tuning import tune_pi
 
     output_file(args.out, (".json",), "the gains are written as JSON")
     binding = _plant_binding(args)
@@ -52,10 +52,10 @@ def cmd_tune_pi(args) -> int:
 
 
 def cmd_collect(args) -> int:
+    from cosim.design.data_collection import collect, save_samples
+    from cosim.design.experiments import collection_settings
     from cosim.master import check_set_up
     from cosim.scenarios import load_scenario
-    from cosim.study.data_collection import collect, save_samples
-    from cosim.study.experiments import collection_settings
 
     output_file(args.out, (".parquet",), "the samples are written as Parquet, with their metadata")
     work_dir = cache_dir(args.work_dir)
@@ -65,7 +65,7 @@ def cmd_collect(args) -> int:
     settings.check()  # all of it before the PI is tuned (seconds, or minutes on a slow external plant)
     # what the FMU refuses, even where the PI tuning is cached
     check_set_up(binding, [load_scenario("startup", binding.converter)])
-    from cosim.study.controller_factory import tuned_pi  # scipy.optimize: after the checks
+    from cosim.design.controller_factory import tuned_pi  # scipy.optimize: after the checks
 
     pi = tuned_pi(binding, args.control_period, work_dir, args.progress)
     data = collect(binding, pi.controller(), settings, progress=args.progress)
@@ -139,7 +139,7 @@ def cmd_train(args) -> int:
     print(f"{config.label}: held-out one-step RMSE {rmse['one_step_rmse_voltage_V'] * 1e3:.2f} mV, "
           f"{rmse['one_step_rmse_current_A'] * 1e3:.2f} mA; 10-step (recorded duties and load) "
           f"{rmse.get('10_step_rmse_voltage_V', float('nan')) * 1e3:.2f} mV")
-    from cosim.study.identification import write_identification_figure
+    from cosim.design.identification import write_identification_figure
 
     figure = write_identification_figure(model, frame, Path(args.out))
     print(f"wrote {args.out} and {figure} (learning curves, held-out predictions)")
@@ -151,7 +151,7 @@ def cmd_distill(args) -> int:
 
     from controllers.explicit_policy import save_policy
     from controllers.nn_model import load_model
-    from cosim.study.distillation import FULL_DISTILLATION, distill
+    from cosim.design.distillation import FULL_DISTILLATION, distill
 
     try:  # arguments first, before any file is read or any work starts
         policy_config = PolicyConfig(hidden=tuple(args.hidden), integral_gain=args.integral_gain,
@@ -171,7 +171,7 @@ def cmd_distill(args) -> int:
     binding = _plant_binding(args)
     if not binding.has("inductor_current"):
         raise ConfigError(f"the NNPC needs the inductor_current role, which {binding.origin} does not bind")
-    from cosim.study.experiments import implemented, nnpc
+    from cosim.design.experiments import implemented, nnpc
 
     implemented(nnpc(model, period))  # refuses a network the C twin cannot hold, before any work
     print(f"distilling the NNPC of {source} on {binding.label} at {period * 1e6:.4g} us: {settings.rounds + 1} "
@@ -307,7 +307,7 @@ def add_distill_parser(sub) -> None:
 
 def add_tune_pi_parser(sub) -> None:
     p = sub.add_parser("tune-pi", help="tune the PI for a plant and control period",
-                       description="Tune Kp, Ki by the repeatable method in cosim/study/pi_tuning.py.")
+                       description="Tune Kp, Ki by the repeatable method in cosim/design/pi_tuning.py.")
     _add_plant_options(p)
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s (default: 1e-3)")

@@ -20,13 +20,13 @@ from cosim.cli.options import (
     output_file,
     parse_period,
 )
-from cosim.study.vocabulary import EXPORTABLE_CONTROLLERS, FLOAT32_CONTROLLERS, PAPER_PERIOD
+from cosim.design.vocabulary import EXPORTABLE_CONTROLLERS, FLOAT32_CONTROLLERS, PAPER_PERIOD
 
 
 def _design_controller(args, binding, period: float, work_dir: Path, policy_path: str | None = None):
     """The built-in controller ``args.controller`` designed for ``binding`` at ``period`` from the options of
     :func:`_add_controller_design_options` (tuned, trained or distilled on demand, cached in ``work_dir``)."""
-    from cosim.study.controller_factory import make_controllers
+    from cosim.design.controller_factory import make_controllers
 
     optimizer, rti_changes = optimizer_options(args)
     [controller] = make_controllers([args.controller], binding, period, work_dir,

@@ -12,9 +12,8 @@ import sys
 from pathlib import Path
 
 from cosim.base.errors import ConfigError
-from cosim.fmi.binding import PLANT_MODE_CODES
-from cosim.study.data_collection import MIN_SAMPLES
-from cosim.study.vocabulary import (
+from cosim.design.data_collection import MIN_SAMPLES
+from cosim.design.vocabulary import (
     DEFAULT_IMPLEMENTATION,
     EXPORTABLE_CONTROLLERS,
     IMPLEMENTATIONS,
@@ -24,6 +23,7 @@ from cosim.study.vocabulary import (
     PREDICTIVE_CONTROLLERS,
     SENSORS,
 )
+from cosim.fmi.binding import PLANT_MODE_CODES
 from cosim.timeline import MIN_PERIOD, period_too_short
 
 DEFAULT_RESULTS = Path("results")
@@ -202,7 +202,7 @@ def _plant_binding(args):
                               f"whose binding file chooses the model: drop {given.split()[0]}")
         binding = load_binding(args.plant)
     else:
-        from cosim.study.plants import plant_binding
+        from cosim.design.plants import plant_binding
 
         variant, mode, sensor = (value or BUILT_IN_PLANT_OPTIONS[option] for option, value in built_in.items())
         binding = plant_binding(variant, mode, sensor)
@@ -291,9 +291,9 @@ EXPORTED_PREDICTIVE = tuple(k for k in PREDICTIVE_CONTROLLERS if k in EXPORTABLE
 
 
 def optimizer_options(args) -> tuple[str | None, dict]:
-    """(--optimizer, the --rti changes parsed: :func:`cosim.study.experiments.rti_changes`); a bad item is a
+    """(--optimizer, the --rti changes parsed: :func:`cosim.design.experiments.rti_changes`); a bad item is a
     ConfigError naming it."""
-    from cosim.study.experiments import rti_changes
+    from cosim.design.experiments import rti_changes
 
     try:
         return args.optimizer, rti_changes(args.rti)

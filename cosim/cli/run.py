@@ -23,8 +23,8 @@ from cosim.cli.options import (
     parse_period,
     seed_value,
 )
-from cosim.study.data_collection import MIN_SAMPLES
-from cosim.study.vocabulary import CONTROLLERS, ON_DEMAND_SAMPLES, PAPER_PERIOD
+from cosim.design.data_collection import MIN_SAMPLES
+from cosim.design.vocabulary import CONTROLLERS, ON_DEMAND_SAMPLES, PAPER_PERIOD
 
 #: image formats plot does not write (it writes PNG and SVG): an --out ending in one is refused, not renamed
 OTHER_IMAGE_FORMATS = (".pdf", ".eps", ".ps", ".jpg", ".jpeg", ".tif", ".tiff", ".gif", ".bmp", ".webp")
@@ -59,9 +59,9 @@ def cmd_run(args) -> int:
     batch.check_plant(args.interface)
     # the batch is checked: now the (possibly long) tuning and training. Imported here, not above: torch takes
     # seconds to load, and a refused scenario, binding or rate is answered without it
-    from cosim.study.controller_factory import make_controllers
-    from cosim.study.experiments import implemented
-    from cosim.study.vocabulary import CONTROLLER_STYLES
+    from cosim.design.controller_factory import make_controllers
+    from cosim.design.experiments import implemented
+    from cosim.study.vocabulary import STUDY_STYLES
 
     controllers = make_controllers(args.controller, batch.binding, args.control_period, out_dir,
                                    duty_limits=(args.duty_min, args.duty_max), kp=args.kp, ki=args.ki,
@@ -69,7 +69,7 @@ def cmd_run(args) -> int:
                                    progress=args.progress, policy_path=args.policy, optimizer=optimizer,
                                    rti_changes=rti_changes)
     controllers = [implemented(c, args.implementation) for c in controllers]
-    output = run_batch(batch, controllers, out_dir, styles=CONTROLLER_STYLES, interface=args.interface,
+    output = run_batch(batch, controllers, out_dir, styles=STUDY_STYLES, interface=args.interface,
                        record_period=args.record_period, seed=args.seed, figures=not args.no_figures,
                        progress=args.progress, stream=args.stream)
     if args.stream:
@@ -158,13 +158,13 @@ def cmd_export(args) -> int:
 
 def cmd_plot(args) -> int:
     from cosim.compare import overlay
-    from cosim.study.vocabulary import CONTROLLER_STYLES
+    from cosim.study.vocabulary import STUDY_STYLES
 
     out = output_file(args.out)
     if out.suffix.lower() in OTHER_IMAGE_FORMATS:
         raise ConfigError(f"--out {out} is invalid: plot writes PNG and SVG (FIG.png and FIG.svg), not "
                           f"{out.suffix[1:].upper()}: give FIG, FIG.png or FIG.svg")
-    files = overlay(args.runs, out, title=args.title, styles=CONTROLLER_STYLES)
+    files = overlay(args.runs, out, title=args.title, styles=STUDY_STYLES)
     print(f"wrote {' and '.join(str(f) for f in files)}")
     return 0
 
@@ -173,11 +173,11 @@ def cmd_compare(args) -> int:
     from cosim.base.files import atomic_write
     from cosim.compare import comparison_table, overlay
     from cosim.metrics import WALLCLOCK_METRICS
-    from cosim.study.vocabulary import CONTROLLER_STYLES
+    from cosim.study.vocabulary import STUDY_STYLES
 
     out_dir = output_dir(args.out)
     table = comparison_table(args.runs)  # every file read and checked before anything is written
-    files = overlay(args.runs, out_dir / "compare", title=args.title, styles=CONTROLLER_STYLES)
+    files = overlay(args.runs, out_dir / "compare", title=args.title, styles=STUDY_STYLES)
     deterministic = table.drop(columns=[c for c in WALLCLOCK_METRICS if c in table.columns])
     files.append(atomic_write(out_dir / "compare.csv", lambda tmp: deterministic.to_csv(tmp, index=False)))
     columns = ["run", "scenario", "rise_time_ms", "overshoot_pct", "settling_time_ms", "steady_state_error_pct",

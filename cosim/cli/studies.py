@@ -18,7 +18,7 @@ from cosim.cli.options import (
     parse_period,
     seed_value,
 )
-from cosim.study.vocabulary import CONTROLLERS, PAPER_PERIOD, PREDICTIVE_CONTROLLERS
+from cosim.design.vocabulary import CONTROLLERS, PAPER_PERIOD, PREDICTIVE_CONTROLLERS
 
 
 def cmd_reproduce(args) -> int:
@@ -28,8 +28,8 @@ def cmd_reproduce(args) -> int:
                           "at one switching period)")
     if args.plant:  # refuse a bad binding, or a period its scenarios cannot use, before any work starts
         from cosim.batch import Batch
+        from cosim.design.experiments import scenarios_for
         from cosim.fmi.binding_file import load_binding
-        from cosim.study.experiments import scenarios_for
 
         binding = load_binding(args.plant)
         binding.converter.circuit("reproduce --plant (its MPC baseline predicts with the nominal circuit)")
@@ -58,8 +58,8 @@ def cmd_study(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from cosim.study.sweeps.spec import load_sweep
-    from cosim.study.sweeps.sweep import raise_if_failed, run_sweep
+    from cosim.design.sweeps.spec import load_sweep
+    from cosim.design.sweeps.sweep import raise_if_failed, run_sweep
 
     spec = load_sweep(args.spec)  # the file first: its mistakes before the folder is touched
     if args.scheduler_timeout is not None and not args.scheduler_timeout > 0:
@@ -79,10 +79,10 @@ RESPONSE_PREDICTIVE = tuple(k for k in PREDICTIVE_CONTROLLERS if k in RESPONSE_C
 
 
 def cmd_frequency_response(args) -> int:
-    from cosim.study.cluster import dask_client
-    from cosim.study.controller_factory import check_optimizer_options
-    from cosim.study.frequency_response import ResponseSettings, measure, write_outputs
-    from cosim.study.sweeps.spec import ControllerEntry
+    from cosim.design.cluster import dask_client
+    from cosim.design.controller_factory import check_optimizer_options
+    from cosim.design.frequency_response import ResponseSettings, measure, write_outputs
+    from cosim.design.sweeps.spec import ControllerEntry
 
     binding = _plant_binding(args)
     spec = binding.converter  # the operating point and the rate not given: the plant's converter's

@@ -54,7 +54,7 @@ _ERRORS = {cls.__name__: cls for cls in (ConfigError, FmuArchiveError, PlantErro
 
 def isolation_possible() -> bool:
     """Whether this process may start the plant's child process: not a daemonic one (dask's default
-    worker; the workbench's LocalCluster turns that off, cosim/study/cluster.py)."""
+    worker; the workbench's LocalCluster turns that off, cosim/design/cluster.py)."""
     return not multiprocessing.current_process().daemon
 
 

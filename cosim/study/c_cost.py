@@ -17,10 +17,10 @@ import numpy as np
 from controllers.cost_model import CORTEX_M4F, cortex_m4f_cycles, operation_counts, rti_operation_counts
 from controllers.nn_model import load_model
 from cosim.base.labels import period_text
+from cosim.design.experiments import implemented, nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import NNPC, pipeline_tag, plant_tag
 from cosim.master import simulate
-from cosim.study.experiments import implemented, nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NNPC, pipeline_tag, plant_tag
 
 
 class _CountingTwin:

@@ -24,9 +24,8 @@ import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_text
-from cosim.study.claims import TARGET_COLUMNS, comparison, per_scenario_text, target_row
-from cosim.study.summaries import markdown_table, seed_controllers, seed_ratio_spreads, value
-from cosim.study.vocabulary import (
+from cosim.base.markdown import markdown_table
+from cosim.design.vocabulary import (
     CONTROLLER_STYLES,
     CURRENT_MODE,
     MPC_NOMINAL,
@@ -36,8 +35,10 @@ from cosim.study.vocabulary import (
     PI,
     TYPE_III,
 )
+from cosim.study.claims import TARGET_COLUMNS, comparison, per_scenario_text, target_row
+from cosim.study.summaries import seed_controllers, seed_ratio_spreads, value
 
-#: the PI's design constraints at the nominal point (the tuning's: cosim.study.pi_tuning)
+#: the PI's design constraints at the nominal point (the tuning's: cosim.design.pi_tuning)
 PI_OVERSHOOT_LIMIT_PCT, PI_STEADY_STATE_LIMIT_PCT = 5.0, 0.5
 #: NNPC IAE / nominal-model MPC IAE at one switching period: at the median seed, and at the worst seed
 MPC_RATIO_MEDIAN_LIMIT, MPC_RATIO_WORST_LIMIT = 1.10, 1.5

@@ -23,7 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cosim.base.errors import ConfigError
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, STUDY_SEEDS
+from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION
+from cosim.study.vocabulary import STUDY_SEEDS
 
 if TYPE_CHECKING:  # the reproduction's machinery (pandas, dask, the designs) loads when a study runs, not for --help
     import pandas as pd
@@ -81,8 +82,8 @@ def plan_study(binding_file: str | Path, control_periods: tuple[float, ...] = ()
     spec's ``control_periods``) and that every scenario suits each of them. Refused in one line
     (:class:`ConfigError` and the binding's own errors) otherwise."""
     from cosim.batch import Batch
+    from cosim.design.experiments import scenarios_for
     from cosim.fmi.binding_file import load_binding
-    from cosim.study.experiments import scenarios_for
 
     binding_file = Path(binding_file).resolve()
     binding = load_binding(binding_file)

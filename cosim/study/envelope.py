@@ -36,11 +36,9 @@ import pandas as pd
 import pyarrow as pa
 
 from cosim.base.files import atomic_write
-from cosim.scenarios import Scenario, ScenarioEvent
-from cosim.study.claims import target_row
-from cosim.study.design_cache import model_file, pi_file, seed_model_file
-from cosim.study.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSpec, Threshold
-from cosim.study.vocabulary import (
+from cosim.design.design_cache import model_file, pi_file, seed_model_file
+from cosim.design.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSpec, Threshold
+from cosim.design.vocabulary import (
     CURRENT_MODE,
     CURRENT_MODE_NO_DELAY,
     MPC_ORACLE,
@@ -54,6 +52,8 @@ from cosim.study.vocabulary import (
     seed_of,
     seed_variant,
 )
+from cosim.scenarios import Scenario, ScenarioEvent
+from cosim.study.claims import target_row
 
 OVERSHOOT_TARGET_PCT = 5.0
 SETTLING_TARGET_MS = 0.5
@@ -120,7 +120,7 @@ def seed_job_keys(seeds) -> list[str]:
 
 def pipeline_files(out_dir: Path) -> dict[str, Path]:
     """The files of the nominal switched pipeline at 1/fsw the map's controllers come from."""
-    from cosim.study.classical_design import design_files
+    from cosim.design.classical_design import design_files
 
     tag = pipeline_tag(MAP_PLANT, SWITCHING_PERIOD)
     out_dir = Path(out_dir)
@@ -192,9 +192,9 @@ def start(out_dir: Path, quick: bool = False, resume: bool = False, progress: bo
     import shutil
 
     from cosim.base.errors import ConfigError
-    from cosim.study.sweeps.designs import design
-    from cosim.study.sweeps.plan import SweepPlan
-    from cosim.study.sweeps.sweep import PreparedSweep, check_output
+    from cosim.design.sweeps.designs import design
+    from cosim.design.sweeps.plan import SweepPlan
+    from cosim.design.sweeps.sweep import PreparedSweep, check_output
 
     folder = Path(out_dir) / ENVELOPE_DIR / "sweep"
     if not resume and folder.exists():
@@ -218,11 +218,11 @@ def run_entries(entries, folder: Path, settings: MapSettings = FULL_MAP, workers
     another horizon, the delay-free current-mode controller): the same grid, steps, spec and tables."""
     from dataclasses import replace
 
-    from cosim.study.cluster import dask_client
-    from cosim.study.sweeps.designs import design
-    from cosim.study.sweeps.execute import execute
-    from cosim.study.sweeps.plan import SweepPlan
-    from cosim.study.sweeps.sweep import PreparedSweep, check_output, interrupted
+    from cosim.design.cluster import dask_client
+    from cosim.design.sweeps.designs import design
+    from cosim.design.sweeps.execute import execute
+    from cosim.design.sweeps.plan import SweepPlan
+    from cosim.design.sweeps.sweep import PreparedSweep, check_output, interrupted
 
     entries = tuple(e if e.settle is not None or e.kind not in ("nnpc", "mpc-oracle")
                     else replace(e, settle=settings.settle_predictive) for e in entries)
@@ -253,7 +253,7 @@ def ready(finished_keys, seeds=()) -> bool:
 
 def steps_table(prepared) -> pd.DataFrame:
     """One row per point, step and controller (the sweep's rows, named)."""
-    from cosim.study.sweeps import dataset
+    from cosim.design.sweeps import dataset
 
     rows = dataset.read_rows(prepared.out_dir, prepared.schema)
     planned = {r.run_id for r in prepared.runs}
@@ -592,7 +592,7 @@ def sentences(metrics: pd.DataFrame, out_dir: Path) -> list[str]:
 
 def report_section(out_dir: Path, metrics: pd.DataFrame) -> list[str]:
     """``## Control quality over the operating envelope`` of REPORT.md (empty without the map)."""
-    from cosim.study.summaries import markdown_table
+    from cosim.base.markdown import markdown_table
 
     steps = load_steps(out_dir)
     if steps is None:

@@ -4,7 +4,7 @@ what that buys, measured against the data of the paper's experiment.
 The paper's experiment (and the workbench's data until now) drives the tuned PI with random references
 0-20 V and loads 4-10 Ohm at 48 V: the NNPC then meets the envelope map's loads up to 100 Ohm (DCM from
 about 40 Ohm) and its supplies 36 and 60 V without ever having seen them. The *envelope* collection
-(:func:`cosim.study.experiments.collection_settings`, ``region="envelope"``) keeps the closed-loop PI --
+(:func:`cosim.design.experiments.collection_settings`, ``region="envelope"``) keeps the closed-loop PI --
 it holds the states near the operating point asked for, so the samples sit where the controller will
 operate, start-ups from rest included -- and moves that operating point over the whole envelope: references
 3-20 V (and rests at 0 V), loads log-uniform 4-100 Ohm, supplies uniform 36-60 V, each a held random level
@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cosim.study.vocabulary import PAPER_SPEC, SWITCHING_PERIOD
+from cosim.design.vocabulary import SWITCHING_PERIOD
+from cosim.study.vocabulary import PAPER_SPEC
 
 #: the envelope the map measures (cosim.study.envelope.FULL_MAP spans it) and the envelope collection draws from
 REFERENCES, LOADS, SUPPLIES = (PAPER_SPEC.output_voltage_range, PAPER_SPEC.load_resistance_range,
@@ -103,7 +104,7 @@ def coverage_text(cover: dict) -> str:
 
 def _pi(results: Path):
     from controllers.pi import PIController
-    from cosim.study.vocabulary import pipeline_tag
+    from cosim.design.vocabulary import pipeline_tag
 
     tuning = json.loads((results / "tuning" / f"pi__{pipeline_tag('nominal-switched', SWITCHING_PERIOD)}.json")
                         .read_text(encoding="utf-8"))
@@ -115,9 +116,9 @@ def test_sets(binding, pi, samples: int = TEST_SAMPLES) -> dict[str, pd.DataFram
     MPC (C twin) under the envelope collection's random references, loads and supplies with a small dither,
     the trajectories of a predictive controller over the envelope; ``paper region (PI)`` -- the paper's
     experiment (PI, 0-20 V, 4-10 Ohm, 48 V)."""
-    from cosim.study.controller_factory import true_parameters
-    from cosim.study.data_collection import collect
-    from cosim.study.experiments import collection_settings, implemented, model_mpc
+    from cosim.design.controller_factory import true_parameters
+    from cosim.design.data_collection import collect
+    from cosim.design.experiments import collection_settings, implemented, model_mpc
 
     oracle = implemented(model_mpc(true_parameters(binding), SWITCHING_PERIOD, "MPC-oracle", binding=binding))
     envelope = replace(collection_settings(SWITCHING_PERIOD, samples, TEST_SEED, region="envelope",
@@ -144,9 +145,9 @@ def prediction_errors(model, tests: dict[str, pd.DataFrame], horizon: int) -> li
 def nominal_scenarios(binding, model, name: str) -> list[dict]:
     """The paper's four scenarios at the nominal point (12 V, 6 Ohm, 48 V; time-compressed at 1/fsw) with the
     online NNPC (C twin) on ``model``: IAE and overshoot per scenario."""
+    from cosim.design.experiments import implemented, nnpc, scenarios_for
     from cosim.master import simulate
     from cosim.metrics import run_metrics
-    from cosim.study.experiments import implemented, nnpc, scenarios_for
 
     rows = []
     for scenario in scenarios_for(SWITCHING_PERIOD, spec=binding.converter):
@@ -159,7 +160,7 @@ def nominal_scenarios(binding, model, name: str) -> list[dict]:
 
 def variant_settings(collection: str, seed: int, samples: int):
     """The collection settings of a :data:`VARIANTS` collection."""
-    from cosim.study.experiments import collection_settings
+    from cosim.design.experiments import collection_settings
 
     if collection == "envelope, white dither":
         paper = collection_settings(SWITCHING_PERIOD, samples, seed, region="paper", spec=PAPER_SPEC)
@@ -171,7 +172,7 @@ def variant_settings(collection: str, seed: int, samples: int):
 
 def variant_config(variant: str):
     """The network of a :data:`VARIANTS` entry: the recipe's (with the supply voltage) or without that input."""
-    from cosim.study.experiments import nn_configs
+    from cosim.design.experiments import nn_configs
 
     config = nn_configs(SWITCHING_PERIOD)["nnpc"]
     if VARIANTS[variant][1]:
@@ -183,9 +184,9 @@ def identified(binding, pi, variant: str, seed: int, samples: int, folder: Path)
     """The online NNPC's network identified by the workbench's recipe from the data of collection ``variant``
     (:data:`VARIANTS`) and ``seed`` (cached in ``folder`` by variant, seed and samples); (model path, model, data)."""
     from controllers.nn_model import load_model, save_model
+    from cosim.design.data_collection import collect, save_samples
+    from cosim.design.identification import Recipe, identify
     from cosim.results import read_parquet
-    from cosim.study.data_collection import collect, save_samples
-    from cosim.study.identification import Recipe, identify
 
     config = variant_config(variant)
     path = folder / f"nnpc__{variant.replace(', ', '-').replace(' ', '-')}__seed{seed}__{samples}.pt"
@@ -211,11 +212,11 @@ def compare(results: Path, folder: Path, seeds=(0, 1), samples: int = 10_000, wo
     ``map.csv``, ``nominal.csv``); ``results``: a reproduction's folder, for the tuned PI."""
     import torch
 
+    from cosim.design.experiments import horizon_settings
+    from cosim.design.plants import plant_binding
+    from cosim.design.sweeps.spec import ControllerEntry
+    from cosim.design.vocabulary import NNPC
     from cosim.study import envelope
-    from cosim.study.experiments import horizon_settings
-    from cosim.study.plants import plant_binding
-    from cosim.study.sweeps.spec import ControllerEntry
-    from cosim.study.vocabulary import NNPC
 
     torch.set_num_threads(1)
     folder = Path(folder)

@@ -3,10 +3,10 @@ targets and its report section.
 
 The reproduction calls :func:`in_pipeline` once per pipeline (a one-line hook in
 :mod:`cosim.study.reproduce`): at one switching period it distills the pipeline's NNPC into an
-explicit policy (:mod:`cosim.study.distillation`, saved as ``models/<tag>__nnpc-explicit.pt``),
+explicit policy (:mod:`cosim.design.distillation`, saved as ``models/<tag>__nnpc-explicit.pt``),
 returns the explicit controller to run beside the others in the paper's scenarios. The explicit NNPC
 is measured over the operating envelope by the envelope map (:mod:`cosim.study.envelope`, the one map
-definition), where :class:`ShadowPolicy` runs the policy beside the online NNPC: the first-move error
+definition), where :class:`~cosim.design.distillation.ShadowPolicy` runs the policy beside the online NNPC: the first-move error
 |policy move - NNPC move| on the online NNPC's own states. :func:`target_rows` adds the explicit
 NNPC's targets to the targets table and :func:`report_section` writes its part of ``REPORT.md``.
 """
@@ -17,16 +17,13 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from controllers.base import Measurement
-from controllers.explicit_policy import ExplicitPolicyController, load_policy, save_policy
+from controllers.explicit_policy import load_policy, save_policy
 from cosim.base.labels import period_label
-from cosim.study.claims import target_row
-from cosim.study.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
-from cosim.study.experiments import explicit_nnpc
-from cosim.study.vocabulary import (
+from cosim.design.distillation import FULL_DISTILLATION, SMALL_DISTILLATION, distill
+from cosim.design.experiments import explicit_nnpc
+from cosim.design.vocabulary import (
     DEFAULT_IMPLEMENTATION,
     NNPC,
     NNPC_EXPLICIT,
@@ -34,6 +31,7 @@ from cosim.study.vocabulary import (
     pipeline_tag,
     transient_within_sample,
 )
+from cosim.study.claims import target_row
 
 #: targets of the issue (explicit vs online NNPC, the cost; the envelope map's in cosim.study.envelope)
 IAE_RATIO_TARGET = 1.05
@@ -43,39 +41,6 @@ MAC_TARGET = 300
 #: the reproduction distills seed 0's NNPC only; scripts/explicit_every_seed.py (make every-seed) checks the same
 #: targets on every identification seed (cosim.study.explicit_every_seed)
 EVERY_SEED_NOTE = "seed 0's NNPC; every seed: explicit-every-seed.md (make every-seed)"
-
-
-class ShadowPolicy:
-    """The online NNPC driving the plant with the explicit policy beside it, fed the NNPC's applied
-    duty: the policy's move is recorded at every sample from scenario time ``start`` [s] on (first-move
-    error)."""
-
-    def __init__(self, online, policy: ExplicitPolicyController, start: float):
-        self.online, self.policy, self.start = online, policy, start
-        self.name, self.sample_period, self.duty_limits = online.name, online.sample_period, online.duty_limits
-        self.errors: list[float] = []
-
-    def reset(self) -> None:
-        self.online.reset()
-        self.policy.reset()
-        self.errors = []  # per run: a sweep worker reuses the controller
-
-    def step(self, m: Measurement) -> float:
-        duty = self.online.step(m)
-        own = self.policy.step(m)
-        self.policy.inputs.previous_duty = duty
-        if m.time >= self.start - 1e-12:
-            self.errors.append(own - duty)
-        return duty
-
-    def run_results(self) -> dict[str, float]:
-        """The first-move error |policy - NNPC| over the run (the sweep worker adds it to the run's row)."""
-        error = np.abs(np.array(self.errors)) if self.errors else np.array([math.nan])
-        return {"first_move_rms": float(np.sqrt(np.mean(error ** 2))), "first_move_max": float(np.max(error)),
-                "first_move_samples": float(len(self.errors))}
-
-    def describe(self) -> dict:
-        return self.online.describe()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,7 +132,7 @@ def target_rows(metrics: pd.DataFrame, pipelines: list[str], out_dir: Path | Non
 
 def report_section(out_dir: Path, metrics: pd.DataFrame, pipelines: list[str]) -> list[str]:
     """The explicit NNPC's section of ``REPORT.md`` (Markdown lines; empty when it did not run)."""
-    from cosim.study.summaries import markdown_table
+    from cosim.base.markdown import markdown_table
 
     tags = _fast_pipelines(metrics, pipelines)
     if not tags:
@@ -178,7 +143,7 @@ def report_section(out_dir: Path, metrics: pd.DataFrame, pipelines: list[str]) -
              "forward pass of a small tanh network trained to return the online NNPC's first move, plus an integral "
              "term near the reference that makes it offset-free (`controllers/explicit_policy.py`, C twin "
              "`controllers/c/explicit_policy.c`). It is distilled per plant with DAgger on the plant FMU "
-             "(`cosim/study/distillation.py`): the expert drives seeded random episodes first (references 3-20 V, "
+             "(`cosim/design/distillation.py`): the expert drives seeded random episodes first (references 3-20 V, "
              "loads 4-100 Ohm, start-ups from rest), then the policy drives more and more of them while the online "
              "NNPC's C twin, as it runs by default (the RTI), labels every visited state in shadow; the labels are "
              "aggregated and the policy retrained "

@@ -5,13 +5,13 @@ targets there -- IAE within 1.05 x the online NNPC's in the paper's four scenari
 steady-state error <= 0.2 % -- are one seed's. :func:`every_seed` repeats them for the NNPC identified from every
 study seed's data on each pipeline at one switching period: seed 0 with the reproduction's own policy file (so its
 rows are the reproduction's), every other seed distilled here with the reproduction's budget
-(:data:`~cosim.study.distillation.FULL_DISTILLATION`, DAgger seed = the identification seed, as the reproduction
+(:data:`~cosim.design.distillation.FULL_DISTILLATION`, DAgger seed = the identification seed, as the reproduction
 pairs them) and kept in a cache keyed by the expert network and the expert's optimizer, so a rerun only simulates.
-With ``expert_optimizer`` other than the reproduction's (:data:`~cosim.study.distillation.FULL_DISTILLATION`'s: the
+With ``expert_optimizer`` other than the reproduction's (:data:`~cosim.design.distillation.FULL_DISTILLATION`'s: the
 workbench's default, the RTI) every seed, 0 too, is distilled here with that optimizer labelling the states, and the
 tables are named for it (``explicit-every-seed-search-labels.*``): the same targets, side by side with the
 reproduction's labels. The (pipeline, seed) jobs
-run as dask tasks on a LocalCluster (:mod:`cosim.study.cluster`), one job per task.
+run as dask tasks on a LocalCluster (:mod:`cosim.design.cluster`), one job per task.
 
 Distillation is the cost: about 40 s per plant and seed on a core (two workers; 80 s with the search's labels), so
 this is not part of ``make reproduce``; ``make every-seed`` runs it (``scripts/explicit_every_seed.py``) after the
@@ -46,8 +46,8 @@ COLUMNS = ("pipeline", "seed", "scenario", "iae_online_Vs", "iae_explicit_Vs", "
 def fast_pipelines(tags: list[str] | None = None) -> list:
     """The reproduction's built-in pipelines at one switching period (those it distills a policy for), or those of
     them named in ``tags``."""
+    from cosim.design.vocabulary import transient_within_sample
     from cosim.study import reproduce
-    from cosim.study.vocabulary import transient_within_sample
 
     return [p for p in reproduce.PIPELINES if not transient_within_sample(p.control_period)
             and (tags is None or p.tag in tags)]
@@ -55,7 +55,7 @@ def fast_pipelines(tags: list[str] | None = None) -> list:
 
 def reproduction_labels(expert_optimizer: str | None) -> bool:
     """Whether ``expert_optimizer`` (None: the reproduction's) labels the states as the reproduction's do."""
-    from cosim.study.distillation import FULL_DISTILLATION
+    from cosim.design.distillation import FULL_DISTILLATION
 
     return expert_optimizer in (None, FULL_DISTILLATION.resolved().expert_optimizer)
 
@@ -83,8 +83,8 @@ def seed_policy(pipeline, seed: int, model, out_dir: Path, cache: Path, log: Cal
     or a new distillation (then cached)."""
     from controllers.explicit_policy import load_policy, save_policy
     from cosim.base.errors import ConfigError
-    from cosim.study.distillation import FULL_DISTILLATION, expert_fingerprint, settings_dict
-    from cosim.study.distillation import distill as run_distillation
+    from cosim.design.distillation import FULL_DISTILLATION, expert_fingerprint, settings_dict
+    from cosim.design.distillation import distill as run_distillation
 
     expert = expert_fingerprint(model)
     settings = replace(FULL_DISTILLATION, seed=seed,
@@ -117,7 +117,7 @@ def check_results(out_dir: Path, pipelines: list) -> None:
     """Refuse, before any job, a results folder whose seed-0 policy of one of ``pipelines`` is missing or imitates
     another network than its NNPC file (a reproduction half-rerun): a :class:`ConfigError` naming the file."""
     from controllers.nn_model import load_model
-    from cosim.study.experiments import nn_configs
+    from cosim.design.experiments import nn_configs
 
     for pipeline in pipelines:
         model = load_model(Path(out_dir) / "models" / f"{pipeline.tag}__nnpc.pt", expect_period=pipeline.control_period,
@@ -131,11 +131,11 @@ def seed_job(tag: str, seed: int, out_dir: Path, cache: Path,
     policy, and both on the paper's scenarios (their C twins, as the reproduction runs them). The rows (``policy``:
     "reproduction" for seed 0's file, else "distilled here"), and for the log the job's wall-clock seconds and
     where the policy came from this time ("reproduction", "cache" or "distilled")."""
+    from cosim.design.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
+    from cosim.design.vocabulary import NNPC, NNPC_EXPLICIT
     from cosim.master import simulate
     from cosim.metrics import run_metrics
-    from cosim.study.experiments import explicit_nnpc, implemented, nnpc, scenarios_for
     from cosim.study.optimizer_every_seed import seed_model
-    from cosim.study.vocabulary import NNPC, NNPC_EXPLICIT
 
     start = time.perf_counter()
     (pipeline,) = fast_pipelines([tag])
@@ -173,7 +173,7 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
     reproduction's)."""
     from distributed import as_completed
 
-    from cosim.study.cluster import dask_client
+    from cosim.design.cluster import dask_client
 
     jobs = [(p.tag, seed) for p in fast_pipelines(pipelines) for seed in p.study_seeds if seeds is None or seed in seeds]
     check_results(Path(out_dir), [p for p in fast_pipelines(pipelines)])
@@ -246,7 +246,7 @@ def report(rows: list[dict], complete: bool, command: str, expert_optimizer: str
     """The markdown summary: per pipeline, each target's verdict over the seeds with its spread and the value of
     every seed; then the online NNPC's start-up overshoot per seed beside the explicit's (the comparison the
     overshoot target is read against). ``expert_optimizer``: what labelled the states (None: the reproduction's)."""
-    from cosim.study.distillation import FULL_DISTILLATION
+    from cosim.design.distillation import FULL_DISTILLATION
 
     table_name = file_names(expert_optimizer)[0]
     names = {"rti": "RTI"}  # the optimizers as the prose names them

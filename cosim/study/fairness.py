@@ -3,7 +3,7 @@
 The classical baselines carry the computation delay of a microcontroller (the duty computed from the
 sample at t_k is applied at t_(k+1)); the NNPC applies its duty in the sample it computes it. This
 command designs the current-mode controller both ways by the same method
-(:func:`cosim.study.classical_design.design_current_mode` and ``design_current_mode_no_delay``) and runs
+(:func:`cosim.design.classical_design.design_current_mode` and ``design_current_mode_no_delay``) and runs
 both at the nominal point (the paper's four scenarios, time-compressed at 1/fsw) and on the envelope map
 (on the sweep engine, :func:`cosim.study.envelope.run_entries`)::
 
@@ -23,10 +23,10 @@ import pandas as pd
 
 def designs():
     """The two current-mode designs on the nominal switched plant at 1/fsw: (with the delay, without)."""
-    from cosim.study.classical_design import design_current_mode, design_current_mode_no_delay, targets_for
-    from cosim.study.controller_factory import true_parameters
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, SWITCHING_PERIOD
+    from cosim.design.classical_design import design_current_mode, design_current_mode_no_delay, targets_for
+    from cosim.design.controller_factory import true_parameters
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")
     parameters, targets = true_parameters(binding), targets_for(binding, SWITCHING_PERIOD)
@@ -36,11 +36,11 @@ def designs():
 
 def nominal(controllers) -> pd.DataFrame:
     """The paper's four scenarios at 12 V / 6 Ohm / 48 V on the switched plant for each controller (C twins)."""
+    from cosim.design.experiments import implemented, scenarios_for
+    from cosim.design.plants import plant_binding
+    from cosim.design.vocabulary import SWITCHING_PERIOD
     from cosim.master import simulate
     from cosim.metrics import run_metrics
-    from cosim.study.experiments import implemented, scenarios_for
-    from cosim.study.plants import plant_binding
-    from cosim.study.vocabulary import SWITCHING_PERIOD
 
     binding = plant_binding("nominal", "switched")
     rows = []
@@ -53,9 +53,9 @@ def nominal(controllers) -> pd.DataFrame:
 
 
 def main(argv=None) -> None:
+    from cosim.design.classical_design import write_design
+    from cosim.design.sweeps.spec import ControllerEntry
     from cosim.study import envelope
-    from cosim.study.classical_design import write_design
-    from cosim.study.sweeps.spec import ControllerEntry
 
     parser = argparse.ArgumentParser(prog="python -m cosim.study.fairness", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)

@@ -110,9 +110,9 @@ def compare(binding, make_controller: Callable[[str], PredictiveController], sce
             search_runner: Callable | None = None) -> list[dict]:
     """One row per scenario: the search and the RTI (``make_controller("search")``, ``make_controller("rti")``:
     the same model and settings) on ``binding``'s plant. ``search_runner(controller)`` maps each controller
-    to what runs it (default: its C twin, :func:`cosim.study.experiments.implemented`; ``lambda c: c`` for
+    to what runs it (default: its C twin, :func:`cosim.design.experiments.implemented`; ``lambda c: c`` for
     the Python references)."""
-    from cosim.study.experiments import implemented
+    from cosim.design.experiments import implemented
 
     runner = search_runner or implemented
     rows = []
@@ -169,7 +169,7 @@ def report_lines(rows: list[dict]) -> list[str]:
              "iteration, the default at both rates (Gauss-Newton steps from the shifted plan -- one at 13.33 us, "
              "two at 1 ms; the search at a cold start, through the start-up until the output is within 0.1 V of its "
              "reference and at any later sample more than 0.5 V off it at 13.33 us, at the cold start only at 1 ms: "
-             "`controllers/predictive.py`, `cosim/study/experiments.py` rti_settings) drive the same plant through the "
+             "`controllers/predictive.py`, `cosim/design/experiments.py` rti_settings) drive the same plant through the "
              "same scenarios. Every study seed, with the spread: `optimizer-every-seed.md` (`make every-seed`). Targets for the RTI to be "
              f"the default (issue 24): IAE within {100 * (IAE_RATIO_TARGET - 1):.0f} % of the search's, start-up "
              f"overshoot at most {OVERSHOOT_POINTS_TARGET} points above it, and the plan's eq. 16 cost at the median "

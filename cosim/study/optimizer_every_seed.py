@@ -45,9 +45,9 @@ def every_seed(out_dir: Path, cache: Path, pipelines: list[str] | None = None, s
     fields changed from each rate's defaults for the RTI runs (e.g. ``{"iterations": 2}``: a candidate default
     evaluated before it becomes one). ``on_row(rows)`` is called with the rows so far after each run (to save them
     as they come: :func:`write_tables`)."""
+    from cosim.design.experiments import model_mpc, nnpc, scenarios_for
+    from cosim.design.vocabulary import MISMATCH, MPC_MISMATCHED, MPC_NOMINAL, MPC_ORACLE, NNPC, NOMINAL, PLANT_VARIANTS
     from cosim.study import reproduce
-    from cosim.study.experiments import model_mpc, nnpc, scenarios_for
-    from cosim.study.vocabulary import MISMATCH, MPC_MISMATCHED, MPC_NOMINAL, MPC_ORACLE, NNPC, NOMINAL, PLANT_VARIANTS
 
     rows: list[dict] = []
     for pipeline in reproduce.PIPELINES:
@@ -93,10 +93,10 @@ def seed_model(pipeline, seed: int, out_dir: Path, cache: Path):
     and tuned PI and kept in ``cache`` under a name holding the network and its data region (a cache of another
     recipe is not taken for it), so a rerun only loads it."""
     from controllers.nn_model import load_model, save_model
+    from cosim.design.design_cache import seed_model_file
+    from cosim.design.experiments import network_region, nn_configs
+    from cosim.design.identification import identify
     from cosim.study import reproduce
-    from cosim.study.design_cache import seed_model_file
-    from cosim.study.experiments import network_region, nn_configs
-    from cosim.study.identification import identify
 
     period = pipeline.control_period
     config = nn_configs(period)["nnpc"]

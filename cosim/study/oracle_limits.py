@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION, MPC_ORACLE, SWITCHING_PERIOD
+from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION, MPC_ORACLE, SWITCHING_PERIOD
 
 #: the longer horizon measured [samples at 1/fsw]: the longest the C twin holds (BUCKC_MAX_HORIZON), 1.4 LC ringing
 #: periods against the study's one (23 samples)
@@ -54,8 +54,8 @@ def _overshoot_of_mean(result, scenario) -> float:
 
 def oracle(binding, horizon: int | None = None, implementation: str = DEFAULT_IMPLEMENTATION):
     """The oracle MPC on ``binding`` (its own circuit), with ``horizon`` samples (None: the study's)."""
-    from cosim.study.controller_factory import true_parameters
-    from cosim.study.experiments import horizon_settings, implemented, model_mpc
+    from cosim.design.controller_factory import true_parameters
+    from cosim.design.experiments import horizon_settings, implemented, model_mpc
 
     period = SWITCHING_PERIOD
     name = MPC_ORACLE if horizon is None else f"{MPC_ORACLE} (N={horizon_settings(period, horizon).horizon})"
@@ -67,11 +67,11 @@ def diagnose(results: Path, settle: float | None = None) -> pd.DataFrame:
     """Per failing point of the oracle and step: the overshoot (instantaneous and of the period mean) and
     the settling of the study's oracle and of the oracle with :data:`LONG_HORIZON` samples of horizon;
     whether each meets the spec; and the verdict (``ripple``, ``horizon`` or ``model``)."""
+    from cosim.design.plants import plant_binding
+    from cosim.design.sweeps.plan import at_operating_point
     from cosim.master import simulate
     from cosim.metrics import run_metrics
     from cosim.study import envelope
-    from cosim.study.plants import plant_binding
-    from cosim.study.sweeps.plan import at_operating_point
 
     steps = envelope.load_steps(results)
     if steps is None:

@@ -13,8 +13,34 @@ import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_label, period_text
+from cosim.base.markdown import markdown_table
 from cosim.base.numeric_env import ESCAPE, NATIVE
 from cosim.base.numeric_env import describe as describe_numeric_environment
+from cosim.design.experiments import horizon_settings, multiply_accumulates, nn_configs, small_network
+from cosim.design.identification import training_settings
+from cosim.design.pi_tuning import METHOD as PI_METHOD
+from cosim.design.sweeps.summary import report_section
+from cosim.design.vocabulary import (
+    CLOSED_LOOP_DITHER,
+    CLOSED_LOOP_ITERATIONS,
+    CLOSED_LOOP_SAMPLES,
+    DITHER_FAST,
+    DITHER_SLOW,
+    FAST_RATE_COMPRESSION,
+    MISMATCH,
+    MPC_NOMINAL,
+    MPC_ORACLE,
+    MULTI_STEP_ITERATIONS,
+    MULTI_STEP_STRIDE,
+    NNPC,
+    NNPC_ADAPTIVE,
+    NNPC_PAPER,
+    ONE_STEP_ITERATIONS,
+    PAPER_PERIOD,
+    PI,
+    SWITCHING_PERIOD,
+    seed_variant,
+)
 from cosim.results import package_versions
 from cosim.study import envelope, explicit, optimizer_ablation
 from cosim.study.c_cost import section as c_cost_section
@@ -29,13 +55,9 @@ from cosim.study.claims import (
     spread,
     verdict,
 )
-from cosim.study.experiments import horizon_settings, multiply_accumulates, nn_configs, small_network
-from cosim.study.identification import training_settings
-from cosim.study.pi_tuning import METHOD as PI_METHOD
 from cosim.study.summaries import (
     TRANSIENT_WINDOW,
     drift_spreads,
-    markdown_table,
     model_key,
     ratio_table,
     seed_controllers,
@@ -44,45 +66,25 @@ from cosim.study.summaries import (
     value,
     worst,
 )
-from cosim.study.sweeps.summary import report_section
 from cosim.study.targets import TEN_STEP_RMSE_TARGET_MV, Targets
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
-    CLOSED_LOOP_DITHER,
-    CLOSED_LOOP_ITERATIONS,
-    CLOSED_LOOP_SAMPLES,
-    DITHER_FAST,
-    DITHER_SLOW,
     DRIFT_CAPACITANCE_FACTOR,
     DRIFT_RESISTANCE_FACTOR,
     DRIFT_SCENARIO,
     DRIFT_STUDY,
-    FAST_RATE_COMPRESSION,
     IDENTIFICATION_ABLATION,
-    MISMATCH,
-    MPC_NOMINAL,
     MPC_NOMINAL_NO_ESTIMATE,
-    MPC_ORACLE,
     MPC_ORACLE_AVERAGED,
     MPC_ORACLE_SYNC,
-    MULTI_STEP_ITERATIONS,
-    MULTI_STEP_STRIDE,
-    NNPC,
-    NNPC_ADAPTIVE,
     NNPC_CLOSED_LOOP,
     NNPC_DRIFTED,
     NNPC_ONE_STEP,
-    NNPC_PAPER,
     NNPC_SMALL_ONE_STEP,
-    ONE_STEP_ITERATIONS,
-    PAPER_PERIOD,
     PAPER_SPEC,
-    PI,
     STUDY_PERIODS,
-    SWITCHING_PERIOD,
     TOLERANCE_STUDY_DIR,
     horizon_variant,
-    seed_variant,
 )
 
 
@@ -105,7 +107,7 @@ def write_report(out_dir: Path, outputs, metrics: pd.DataFrame, *, profile, seed
                  tolerance=None) -> Path:
     """Write ``REPORT.md`` and ``targets.csv`` from the pipelines' outputs and their metrics
     (``drift``: the drift study's outputs, one per seed; ``tolerance``: the tolerance study's
-    :class:`~cosim.study.sweeps.summary.SweepSummary`).
+    :class:`~cosim.design.sweeps.summary.SweepSummary`).
     Nothing in either depends on the wall clock (that is :func:`cosim.study.timings.write_timings`'s)."""
     pipelines = [o.pipeline.tag for o in outputs]
     models = {o.pipeline.tag: o.models for o in outputs}
@@ -228,7 +230,7 @@ def _identification(outputs, metrics) -> list[str]:
         "data visit: the cells of references 3-20 V x loads 4-100 Ohm x supplies 36-60 V (4 x 4 x 3) holding "
         "at least 20 samples, and the share of samples in DCM. The workbench's NNPC network is then identified "
         "by one recipe "
-        "(`cosim/study/identification.py`): (1) one-step training, the paper's loss (at most "
+        "(`cosim/design/identification.py`): (1) one-step training, the paper's loss (at most "
         f"{ONE_STEP_ITERATIONS} L-BFGS iterations where stage 2 follows); (2) where the predictive "
         f"controller plans over more than one sample (one switching period: {fast_training.multi_step_horizon} "
         "samples), training on the *simulation error* over that horizon -- the network rolled out from each "
@@ -237,7 +239,7 @@ def _identification(outputs, metrics) -> list[str]:
         "one-step solution). Data with the NNPC itself in the loop (its full-duty and braking moves, which the PI "
         f"never makes) is an ablation variant, not part of the recipe: one round of {CLOSED_LOOP_SAMPLES} samples "
         f"(duty dither {CLOSED_LOOP_DITHER}) and a refinement on both records (at most {CLOSED_LOOP_ITERATIONS} "
-        "iterations) did not pay for its cost in earlier measurements (`cosim/study/identification.py` says "
+        "iterations) did not pay for its cost in earlier measurements (`cosim/design/identification.py` says "
         "which) and is measured again in the identification ablation. All of it is full-batch "
         "L-BFGS, seeded and single-threaded: the same seed gives the same weights. The paper's 3-7-2 network "
         "keeps the paper's one-step training on the PI data.",

@@ -3,8 +3,8 @@
 One pipeline per plant (nominal averaged, nominal switched, mismatch-study switched) and control
 rate (1 ms, one switching period). Each pipeline, all seeded:
 
-1. tunes the PI on that plant at that rate (:mod:`cosim.study.pi_tuning`);
-2. identifies the workbench's NNPC network by the recipe of :mod:`cosim.study.identification`
+1. tunes the PI on that plant at that rate (:mod:`cosim.design.pi_tuning`);
+2. identifies the workbench's NNPC network by the recipe of :mod:`cosim.design.identification`
    (PI data, one-step then simulation-error training over the horizon) and trains the paper's
    3-7-2 network on the PI data;
 3. runs the four paper scenarios with PI, NNPC, the paper's NNPC, the oracle MPC (the exact
@@ -17,7 +17,7 @@ study seed on the built-in plants (nominal and mismatch) at both rates and run i
 identification ablation on the nominal switched plant at one switching period), and the *drift
 jobs* run the drift study on the mismatch-study plant, one per study seed (the report states a
 comparison only where it holds for every seed: :mod:`cosim.study.claims`). Everything runs as dask tasks on a LocalCluster
-(:mod:`cosim.study.cluster`, one single-threaded worker process each): the tuned PI gains first
+(:mod:`cosim.design.cluster`, one single-threaded worker process each): the tuned PI gains first
 (all pipelines in parallel), then every job, longest first. Once the nominal switched 1 ms
 pipeline has finished, the tolerance study (:mod:`cosim.study.tolerance_study`) runs its
 controllers on production units through the sweep engine, on the same cluster. Files are
@@ -42,22 +42,11 @@ from cosim.base.errors import PlantError, WorkbenchError
 from cosim.base.files import atomic_write_json, atomic_write_text, json_text, remove_temporary_files
 from cosim.batch import Batch, write_metrics
 from cosim.batch import run_batch as batch_runs
-from cosim.metrics import WALLCLOCK_METRICS
-from cosim.scenarios import PAPER_SCENARIOS, load_scenario
-from cosim.study import (
-    classical_design,
-    envelope,
-    explicit,
-    frequency_response,
-    optimizer_ablation,
-    ssp_agreement,
-    tolerance_study,
-)
-from cosim.study.controller_factory import external_controllers, external_name, nominal_circuit
-from cosim.study.data_collection import collect, save_samples
-from cosim.study.design_cache import data_file, model_file, pi_file, seed_model_file
-from cosim.study.envelope_identification import coverage
-from cosim.study.experiments import (
+from cosim.design import classical_design, frequency_response
+from cosim.design.controller_factory import external_controllers, external_name, nominal_circuit
+from cosim.design.data_collection import collect, save_samples
+from cosim.design.design_cache import data_file, model_file, pi_file, seed_model_file
+from cosim.design.experiments import (
     PAPER_NNPC_OPTIMIZER,
     adaptive_nnpc,
     collection_settings,
@@ -72,7 +61,7 @@ from cosim.study.experiments import (
     scenarios_for,
     small_network,
 )
-from cosim.study.identification import (
+from cosim.design.identification import (
     ONE_STEP,
     Recipe,
     closed_loop_round,
@@ -80,47 +69,53 @@ from cosim.study.identification import (
     network_design,
     write_identification_figure,
 )
-from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
-from cosim.study.plants import plant_binding
+from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import (
+    CLOSED_LOOP_SAMPLES,
+    DEFAULT_IMPLEMENTATION,
+    MISMATCH,
+    MPC_MISMATCHED,
+    MPC_NOMINAL,
+    MPC_ORACLE,
+    MULTI_STEP_ITERATIONS,
+    NNPC,
+    NNPC_ADAPTIVE,
+    NNPC_PAPER,
+    NOMINAL,
+    PAPER_PERIOD,
+    PLANT_VARIANTS,
+    SWITCHING_PERIOD,
+    pipeline_tag,
+    plant_tag,
+    seed_variant,
+    transient_within_sample,
+)
+from cosim.metrics import WALLCLOCK_METRICS
+from cosim.scenarios import PAPER_SCENARIOS, load_scenario
+from cosim.study import envelope, explicit, optimizer_ablation, ssp_agreement, tolerance_study
+from cosim.study.envelope_identification import coverage
 from cosim.study.report import write_report
 from cosim.study.summaries import transient_and_steady_iae
 from cosim.study.timings import write_timings
 from cosim.study.vocabulary import (
     ABLATION_SCENARIOS,
-    CLOSED_LOOP_SAMPLES,
-    CONTROLLER_STYLES,
-    DEFAULT_IMPLEMENTATION,
     DRIFT_CAPACITANCE_FACTOR,
     DRIFT_RESISTANCE_FACTOR,
     DRIFT_SCENARIO,
     DRIFT_STUDY,
-    MISMATCH,
-    MPC_MISMATCHED,
-    MPC_NOMINAL,
     MPC_NOMINAL_NO_ESTIMATE,
-    MPC_ORACLE,
     MPC_ORACLE_AVERAGED,
     MPC_ORACLE_SYNC,
-    MULTI_STEP_ITERATIONS,
-    NNPC,
-    NNPC_ADAPTIVE,
     NNPC_CLOSED_LOOP,
     NNPC_DRIFTED,
     NNPC_ONE_STEP,
-    NNPC_PAPER,
     NNPC_SMALL_ONE_STEP,
-    NOMINAL,
-    PAPER_PERIOD,
     PAPER_SPEC,
-    PLANT_VARIANTS,
     STUDY_PERIODS,
     STUDY_SEEDS,
-    SWITCHING_PERIOD,
+    STUDY_STYLES,
     horizon_variant,
-    pipeline_tag,
-    plant_tag,
-    seed_variant,
-    transient_within_sample,
 )
 
 
@@ -397,7 +392,7 @@ def run_pipeline(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     batch = Batch(binding, scenarios)
 
     start = time.perf_counter()
-    output = run_batch(batch, controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
+    output = run_batch(batch, controllers, out_dir, seed=seed, styles=STUDY_STYLES,
                        extra_metadata={"pipeline": asdict(pipeline)})
     metrics = [output.metrics]
     if profile.ablations and true_parameters is not None:  # old vs new optimizer on the same models
@@ -590,7 +585,7 @@ def run_drift(out_dir: Path, profile: Profile, seed: int, implementation: str = 
                    implemented(adaptive_nnpc(before_model, period, adaptive_name), implementation),
                    nnpc(after.model, period, drifted_name)]
     start = time.perf_counter()
-    output = run_batch(Batch(binding, [scenario]), controllers, out_dir, seed=seed, styles=CONTROLLER_STYLES,
+    output = run_batch(Batch(binding, [scenario]), controllers, out_dir, seed=seed, styles=STUDY_STYLES,
                        extra_metadata={"pipeline": asdict(pipeline), "study": "drift"}, figures=first)
     timings["runs_s"] = time.perf_counter() - start
     adaptive = controllers[1]
@@ -735,7 +730,7 @@ def _default_optimizer_plugin(optimizer: str):
         name = "buck-cosim-default-optimizer"
 
         def setup(self, worker) -> None:
-            from cosim.study import experiments
+            from cosim.design import experiments
 
             experiments.DEFAULT_OPTIMIZER = optimizer
 
@@ -756,7 +751,7 @@ def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out
     On a fault or an interrupt the cluster is closed at once (its worker processes end with it)."""
     from distributed import as_completed
 
-    from cosim.study.cluster import dask_client
+    from cosim.design.cluster import dask_client
 
     with dask_client(workers=max(1, workers), worker_saturation=1.0) as client:
         if optimizer is not None:
@@ -878,7 +873,7 @@ def _study_timing(study, counts) -> dict | None:
     last part landed (its tasks share the cluster with the pipelines, so neither is its added cost)."""
     if study is None:
         return None
-    from cosim.study.sweeps.dataset import read_timing
+    from cosim.design.sweeps.dataset import read_timing
 
     worker_time = float(read_timing(study.out_dir)["wall_time_s"].astype(float).sum())
     return {"runs": counts.runs if counts else 0, "worker_s": worker_time, "last_part_s": counts.elapsed if counts else 0.0}
@@ -898,7 +893,7 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
     files run next to the built-in controllers in every pipeline at their sample period (checked
     before any work starts). ``optimizer`` (Python API only, a measurement switch): the default optimizer of
     the predictive controllers that have none of their own, here and on every worker
-    (:func:`cosim.study.experiments.default_optimizer`; None: the study's, the RTI) -- the benchmark group
+    (:func:`cosim.design.experiments.default_optimizer`; None: the study's, the RTI) -- the benchmark group
     ``reproduction-optimizer`` times the reproduction with "rti" and with "search"; the report's prose
     describes the default.
     """

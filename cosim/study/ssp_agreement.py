@@ -41,15 +41,16 @@ from fmpy.fmi2 import fmi2True
 from controllers.base import Measurement
 from cosim.base.errors import ControllerError
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.design.experiments import implemented, nnpc, scenarios_for
+from cosim.design.plants import plant_binding
+from cosim.design.vocabulary import NNPC, PAPER_PERIOD, PI, SWITCHING_PERIOD, pipeline_tag, plant_tag
 from cosim.fmi.controller import FmuController, builtin_controller_binding
 from cosim.master import simulate
 from cosim.metrics import metrics_table
 from cosim.scenarios import PAPER_SCENARIOS
 from cosim.ssp.engines import ENGINES, run_ssp
 from cosim.ssp.package import export_ssp
-from cosim.study.experiments import implemented, nnpc, scenarios_for
-from cosim.study.plants import plant_binding
-from cosim.study.vocabulary import NNPC, PAPER_PERIOD, PAPER_SPEC, PI, SWITCHING_PERIOD, pipeline_tag, plant_tag
+from cosim.study.vocabulary import PAPER_SPEC
 
 PLANT_MODES = ("averaged", "switched")
 #: the reproduction's pipelines whose PI and NNPC the study runs as FMUs: it is part of a reproduction that runs both
@@ -92,8 +93,8 @@ def controllers_for(out_dir: Path, mode: str, quick: bool = False) -> dict:
     from ``out_dir``, where its pipeline (:data:`SOURCE_PIPELINES`) wrote them (the PI read with the reproduction's
     tuning settings -- ``quick``: the quick profile's -- so its design key matches)."""
     from controllers.nn_model import load_model
-    from cosim.study.design_cache import pi_file
-    from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
+    from cosim.design.design_cache import pi_file
+    from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
 
     binding = plant_binding("nominal", mode)
     pi = load_or_tune(pi_file(out_dir, binding.tag, PAPER_PERIOD), binding, PAPER_PERIOD,

@@ -8,36 +8,9 @@ import math
 import numpy as np
 import pandas as pd
 
+from cosim.design.vocabulary import NNPC, NNPC_ADAPTIVE, is_seed_variant, seed_of
 from cosim.study.claims import Spread, spread
-from cosim.study.vocabulary import (
-    DRIFT_SCENARIO,
-    DRIFT_STUDY,
-    NNPC,
-    NNPC_ADAPTIVE,
-    NNPC_DRIFTED,
-    is_seed_variant,
-    seed_of,
-)
-
-
-def fmt(value, digits: int = 3) -> str:
-    if value is None or (isinstance(value, float) and (math.isnan(value) or math.isinf(value))):
-        return "n/a"
-    if isinstance(value, str):
-        return value
-    if isinstance(value, (bool,)):
-        return "yes" if value else "no"
-    if abs(value) >= 1e4 or (abs(value) < 1e-3 and value != 0):
-        return f"{value:.{digits}e}"
-    return f"{value:.{digits}g}"
-
-
-def markdown_table(frame: pd.DataFrame, columns: list[str], headers: list[str] | None = None, digits: int = 3) -> list[str]:
-    headers = headers or columns
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    for _, row in frame[columns].iterrows():
-        lines.append("| " + " | ".join(fmt(v, digits) if not isinstance(v, str) else v for v in row) + " |")
-    return lines
+from cosim.study.vocabulary import DRIFT_SCENARIO, DRIFT_STUDY, NNPC_DRIFTED
 
 
 def ratio_table(metrics: pd.DataFrame, pipeline: str, numerator: str, denominator: str) -> pd.DataFrame:

@@ -14,11 +14,7 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.labels import period_label, period_text
-from cosim.study.claims import TARGET_COLUMNS, target_row
-from cosim.study.envelope import target_rows as envelope_target_rows
-from cosim.study.explicit import target_rows as explicit_target_rows
-from cosim.study.summaries import drift_spreads, model_key, ratio_table, seed_controllers, value, worst
-from cosim.study.vocabulary import (
+from cosim.design.vocabulary import (
     DEFAULT_IMPLEMENTATION,
     IMPLEMENTATION_NAMES,
     MPC_NOMINAL,
@@ -29,6 +25,10 @@ from cosim.study.vocabulary import (
     SWITCHING_PERIOD,
     seed_of,
 )
+from cosim.study.claims import TARGET_COLUMNS, target_row
+from cosim.study.envelope import target_rows as envelope_target_rows
+from cosim.study.explicit import target_rows as explicit_target_rows
+from cosim.study.summaries import drift_spreads, model_key, ratio_table, seed_controllers, value, worst
 
 NNPC_P99_TARGET_US = 100.0  # [us] at 1 ms, the controller block as the workbench runs it (its C twin by default)
 REPRODUCTION_TARGET_S = 120.0  # [s] on 2 cores

@@ -14,9 +14,9 @@ from pathlib import Path
 import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.base.markdown import markdown_table
 from cosim.base.numeric_env import describe as describe_numeric_environment
 from cosim.study.claims import TARGET_COLUMNS
-from cosim.study.summaries import markdown_table
 from cosim.study.targets import TimingTargets
 
 

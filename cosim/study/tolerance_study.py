@@ -17,20 +17,12 @@ from dataclasses import replace
 from pathlib import Path
 
 from cosim.base.errors import ConfigError
-from cosim.study.sweeps.designs import design
-from cosim.study.sweeps.plan import SweepPlan
-from cosim.study.sweeps.spec import ControllerEntry, SweepSpec, load_sweep
-from cosim.study.sweeps.sweep import PreparedSweep, check_output
-from cosim.study.vocabulary import (
-    MPC_NOMINAL,
-    NNPC,
-    PAPER_PERIOD,
-    PI,
-    TOLERANCE_STUDY,
-    TOLERANCE_STUDY_DIR,
-    pipeline_tag,
-    plant_tag,
-)
+from cosim.design.sweeps.designs import design
+from cosim.design.sweeps.plan import SweepPlan
+from cosim.design.sweeps.spec import ControllerEntry, SweepSpec, load_sweep
+from cosim.design.sweeps.sweep import PreparedSweep, check_output
+from cosim.design.vocabulary import MPC_NOMINAL, NNPC, PAPER_PERIOD, PI, pipeline_tag, plant_tag
+from cosim.study.vocabulary import TOLERANCE_STUDY, TOLERANCE_STUDY_DIR
 
 #: the pipeline whose controllers the study runs (nominal switched plant at the paper's rate)
 SOURCE_PIPELINE = pipeline_tag(plant_tag("nominal", "switched"), PAPER_PERIOD)

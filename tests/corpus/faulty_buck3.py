@@ -7,7 +7,7 @@ Until then a first-order stand-in: Vout follows D * Vin with a 0.1 ms time const
 
 import math
 
-from pythonfmu3 import Fmi3Causality, Fmi3Slave, Fmi3StepResult, Fmi3Variability, Float64, Int32
+from pythonfmu3 import Float64, Fmi3Causality, Fmi3Slave, Fmi3StepResult, Fmi3Variability, Int32
 
 
 class FaultyBuck3(Fmi3Slave):

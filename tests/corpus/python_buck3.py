@@ -8,7 +8,7 @@ Float64 array parameter (``loss_table``, never bound: an array cannot play a rol
 
 import numpy as np
 from buck_math import advance, output_voltage, substeps
-from pythonfmu3 import Boolean, Dimension, Fmi3Causality, Fmi3Slave, Fmi3Variability, Float64, Int32
+from pythonfmu3 import Boolean, Dimension, Float64, Fmi3Causality, Fmi3Slave, Fmi3Variability, Int32
 
 
 class PyBuck3(Fmi3Slave):

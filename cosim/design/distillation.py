@@ -35,6 +35,7 @@ import numpy as np
 from controllers.base import Measurement
 from controllers.explicit_policy import (
     ExplicitPolicy,
+    ExplicitPolicyController,
     PolicyConfig,
     PolicyInputs,
     PolicyTrainingSettings,
@@ -43,13 +44,13 @@ from controllers.explicit_policy import (
 from controllers.nn_model import NNPlantModel
 from cosim.base.errors import ConfigError
 from cosim.converter_spec import ConverterSpec
+from cosim.design import experiments
+from cosim.design.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
+from cosim.design.experiments import explicit_nnpc, implemented, nnpc, operating_point
+from cosim.design.vocabulary import OPTIMIZERS
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import run
-from cosim.study import experiments
-from cosim.study.data_collection import MIN_SAMPLES, CollectionSettings, random_scenario
-from cosim.study.experiments import explicit_nnpc, implemented, nnpc, operating_point
-from cosim.study.vocabulary import OPTIMIZERS
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ class DistillationSettings:
 
     def resolved(self) -> DistillationSettings:
         """These settings with the expert's optimizer named: None becomes the workbench's default now
-        (:data:`cosim.study.experiments.DEFAULT_OPTIMIZER`, which the benchmark group reproduction-optimizer switches
+        (:data:`cosim.design.experiments.DEFAULT_OPTIMIZER`, which the benchmark group reproduction-optimizer switches
         to time the reproduction with the search)."""
         return replace(self, expert_optimizer=self.expert_optimizer or experiments.DEFAULT_OPTIMIZER)
 
@@ -305,3 +306,36 @@ def first_move_errors(policy: ExplicitPolicy, features: np.ndarray, labels: np.n
 
 __all__ = ["DistillationSettings", "FULL_DISTILLATION", "SMALL_DISTILLATION", "ShadowExpert", "DaggerEpisode",
            "distill", "expert_fingerprint", "first_move_errors", "settings_dict"]
+
+
+class ShadowPolicy:
+    """The online NNPC driving the plant with the explicit policy beside it, fed the NNPC's applied
+    duty: the policy's move is recorded at every sample from scenario time ``start`` [s] on (first-move
+    error)."""
+
+    def __init__(self, online, policy: ExplicitPolicyController, start: float):
+        self.online, self.policy, self.start = online, policy, start
+        self.name, self.sample_period, self.duty_limits = online.name, online.sample_period, online.duty_limits
+        self.errors: list[float] = []
+
+    def reset(self) -> None:
+        self.online.reset()
+        self.policy.reset()
+        self.errors = []  # per run: a sweep worker reuses the controller
+
+    def step(self, m: Measurement) -> float:
+        duty = self.online.step(m)
+        own = self.policy.step(m)
+        self.policy.inputs.previous_duty = duty
+        if m.time >= self.start - 1e-12:
+            self.errors.append(own - duty)
+        return duty
+
+    def run_results(self) -> dict[str, float]:
+        """The first-move error |policy - NNPC| over the run (the sweep worker adds it to the run's row)."""
+        error = np.abs(np.array(self.errors)) if self.errors else np.array([math.nan])
+        return {"first_move_rms": float(np.sqrt(np.mean(error ** 2))), "first_move_max": float(np.max(error)),
+                "first_move_samples": float(len(self.errors))}
+
+    def describe(self) -> dict:
+        return self.online.describe()

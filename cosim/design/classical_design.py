@@ -54,7 +54,7 @@ from controllers.small_signal import (
     unit_circle,
 )
 from cosim.base.files import atomic_write_text, json_text
-from cosim.study.vocabulary import PAPER_SPEC
+from cosim.fmi.binding import BUILTIN_SPEC
 
 METHOD_CURRENT_MODE = (
     "average-current-mode control: inner PI crossover at the target (fsw/10) or the highest frequency below it with "
@@ -82,9 +82,9 @@ class Envelope:
     """The operating envelope a design is checked over (its corners); the defaults are the paper study's (Table II's
     envelope), a plant's come from its converter spec (:func:`targets_for`)."""
 
-    references: tuple[float, float] = PAPER_SPEC.output_voltage_range  # [V]
-    loads: tuple[float, float] = PAPER_SPEC.load_resistance_range  # [Ohm]
-    supplies: tuple[float, float] = PAPER_SPEC.input_voltage_range  # [V]
+    references: tuple[float, float] = BUILTIN_SPEC.output_voltage_range  # [V]
+    loads: tuple[float, float] = BUILTIN_SPEC.load_resistance_range  # [Ohm]
+    supplies: tuple[float, float] = BUILTIN_SPEC.input_voltage_range  # [V]
 
     def corners(self) -> list[OperatingPoint]:
         return [OperatingPoint(v, r, s) for v in self.references for r in self.loads for s in self.supplies]
@@ -115,8 +115,8 @@ ENVELOPE = Envelope()
 class DesignTargets:
     """What the designs are asked for (SI units)."""
 
-    sample_period: float = PAPER_SPEC.switching_period  # [s] one sample per PWM period
-    switching_frequency: float = PAPER_SPEC.switching_frequency  # [Hz]
+    sample_period: float = BUILTIN_SPEC.switching_period  # [s] one sample per PWM period
+    switching_frequency: float = BUILTIN_SPEC.switching_frequency  # [Hz]
     inner_crossover_fraction: float = 0.1  # current loop (and Type-III) crossover target, of fsw
     outer_crossover_ratio: float = 0.2  # the voltage loop's target, of the inner loop's achieved crossover
     phase_margin_deg: float = 60.0  # every loop: the current-mode controller's inner and outer, the Type-III's
@@ -125,9 +125,9 @@ class DesignTargets:
     computation_delay: int = 1  # [samples]
     sensor: str = "average"  # what the controller reads (controllers.small_signal.SENSORS)
     modulator: str = "trailing-edge"  # how the duty reaches the circuit (controllers.small_signal.MODULATORS)
-    operating_point: OperatingPoint = OperatingPoint(PAPER_SPEC.output_voltage, PAPER_SPEC.load_resistance,
-                                                     PAPER_SPEC.input_voltage)
-    current_limit: float = PAPER_SPEC.inductor_current_limit  # [A] the current-mode controller's inductor-current limit
+    operating_point: OperatingPoint = OperatingPoint(BUILTIN_SPEC.output_voltage, BUILTIN_SPEC.load_resistance,
+                                                     BUILTIN_SPEC.input_voltage)
+    current_limit: float = BUILTIN_SPEC.inductor_current_limit  # [A] the current-mode controller's inductor-current limit
     duty_limits: tuple[float, float] = (0.0, 1.0)
     envelope: Envelope = ENVELOPE
 
@@ -528,8 +528,8 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     return the controllers to run beside the others (none at other rates)."""
     import time
 
-    from cosim.study.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
-    from cosim.study.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
+    from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
+    from cosim.design.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
     switching_frequency = binding.converter.switching_frequency

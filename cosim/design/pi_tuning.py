@@ -27,12 +27,12 @@ from controllers.pi import PIController
 from cosim.base.errors import ConfigError, PlantError, WorkbenchError
 from cosim.base.files import json_text
 from cosim.converter_spec import ConverterSpec
+from cosim.design.design_cache import DesignKey, announce, design_key, stale_reason
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
 from cosim.master import preflight, run
 from cosim.metrics import run_metrics
 from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
-from cosim.study.design_cache import DesignKey, announce, design_key, stale_reason
 
 TUNING_SCENARIOS = ("startup", "reference_up", "reference_down")
 OVERSHOOT_LIMIT_PCT = 5.0
@@ -62,7 +62,7 @@ class PITuning:
     evaluations: int
     plant: str
     method: str = METHOD
-    design: dict | None = None  # {"key", "inputs"}: what the gains were tuned for (cosim.study.design_cache)
+    design: dict | None = None  # {"key", "inputs"}: what the gains were tuned for (cosim.design.design_cache)
 
     @property
     def design_key(self) -> str | None:
@@ -340,7 +340,7 @@ def cached_tuning(path: Path, binding: PlantBinding, control_period: float, **se
 def load_or_tune(path: Path, binding: PlantBinding, control_period: float, *, progress: bool = False,
                  **settings) -> PITuning:
     """Read tuned gains from ``path`` if they were tuned for this plant, rate and ``settings`` (the
-    same design key, :mod:`cosim.study.design_cache`); else tune and save them there."""
+    same design key, :mod:`cosim.design.design_cache`); else tune and save them there."""
     from cosim.base.files import atomic_write_text
 
     tuning = cached_tuning(path, binding, control_period, **settings)

@@ -23,11 +23,11 @@ from typing import Callable, NamedTuple
 from controllers.predictors import CircuitParameters
 from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError, ModelFileError
+from cosim.design.design_cache import model_file
+from cosim.design.sweeps.recipes import ControllerRecipe
+from cosim.design.sweeps.spec import ControllerEntry
+from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION
 from cosim.fmi.binding import PlantBinding
-from cosim.study.design_cache import model_file
-from cosim.study.sweeps.recipes import ControllerRecipe
-from cosim.study.sweeps.spec import ControllerEntry
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 
 def _json(settings: dict) -> str:
@@ -44,7 +44,7 @@ def _design_pi(entry: ControllerEntry, binding: PlantBinding, period: float, wor
         settings = {"kp_per_V": entry.kp, "ki_per_V_s": entry.ki,
                     "tuning": {"method": entry.origin or "given in the sweep file"}}
     else:
-        from cosim.study.controller_factory import tuned_pi
+        from cosim.design.controller_factory import tuned_pi
 
         tuning = tuned_pi(binding, period, work_dir, progress)
         settings = {"kp_per_V": tuning.kp, "ki_per_V_s": tuning.ki,
@@ -56,8 +56,8 @@ def _design_pi(entry: ControllerEntry, binding: PlantBinding, period: float, wor
 def _design_nn(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
                progress: bool) -> ControllerRecipe:
     from controllers.nn_model import load_model
-    from cosim.study.controller_factory import trained_model
-    from cosim.study.experiments import nn_configs
+    from cosim.design.controller_factory import trained_model
+    from cosim.design.experiments import nn_configs
 
     config = nn_configs(period)[entry.kind]
     if entry.model is not None:  # a given network runs with the inputs it was trained for (its file says which)
@@ -95,16 +95,16 @@ def _optimizer_settings(entry: ControllerEntry) -> dict:
 
 
 def _planned(recipe: ControllerRecipe) -> dict:
-    """``optimizer`` and ``rti_changes`` for the factories of :mod:`cosim.study.experiments`: the recipe's own, else
-    its kind's (:func:`~cosim.study.experiments.planned_with`)."""
-    from cosim.study.experiments import planned_with
+    """``optimizer`` and ``rti_changes`` for the factories of :mod:`cosim.design.experiments`: the recipe's own, else
+    its kind's (:func:`~cosim.design.experiments.planned_with`)."""
+    from cosim.design.experiments import planned_with
 
     return planned_with(recipe.kind, recipe.settings.get("optimizer"), recipe.settings.get("rti"))
 
 
 def _design_mpc(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
                 progress: bool) -> ControllerRecipe:
-    from cosim.study.controller_factory import nominal_circuit, true_parameters
+    from cosim.design.controller_factory import nominal_circuit, true_parameters
 
     # the nominal plant's circuit: Table II with the variant's parasitics for the built-in FMU; for an external FMU the
     # nominal circuit of its converter spec (refused, naming the key, where the spec gives none)
@@ -117,7 +117,7 @@ def _design_oracle(entry: ControllerEntry, binding: PlantBinding, period: float,
                    progress: bool) -> ControllerRecipe:
     """The MPC with the plant's own circuit: the oracle where no axis changes the plant (the sweep plan
     refuses it beside [parameters] axes)."""
-    from cosim.study.controller_factory import nominal_circuit, true_parameters
+    from cosim.design.controller_factory import true_parameters
 
     try:
         circuit = true_parameters(binding)
@@ -139,7 +139,7 @@ def _design_explicit(entry: ControllerEntry, binding: PlantBinding, period: floa
             raise ConfigError(f"{entry.place}: {error}") from None
         path, origin = Path(entry.policy), entry.origin or f"policy file {Path(entry.policy).name}"
     else:
-        from cosim.study.controller_factory import distilled_policy, trained_model
+        from cosim.design.controller_factory import distilled_policy, trained_model
 
         model = trained_model("nnpc", binding, period, work_dir, samples=entry.samples, seed=entry.seed,
                               model_path=None, progress=progress)
@@ -152,14 +152,14 @@ def _design_explicit(entry: ControllerEntry, binding: PlantBinding, period: floa
 def _design_classical(entry: ControllerEntry, binding: PlantBinding, period: float, work_dir: Path,
                       progress: bool) -> ControllerRecipe:
     """The current-mode controller or the Type-III: from a design file (``design``), else designed on
-    the nominal plant by :mod:`cosim.study.classical_design`."""
-    from cosim.study.classical_design import (
+    the nominal plant by :mod:`cosim.design.classical_design`."""
+    from cosim.design.classical_design import (
         controller_from_file,
         design_current_mode,
         design_type_iii,
         targets_for,
     )
-    from cosim.study.controller_factory import nominal_circuit, true_parameters
+    from cosim.design.controller_factory import nominal_circuit, true_parameters
 
     try:
         if entry.design is not None:
@@ -185,7 +185,7 @@ def _design_envelope_pi(entry: ControllerEntry, binding: PlantBinding, period: f
         settings = {"kp_per_V": entry.kp, "ki_per_V_s": entry.ki,
                     "tuning": {"method": entry.origin or "given in the sweep file"}}
     else:
-        from cosim.study.pi_tuning import tune_pi_envelope
+        from cosim.design.pi_tuning import tune_pi_envelope
 
         tuning = tune_pi_envelope(binding, period, progress=progress)
         settings = {"kp_per_V": tuning.kp, "ki_per_V_s": tuning.ki,
@@ -252,7 +252,7 @@ def _build_pi(recipe: ControllerRecipe, binding: PlantBinding):
 
 
 def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.experiments import nnpc
+    from cosim.design.experiments import nnpc
 
     controller = nnpc(model_from_bytes(recipe.blob, recipe.control_period, recipe.kind), recipe.control_period,
                       recipe.name, spec=binding.converter, **_planned(recipe))
@@ -261,8 +261,8 @@ def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
         return controller
     import base64
 
-    from cosim.study.experiments import explicit_nnpc, implemented
-    from cosim.study.explicit import ShadowPolicy
+    from cosim.design.distillation import ShadowPolicy
+    from cosim.design.experiments import explicit_nnpc, implemented
 
     policy = _policy_from_bytes(base64.b64decode(shadow), recipe.control_period)
     # the NNPC as the worker implements it (its C twin by default), the policy in shadow beside it
@@ -271,7 +271,7 @@ def _build_nn(recipe: ControllerRecipe, binding: PlantBinding):
 
 
 def _build_mpc(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.experiments import model_mpc
+    from cosim.design.experiments import model_mpc
 
     circuit = CircuitParameters(**recipe.settings["circuit"])
     return model_mpc(circuit, recipe.control_period, recipe.name, binding=binding, **_planned(recipe))
@@ -299,13 +299,13 @@ def _policy_from_bytes(blob: bytes, period: float):
 
 
 def _build_explicit(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.experiments import explicit_nnpc
+    from cosim.design.experiments import explicit_nnpc
 
     return explicit_nnpc(_policy_from_bytes(recipe.blob, recipe.control_period), recipe.name, spec=binding.converter)
 
 
 def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):
-    from cosim.study.classical_design import controller_from_description
+    from cosim.design.classical_design import controller_from_description
 
     return controller_from_description(recipe.settings["controller"], recipe.name)
 
@@ -313,7 +313,7 @@ def _build_classical(recipe: ControllerRecipe, binding: PlantBinding):
 def injected_recipe(inner: ControllerRecipe, name: str, frequency: float, amplitude: float, point: str, start: float,
                     samples: int, implementation: str = DEFAULT_IMPLEMENTATION) -> ControllerRecipe:
     """A recipe of ``inner`` with a sine injected (:class:`controllers.injection.InjectedController`): one
-    point of a frequency response (:mod:`cosim.study.frequency_response`)."""
+    point of a frequency response (:mod:`cosim.design.frequency_response`)."""
     settings = {"inner": {"kind": inner.kind, "name": inner.name, "settings_json": inner.settings_json},
                 "frequency_hz": frequency, "amplitude": amplitude, "point": point, "start_s": start,
                 "samples": samples, "implementation": implementation}
@@ -334,10 +334,10 @@ def _build_fmu(recipe: ControllerRecipe, binding: PlantBinding):
     """The controller FMU from its bytes: written once per process and digest to the worker's own
     folder (removed at exit), checked (archive, roles, parameters, an instance that initialises),
     and its sample period against the sweep's control period."""
+    from cosim.design.sweeps.process_files import process_file
+    from cosim.design.sweeps.spec import PERIOD_MATCH
     from cosim.fmi.binding import RoleMap
     from cosim.fmi.controller import ControllerBinding, FmuController, builtin_controller_binding
-    from cosim.study.sweeps.process_files import process_file
-    from cosim.study.sweeps.spec import PERIOD_MATCH
 
     s = recipe.settings
     path = process_file(s["fmu"], recipe.blob, recipe.blob_digest)
@@ -394,7 +394,7 @@ def design(entries, binding: PlantBinding, period: float, work_dir: Path, progre
 
 def build(recipe: ControllerRecipe, binding: PlantBinding, implementation: str = DEFAULT_IMPLEMENTATION):
     """The controller a recipe describes, as it runs (its C twin unless ``implementation`` is python)."""
-    from cosim.study.experiments import implemented
+    from cosim.design.experiments import implemented
 
     return implemented(KINDS[recipe.kind].build(recipe, binding), implementation)
 

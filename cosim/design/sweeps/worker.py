@@ -26,15 +26,15 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from cosim.base.errors import WorkbenchError
+from cosim.design.sweeps.designs import build
+from cosim.design.sweeps.plan import PlannedRun, at_operating_point
+from cosim.design.sweeps.process_files import process_file
+from cosim.design.sweeps.recipes import ControllerRecipe, PlantRecipe
+from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION
 from cosim.fmi.isolation import resident_bytes
 from cosim.master import RunFailed, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, run_metrics
 from cosim.scenarios import Scenario
-from cosim.study.sweeps.designs import build
-from cosim.study.sweeps.plan import PlannedRun, at_operating_point
-from cosim.study.sweeps.process_files import process_file
-from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 OK, FAILED = "ok", "failed"
 DETERMINISTIC_METRICS = tuple(m for m in METRIC_COLUMNS if m not in WALLCLOCK_METRICS)

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cosim.base.digests import canonical, digest, file_sha256
+from cosim.design.vocabulary import pipeline_tag
 from cosim.fmi.binding import PlantBinding
 from cosim.results import json_ready
-from cosim.study.vocabulary import pipeline_tag
 
 #: hex digits of a design key (64 bits: collisions among one user's designs are not a concern)
 KEY_LENGTH = 16
@@ -138,7 +138,7 @@ def pi_file(out_dir: Path, plant_tag: str, control_period: float) -> Path:
 def data_file(out_dir: Path, plant_tag: str, control_period: float, region: str | None = None) -> Path:
     """The PI data a network of a plant tag and rate is identified from: ``data/<tag>__<period>.parquet``;
     ``region``: data of a collection region other than the rate's default (the paper's network at 13.33 us,
-    :func:`cosim.study.experiments.network_region`) have their own, ``data/<tag>__<period>__<region>.parquet``."""
+    :func:`cosim.design.experiments.network_region`) have their own, ``data/<tag>__<period>__<region>.parquet``."""
     suffix = f"__{region}" if region else ""
     return Path(out_dir) / "data" / f"{pipeline_tag(plant_tag, control_period)}{suffix}.parquet"
 

@@ -3,7 +3,7 @@
 One recipe, used by the reproduction and by ``buck-cosim run --controller nnpc`` alike
 (:func:`identify`):
 
-1. **PI data** -- the paper's identification experiment (:mod:`cosim.study.data_collection`):
+1. **PI data** -- the paper's identification experiment (:mod:`cosim.design.data_collection`):
    the tuned PI under seeded random references and loads, with a duty dither;
 2. **one-step training** -- the paper's loss, full-batch L-BFGS (:func:`controllers.nn_model.train`);
 3. **simulation-error training** -- from that solution, the error of the network rolled out over
@@ -34,11 +34,10 @@ import pandas as pd
 from controllers.nn_config import NNConfig, TrainingSettings
 from controllers.predictors import data_domain, domain_text
 from cosim.converter_spec import ConverterSpec
-from cosim.fmi.binding import PlantBinding
-from cosim.study.data_collection import CollectionSettings, collect
-from cosim.study.design_cache import DesignKey, design_key
-from cosim.study.experiments import collection_settings, horizon_settings, implemented, network_region, nnpc
-from cosim.study.vocabulary import (
+from cosim.design.data_collection import CollectionSettings, collect
+from cosim.design.design_cache import DesignKey, design_key
+from cosim.design.experiments import collection_settings, horizon_settings, implemented, network_region, nnpc
+from cosim.design.vocabulary import (
     CLOSED_LOOP_DITHER,
     CLOSED_LOOP_ITERATIONS,
     CLOSED_LOOP_SAMPLES,
@@ -48,6 +47,7 @@ from cosim.study.vocabulary import (
     MULTI_STEP_STRIDE,
     ONE_STEP_ITERATIONS,
 )
+from cosim.fmi.binding import PlantBinding
 
 if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained
     from controllers.nn_model import NNPlantModel
@@ -84,7 +84,7 @@ def network_design(name: str, binding: PlantBinding, control_period: float, conf
     """The design key of a network ``name`` identified on ``binding`` at ``control_period`` [s]: by
     :func:`identify` with ``recipe`` (the workbench's NNPC), else by one ``train`` with ``training``
     on the PI data (the paper's network); ``samples`` of PI data collected with ``seed`` by the PI
-    whose design key is ``pi_key`` (:mod:`cosim.study.design_cache`)."""
+    whose design key is ``pi_key`` (:mod:`cosim.design.design_cache`)."""
     collection = collection_settings(control_period, samples, seed, region=network_region(name, control_period),
                                      spec=binding.converter)
     if recipe is not None:

@@ -66,9 +66,7 @@ import numpy as np
 
 from cosim.base.errors import ConfigError
 from cosim.base.toml_files import TomlLocator, parse_toml
-from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS
-from cosim.scenarios import Scenario, load_scenario
-from cosim.study.vocabulary import (
+from cosim.design.vocabulary import (
     CONTROLLERS,
     DEFAULT_IMPLEMENTATION,
     IMPLEMENTATIONS,
@@ -77,6 +75,8 @@ from cosim.study.vocabulary import (
     PREDICTIVE_CONTROLLERS,
     SENSORS,
 )
+from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS
+from cosim.scenarios import Scenario, load_scenario
 
 SHIPPED_DIR = Path(__file__).parent / "studies"
 TOP_KEYS = {"name", "description", "plant", "parameters", "operating_point", "samples", "seed", "scenarios",
@@ -355,7 +355,7 @@ class _Reader:
 
 def parse_sweep(text: str, path: Path | None = None) -> SweepSpec:
     """Parse and check a sweep file's text (``path`` resolves relative files and names errors).
-    The plant-dependent checks (parameters exist, nominal values) are :func:`cosim.study.sweeps.plan`'s."""
+    The plant-dependent checks (parameters exist, nominal values) are :func:`cosim.design.sweeps.plan`'s."""
     data, loc = parse_toml(text, path, TOP_KEYS, unnamed="<sweep>")
     r = _Reader(path, loc)
     places: dict[str, str] = {}
@@ -460,9 +460,9 @@ def _plant_spec(plant: PlantChoice):
         from cosim.fmi.binding_file import load_binding
 
         return load_binding(plant.binding).converter
-    from cosim.study.vocabulary import PAPER_SPEC
+    from cosim.fmi.binding import BUILTIN_SPEC
 
-    return PAPER_SPEC
+    return BUILTIN_SPEC
 
 
 def _plant(r: _Reader, table, base: Path) -> PlantChoice:
@@ -676,8 +676,8 @@ def _optimizer(r: _Reader, index: int, kind: str, entry: dict, at, control_perio
     if kind not in PREDICTIVE_CONTROLLERS or ("optimizer" not in entry and "rti" not in entry
                                               and kind != "nnpc-paper"):
         return None, {}
-    from cosim.study.experiments import own_optimizer, rti_settings, rti_table
-    from cosim.study.vocabulary import OPTIMIZERS
+    from cosim.design.experiments import own_optimizer, rti_settings, rti_table
+    from cosim.design.vocabulary import OPTIMIZERS
 
     label = f"controllers[{index}]"
     optimizer = r.choice(entry["optimizer"], f"{label}.optimizer", at("optimizer"), OPTIMIZERS) \
@@ -706,8 +706,8 @@ def _controller_fmu(r: _Reader, index: int, value, place: str, base: Path, contr
     the roles, the parameters, an instance that initialises) and against the sweep's control period.
     Returns the file given, the FMU itself and the default name."""
     from cosim.base.errors import WorkbenchError
+    from cosim.design.controller_factory import external_name
     from cosim.fmi.controller import FmuController, controller_binding
-    from cosim.study.controller_factory import external_name
 
     label = f"controllers[{index}].path"
     text = r.text(value, label, place)

@@ -9,7 +9,7 @@ random dither on the PI's duty (``excitation``) widens the data beyond the PI's 
 which the optimizer will explore; set it to 0 for the paper's plain PI data.
 
 Two more settings make the data cover an operating envelope (the 13.33 us recipe,
-:func:`cosim.study.experiments.collection_settings`): ``input_voltage_range`` draws the supply as a
+:func:`cosim.design.experiments.collection_settings`): ``input_voltage_range`` draws the supply as a
 third held random level (uniform), and ``dither = "am-prbs"`` replaces the white Gaussian dither by an
 amplitude-modulated random binary sequence -- a level +-a held for a random ``dither_hold`` samples,
 a new amplitude a ~ U(0, ``excitation``) at every flip -- whose energy sits at and below the LC

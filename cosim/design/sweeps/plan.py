@@ -24,12 +24,12 @@ import numpy as np
 
 from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError
+from cosim.design.sweeps.recipes import ControllerRecipe, PlantRecipe
+from cosim.design.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
 from cosim.master import check_plant_supports
 from cosim.scenarios import Scenario, reference_above_supply, unreachable_text
-from cosim.study.sweeps.recipes import ControllerRecipe, PlantRecipe
-from cosim.study.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 
 RUN_ID_FORMAT = "buck-cosim sweep run 1"
 RUN_ID_LENGTH = 20  # hex digits of the SHA-256 (80 bits)
@@ -88,7 +88,7 @@ def nominal_binding(spec: SweepSpec) -> PlantBinding:
         from cosim.fmi.binding_file import load_binding
 
         return load_binding(spec.plant.binding)
-    from cosim.study.plants import plant_binding
+    from cosim.design.plants import plant_binding
 
     return plant_binding(spec.plant.variant, spec.plant.mode, spec.plant.sensor)
 

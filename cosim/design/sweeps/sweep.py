@@ -22,15 +22,15 @@ from pathlib import Path
 
 from cosim.base.errors import ConfigError, WorkbenchError
 from cosim.base.files import atomic_write_text, remove_temporary_files
+from cosim.design.sweeps import dataset
+from cosim.design.sweeps.designs import describe, design
+from cosim.design.sweeps.execute import SweepExecution, execute
+from cosim.design.sweeps.plan import SweepPlan
+from cosim.design.sweeps.spec import SweepSpec, load_sweep
+from cosim.design.sweeps.summary import SweepSummary, summarise
+from cosim.design.sweeps.worker import RunSettings, worker_facts
 from cosim.fmi.archive import check_fmu
 from cosim.master import check_set_up
-from cosim.study.sweeps import dataset
-from cosim.study.sweeps.designs import describe, design
-from cosim.study.sweeps.execute import SweepExecution, execute
-from cosim.study.sweeps.plan import SweepPlan
-from cosim.study.sweeps.spec import SweepSpec, load_sweep
-from cosim.study.sweeps.summary import SweepSummary, summarise
-from cosim.study.sweeps.worker import RunSettings, worker_facts
 
 MANIFEST_FORMAT = "buck-cosim sweep 1"
 TIMINGS = "timings.json"
@@ -179,7 +179,7 @@ def run_sweep(spec: SweepSpec | str | Path, out_dir: Path, *, scheduler: str | N
               resume: bool = False, progress: bool = False, connect_timeout: float | None = None) -> SweepOutcome:
     """Run a sweep (module docstring); returns what happened, the summary included. Failed runs do not
     raise here (the caller decides: the command line exits 3)."""
-    from cosim.study.cluster import CONNECT_TIMEOUT, cluster_text, dask_client
+    from cosim.design.cluster import CONNECT_TIMEOUT, cluster_text, dask_client
 
     spec = spec if isinstance(spec, SweepSpec) else load_sweep(spec)
     out_dir = Path(out_dir)

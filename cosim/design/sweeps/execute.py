@@ -28,9 +28,9 @@ from concurrent.futures import CancelledError
 from dataclasses import dataclass
 
 from cosim.base.errors import ClusterLost, RunInterrupted
-from cosim.study.sweeps.dataset import write_part, write_timing, write_trace
-from cosim.study.sweeps.plan import BatchTask, batch_key
-from cosim.study.sweeps.worker import FAILED, BatchResult, RunSettings, run_batch, run_row, timing_row
+from cosim.design.sweeps.dataset import write_part, write_timing, write_trace
+from cosim.design.sweeps.plan import BatchTask, batch_key
+from cosim.design.sweeps.worker import FAILED, BatchResult, RunSettings, run_batch, run_row, timing_row
 
 #: the cause of a run whose worker died each time the scheduler ran it (twice on the local cluster;
 #: a remote scheduler's distributed.scheduler.allowed-failures + 1 times)
@@ -95,9 +95,8 @@ class SweepExecution:
     def handle(self, future) -> list:
         """Write a finished future's part (or split a task that killed its worker); new futures to wait on.
         A future cancelled by dask, not by :meth:`cancel`, means the scheduler went away: :class:`SchedulerGone`."""
-        from distributed.scheduler import KilledWorker
-
         from distributed.comm.core import CommClosedError
+        from distributed.scheduler import KilledWorker
 
         if future.status == "cancelled":  # only dask cancels a pending future: cancel() stops handling first
             raise SchedulerGone(future.key)
@@ -172,7 +171,6 @@ def execute(execution: SweepExecution, client, interrupted_message, lost_message
     :class:`RunInterrupted` with ``interrupted_message(counts)``; when the scheduler goes away, raise
     :class:`ClusterLost` with ``lost_message(counts)``."""
     from distributed import as_completed
-
     from distributed.comm.core import CommClosedError
 
     futures = execution.submit(client)

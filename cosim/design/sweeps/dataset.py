@@ -29,8 +29,8 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from cosim.base.files import atomic_write, atomic_write_text
+from cosim.design.sweeps.worker import DETERMINISTIC_METRICS
 from cosim.results import write_parquet
-from cosim.study.sweeps.worker import DETERMINISTIC_METRICS
 
 DATASET_DIR = "dataset"
 TIMING_DIR = "timing"

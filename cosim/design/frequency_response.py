@@ -12,7 +12,7 @@ whole number of periods (at least ``cycles`` and ``window`` seconds). Frequencie
 ``low`` to ``high`` and moved onto the window's DFT bins (an integer number of cycles in an integer
 number of samples), so nothing leaks.
 
-The runs go through the sweep engine's plan, worker and dataset (:mod:`cosim.study.sweeps`): on a dask
+The runs go through the sweep engine's plan, worker and dataset (:mod:`cosim.design.sweeps`): on a dask
 cluster from the command line, or in-process (the same worker code, one run after another) inside a
 reproduction job. Beside each measured point stands the **closed form** of the averaged small-signal
 model (:mod:`controllers.small_signal`) for the controllers that have one (the PI, the current-mode
@@ -34,12 +34,12 @@ import pyarrow as pa
 from cosim.base.digests import canonical, digest
 from cosim.base.errors import ConfigError
 from cosim.base.files import atomic_write, atomic_write_text, json_text
+from cosim.design.sweeps import dataset
+from cosim.design.sweeps.designs import build, design, injected_recipe
+from cosim.design.sweeps.plan import PlannedRun, batch_key
+from cosim.design.sweeps.recipes import PlantRecipe
+from cosim.design.vocabulary import DEFAULT_IMPLEMENTATION
 from cosim.scenarios import Scenario, ScenarioEvent
-from cosim.study.sweeps import dataset
-from cosim.study.sweeps.designs import build, design, injected_recipe
-from cosim.study.sweeps.plan import PlannedRun, batch_key
-from cosim.study.sweeps.recipes import PlantRecipe
-from cosim.study.vocabulary import DEFAULT_IMPLEMENTATION
 
 INJECTIONS = ("duty", "reference", "load")
 #: default amplitudes: duty [1], reference [V], load [relative change of the load conductance]
@@ -205,10 +205,10 @@ def measure(binding, entry, control_period: float, settings: ResponseSettings, o
             implementation: str = DEFAULT_IMPLEMENTATION, progress: bool = False,
             record_period: float | None = None) -> pd.DataFrame:
     """Measure one controller's response (module docstring); returns the points table (also written)."""
-    from cosim.study.controller_factory import nominal_circuit, true_parameters
-    from cosim.study.sweeps.execute import SweepExecution, execute
-    from cosim.study.sweeps.plan import BatchTask
-    from cosim.study.sweeps.worker import RunSettings, run_batch
+    from cosim.design.controller_factory import nominal_circuit, true_parameters
+    from cosim.design.sweeps.execute import SweepExecution, execute
+    from cosim.design.sweeps.plan import BatchTask
+    from cosim.design.sweeps.worker import RunSettings, run_batch
 
     settings.check(control_period)
     out_dir = Path(out_dir)
@@ -293,7 +293,7 @@ def _targets(binding, control_period: float):
     """The sensor and modulator of the closed form: those the classical designs assume for this plant."""
     from dataclasses import replace
 
-    from cosim.study.classical_design import targets_for
+    from cosim.design.classical_design import targets_for
 
     try:
         return targets_for(binding, control_period)
@@ -320,8 +320,8 @@ def bode_figure(tables: list[pd.DataFrame], stem: Path, vector: bool = True) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from cosim.design.vocabulary import CONTROLLER_STYLES
     from cosim.plots import save_figure
-    from cosim.study.vocabulary import CONTROLLER_STYLES
 
     fig, (mag, ph) = plt.subplots(2, 1, figsize=(8.5, 6.8), sharex=True)
     for table in tables:
@@ -379,8 +379,8 @@ def in_pipeline(pipeline, binding, controllers, out_dir: Path, quick: bool = Fal
     of its switching frequency, in-process (the job already runs on a dask worker), into ``frequency-response/``."""
     import time
 
-    from cosim.study.sweeps.spec import ControllerEntry
-    from cosim.study.vocabulary import pipeline_tag
+    from cosim.design.sweeps.spec import ControllerEntry
+    from cosim.design.vocabulary import pipeline_tag
 
     switching_frequency = binding.converter.switching_frequency
     if not (pipeline.binding_file or pipeline.plant_tag == "nominal-switched") or switching_frequency is None \

@@ -28,11 +28,11 @@ import pandas as pd
 
 from cosim.base.files import atomic_write, atomic_write_text
 from cosim.base.labels import period_text
-from cosim.study.summaries import markdown_table
-from cosim.study.sweeps.dataset import DATASET_DIR, METRIC_UNITS, TIMING_DIR
-from cosim.study.sweeps.spec import SweepSpec, Threshold
-from cosim.study.sweeps.worker import FAILED, OK
-from cosim.study.vocabulary import CONTROLLER_STYLES
+from cosim.base.markdown import markdown_table
+from cosim.design.sweeps.dataset import DATASET_DIR, METRIC_UNITS, TIMING_DIR
+from cosim.design.sweeps.spec import SweepSpec, Threshold
+from cosim.design.sweeps.worker import FAILED, OK
+from cosim.design.vocabulary import CONTROLLER_STYLES
 
 #: the metrics a tolerance study is about (the issue's list), with their axis labels
 HEADLINE = {"overshoot_pct": "overshoot [%]", "settling_time_ms": "2 % settling time [ms]",

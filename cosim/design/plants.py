@@ -1,7 +1,7 @@
 """The built-in buck FMU as the study's plants: the nominal and the mismatch-study circuit, averaged or switched,
 behind an averaging or a synchronous sensor.
 
-Its own module, away from the controllers' factories (:mod:`cosim.study.experiments`): a command that only needs the
+Its own module, away from the controllers' factories (:mod:`cosim.design.experiments`): a command that only needs the
 plant -- and one that refuses a bad scenario, binding or rate before any work -- does not load torch."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 from cosim.base.errors import ConfigError
+from cosim.design.vocabulary import PLANT_VARIANTS, SENSORS, plant_tag
 from cosim.fmi.binding import PlantBinding, RoleMap, builtin_binding
-from cosim.study.vocabulary import PLANT_VARIANTS, SENSORS, plant_tag
 
 
 def plant_binding(variant: str, mode: str, sensor: str = "average") -> PlantBinding:

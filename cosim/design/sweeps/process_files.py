@@ -1,8 +1,8 @@
 """Files that travel to a sweep's workers as bytes (a plant or controller FMU), written once per process.
 
 Each worker process keeps one private folder (removed at exit) and writes each file once per digest
-into it; the worker (:mod:`cosim.study.sweeps.worker`) and the controller designs
-(:mod:`cosim.study.sweeps.designs`) both use it, so neither imports the other for it.
+into it; the worker (:mod:`cosim.design.sweeps.worker`) and the controller designs
+(:mod:`cosim.design.sweeps.designs`) both use it, so neither imports the other for it.
 """
 
 from __future__ import annotations

@@ -27,10 +27,8 @@ from controllers.predictors import (
 from cosim.base.errors import ConfigError
 from cosim.base.labels import did_you_mean
 from cosim.converter_spec import ConverterSpec
-from cosim.fmi.binding import PLANT_MODE_CODES, PlantBinding
-from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
-from cosim.study.data_collection import CollectionSettings, paper_region
-from cosim.study.vocabulary import (
+from cosim.design.data_collection import CollectionSettings, paper_region
+from cosim.design.vocabulary import (
     COLLECTION_REGIONS,
     DEFAULT_IMPLEMENTATION,
     ENVELOPE_DITHER,
@@ -39,11 +37,12 @@ from cosim.study.vocabulary import (
     IMPLEMENTATIONS,
     LC_PERIOD,
     OPTIMIZERS,
-    PAPER_SPEC,
     identification_dither,
     lc_period,
     transient_within_sample,
 )
+from cosim.fmi.binding import BUILTIN_SPEC, PLANT_MODE_CODES, PlantBinding
+from cosim.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 
 if TYPE_CHECKING:  # torch loads with the NN model's module (seconds): only where a network is trained or read
     from controllers.nn_model import NNPlantModel
@@ -111,7 +110,7 @@ def collection_settings(control_period: float, samples: int = 10_000, seed: int 
 
     ``region`` (one of :data:`COLLECTION_REGIONS`; None: :func:`default_region`), over the converter ``spec``'s
     operating points: ``"paper"`` -- the paper's experiment scaled to it
-    (:func:`~cosim.study.data_collection.paper_region`; Table II: references 0-20 V, loads 4-10 Ohm at 48 V);
+    (:func:`~cosim.design.data_collection.paper_region`; Table II: references 0-20 V, loads 4-10 Ohm at 48 V);
     ``"envelope"`` -- its envelope: references over its output range (rests at 0 V), loads and supplies over its
     ranges (Table II: 3-20 V, 4-100 Ohm, 36-60 V), with the amplitude-modulated random binary dither (``excitation``
     its largest amplitude).
@@ -354,7 +353,7 @@ def operating_point(spec: ConverterSpec) -> dict[str, float]:
 
 
 #: the paper study's operating point (Table II's 6 Ohm and 48 V)
-NOMINAL_OPERATING_POINT = operating_point(PAPER_SPEC)
+NOMINAL_OPERATING_POINT = operating_point(BUILTIN_SPEC)
 
 
 def network_operating_point(model: NNPlantModel, spec: ConverterSpec | None) -> dict[str, float]:
@@ -418,7 +417,7 @@ def model_predictor(parameters: CircuitParameters, control_period: float, name: 
         synchronous = binding.roles["measured_output_voltage"].variable == "output_voltage"
         try:
             return SwitchedModelPredictor(parameters, control_period, float(p.get("switching_frequency",
-                                                                                  PAPER_SPEC.switching_frequency)),
+                                                                                  BUILTIN_SPEC.switching_frequency)),
                                           carrier="triangle" if p.get("pwm_carrier") == 1 else "sawtooth",
                                           sensor="period_start" if synchronous else "period_average", name=name)
         except ValueError:  # not a whole number of PWM periods: the averaged model is the best there is

@@ -14,10 +14,9 @@ from controllers.nn_config import TrainingSettings
 from controllers.predictors import CircuitParameters
 from cosim.base.errors import ConfigError, ModelFileError
 from cosim.base.labels import did_you_mean, period_text
-from cosim.fmi.binding import PlantBinding
-from cosim.study.data_collection import collect, save_samples
-from cosim.study.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
-from cosim.study.experiments import (
+from cosim.design.data_collection import collect, save_samples
+from cosim.design.design_cache import announce, data_file, design_key, model_file, pi_file, stale_reason
+from cosim.design.experiments import (
     adaptive_nnpc,
     check_optimizer,
     collection_settings,
@@ -31,12 +30,13 @@ from cosim.study.experiments import (
     planned_with,
     rti_settings,
 )
+from cosim.fmi.binding import PlantBinding
 
 if TYPE_CHECKING:  # torch loads with the NN model's module: only where a network is trained or read (seconds)
     from controllers.nn_model import NNPlantModel
-from cosim.study.identification import Recipe, identify, network_design, write_identification_figure
-from cosim.study.pi_tuning import PITuning, cached_tuning, pi_design
-from cosim.study.vocabulary import (
+from cosim.design.identification import Recipe, identify, network_design, write_identification_figure
+from cosim.design.pi_tuning import PITuning, cached_tuning, pi_design
+from cosim.design.vocabulary import (
     CONTROLLERS,
     MPC_NOMINAL,
     MPC_ORACLE,
@@ -50,7 +50,7 @@ from cosim.study.vocabulary import (
 
 def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool = False) -> PITuning:
     """The PI tuned for ``binding`` at ``period`` [s], cached in ``out_dir/tuning`` under its
-    design key (:mod:`cosim.study.design_cache`): tuned again, and said so, when the plant or the
+    design key (:mod:`cosim.design.design_cache`): tuned again, and said so, when the plant or the
     tuning settings changed. Tuning is announced on stderr with its size and an estimate of its
     duration, and ends with the gains and how long it took (progress bars or not)."""
     path = pi_file(out_dir, binding.tag, period)
@@ -61,13 +61,13 @@ def tuned_pi(binding: PlantBinding, period: float, out_dir: Path, progress: bool
 
 
 def announced_tuning(binding: PlantBinding, period: float, path: Path | None, progress: bool = False) -> PITuning:
-    """:func:`cosim.study.pi_tuning.tune_pi`, told on stderr: what it does and at most how many
+    """:func:`cosim.design.pi_tuning.tune_pi`, told on stderr: what it does and at most how many
     simulations, an estimate of its duration after the second evaluation, and the result with the
     time it took; saved to ``path`` (if given)."""
     import time
 
     from cosim.base.files import atomic_write_text
-    from cosim.study.pi_tuning import TUNING_SCENARIOS, tune_pi, tuning_evaluations
+    from cosim.design.pi_tuning import TUNING_SCENARIOS, tune_pi, tuning_evaluations
 
     total = tuning_evaluations()
     say(f"tuning the PI for {binding.label} at {period_text(period)}: at most {total} evaluations x "
@@ -95,7 +95,7 @@ def trained_model(name: str, binding: PlantBinding, period: float, out_dir: Path
     """Load ``model_path``, or identify the network on this plant (cached in out_dir under its
     design key: the plant, rate, seed, collection, recipe and network, and the PI that collects the
     data -- identified again, and said so, when any of them changed): the workbench's NNPC network
-    by the recipe of :mod:`cosim.study.identification` (PI data, one-step and simulation-error
+    by the recipe of :mod:`cosim.design.identification` (PI data, one-step and simulation-error
     training, NNPC-in-the-loop data at fast rates), the paper's network by one-step training on the
     PI data. The data file and the held-out RMSE are printed."""
     from controllers.nn_model import load_model, save_model, train
@@ -148,7 +148,7 @@ def distilled_policy(model: NNPlantModel, binding: PlantBinding, period: float, 
     """The explicit policy distilled from ``model``'s NNPC on this plant (cached in out_dir/models
     under its design key: the plant, rate, seed, budget and the expert network)."""
     from controllers.explicit_policy import load_policy, save_policy
-    from cosim.study.distillation import FULL_DISTILLATION, distill, expert_fingerprint, settings_dict
+    from cosim.design.distillation import FULL_DISTILLATION, distill, expert_fingerprint, settings_dict
 
     settings = replace(FULL_DISTILLATION, seed=seed).for_converter(binding.converter)
     path = model_file(out_dir, binding.tag, period, "nnpc-explicit")
@@ -201,8 +201,8 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
     networks trained and the explicit NNPC distilled where needed -- so a mistake is refused before
     minutes of work. ``policy_path``: a distilled policy for nnpc-explicit (else distilled on demand
     from the nnpc network). ``optimizer`` (``"rti"`` or ``"search"``): the predictive controllers' optimizer
-    (None: each one's own, :func:`~cosim.study.experiments.own_optimizer`); ``rti_changes``
-    (:func:`~cosim.study.experiments.rti_changes`): fields of the rate's RTI settings replaced for those that plan
+    (None: each one's own, :func:`~cosim.design.experiments.own_optimizer`); ``rti_changes``
+    (:func:`~cosim.design.experiments.rti_changes`): fields of the rate's RTI settings replaced for those that plan
     with the RTI; ``offered``: the predictive controllers the calling command offers (named in its messages)."""
     from controllers.base import check_duty_limits
     from controllers.pi import PIController, check_gains
@@ -305,14 +305,14 @@ def make_controllers(names: list[str], binding: PlantBinding, period: float, out
                     policy = distilled_policy(model, binding, period, out_dir, seed=seed, progress=progress)
                 controllers.append(explicit_nnpc(policy, NNPC_EXPLICIT, spec=binding.converter))
             elif name in ("current-mode", "type-iii"):
-                from cosim.study.classical_design import design_current_mode, design_type_iii, targets_for
+                from cosim.design.classical_design import design_current_mode, design_type_iii, targets_for
 
                 parameters = true_parameters(binding) if binding.source is None else nominal_circuit(binding, name)
                 design = (design_current_mode if name == "current-mode" else design_type_iii)(
                     parameters, replace(targets_for(binding, period), duty_limits=tuple(duty_limits)), CONTROLLERS[name])
                 controllers.append(design.controller)
             elif name == "pi-envelope":
-                from cosim.study.pi_tuning import tune_pi_envelope
+                from cosim.design.pi_tuning import tune_pi_envelope
 
                 tuning = tune_pi_envelope(binding, period, progress=progress)
                 controllers.append(tuning.controller(duty_limits, name=CONTROLLERS[name]))
