@@ -5,10 +5,12 @@ bootstrap:
 	@bash scripts/bootstrap.sh
 
 # Main job: the whole paper reproduction, writing results/, then the same study for the second converter (the 24 V ->
-# 5 V point-of-load buck of examples/pol_buck/, on the workbench's C plant), writing results/pol-buck/.
+# 5 V point-of-load buck of examples/pol_buck/) on the workbench's C plant, writing results/pol-buck/ (about a
+# minute), and as a third-party pythonfmu FMU, writing results/pol-buck-pythonfmu/ (about five: a Python FMU).
 reproduce: bootstrap examples
 	.venv/bin/buck-cosim reproduce
 	.venv/bin/buck-cosim study --plant examples/pol_buck/pol_builtin.toml --out results/pol-buck
+	.venv/bin/buck-cosim study --plant examples/pol_buck/pol_pythonfmu.toml --out results/pol-buck-pythonfmu
 
 # The test suite (what CI runs), its files shared between up to two processes (pytest-xdist; one per core on a
 # single-core machine): about 15 minutes on two cores, 23 run one after another. A test file stays in one process
