@@ -66,8 +66,8 @@ def test_one_seed_worse_than_the_pi_fails_the_target_and_names_the_seed_and_scen
 def test_a_run_outside_the_networks_data_fails_its_target(tmp_path):
     (tmp_path / "runs").mkdir()
     (tmp_path / "runs" / f"startup__nnpc__{TAG}.json").write_text(
-        '{"metadata": {"outside_data_domain": [{"signal": "input_voltage", "value": 40.0, "unit": "V", '
-        '"range": [18.0, 32.0]}]}}')
+        '{"complete": true, "controller": "NNPC", "outside_data_domain": [{"signal": "input_voltage", "value": 40.0, '
+        '"unit": "V", "range": [18.0, 32.0]}]}')  # a run's metadata file, as run_batch writes it
     targets = _targets(tmp_path, _metrics([("PI", "startup", 1.0), ("NNPC", "startup", 0.5)]))
     domain = targets["No NNPC run leaves its identification data's ranges (supply"]
     assert domain["met"] == "**no**" and domain["measured"] == "1 run(s) outside"

@@ -89,8 +89,7 @@ def _domain_leaves(out_dir: Path, tags: list[str]) -> list[str]:
     for path in sorted((out_dir / "runs").glob("*.json")):
         if not any(path.stem.endswith(f"__{tag}") for tag in tags):
             continue
-        meta = json.loads(path.read_text(encoding="utf-8"))
-        outside = meta.get("metadata", meta).get("outside_data_domain") if isinstance(meta, dict) else None
+        outside = json.loads(path.read_text(encoding="utf-8")).get("outside_data_domain")  # the run's metadata
         if outside:
             found.append(f"{path.stem}: " + "; ".join(f"{o['signal']} {o['value']:g} outside {o['range']}"
                                                        for o in outside))

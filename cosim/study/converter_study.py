@@ -110,37 +110,20 @@ def run_study(plan: StudyPlan, out_dir: Path, *, workers: int = 2, resume: bool 
     from cosim.base.files import remove_temporary_files
     from cosim.batch import write_metrics
     from cosim.study.converter_report import write_converter_report
-    from cosim.study.reproduce import PipelineOutput, _load_finished, _run_on_cluster, log
+    from cosim.study.reproduce import log, prepare_jobs, run_on_cluster
     from cosim.study.timings import write_timings
-    from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
     started = time.perf_counter()
-    fmu_path()  # the built-in FMU and the C twins, built once before the workers start
-    if implementation == "c":
-        from controllers.native import library
-
-        library()
-    if not resume:  # a fresh study recomputes everything, tuned gains included
-        for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
-            stale.unlink()
     jobs = plan.jobs()
-    outputs: dict[Job, PipelineOutput] = {}
-    todo = []
-    for job in jobs:
-        finished = _load_finished(out_dir, job) if resume else None
-        if finished is not None:
-            outputs[job] = finished
-            log(f"  {job.key}: finished earlier, kept (--resume)")
-        else:
-            todo.append(job)
+    outputs, todo = prepare_jobs(jobs, out_dir, resume, implementation)
     binding = plan.pipelines[0].binding()
     log(f"converter study of {binding.converter.label or binding.label}: {len(todo)} job(s) on {workers} worker(s) "
         f"-> {out_dir}/" + (" [quick]" if plan.quick else ""))
     if todo:
         tunings = sorted({job.pipeline for job in todo}, key=lambda p: p.control_period)
         try:
-            _run_on_cluster(todo, tunings, outputs, out_dir, plan.profile, implementation, workers, resume,
+            run_on_cluster(todo, tunings, outputs, out_dir, plan.profile, implementation, workers, resume,
                             study_wanted=False)
         finally:
             remove_temporary_files(out_dir)

@@ -699,6 +699,33 @@ def _load_finished(out_dir: Path, job: Job) -> PipelineOutput | None:
                           key=job.key, study=data.get("study", {}))
 
 
+def prepare_jobs(jobs: list[Job], out_dir: Path, resume: bool,
+                 implementation: str) -> tuple[dict[Job, PipelineOutput], list[Job]]:
+    """Before the workers start: the plant FMU (and the C twins) built once; without ``resume`` an earlier run's
+    tuned gains and job summaries removed (a fresh run recomputes everything), with it the jobs that run finished
+    loaded and kept. Returns (the kept jobs' outputs, the jobs to run)."""
+    from plant_fmu import fmu_path
+
+    fmu_path()
+    if implementation == "c":
+        from controllers.native import library
+
+        library()
+    if not resume:
+        for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
+            stale.unlink()
+    outputs: dict[Job, PipelineOutput] = {}
+    todo = []
+    for job in jobs:
+        finished = _load_finished(out_dir, job) if resume else None
+        if finished is not None:
+            outputs[job] = finished
+            log(f"  {job.key}: finished earlier, kept (--resume)")
+        else:
+            todo.append(job)
+    return outputs, todo
+
+
 def plan_jobs(selected: list[Pipeline], profile: Profile, seed: int, binding_file: str | None,
               controllers: dict[float, tuple[str, ...]] | None = None) -> list[Job]:
     """Every job of a reproduction: the pipelines (with the controller FMUs ``controllers`` maps to
@@ -737,7 +764,7 @@ def _default_optimizer_plugin(optimizer: str):
     return DefaultOptimizer()
 
 
-def _run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
+def run_on_cluster(todo: list[Job], tunings: list[Pipeline], outputs: dict, out_dir: Path, profile: Profile,
                     implementation: str, workers: int, resume: bool, study_wanted: bool, map_wanted: bool = False,
                     optimizer: str | None = None, ssp_parts: dict | None = None):
     """The reproduction as dask tasks on a LocalCluster: the PI tunings first (every job of a plant
@@ -905,7 +932,6 @@ def reproduce(out_dir: Path = Path("results"), workers: int = 2, resume: bool = 
 def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementation: str, profile: Profile,
                binding_file: str | None, control_periods: tuple[float, ...], controller_files: tuple[str, ...],
                optimizer: str | None = None) -> Path:
-    from plant_fmu import fmu_path
 
     out_dir = Path(out_dir)
     started = time.perf_counter()
@@ -915,24 +941,8 @@ def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementat
     else:
         selected = [p for p in PIPELINES if profile.pipelines is None or p.tag in profile.pipelines]
     extra = external_controllers(list(controller_files), tuple(dict.fromkeys(p.control_period for p in selected)))
-    fmu_path()  # build once, before workers start
-    if implementation == "c":
-        from controllers.native import library
-
-        library()  # the C twins too
-    if not resume:  # a fresh reproduction recomputes everything, tuned gains included
-        for stale in [*(out_dir / "tuning").glob("pi__*.json"), *(out_dir / "pipelines").glob("*.json")]:
-            stale.unlink()
     jobs = plan_jobs(selected, profile, seed, binding_file, extra)
-    outputs: dict[Job, PipelineOutput] = {}
-    todo = []
-    for job in jobs:
-        finished = _load_finished(out_dir, job) if resume else None
-        if finished is not None:
-            outputs[job] = finished
-            log(f"  {job.key}: finished earlier, kept (--resume)")
-        else:
-            todo.append(job)
+    outputs, todo = prepare_jobs(jobs, out_dir, resume, implementation)
     tunings = sorted({job.pipeline for job in todo}, key=lambda p: p.control_period)
     log(f"reproduction: {len(todo)} job(s) on {workers} worker(s) -> {out_dir}/"
         + (" [quick profile: tiny sizes]" if profile.quick else ""))
@@ -943,7 +953,7 @@ def _reproduce(out_dir: Path, workers: int, resume: bool, seed: int, implementat
     study = study_counts = envelope_map = map_execution = None
     if todo or study_wanted or map_wanted:
         try:
-            study, study_counts, envelope_map, map_execution = _run_on_cluster(
+            study, study_counts, envelope_map, map_execution = run_on_cluster(
                 todo, tunings, outputs, out_dir, profile, implementation, workers, resume, study_wanted, map_wanted,
                 optimizer, ssp_parts if ssp_wanted else None)
         finally:
