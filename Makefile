@@ -38,7 +38,9 @@ every-seed: bootstrap
 	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results
 	nice .venv/bin/python scripts/explicit_every_seed.py --results results --out results --expert-optimizer search
 
-# The second converter's FMUs (examples/pol_buck/): the workbench's C plant and the pythonfmu one, into build/ there.
+# The second converter's FMUs (examples/pol_buck/): the workbench's C plant and the pythonfmu one, into build/ there
+# (the pythonfmu build made reproducible: the same sources give the same bytes, so the study's results do too).
 examples: bootstrap
 	.venv/bin/buck-cosim build-fmu --output examples/pol_buck/build
 	.venv/bin/pythonfmu build -f examples/pol_buck/pol_buck.py -d examples/pol_buck/build
+	.venv/bin/python scripts/reproducible_fmu.py examples/pol_buck/build/PolBuck.fmu

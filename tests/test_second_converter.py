@@ -28,7 +28,41 @@ def example(tmp_path_factory, buck_fmu) -> Path:
     (folder / "build").mkdir()
     shutil.copy(buck_fmu, folder / "build" / "BuckConverter.fmu")
     FmuBuilder.build_FMU(EXAMPLE / "pol_buck.py", dest=folder / "build")
+    reproducible(folder / "build" / "PolBuck.fmu")  # as make examples leaves it
     return folder
+
+
+def reproducible(fmu: Path) -> str:
+    """scripts/reproducible_fmu.py on ``fmu`` (its new guid)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reproducible_fmu", EXAMPLE.parents[1] / "scripts" /
+                                                  "reproducible_fmu.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.reproducible(fmu)
+
+
+def test_two_builds_of_the_pythonfmu_plant_give_the_same_bytes_once_made_reproducible(example, tmp_path):
+    """pythonfmu stamps each build with a new uuid1 guid and the build time: made reproducible, a second build is the
+    same archive byte for byte (the study's design keys hash it), with a guid derived from its contents."""
+    import hashlib
+    import zipfile
+
+    from pythonfmu.builder import FmuBuilder
+
+    FmuBuilder.build_FMU(EXAMPLE / "pol_buck.py", dest=tmp_path)
+    with zipfile.ZipFile(tmp_path / "PolBuck.fmu") as archive:
+        stamped = archive.read("modelDescription.xml").decode()
+    assert "generationDateAndTime=" in stamped
+    guid = reproducible(tmp_path / "PolBuck.fmu")
+    built = (example / "build" / "PolBuck.fmu").read_bytes()
+    assert hashlib.sha256((tmp_path / "PolBuck.fmu").read_bytes()).digest() == hashlib.sha256(built).digest()
+    with zipfile.ZipFile(tmp_path / "PolBuck.fmu") as archive:
+        description = archive.read("modelDescription.xml").decode()
+        assert {i.date_time for i in archive.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+    assert f'guid="{guid}"' in description and "generationDateAndTime" not in description
+    assert reproducible(tmp_path / "PolBuck.fmu") == guid  # idempotent
 
 
 @pytest.mark.parametrize("name", ["pol_builtin", "pol_pythonfmu"])
@@ -108,6 +142,16 @@ def test_the_quick_study_of_the_second_converter_meets_its_targets_and_never_nam
     pi_startup = metrics[(metrics["controller"] == "PI") & (metrics["scenario"] == "startup")].iloc[0]
     assert f"overshoot {pi_startup['overshoot_pct']:.2f} %" in report
     assert (out / "figures" / "iae_by_scenario.png").is_file()
+    # the envelope map over the spec's ranges (quick: 2 references x 2 loads at the nominal 24 V)
+    shares = pd.read_csv(out / "envelope" / "shares.csv")
+    overall = shares[shares["input_voltage_V"] == "all"].set_index("controller")
+    assert set(overall.index) == {"NNPC", "NNPC (seed 1)", "NNPC-explicit", "MPC-nominal", "CMC", "Type-III", "PI"}
+    assert (overall["points"] == 4).all() and set(shares["input_voltage_V"]) == {"all", "24.0"}
+    steps = pd.read_csv(out / "envelope" / "map.csv")
+    assert sorted(set(steps["reference_V"])) == [1.5, 8.0] and sorted(set(steps["load_Ohm"])) == [1.5, 50.0]
+    assert "## The envelope map" in report and "supplies 24 V, over the spec's ranges" in report
+    assert f"| NNPC | {overall.loc['NNPC', 'share_pct']:.3g} |" in report
+    assert (out / "figures" / "envelope_map.png").is_file()
     assert "Whole quick study <= 3 min on 2 cores" in (out / "timings.md").read_text()
     assert '"switching_frequency": 100000.0' in (out / "tuning" / "current-mode__bound-pol_builtin__10us.json").read_text()
     again = cli("study", "--plant", str(example / "pol_builtin.toml"), "--quick", "--control-period", "1e-5", "--out",

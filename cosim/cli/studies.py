@@ -169,8 +169,9 @@ def add_study_parser(sub) -> None:
                                    "the spec's ranges (one network per identification seed), run the paper's "
                                    "scenarios resolved against the spec with PI, NNPC, the paper's NNPC and the MPC "
                                    "on the nominal circuit; at one switching period also the explicit NNPC, the "
-                                   "current-mode controller and the Type-III. Writes data, models, runs, metrics, "
-                                   "figures, targets.csv, REPORT.md and timings.md under OUT. Budget on 2 cores: "
+                                   "current-mode controller and the Type-III, and the envelope map over the spec's "
+                                   "ranges. Writes data, models, runs, metrics, figures, envelope/, targets.csv, "
+                                   "REPORT.md and timings.md under OUT. Budget on 2 cores: "
                                    f"{STUDY_BUDGET_S / 60:g} min ({QUICK_STUDY_BUDGET_S / 60:g} min with --quick).")
     p.add_argument("--plant", required=True, metavar="BINDING.toml",
                    help="binding file of the plant FMU, with a [converter] table that gives the nominal circuit "

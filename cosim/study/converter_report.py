@@ -247,9 +247,44 @@ def summary_figure(metrics: pd.DataFrame, tags: dict[float, str], out_dir: Path)
     return next(p for p in paths if p.suffix == ".png")
 
 
-def write_converter_report(out_dir: Path, binding, plan, outputs, metrics: pd.DataFrame) -> Path:
+def _map_section(steps: pd.DataFrame | None) -> list[str]:
+    """The envelope map's section: each controller's share of the grid meeting the spec (overall and per supply), its
+    IAE per step, the NNPC's share over the seeds."""
+    if steps is None or not len(steps):
+        return []
+    from cosim.study import envelope
+
+    table = envelope.shares(steps)
+    per_supply = envelope.shares(steps, by_supply=True).pivot(index="controller", columns="input_voltage_V",
+                                                              values="share_pct")
+    table = table.join(per_supply, on="controller")
+    iae = steps.groupby("controller", sort=False)["iae_Vs"].agg(["median", "max"]).reindex(table["controller"])
+    table["iae_median"], table["iae_worst"] = 1e3 * iae["median"].to_numpy(), 1e3 * iae["max"].to_numpy()
+    supplies = list(per_supply.columns)
+    references, loads = sorted(set(steps["reference_V"])), sorted(set(steps["load_Ohm"]))
+    lines = ["## The envelope map", "",
+             f"At each of {len(references) * len(loads) * len(supplies)} points -- references "
+             f"{', '.join(f'{v:g}' for v in references)} V x loads {', '.join(f'{v:.3g}' for v in loads)} Ohm x "
+             f"supplies {', '.join(f'{v:g}' for v in supplies)} V, over the spec's ranges -- a reference step "
+             "0.8 r -> r and a load step 1.25 R -> R from the steady state, at one sample per PWM period; a point "
+             f"meets the spec when both steps overshoot <= {envelope.OVERSHOOT_TARGET_PCT:g} % (of the step) and "
+             f"settle (2 %) within {envelope.SETTLING_TARGET_MS:g} ms. Tables: `envelope/map.csv` (every run), "
+             "`envelope/points.csv`, `envelope/shares.csv`.", ""]
+    lines += markdown_table(table, ["controller", "share_pct", *supplies, "iae_median", "iae_worst"],
+                            ["controller", "share of the grid [%]", *(f"at {v:g} V [%]" for v in supplies),
+                             "IAE median [mV s]", "IAE worst [mV s]"])
+    spread = envelope.nnpc_share_spread(steps)
+    if spread.count > 1:
+        lines += ["", f"The online NNPC's share over the {spread.count} identification seeds: "
+                      f"{spread.text('.0f', ' %')} (median (min-max))."]
+    return lines + ["", "![envelope map](figures/envelope_map.png)", ""]
+
+
+def write_converter_report(out_dir: Path, binding, plan, outputs, metrics: pd.DataFrame,
+                           map_steps: pd.DataFrame | None = None) -> Path:
     """``REPORT.md`` and ``targets.csv`` of a converter study (``plan``: :class:`~cosim.study.converter_study.StudyPlan`,
-    ``outputs``: its jobs' :class:`~cosim.study.reproduce.PipelineOutput` in plan order)."""
+    ``outputs``: its jobs' :class:`~cosim.study.reproduce.PipelineOutput` in plan order; ``map_steps``: its envelope
+    map's steps table, if it ran one)."""
     out_dir = Path(out_dir)
     spec = binding.converter
     periods = list(plan.control_periods)
@@ -310,4 +345,5 @@ def write_converter_report(out_dir: Path, binding, plan, outputs, metrics: pd.Da
                    if (out_dir / "figures" / f"{s}__{tag}.png").is_file()]
         if figures:
             lines += ["Figures: " + ", ".join(figures) + ".", ""]
+    lines += _map_section(map_steps)
     return atomic_write_text(out_dir / "REPORT.md", "\n".join(lines) + "\n")

@@ -127,15 +127,94 @@ def run_study(plan: StudyPlan, out_dir: Path, *, workers: int = 2, resume: bool 
                             study_wanted=False)
         finally:
             remove_temporary_files(out_dir)
+    map_steps = run_envelope_map(plan, binding, out_dir, workers, resume)
     ordered = [outputs[job] for job in jobs]
     metrics = pd.concat([o.metrics for o in ordered], ignore_index=True)
     write_metrics(metrics, out_dir / "metrics" / "metrics_all")
-    report = write_converter_report(out_dir, binding, plan, ordered, metrics)
+    report = write_converter_report(out_dir, binding, plan, ordered, metrics, map_steps)
     elapsed = time.perf_counter() - started
     write_timings(out_dir, ordered, metrics, elapsed, workers, study="converter study",
                   command="buck-cosim study", targets=budget_targets(plan, elapsed, workers))
     log(f"converter study finished in {elapsed:.1f} s; report: {report}")
     return report
+
+
+def map_period(plan: StudyPlan, spec) -> float | None:
+    """The rate of the study's envelope map: one sample per PWM period of the converter, if the study runs it."""
+    for period in plan.control_periods:
+        if spec.switching_frequency is not None and abs(period * spec.switching_frequency - 1) <= 1e-9:
+            return period
+    return None
+
+
+def map_entries(out_dir: Path, plant_tag: str, period: float, seeds: tuple[int, ...], settle: float) -> tuple:
+    """The map's controllers, from the pipeline's files at ``period``: the online NNPC of seed 0 (the explicit policy
+    in shadow), the explicit NNPC, the nominal-model MPC, the current-mode controller, the Type-III and the PI, and
+    the online NNPC of every other seed (``settle`` [s]: the predictive controllers' operation before the steps)."""
+    import json
+
+    from cosim.design.classical_design import design_files
+    from cosim.design.design_cache import model_file, pi_file, seed_model_file
+    from cosim.design.sweeps.spec import ControllerEntry
+    from cosim.design.vocabulary import (
+        CURRENT_MODE,
+        MPC_NOMINAL,
+        NNPC,
+        NNPC_EXPLICIT,
+        PI,
+        TYPE_III,
+        pipeline_tag,
+        seed_variant,
+    )
+
+    tag = pipeline_tag(plant_tag, period)
+    pi = json.loads(pi_file(out_dir, plant_tag, period).read_text(encoding="utf-8"))
+    model, policy = model_file(out_dir, plant_tag, period, "nnpc"), model_file(out_dir, plant_tag, period,
+                                                                               "nnpc-explicit")
+    designs = design_files(out_dir, tag)
+    return (ControllerEntry("nnpc", NNPC, model=model, policy=policy, settle=settle,
+                            origin=f"identified by the study (models/{model.name}), the explicit policy in shadow"),
+            ControllerEntry("nnpc-explicit", NNPC_EXPLICIT, policy=policy,
+                            origin=f"distilled by the study (models/{policy.name})"),
+            ControllerEntry("mpc-nominal", MPC_NOMINAL, settle=settle),
+            ControllerEntry("current-mode", CURRENT_MODE, design=designs["current-mode"],
+                            origin=f"designed by the study (tuning/{designs['current-mode'].name})"),
+            ControllerEntry("type-iii", TYPE_III, design=designs["type-iii"],
+                            origin=f"designed by the study (tuning/{designs['type-iii'].name})"),
+            ControllerEntry("pi", PI, kp=pi["kp"], ki=pi["ki"], origin=f"tuned by the study ({pi['method']})"),
+            *(ControllerEntry("nnpc", seed_variant(NNPC, s), settle=settle,
+                              model=seed_model_file(out_dir, plant_tag, period, s),
+                              origin=f"identified by the study's seed job {s}") for s in seeds[1:]))
+
+
+def run_envelope_map(plan: StudyPlan, binding, out_dir: Path, workers: int, resume: bool):
+    """The envelope map over the spec's ranges at one sample per PWM period (the paper's map, on this converter: a
+    reference step 0.8 r -> r and a load step 1.25 R -> R at every point, scored against overshoot <= 5 % and 2 %
+    settling within 0.5 ms), on the sweep engine; ``envelope/`` tables and ``figures/envelope_map.png``. Returns the
+    map's steps table (None where the study has no such rate)."""
+    import shutil
+
+    from cosim.base.labels import period_text
+    from cosim.design.sweeps.spec import PlantChoice
+    from cosim.study import envelope
+    from cosim.study.reproduce import log
+
+    spec = binding.converter
+    period = map_period(plan, spec)
+    if period is None:
+        return None
+    settings = envelope.MapSettings.for_converter(spec, plan.quick)
+    folder = out_dir / envelope.ENVELOPE_DIR / "sweep"
+    if not resume and folder.exists():
+        shutil.rmtree(folder)
+    entries = map_entries(out_dir, binding.tag, period, plan.seeds, settings.settle_predictive)
+    log(f"  envelope map: {settings.points} points x 2 steps x {len(entries)} controllers at {period_text(period)}")
+    steps = envelope.run_entries(entries, folder, settings, workers, plant=PlantChoice(binding=plan.binding_file),
+                                 control_period=period, record_period=period / 4)
+    envelope.write_tables(steps, out_dir)
+    envelope.figures(steps, out_dir, where=f"{binding.label} at {period_text(period, ascii_only=True)}",
+                     nominal_supply=settings.nominal[2])
+    return steps
 
 
 def budget(plan: StudyPlan) -> float:

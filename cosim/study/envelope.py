@@ -41,6 +41,7 @@ from cosim.design.sweeps.spec import Axis, ControllerEntry, PlantChoice, SweepSp
 from cosim.design.vocabulary import (
     CURRENT_MODE,
     CURRENT_MODE_NO_DELAY,
+    MPC_NOMINAL,
     MPC_ORACLE,
     NNPC,
     NNPC_EXPLICIT,
@@ -61,7 +62,7 @@ MAP_PLANT = "nominal-switched"
 ENVELOPE_DIR = "envelope"
 SHADOW_COLUMNS = ("first_move_rms", "first_move_max", "first_move_samples")
 #: the order controllers appear in tables and figures
-ORDER = (NNPC, NNPC_EXPLICIT, MPC_ORACLE, CURRENT_MODE, CURRENT_MODE_NO_DELAY, TYPE_III, PI_ENVELOPE, PI)
+ORDER = (NNPC, NNPC_EXPLICIT, MPC_ORACLE, MPC_NOMINAL, CURRENT_MODE, CURRENT_MODE_NO_DELAY, TYPE_III, PI_ENVELOPE, PI)
 PREDICTIVE = (NNPC, MPC_ORACLE)
 #: the classical designs "the best classical design" is chosen from: those with the one-sample computation delay a
 #: microcontroller has (the delay-free CMC is the like-for-like bound beside them, reported on its own)
@@ -81,10 +82,26 @@ class MapSettings:
     duration: float = 1.2e-3  # [s] recorded
     reference_step: float = 0.8  # the reference steps from this fraction of r to r
     load_step: float = 1.25  # the load steps from this multiple of R to R
+    nominal: tuple[float, float, float] = (12.0, 6.0, 48.0)  # [V, Ohm, V] the steps' point before the sweep moves them
 
     @property
     def points(self) -> int:
         return len(self.references) * len(self.loads) * len(self.supplies)
+
+    @classmethod
+    def for_converter(cls, spec, quick: bool = False) -> MapSettings:
+        """The same map over a converter spec's envelope: 5 references and 5 log-spaced loads over its ranges, its
+        lowest, nominal and highest supply (``quick``: 2 x 2 points at the nominal supply)."""
+        purpose = "the envelope map"
+        r = spec.operating_range("output_voltage", purpose)
+        load = spec.operating_range("load_resistance", purpose)
+        supply = spec.operating_range("input_voltage", purpose)
+        nominal = (float(spec.require("output_voltage", purpose)), float(spec.require("load_resistance", purpose)),
+                   float(spec.require("input_voltage", purpose)))
+        count = 2 if quick else 5
+        return cls(references=tuple(np.round(np.linspace(r[0], r[1], count), 6)),
+                   loads=tuple(np.round(np.geomspace(load[0], load[1], count), 6)),
+                   supplies=(nominal[2],) if quick else (supply[0], nominal[2], supply[1]), nominal=nominal)
 
 
 FULL_MAP = MapSettings()
@@ -92,9 +109,10 @@ QUICK_MAP = MapSettings(references=(5.0, 15.0), loads=(6.0, 60.0), supplies=(48.
 
 
 def step_scenarios(settings: MapSettings = FULL_MAP) -> tuple[Scenario, Scenario]:
-    """The two steps at the nominal point (12 V, 6 Ohm, 48 V); the sweep moves them to every grid point."""
-    r, load = 12.0, 6.0
-    common = {"input_voltage": 48.0}
+    """The two steps at the settings' nominal point (the paper's 12 V, 6 Ohm, 48 V); the sweep moves them to every
+    grid point."""
+    r, load, supply = settings.nominal
+    common = {"input_voltage": supply}
     return (
         Scenario(name="reference_step", description=f"reference {settings.reference_step:g} r -> r at R",
                  duration=settings.duration, settle=settings.settle,
@@ -166,8 +184,10 @@ def map_spec(out_dir: Path, settings: MapSettings = FULL_MAP, seeds=()) -> Sweep
     return map_spec_for(controllers_of(out_dir, settings, seeds), settings)
 
 
-def map_spec_for(controllers, settings: MapSettings = FULL_MAP) -> SweepSpec:
-    """The map's sweep (:func:`map_spec`) for the given controller entries."""
+def map_spec_for(controllers, settings: MapSettings = FULL_MAP, plant: PlantChoice | None = None,
+                 control_period: float = SWITCHING_PERIOD, record_period: float = 1e-5) -> SweepSpec:
+    """The map's sweep (:func:`map_spec`) for the given controller entries, on ``plant`` (default: the built-in
+    switched plant) at ``control_period`` [s], recorded every ``record_period`` [s]."""
     axes = (Axis("reference", "operating_point", "grid", values=settings.references, anchor="final",
                  place="envelope map: reference"),
             Axis("load_resistance", "operating_point", "grid", values=settings.loads, anchor="final",
@@ -175,9 +195,9 @@ def map_spec_for(controllers, settings: MapSettings = FULL_MAP) -> SweepSpec:
             Axis("input_voltage", "operating_point", "grid", values=settings.supplies,
                  place="envelope map: input_voltage"))
     return SweepSpec(name="envelope-map", description="references x loads x supplies, reference and load steps",
-                     plant=PlantChoice(mode="switched", variant="nominal"), axes=axes,
+                     plant=plant or PlantChoice(mode="switched", variant="nominal"), axes=axes,
                      scenarios=step_scenarios(settings), controllers=tuple(controllers),
-                     control_period=SWITCHING_PERIOD, record_period=1e-5,
+                     control_period=control_period, record_period=record_period,
                      thresholds=(Threshold("overshoot_pct", OVERSHOOT_TARGET_PCT),
                                  Threshold("settling_time_ms", SETTLING_TARGET_MS)))
 
@@ -211,11 +231,12 @@ def start(out_dir: Path, quick: bool = False, resume: bool = False, progress: bo
 
 
 def run_entries(entries, folder: Path, settings: MapSettings = FULL_MAP, workers: int = 1,
-                progress: bool = False) -> pd.DataFrame:
+                progress: bool = False, **where) -> pd.DataFrame:
     """The map for some controllers only (``entries``: :class:`ControllerEntry`), on the sweep engine with a
     local cluster of ``workers`` processes (127.0.0.1), into ``folder`` (resumed if it holds the same sweep);
     returns :func:`steps_table`'s rows. For the map's side studies (another identification, the oracle with
-    another horizon, the delay-free current-mode controller): the same grid, steps, spec and tables."""
+    another horizon, the delay-free current-mode controller) and a converter's study: the same grid, steps, spec and
+    tables (``where``: :func:`map_spec_for`'s plant, control and record period)."""
     from dataclasses import replace
 
     from cosim.design.cluster import dask_client
@@ -226,7 +247,7 @@ def run_entries(entries, folder: Path, settings: MapSettings = FULL_MAP, workers
 
     entries = tuple(e if e.settle is not None or e.kind not in ("nnpc", "mpc-oracle")
                     else replace(e, settle=settings.settle_predictive) for e in entries)
-    spec = replace(map_spec_for(entries, settings), name="envelope-map-part")
+    spec = replace(map_spec_for(entries, settings, **where), name="envelope-map-part")
     plan = SweepPlan(spec)
     folder = Path(folder)
     check_output(plan, folder, resume=True)
@@ -341,15 +362,20 @@ def best_classical(steps: pd.DataFrame) -> str:
 
 def write_outputs(prepared, out_dir: Path) -> pd.DataFrame:
     """``envelope/map.csv``, ``points.csv``, ``shares.csv`` and the figures; returns the steps table."""
-    folder = Path(out_dir) / ENVELOPE_DIR
     steps = steps_table(prepared)
+    write_tables(steps, out_dir)
+    figures(steps, Path(out_dir))
+    return steps
+
+
+def write_tables(steps: pd.DataFrame, out_dir: Path) -> None:
+    """``envelope/map.csv`` (every run), ``points.csv`` and ``shares.csv`` of a map's steps table."""
+    folder = Path(out_dir) / ENVELOPE_DIR
     atomic_write(folder / "map.csv", lambda tmp: steps.to_csv(tmp, index=False, float_format="%.8g"))
     points = point_results(steps)
     atomic_write(folder / "points.csv", lambda tmp: points.to_csv(tmp, index=False, float_format="%.8g"))
     table = pd.concat([shares(steps).assign(input_voltage_V="all"), shares(steps, by_supply=True)], ignore_index=True)
     atomic_write(folder / "shares.csv", lambda tmp: table.to_csv(tmp, index=False, float_format="%.6g"))
-    figures(steps, Path(out_dir))
-    return steps
 
 
 def load_steps(out_dir: Path) -> pd.DataFrame | None:
@@ -357,9 +383,11 @@ def load_steps(out_dir: Path) -> pd.DataFrame | None:
     return pd.read_csv(path) if path.is_file() else None
 
 
-def figures(steps: pd.DataFrame, out_dir: Path) -> list[Path]:
+def figures(steps: pd.DataFrame, out_dir: Path, where: str = "the switched plant at 13.33 us",
+            nominal_supply: float = 48.0) -> list[Path]:
     """The map: per controller a reference x load grid, each cell how many supplies meet the spec and
-    the worst settling time there; and the explicit policy's first-move error at 48 V."""
+    the worst settling time there; and the explicit policy's first-move error at the nominal supply [V] (the paper's
+    48 V; ``where``: the plant and rate, for the title)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -401,7 +429,7 @@ def figures(steps: pd.DataFrame, out_dir: Path) -> list[Path]:
         ax.set_title(f"{name}: {share.get(name, math.nan):.0f} % of the grid meet the spec", fontsize=9)
     for k in range(len(names), rows * columns):
         axes[k // columns][k % columns].axis("off")
-    fig.suptitle("Envelope map on the switched plant at 13.33 us: per cell, supplies (of "
+    fig.suptitle(f"Envelope map on {where}: per cell, supplies (of "
                  f"{', '.join(f'{v:g}' for v in supplies)} V) where both a reference step 0.8 r -> r and a load step "
                  "1.25 R -> R overshoot <= 5 % and settle (2 %) within 0.5 ms, and the worst settling time [ms]",
                  fontsize=9)
@@ -410,7 +438,7 @@ def figures(steps: pd.DataFrame, out_dir: Path) -> list[Path]:
 
     shadow = steps[(steps["controller"] == NNPC) & steps["first_move_rms"].notna()]
     if len(shadow):
-        nominal = shadow[shadow["input_voltage_V"] == (48.0 if 48.0 in supplies else supplies[0])]
+        nominal = shadow[shadow["input_voltage_V"] == (nominal_supply if nominal_supply in supplies else supplies[0])]
         grid = nominal.groupby(["reference_V", "load_Ohm"])["first_move_rms"].apply(
             lambda s: float(np.sqrt(np.mean(s ** 2)))).unstack().reindex(index=references, columns=loads)
         fig, ax = plt.subplots(figsize=(5.2, 4.0))
@@ -422,8 +450,8 @@ def figures(steps: pd.DataFrame, out_dir: Path) -> list[Path]:
         ax.set_yticks(range(len(references)), [f"{v:.3g}" for v in references])
         ax.set_xlabel("load R [Ohm]")
         ax.set_ylabel("reference [V]")
-        ax.set_title("RMS |explicit - online NNPC| first move [duty], 48 V,\non the online NNPC's states in both steps",
-                     fontsize=9)
+        ax.set_title(f"RMS |explicit - online NNPC| first move [duty], {nominal_supply:g} V,\non the online NNPC's "
+                     "states in both steps", fontsize=9)
         fig.colorbar(image, ax=ax, shrink=0.8)
         fig.tight_layout()
         files += save_figure(fig, Path(out_dir) / "figures" / "first_move_error")

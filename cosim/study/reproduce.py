@@ -487,7 +487,8 @@ def run_seed(pipeline: Pipeline, out_dir: Path, profile: Profile, seed: int,
     batch = Batch(binding, _scenarios(pipeline, binding, profile))
     metrics = [run_batch(batch, [nnpc(identified.model, period, name)], out_dir, seed=seed, figures=False).metrics]
     meta = {name.lower(): _model_summary(identified.model, config)}
-    if pipeline.tag in SEED_MODEL_PIPELINES:  # another job runs this NNPC too: the envelope map, the drift study
+    if pipeline.tag in SEED_MODEL_PIPELINES or pipeline.binding_file:  # another job runs this NNPC too: the
+        # envelope map (the paper's; a converter study's), the drift study
         from controllers.nn_model import save_model
 
         save_model(identified.model, seed_model_file(out_dir, pipeline.plant_tag, period, seed))
