@@ -142,6 +142,11 @@ class ConverterSpec:
                                                         "switch_on_resistance", "diode_forward_voltage",
                                                         "capacitor_esr")}
 
+    def samples_once_per_pwm_period(self, control_period: float) -> bool:
+        """True when ``control_period`` [s] is one PWM period of the converter (False where no switching frequency
+        is given): the rate of the explicit NNPC, the classical designs, the loop-gain measurement and the map."""
+        return self.switching_frequency is not None and abs(control_period * self.switching_frequency - 1) <= 1e-9
+
     def operating_range(self, key: str, purpose: str) -> tuple[float, float]:
         """The envelope of ``key`` (input_voltage, output_voltage or load_resistance), refused where not given."""
         return self.require(OPERATING_KEYS[key][0], purpose)

@@ -474,7 +474,7 @@ def targets_for(binding, control_period: float) -> DesignTargets:
     spec = binding.converter
     purpose = "the classical designs"
     switching_frequency = spec.require("switching_frequency", purpose)
-    if abs(control_period * switching_frequency - 1) > 1e-9:
+    if not spec.samples_once_per_pwm_period(control_period):
         raise ValueError(f"the classical designs sample once per PWM period ({1 / switching_frequency:.6g} s), not "
                          f"every {control_period:.6g} s")
     point = OperatingPoint(*(spec.require(key, purpose) for key in ("output_voltage", "load_resistance",
@@ -532,8 +532,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     from cosim.design.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
-    switching_frequency = binding.converter.switching_frequency
-    if switching_frequency is None or abs(period * switching_frequency - 1) > 1e-9:
+    if not binding.converter.samples_once_per_pwm_period(period):
         return []
     start = time.perf_counter()
     tag = pipeline_tag(pipeline.plant_tag, period)

@@ -382,12 +382,12 @@ def in_pipeline(pipeline, binding, controllers, out_dir: Path, quick: bool = Fal
     from cosim.design.sweeps.spec import ControllerEntry
     from cosim.design.vocabulary import pipeline_tag
 
-    switching_frequency = binding.converter.switching_frequency
-    if not (pipeline.binding_file or pipeline.plant_tag == "nominal-switched") or switching_frequency is None \
-            or abs(pipeline.control_period * switching_frequency - 1) > 1e-9:
+    spec = binding.converter  # measured at its nominal point, up to 2/5 of its switching frequency
+    if not (pipeline.binding_file or pipeline.plant_tag == "nominal-switched") \
+            or not spec.samples_once_per_pwm_period(pipeline.control_period):
         return
     start = time.perf_counter()
-    spec = binding.converter  # measured at its nominal point, up to 2/5 of its switching frequency
+    switching_frequency = spec.switching_frequency
     purpose = "the frequency response's operating point"
     operating_point = {"reference": spec.require("output_voltage", purpose),
                        "load": spec.require("load_resistance", purpose),

@@ -35,7 +35,7 @@ from cosim.design.vocabulary import (
     PI,
     TYPE_III,
 )
-from cosim.study.claims import TARGET_COLUMNS, comparison, per_scenario_text, target_row
+from cosim.study.claims import TARGET_COLUMNS, comparison, per_scenario_text, spread, target_row
 from cosim.study.summaries import seed_controllers, seed_ratio_spreads, value
 
 #: the PI's design constraints at the nominal point (the tuning's: cosim.design.pi_tuning)
@@ -50,11 +50,6 @@ ORDER = (PI, NNPC, NNPC_PAPER, MPC_NOMINAL, NNPC_EXPLICIT, CURRENT_MODE, TYPE_II
 PARASITICS = (("inductor_resistance", "inductor resistance", "Ohm"), ("switch_on_resistance", "switch on-resistance",
                                                                        "Ohm"),
               ("diode_forward_voltage", "diode drop", "V"), ("capacitor_esr", "capacitor ESR", "Ohm"))
-
-
-def _is_fast(period: float, spec) -> bool:
-    """One sample per PWM period of the converter."""
-    return spec.switching_frequency is not None and abs(period * spec.switching_frequency - 1) <= 1e-9
 
 
 def _spec_table(spec) -> list[str]:
@@ -111,7 +106,7 @@ def study_targets(out_dir: Path, spec, periods: list[float], tags: dict[float, s
                 f"overshoot {overshoot:.2f} %, steady-state error {error:+.3f} %",
                 overshoot <= PI_OVERSHOOT_LIMIT_PCT and abs(error) <= PI_STEADY_STATE_LIMIT_PCT,
                 value=overshoot, limit=PI_OVERSHOOT_LIMIT_PCT))
-        if not _is_fast(period, spec):
+        if not spec.samples_once_per_pwm_period(period):
             continue
         seeds = seed_controllers(metrics, tag)
         against_pi = seed_ratio_spreads(metrics, tag, PI)
@@ -156,10 +151,8 @@ def _iae_table(metrics: pd.DataFrame, tag: str) -> list[str]:
     for scenario in scenarios:
         cells = [scenario] + [f"{value(metrics, tag, c, scenario, 'iae_Vs') * 1e3:.4g}" for c in present]
         if len(seeds) > 1:
-            values = sorted(value(metrics, tag, name, scenario, "iae_Vs") * 1e3 for name in seeds.values())
-            median = values[len(values) // 2] if len(values) % 2 else (values[len(values) // 2 - 1]
-                                                                      + values[len(values) // 2]) / 2
-            cells.append(f"{median:.4g} ({values[0]:.4g}-{values[-1]:.4g})")
+            cells.append(spread({seed: value(metrics, tag, name, scenario, "iae_Vs") * 1e3
+                                 for seed, name in seeds.items()}).text(".4g"))
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

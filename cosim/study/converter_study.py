@@ -142,7 +142,7 @@ def run_study(plan: StudyPlan, out_dir: Path, *, workers: int = 2, resume: bool 
 def map_period(plan: StudyPlan, spec) -> float | None:
     """The rate of the study's envelope map: one sample per PWM period of the converter, if the study runs it."""
     for period in plan.control_periods:
-        if spec.switching_frequency is not None and abs(period * spec.switching_frequency - 1) <= 1e-9:
+        if spec.samples_once_per_pwm_period(period):
             return period
     return None
 
