@@ -20,11 +20,10 @@ from cosim.base.labels import period_label, slug
 from cosim.data_domain import checked_metadata
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
-from cosim.master import RunFailed, check_plant_supports, check_set_up, run_checked
+from cosim.master import RunFailed, check_plant_supports, check_rates, check_set_up, run_checked
 from cosim.metrics import METRIC_COLUMNS, WALLCLOCK_METRICS, metrics_table
 from cosim.results import RunResult, write_parquet, write_run
 from cosim.scenarios import Scenario
-from cosim.timeline import plan_timeline
 
 if TYPE_CHECKING:  # matplotlib (1 s to import) loads when a figure is drawn, so a refused batch answers at once
     from cosim.plots import Styles
@@ -66,11 +65,11 @@ class Batch:
         first inputs at its set-up, a value of a scenario's parameter events (:func:`cosim.master.preflight`)."""
         check_set_up(self.binding, self.scenarios, interface)
 
-    def check_rates(self, control_period: float, record_period: float) -> None:
-        """Refuse, before any work, periods that no run of the batch could use (too many instants,
-        too few controller samples): the checks :func:`cosim.timeline.plan_timeline` makes per run."""
-        for scenario in self.scenarios:
-            plan_timeline(scenario, control_period, record_period)
+    def check_rates(self, control_period: float, record_period: float | None = None,
+                    interface: str | None = None) -> None:
+        """Refuse, before any work, periods that no run of the batch could use (too many instants, too few controller
+        samples, a grid a fixed-step FMU cannot follow): :func:`cosim.master.check_rates`."""
+        check_rates(self.binding, self.scenarios, control_period, record_period, interface)
 
 
 @dataclass
@@ -81,7 +80,7 @@ class BatchOutput:
 
 
 def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *, interface: str | None = None,
-              record_period: float = 1e-5, seed: int | None = None, figures: bool = True,
+              record_period: float | None = None, seed: int | None = None, figures: bool = True,
               styles: Styles | None = None, progress: bool = False, extra_metadata: dict | None = None,
               on_run: Callable[[RunResult], None] | None = None, stream: bool = False) -> BatchOutput:
     """Run every controller on every scenario of ``batch`` with one reused plant instance; write
@@ -90,6 +89,7 @@ def run_batch(batch: Batch, controllers: Iterable[Controller], out_dir: Path, *,
     Files are named ``<scenario>__<controller>__<plant tag>__<period label>`` (the plant tag is
     :attr:`PlantBinding.tag`); ``styles`` gives figure colours and line styles per controller name.
 
+    ``record_period`` [s]: as :func:`cosim.master.run` takes it (None: 10 us, or a fixed-step FMU's nearest).
     ``stream``: write each run's rows to Parquet while it runs (bounded memory for long runs); no
     CSV, metrics or figures then -- the returned results carry metadata only.
     """

@@ -25,14 +25,25 @@ import numpy as np
 
 from controllers.base import Controller, Measurement, check_duty_limits
 from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInterrupted, WorkbenchError
+from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, load_binding, locate_refusal
+from cosim.fmi.communication import CommunicationStep, communication_step, record_period_for, steps_in
 from cosim.fmi.plant import open_plant
-from cosim.fmi.plant_fmi2 import FmuPlant
+from cosim.fmi.plant_fmi2 import FmuPlant, choose_interface, normalise_interface
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
 from cosim.results import RunInfo, RunResult, RunStream, run_details
 from cosim.scenarios import Scenario, check_parameter_events, load_scenario
-from cosim.timeline import CONTROL, EVENT, MERGE_TOLERANCE, RECORD, TimelinePlan, plan_timeline, signal_at
+from cosim.timeline import (
+    CONTROL,
+    DEFAULT_RECORD_PERIOD,
+    EVENT,
+    MERGE_TOLERANCE,
+    RECORD,
+    TimelinePlan,
+    plan_timeline,
+    signal_at,
+)
 
 STREAM_CHUNK = 16_384  # rows held in memory between writes when streaming
 #: the values the loop records per row, in this order (the recorder's MASTER_FIELDS), then the
@@ -55,24 +66,62 @@ class RunFailed(WorkbenchError):
         return RunFailed, (str(self), self.partial, self.cause)
 
 
-def check_step_sizes(plant: FmuPlant, plan: TimelinePlan) -> None:
-    """Refuse a non-uniform grid for a co-simulation FMU that cannot vary its communication step."""
-    if plant.variable_step:
-        return
-    low, high, previous = math.inf, 0.0, None
-    for window in plan.windows():
-        times = window.times if previous is None else np.concatenate([[previous], window.times])
-        if len(times) > 1:
-            steps = np.diff(times)
-            low, high = min(low, steps.min()), max(high, steps.max())
-        previous = window.times[-1] if len(window.times) else previous
-    if high - low > 1e-9 * high:
-        raise ConfigError(
-            f"{plant.binding.origin}: the FMU cannot change its communication step size, but control period "
-            f"{plan.control_period:.6g} s, record period {plan.record_period:.6g} s and the scenario's events give "
-            f"steps from {low:.6g} s to {high:.6g} s: use a record period that divides the control period and "
-            "events on that grid"
-        )
+def check_communication_step(communication: CommunicationStep, plan: TimelinePlan, scenario: Scenario,
+                             origin: str) -> float | None:
+    """The one communication step [s] of a run of ``scenario`` on ``plan``'s grid for a plant stepped as
+    ``communication`` says (None: any step) -- or a one-line :class:`ConfigError`, before anything runs, naming what
+    is not a whole number of that step (the control period, the record period, the time of a load, supply or
+    parameter event) and what would work. The settle interval is a whole number of control periods."""
+    step = communication.for_run(plan.control_period)
+    if step is None:
+        return None
+    misfits = []
+    for label, value in (("control period", plan.control_period), ("record period", plan.record_period)):
+        if not steps_in(value, step):
+            misfits.append(f"the {label} {value:.6g} s")
+    off_grid = [e for e in scenario.events if e.plant_event and steps_in(e.time, step) is None]
+    if off_grid:
+        misfits.append(f"scenario {scenario.name}'s event at t = {off_grid[0].time:.6g} s"
+                       + (f" ({off_grid[0].where})" if off_grid[0].where else "")
+                       + (f" and {len(off_grid) - 1} more" if len(off_grid) > 1 else ""))
+    if not misfits:
+        return step
+    suggestion = f"multiples of {step:.6g} s"
+    if misfits[0].startswith("the record period") and steps_in(plan.control_period, step):
+        lower = max(1, math.floor(plan.record_period / step)) * step
+        suggestion += f" (e.g. --record-period {lower:.6g})"
+    raise ConfigError(f"{origin}: the FMU steps by one fixed communication step of {communication.describe(step)}, "
+                      f"but {', '.join(misfits)} {'is' if len(misfits) == 1 else 'are'} not a whole number of steps: "
+                      f"use {suggestion}")
+
+
+def check_rates(binding: PlantBinding, scenarios, control_period: float, record_period: float | None = None,
+                interface: str | None = None) -> None:
+    """Refuse, before any work, periods no run of ``scenarios`` on ``binding``'s plant could use: too many instants
+    or too few controller samples (:func:`cosim.timeline.plan_timeline`), or a grid a fixed-step FMU cannot follow
+    (:func:`check_communication_step`). ``record_period`` None: what :func:`run` records at by default."""
+    communication = communication_of(binding, interface)
+    if record_period is None:
+        record_period = record_period_for(communication, DEFAULT_RECORD_PERIOD, control_period)
+    for scenario in scenarios:
+        check_communication_step(communication, plan_timeline(scenario, control_period, record_period), scenario,
+                                 binding.origin)
+
+
+def communication_of(binding: PlantBinding, interface: str | None = None) -> CommunicationStep:
+    """How a run may step ``binding``'s plant (:mod:`cosim.fmi.communication`), read off its archive: through
+    ``interface``, else the binding's, else co-simulation where offered -- as :func:`cosim.fmi.plant.open_plant`
+    chooses."""
+    checked = check_fmu(binding.fmu_path)
+    chosen = choose_interface(checked, normalise_interface(interface or binding.interface), binding.origin)
+    return communication_step(binding, checked.model_description, chosen)
+
+
+def record_period_of(binding: PlantBinding, wanted: float, control_period: float,
+                     interface: str | None = None) -> float:
+    """:func:`cosim.fmi.communication.record_period_for` of ``binding``'s plant: ``wanted`` [s], or the nearest whole
+    number of a fixed-step FMU's steps -- for a period the workbench chooses itself, never one a user gives."""
+    return record_period_for(communication_of(binding, interface), wanted, control_period)
 
 
 def check_plant_supports(binding: PlantBinding, scenario: Scenario, model_description=None) -> None:
@@ -86,13 +135,11 @@ def check_plant_supports(binding: PlantBinding, scenario: Scenario, model_descri
             )
     if scenario.parameter_events:
         if model_description is None:
-            from cosim.fmi.archive import check_fmu
-
             model_description = check_fmu(binding.fmu_path).model_description
         check_parameter_events(scenario, model_description, binding.origin)
 
 
-def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float = 1e-5,
+def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float | None = None,
         seed: int | None = None, progress: bool = False, extra_metadata: dict | None = None,
         stream_to: Path | None = None) -> RunResult:
     """Run one closed-loop scenario; return every recorded row as a :class:`RunResult`.
@@ -103,6 +150,10 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
     instance serves many runs. On a plant or controller fault, or Ctrl-C, raises
     :class:`RunFailed` / :class:`RunInterrupted` carrying the rows recorded so far.
 
+    ``record_period`` [s]: None -- :data:`cosim.timeline.DEFAULT_RECORD_PERIOD`, or the nearest multiple of a
+    fixed-step FMU's communication step (:func:`cosim.fmi.communication.record_period_for`); a given one must lie
+    on that FMU's grid (:func:`check_communication_step`), as must the control period and the plant events.
+
     ``stream_to``: write the rows to this Parquet file in chunks while running (memory stays
     bounded however long the run); the returned result then has an empty frame and the file's
     metadata, complete or not.
@@ -112,7 +163,7 @@ def run(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_p
                        extra_metadata=extra_metadata, stream_to=stream_to)
 
 
-def run_checked(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float = 1e-5,
+def run_checked(plant: FmuPlant, controller: Controller, scenario: Scenario, *, record_period: float | None = None,
                 seed: int | None = None, progress: bool = False, extra_metadata: dict | None = None,
                 stream_to: Path | None = None) -> RunResult:
     """:func:`run` for a scenario already checked against ``plant.binding``."""
@@ -123,8 +174,11 @@ def run_checked(plant: FmuPlant, controller: Controller, scenario: Scenario, *, 
         except (TypeError, ValueError) as error:
             raise ConfigError(str(error) if isinstance(error, ValueError) else
                               f"controller duty_limits = {limits!r}: expected (min, max)") from None
+    communication = plant.communication
+    if record_period is None:
+        record_period = record_period_for(communication, DEFAULT_RECORD_PERIOD, controller.sample_period)
     plan = plan_timeline(scenario, controller.sample_period, record_period)
-    check_step_sizes(plant, plan)
+    plant.use_step(check_communication_step(communication, plan, scenario, plant.binding.origin))
     return _Run(plant, controller, scenario, plan, seed, extra_metadata, stream_to).execute(progress)
 
 
@@ -393,7 +447,7 @@ def _progress_bar(enabled: bool, total: int, label: str):
 
 def simulate(binding: PlantBinding | str | Path, controller: Controller, scenario: Scenario | str | Path, *,
              interface: str | None = None,
-             record_period: float = 1e-5, seed: int | None = None, progress: bool = False,
+             record_period: float | None = None, seed: int | None = None, progress: bool = False,
              relative_tolerance: float = 1e-8, extra_metadata: dict | None = None) -> RunResult:
     """Open the plant, run one scenario, and always free the FMU, even on error. ``binding`` may be a binding file's
     path and ``scenario`` a shipped scenario's name or a scenario file's path, as the command line takes them (resolved

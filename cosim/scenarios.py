@@ -74,7 +74,8 @@ class ScenarioEvent:
     time: float  # [s]
     changes: dict[str, float]  # signal -> new value
     parameters: dict[str, float] = field(default_factory=dict)  # plant FMU parameter -> new value
-    where: str | None = None  # "file:line" of the event's parameters, for errors found later
+    #: "file:line" of the event's parameters (else of its time), for errors found later; not part of what it is
+    where: str | None = field(default=None, compare=False)
 
     @property
     def plant_event(self) -> bool:
@@ -278,8 +279,8 @@ def parse_scenario(text: str, path: Path | None = None, spec: ConverterSpec | No
                 f"{_where(path, loc, None, 'events', i)}: {label} changes nothing: "
                 f"expected at least one of {', '.join((*EVENT_SIGNALS, 'parameters'))}"
             )
-        at = _where(path, loc, "parameters", "events", i) if parameters else None
-        if at is not None and ":" not in at:  # a [events.parameters] sub-table: name the event's own line
+        at = _where(path, loc, "parameters", "events", i) if parameters else _where(path, loc, "time", "events", i)
+        if ":" not in at:  # a [events.parameters] sub-table: name the event's own line
             at = _where(path, loc, None, "events", i)
         events.append(ScenarioEvent(time=time, changes=changes, parameters=parameters, where=at))
     indexed = list(enumerate(events))  # the file's order, for messages

@@ -30,6 +30,8 @@ MIN_CONTROL_SAMPLES = 2
 #: switching period of the paper's converter is 13.3 us). A shorter one is almost surely a unit slip (ns for us) and
 #: would make tens of millions of steps that fill the memory before anything is written.
 MIN_PERIOD = 1e-7
+#: the recording step of a run when none is given [s]: the LC ringing inside a control period shows in the figures
+DEFAULT_RECORD_PERIOD = 1e-5
 WINDOW_INSTANTS = 16_384  # instants generated at a time
 WHOLE_TIMELINE_LIMIT = 5_000_000  # build_timeline() refuses more (the master itself iterates windows)
 

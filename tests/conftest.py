@@ -219,6 +219,16 @@ def python_buck_fmu(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def python_buck3_fmu(tmp_path_factory) -> Path:
+    """The FMI 3.0 twin of the pythonfmu plant, with its own names (tests/corpus/python_buck3.py)."""
+    from pythonfmu3.builder import FmuBuilder
+
+    out = tmp_path_factory.mktemp("pythonfmu3")
+    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck3.py", dest=out, project_files=[CORPUS / "buck_math.py"],
+                                     canHandleVariableCommunicationStepSize=True))
+
+
+@pytest.fixture(scope="session")
 def me_only_fmu(tmp_path_factory) -> Path:
     """The built-in sources packaged with only the model-exchange interface, under another identifier."""
     import re

@@ -41,16 +41,6 @@ def buck_fmu3() -> Path:
 
 
 @pytest.fixture(scope="session")
-def python_buck3_fmu(tmp_path_factory) -> Path:
-    """The FMI 3.0 twin of the pythonfmu plant, with its own names (tests/corpus/python_buck3.py)."""
-    from pythonfmu3.builder import FmuBuilder
-
-    out = tmp_path_factory.mktemp("pythonfmu3")
-    return Path(FmuBuilder.build_FMU(CORPUS / "python_buck3.py", dest=out, project_files=[CORPUS / "buck_math.py"],
-                                     canHandleVariableCommunicationStepSize=True))
-
-
-@pytest.fixture(scope="session")
 def faulty_fmu3(tmp_path_factory) -> Path:
     from pythonfmu3.builder import FmuBuilder
 

@@ -117,15 +117,19 @@ def test_a_pi_run_loads_no_torch(tmp_path):
 
 
 def test_a_period_the_fmu_cannot_honour_is_refused(tmp_path, fixed_step_fmu):
+    """The built-in FMU declared fixed-step: its DefaultExperiment stepSize (1 ms) is its one communication step; a
+    record period off that grid is refused before any run, and without one the runs record every 1 ms."""
     binding = tmp_path / "plant.toml"
     binding.write_text(role_named_binding(fixed_step_fmu, parameters=""))
     one_line_error(cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period",
                        "3e-4", "--out", str(tmp_path / "a")), 2,
-                   "the FMU cannot change its communication step size, but control period 0.001 s, record period "
-                   "0.0003 s")
-    done = cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--record-period", "1e-4",
-               "--out", str(tmp_path / "b"), "--no-figures")
-    assert done.returncode == 0, done.stderr  # a record period that divides the control period is fine
+                   "the FMU steps by one fixed communication step of 0.001 s (the FMU's DefaultExperiment stepSize), "
+                   "but the record period 0.0003 s is not a whole number of steps: use multiples of 0.001 s")
+    done = cli("run", "startup", "--plant", str(binding), "--kp", "0", "--ki", "14", "--out", str(tmp_path / "b"),
+               "--no-figures")
+    assert done.returncode == 0, done.stderr
+    [run] = (tmp_path / "b" / "runs").glob("*.json")
+    assert json.loads(run.read_text())["rates"]["record_period_s"] == 1e-3
 
 
 def test_a_model_file_for_other_inputs_is_refused(tmp_path):

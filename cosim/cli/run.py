@@ -55,7 +55,7 @@ def cmd_run(args) -> int:
     binding = _plant_binding(args)
     scenarios = [load_scenario(s, binding.converter, warn=True) for s in (args.scenarios or PAPER_SCENARIOS)]
     batch = Batch(binding, scenarios)
-    batch.check_rates(args.control_period, args.record_period)
+    batch.check_rates(args.control_period, args.record_period, args.interface)  # None: 10 us or a fixed step's
     batch.check_plant(args.interface)
     # the batch is checked: now the (possibly long) tuning and training. Imported here, not above: torch takes
     # seconds to load, and a refused scenario, binding or rate is answered without it
@@ -218,8 +218,10 @@ def add_run_parser(sub) -> None:
     p.add_argument("--control-period", type=parse_period, default=PAPER_PERIOD, metavar="SECONDS",
                    help="controller sample period in s, e.g. 1e-3 (the paper) or 1/75e3 (one switching period) "
                         "(default: 1e-3)")
-    p.add_argument("--record-period", type=parse_period, default=1e-5, metavar="SECONDS",
-                   help="recording step in s; need not divide the control period (default: 1e-5)")
+    p.add_argument("--record-period", type=parse_period, default=None, metavar="SECONDS",
+                   help="recording step in s; need not divide the control period, except on a fixed-step FMU, whose "
+                        "step it must be a multiple of (default: 1e-5, on a fixed-step FMU the nearest multiple of its "
+                        "step)")
     _add_pi_and_duty_options(p, gains_default="tuned automatically")
     _add_optimizer_options(p)
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: train on demand)")

@@ -36,7 +36,7 @@ def cmd_reproduce(args) -> int:
         for period in args.control_period or (PAPER_PERIOD,):
             scenarios = [s for s in scenarios_for(period, spec=binding.converter)
                          if s.required_roles() <= set(binding.roles)]
-            Batch(binding, scenarios).check_rates(period, 1e-5)
+            Batch(binding, scenarios).check_rates(period)
     from cosim.study.reproduce import FULL, QUICK, reproduce  # the whole study (torch, scipy): after the checks
 
     reproduce(Path(args.out), workers=args.workers, resume=args.resume, seed=args.seed,

@@ -45,6 +45,7 @@ INPUT_NAMES = {
     "parameters": "plant parameters",
     "interface": "FMI interface",
     "max_step_s": "largest plant step",
+    "step_s": "fixed communication step",
     "control_period_s": "control period",
     "seed": "seed",
     "scenarios": "scenarios",
@@ -63,6 +64,7 @@ def plant_identity(binding: PlantBinding) -> dict:
         "parameters": dict(sorted(binding.parameters.items())),
         "interface": binding.interface,
         "max_step_s": binding.max_step,
+        **({"step_s": binding.step} if binding.step is not None else {}),  # absent: the keys made before it stand
     })
 
 

@@ -30,7 +30,7 @@ from cosim.converter_spec import ConverterSpec
 from cosim.design.design_cache import DesignKey, announce, design_key, stale_reason
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.plant import open_plant
-from cosim.master import preflight, run
+from cosim.master import preflight, record_period_of, run
 from cosim.metrics import run_metrics
 from cosim.scenarios import Scenario, ScenarioEvent, load_scenario
 
@@ -109,6 +109,7 @@ def pi_design(binding: PlantBinding, control_period: float, *, record_period: fl
     """The design key of :func:`tune_pi` with these arguments: the plant, the rate, the tuning
     scenarios (resolved against the plant's converter spec) and every setting of the search (no tuning is done)."""
     input_voltage = nominal_supply(binding, input_voltage, "the PI tuning")
+    record_period = record_period_of(binding, record_period, control_period)  # a fixed-step FMU's grid
     return design_key("pi", binding, control_period, scenarios=_tuning_scenarios(binding.converter),
                       settings={"method": METHOD, "record_period_s": record_period, "input_voltage_V": input_voltage,
                                 "grid": _grid(quick), "nelder_mead_evaluations": _nelder_mead_evaluations(quick)})
@@ -131,6 +132,7 @@ def tune_pi(binding: PlantBinding, control_period: float, *, record_period: floa
     also loads the plant), for an estimate of the whole tuning: at most :func:`tuning_evaluations`.
     """
     input_voltage = nominal_supply(binding, input_voltage, "the PI tuning")
+    record_period = record_period_of(binding, record_period, control_period)  # a fixed-step FMU's grid
     design = pi_design(binding, control_period, record_period=record_period, input_voltage=input_voltage, quick=quick)
     scenarios = _tuning_scenarios(binding.converter)
     evaluations = 0
@@ -255,6 +257,7 @@ def tune_pi_envelope(binding: PlantBinding, control_period: float, points=None, 
     if aggregate not in ENVELOPE_AGGREGATES:
         raise ValueError(f"aggregate {aggregate!r} is unknown: expected one of {', '.join(ENVELOPE_AGGREGATES)}")
     input_voltage = nominal_supply(binding, input_voltage, "the envelope PI's tuning")
+    record_period = record_period_of(binding, record_period, control_period)  # a fixed-step FMU's grid
     points = envelope_points(binding.converter) if points is None else points
     scenarios = [(r, envelope_scenario(r, load, vs)) for r, load, vs in points]
     evaluations = 0

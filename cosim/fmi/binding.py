@@ -86,6 +86,9 @@ class PlantBinding:
     #: the converter under study (:mod:`cosim.converter_spec`): a binding file's ``[converter]`` table with the FMU's
     #: start values as defaults, the built-in plant's Table II; None: none given (designs then refuse, naming the key)
     spec: ConverterSpec | None = None
+    #: co-simulation only: the one communication step [s] the master steps the FMU by (a fixed-step FMU's step;
+    #: :mod:`cosim.fmi.communication`), None: any step (or, for an FMU that cannot vary it, its DefaultExperiment's)
+    step: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "roles", MappingProxyType(dict(self.roles)))
@@ -94,7 +97,7 @@ class PlantBinding:
     def __reduce__(self):  # read-only mappings do not pickle: rebuild from plain dicts (worker processes)
         return (PlantBinding, (self.fmu_path, dict(self.roles), self.interface, dict(self.parameters), self.max_step,
                                self.source, self.label, self.tag_override, self.isolate, self.step_timeout,
-                               self.memory_limit, self.spec))
+                               self.memory_limit, self.spec, self.step))
 
     def has(self, role: str) -> bool:
         return role in self.roles
@@ -127,6 +130,7 @@ class PlantBinding:
             "isolated": self.isolate,
             "step_timeout_s": self.step_timeout,
             "memory_limit_mb": self.memory_limit,
+            **({"communication_step_s": self.step} if self.step is not None else {}),
             **({"converter": self.spec.describe()} if self.spec is not None else {}),
         }
 

@@ -5,6 +5,9 @@ A binding is a small TOML file next to (or pointing at) the FMU::
     fmu = "MyBuck.fmu"              # path; relative paths are relative to this file
     interface = "co-simulation"     # or "model-exchange"; default: what the FMU offers, preferring CS
     max_step = 1e-5                 # [s] optional: the largest step the FMU accepts; longer ones are split
+    step = 1e-5                     # [s] optional, co-simulation: the one communication step the master steps the
+                                    # FMU by (a fixed-step FMU's step; default: its DefaultExperiment stepSize
+                                    # if it cannot vary its step, cosim.fmi.communication)
     label = "My buck (Modelica)"    # optional: how runs and figures name this plant
     isolate = true                  # optional (default true): step the FMU in a child process, so a crash
                                     # in it ends the run with an error instead of the workbench
@@ -67,9 +70,10 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
+from cosim.fmi.communication import can_vary_step, declared_step
 from cosim.fmi.plant_fmi2 import normalise_interface
 
-TOP_KEYS = {"fmu", "interface", "max_step", "label", "isolate", "step_timeout", "memory_limit", "roles",
+TOP_KEYS = {"fmu", "interface", "max_step", "step", "label", "isolate", "step_timeout", "memory_limit", "roles",
             "parameters", "converter"}
 ROLE_KEYS = {"variable", "scale", "offset"}
 
@@ -85,6 +89,37 @@ def _isolation_limit(data: dict, path: Path, loc: TomlLocator, key: str, unit: s
         raise ConfigError(f"{where(path, loc, key)}: {key} needs isolate = true (the workbench cannot stop an FMU "
                           "running in its own process)")
     return value
+
+
+def _communication_step(data: dict, path: Path, loc: TomlLocator, interface: str | None,
+                        max_step: float | None) -> float | None:
+    """The optional ``step`` key [s]: > 0, co-simulation only, not with ``max_step`` (which splits steps)."""
+    if "step" not in data:
+        return None
+    step = finite_number(data["step"], "step", where(path, loc, "step"))
+    if not step > 0:
+        raise ConfigError(f"{where(path, loc, 'step')}: step = {step:g} s is invalid: expected > 0 (the one "
+                          "communication step the master steps the FMU by)")
+    if interface == "model-exchange":
+        raise ConfigError(f"{where(path, loc, 'step')}: step is a co-simulation FMU's communication step, but "
+                          "interface = \"model-exchange\" (CVode chooses its own steps): drop one of them")
+    if max_step is not None:
+        raise ConfigError(f"{where(path, loc, 'step')}: step (one fixed communication step) and max_step (split longer "
+                          "steps) exclude each other: keep one")
+    return step
+
+
+def _check_fixed_step(binding: PlantBinding, checked, loc: TomlLocator) -> None:
+    """``max_step`` splits the master's steps into shorter ones: refused for a co-simulation FMU that cannot vary its
+    communication step (its ``step`` is what it needs instead)."""
+    uses_cs = binding.interface != "model-exchange" and "co-simulation" in checked.interfaces
+    if binding.max_step is None or not uses_cs or can_vary_step(checked.model_description):
+        return
+    declared = declared_step(checked.model_description)
+    hint = f" (its DefaultExperiment says {declared:g} s)" if declared else ""
+    raise ConfigError(f"{where(binding.source, loc, 'max_step')}: max_step splits steps into shorter ones, but "
+                      f"{binding.fmu_path.name} cannot vary its communication step (canHandleVariableCommunicationStep"
+                      f"Size = false): give its fixed step as step = ... instead{hint}")
 
 
 def fmu_path_of(data: dict, path: Path, loc: TomlLocator) -> Path:
@@ -202,6 +237,7 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
         max_step = finite_number(data["max_step"], "max_step", where(path, loc, "max_step"))
         if max_step <= 0:
             raise ConfigError(f"{where(path, loc, 'max_step')}: max_step = {max_step} s is invalid: expected > 0")
+    step = _communication_step(data, path, loc, interface, max_step)
     label = data.get("label", f"{fmu_path.stem} (bound by {path.name})")
     if not isinstance(label, str):
         raise ConfigError(f"{where(path, loc, 'label')}: label has the wrong type: expected text")
@@ -226,7 +262,7 @@ def parse_binding(text: str, path: Path) -> PlantBinding:
     checked = checked_fmu_of(fmu_path, path, loc)
     binding = PlantBinding(fmu_path=fmu_path, roles=roles, interface=interface, parameters=parameters,
                            max_step=max_step, source=path, label=label, isolate=isolate, step_timeout=step_timeout,
-                           memory_limit=memory_limit)
+                           memory_limit=memory_limit, step=step)
     _check_variables(binding, checked, loc)
     binding = replace(binding, spec=converter_spec(data.get("converter"), binding, checked.model_description, loc))
     problems = unit_problems(binding, checked.model_description)
@@ -324,6 +360,7 @@ def _check_variables(binding: PlantBinding, checked, loc: TomlLocator) -> None:
     """The roles and parameters against the FMU (the plant's own checks, :func:`check_against`),
     and the interface."""
     check_against(binding, checked, loc, INPUT_ROLES)
+    _check_fixed_step(binding, checked, loc)
     wanted_interface = binding.interface
     if wanted_interface is not None and wanted_interface not in checked.interfaces:
         raise ConfigError(f"{where(binding.source, loc, 'interface')}: interface {wanted_interface!r} is not "

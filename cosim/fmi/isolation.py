@@ -29,6 +29,7 @@ from typing import Mapping, Sequence
 from cosim.base.errors import ConfigError, FmuArchiveError, PlantError, WorkbenchError
 from cosim.fmi.archive import CheckedFmu, check_fmu
 from cosim.fmi.binding import PlantBinding, is_float
+from cosim.fmi.communication import CommunicationStep, communication_step
 from cosim.fmi.plant_fmi2 import (
     CO_SIMULATION,
     FATAL_REFUSAL,
@@ -111,7 +112,7 @@ def _serve(connection, binding: PlantBinding, interface: str, relative_tolerance
             checked = check_fmu(binding.fmu_path)
             plant = open_in_process(binding, checked, choose_interface(checked, interface, binding.origin),
                                     relative_tolerance, instance_name, unzip_dir)
-            connection.send(("ok", plant.variable_step))
+            connection.send(("ok", None))
         except WorkbenchError as error:  # opening failed
             connection.send(("error", type(error).__name__, str(error), False))
             return
@@ -155,6 +156,8 @@ def _answer_request(plant, states: dict, request: tuple):
         return plant.initialize(request[1], request[2], request[3])
     if kind == "reset":
         return plant.reset()
+    if kind == "use_step":
+        return plant.use_step(request[1])
     if kind == "replace_parameters":
         return plant.replace_parameters(request[1])
     if kind == "trial_parameters":
@@ -199,7 +202,7 @@ class IsolatedPlant:
             child.close()
             if not self._connection.poll(START_TIMEOUT):
                 raise PlantError(f"{binding.origin}: the plant process did not start within {START_TIMEOUT:g} s")
-            self.variable_step = self._answer("opening the FMU", START_TIMEOUT)
+            self._answer("opening the FMU", START_TIMEOUT)
         except BaseException:
             self._stop()
             raise
@@ -324,6 +327,15 @@ class IsolatedPlant:
         self._call("resetting", "reset")
         self._initialized = False
         self.time = self._child_time = 0.0
+
+    @property
+    def communication(self) -> CommunicationStep:
+        """As :attr:`cosim.fmi.plant_fmi2.FmuPlant.communication` (read off the binding and model description)."""
+        return communication_step(self.binding, self.model_description, self.interface)
+
+    def use_step(self, step: float | None) -> None:
+        self._refuse_if_dead()
+        self._call("setting the communication step", "use_step", step)
 
     def set_inputs(self, values: Sequence[float]) -> None:
         self._queue.append(("set", list(values)))

@@ -43,6 +43,7 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
+from cosim.fmi.communication import CommunicationStep, communication_step, steps_in
 from cosim.fmi.fmu_log import STATUS_NAMES, callbacks_for, release
 
 FATAL_STATUS = 4
@@ -174,9 +175,13 @@ class FmuPlant:
         return self._initialized
 
     @property
-    def variable_step(self) -> bool:
-        """Can the master use communication steps of different lengths? (model exchange: always)"""
-        return True
+    def communication(self) -> CommunicationStep:
+        """How the master may step this plant (:mod:`cosim.fmi.communication`; model exchange: any step)."""
+        return communication_step(self.binding, self.model_description, self.interface)
+
+    def use_step(self, step: float | None) -> None:
+        """Step by ``step`` [s] only, until told otherwise (None: from one instant to the next, however long): a
+        fixed-step FMU's communication step for a run (model exchange has none)."""
 
     def _last_log_suffix(self) -> str:
         """``": <the FMU's last error, discard or warning message>"`` (on one line), or nothing."""
@@ -406,25 +411,41 @@ class CoSimulationPlant(FmuPlant):
     def _model_identifier(self) -> str:
         return self.model_description.coSimulation.modelIdentifier
 
+    _fixed_step: float | None = None  # [s] the run's one communication step (use_step), None: any
+
     def _instantiate(self, instance_name: str) -> None:
         super()._instantiate(instance_name)
         self._do_step = self._fmu.dll.fmi2DoStep
 
-    @property
-    def variable_step(self) -> bool:
-        return bool(self.model_description.coSimulation.canHandleVariableCommunicationStepSize)
+    def use_step(self, step: float | None) -> None:
+        self._fixed_step = step
 
     def advance_to(self, t_next: float) -> None:
         t0 = self.time
         if t_next <= t0:
             return
-        if not self.binding.max_step:  # the common case, kept lean: one call
+        if self._fixed_step is not None:
+            self._advance_fixed(t0, t_next, self._fixed_step)
+        elif not self.binding.max_step:  # the common case, kept lean: one call
             status = self._do_step(self._component, t0, t_next - t0, fmi2True)
             if status > 1:
                 raise self._fail(self._step_call, status, at=t0)
         else:
             self._advance_in_pieces(t0, t_next, self.binding.max_step)
         self.time = t_next
+
+    def _advance_fixed(self, t0: float, t_next: float, step: float) -> None:
+        """From ``t0`` to ``t_next`` in steps of exactly ``step`` [s], each from a multiple of it (the master checked
+        before the run that every instant lies on that grid: :func:`cosim.master.check_communication_step`)."""
+        count = steps_in(t_next - t0, step)
+        if count is None:
+            raise PlantError(f"{self.binding.origin}: cannot step from t = {t0:.9g} s to {t_next:.9g} s in whole "
+                             f"communication steps of {step:.6g} s (the FMU's fixed step)")
+        first = round(t0 / step)
+        for i in range(count):
+            status = self._do_step(self._component, (first + i) * step, step, fmi2True)
+            if status > 1:
+                raise self._fail(self._step_call, status, at=(first + i) * step)
 
     def _advance_in_pieces(self, t0: float, t_next: float, max_step: float) -> None:
         h = t_next - t0

@@ -98,7 +98,7 @@ def plan_study(binding_file: str | Path, control_periods: tuple[float, ...] = ()
         raise ConfigError(f"--seeds {count} is invalid: expected at least 1 identification seed")
     for period in periods:
         scenarios = [s for s in scenarios_for(period, spec=spec) if s.required_roles() <= set(binding.roles)]
-        Batch(binding, scenarios).check_rates(period, 1e-5)
+        Batch(binding, scenarios).check_rates(period)
     return StudyPlan(binding_file, tuple(dict.fromkeys(periods)), tuple(range(count)), quick)
 
 
@@ -196,6 +196,7 @@ def run_envelope_map(plan: StudyPlan, binding, out_dir: Path, workers: int, resu
 
     from cosim.base.labels import period_text
     from cosim.design.sweeps.spec import PlantChoice
+    from cosim.master import record_period_of
     from cosim.study import envelope
     from cosim.study.reproduce import log
 
@@ -210,7 +211,8 @@ def run_envelope_map(plan: StudyPlan, binding, out_dir: Path, workers: int, resu
     entries = map_entries(out_dir, binding.tag, period, plan.seeds, settings.settle_predictive)
     log(f"  envelope map: {settings.points} points x 2 steps x {len(entries)} controllers at {period_text(period)}")
     steps = envelope.run_entries(entries, folder, settings, workers, plant=PlantChoice(binding=plan.binding_file),
-                                 control_period=period, record_period=period / 4)
+                                 control_period=period,
+                                 record_period=record_period_of(binding, period / 4, period))
     envelope.write_tables(steps, out_dir)
     envelope.figures(steps, out_dir, where=f"{binding.label} at {period_text(period, ascii_only=True)}",
                      nominal_supply=settings.nominal[2])

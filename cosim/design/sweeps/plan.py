@@ -28,7 +28,7 @@ from cosim.design.sweeps.recipes import ControllerRecipe, PlantRecipe
 from cosim.design.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
-from cosim.master import check_plant_supports
+from cosim.master import check_communication_step, check_plant_supports, communication_of, record_period_of
 from cosim.scenarios import Scenario, reference_above_supply, unreachable_text
 
 RUN_ID_FORMAT = "buck-cosim sweep run 1"
@@ -172,13 +172,16 @@ def check_axes(spec: SweepSpec, binding: PlantBinding) -> list[AxisInfo]:
     return infos
 
 
-def check_rates(spec: SweepSpec) -> None:
+def check_rates(spec: SweepSpec, binding: PlantBinding) -> None:
     """The sweep's control and record periods against every scenario, with each controller's own settle
     time: the check ``buck-cosim run`` makes (:meth:`cosim.batch.Batch.check_rates`: enough controller
     samples in the recorded time, not too many instants: :func:`cosim.timeline.plan_timeline`), before any work
-    rather than in every run on a worker. The message names the sweep's key and line, then the scenario's own
-    cause."""
+    rather than in every run on a worker; and the grid against a fixed-step plant FMU's communication step
+    (:func:`cosim.master.check_communication_step`). The message names the sweep's key and line, then the
+    scenario's own cause."""
     from cosim.timeline import plan_timeline
+
+    communication = communication_of(binding)
 
     settles: dict[float | None, int] = {}  # a settle time the runs use (None: the scenarios' own) -> its controller
     for index, controller in enumerate(spec.controllers):
@@ -187,7 +190,7 @@ def check_rates(spec: SweepSpec) -> None:
         for scenario in spec.scenarios:
             run_as = scenario if settle is None else replace(scenario, settle=settle)
             try:
-                plan_timeline(run_as, spec.control_period, spec.record_period)
+                timeline = plan_timeline(run_as, spec.control_period, spec.record_period)
             except ConfigError as error:
                 try:  # the control period alone, at the fewest instants a record period can give
                     plan_timeline(run_as, spec.control_period, run_as.duration)
@@ -197,6 +200,10 @@ def check_rates(spec: SweepSpec) -> None:
                 given = "" if key in spec.places else " (the default)"
                 own = "" if settle is None else f" with controllers[{index}].settle = {settle:g} s"
                 raise ConfigError(f"{spec.place(key)}: {key} = {value:.6g} s{given}{own}: {error}") from None
+            try:
+                check_communication_step(communication, timeline, run_as, binding.origin)
+            except ConfigError as error:
+                raise ConfigError(f"{spec.place('plant')}: {error}") from None
 
 
 def anchor_value(scenario: Scenario, signal: str, anchor: str = "initial") -> float:
@@ -231,10 +238,12 @@ class SweepPlan:
     """The spec checked against its plant, and every run's values (drawn once, here)."""
 
     def __init__(self, spec: SweepSpec, binding: PlantBinding | None = None):
-        self.spec = spec
         self.binding = binding or nominal_binding(spec)
+        if "record_period" not in spec.places:  # the default 10 us, or the nearest multiple of a fixed-step FMU's step
+            spec = replace(spec, record_period=record_period_of(self.binding, spec.record_period, spec.control_period))
+        self.spec = spec
         self.axes = check_axes(spec, self.binding)
-        check_rates(spec)
+        check_rates(spec, self.binding)
         oracle = next((c for c in spec.controllers if c.kind == "mpc-oracle"), None)
         if oracle is not None and any(a.group == "parameters" for a in spec.axes):
             raise ConfigError(f"{oracle.place}: mpc-oracle knows the nominal plant's circuit only, and [parameters] "

@@ -46,6 +46,7 @@ class PlantRecipe:
     #: the converter spec (cosim.converter_spec) the controllers are designed for and start from; not part of
     #: identity(): it decides no plant response (the controllers' recipes hold what they take from it)
     spec: ConverterSpec | None = None
+    step: float | None = None  # co-simulation: the one communication step [s] (the binding's ``step``)
 
     @classmethod
     def of(cls, binding: PlantBinding) -> "PlantRecipe":
@@ -55,7 +56,7 @@ class PlantRecipe:
                    parameters=tuple(sorted(binding.parameters.items())), interface=binding.interface,
                    max_step=binding.max_step, source=str(binding.source) if binding.source else None,
                    label=binding.label, tag=binding.tag, isolate=binding.isolate, step_timeout=binding.step_timeout,
-                   memory_limit=binding.memory_limit, spec=binding.spec)
+                   memory_limit=binding.memory_limit, spec=binding.spec, step=binding.step)
 
     @cached_property
     def fmu_digest(self) -> str:
@@ -67,13 +68,13 @@ class PlantRecipe:
                             interface=self.interface, parameters=dict(self.parameters), max_step=self.max_step,
                             source=Path(self.source) if self.source else None, label=self.label,
                             tag_override=self.tag, isolate=self.isolate, step_timeout=self.step_timeout,
-                            memory_limit=self.memory_limit, spec=self.spec)
+                            memory_limit=self.memory_limit, spec=self.spec, step=self.step)
 
     def identity(self) -> dict:
         """What decides a run's result (not where the files are)."""
         return {"fmu_sha256": self.fmu_digest, "roles": [list(r) for r in self.roles],
                 "parameters": {k: v for k, v in self.parameters}, "interface": self.interface,
-                "max_step": self.max_step}
+                "max_step": self.max_step, **({"step": self.step} if self.step is not None else {})}
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,7 @@ def _close_all(cache: dict) -> None:
 
 
 def _plant_key(recipe: PlantRecipe) -> tuple:
-    return ("plant", recipe.fmu_digest, recipe.roles, recipe.parameters, recipe.interface, recipe.max_step)
+    return ("plant", recipe.fmu_digest, recipe.roles, recipe.parameters, recipe.interface, recipe.max_step, recipe.step)
 
 
 def _plant(recipe: PlantRecipe):
