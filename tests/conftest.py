@@ -5,7 +5,9 @@ tests of failures."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -352,6 +354,46 @@ def script_refusal(name: str, argv: list[str], capsys) -> tuple[int, str]:
     with pytest.raises(SystemExit) as stopped:
         script(name).main(argv)
     return stopped.value.code, capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def interrupt_on(process: subprocess.Popen, marker: str, timeout: float = 300.0, times: int = 2) -> tuple[int, str]:
+    """Send SIGTERM to ``process`` once ``marker`` has shown ``times`` times on its stderr -- the event the test is
+    about, e.g. ``step/s``: the progress bar of a run that has been stepping for a second -- not after a fixed time,
+    which a busy machine outruns; then wait for it to end. Returns (exit code, everything it wrote to stderr). Too few
+    markers within ``timeout`` seconds (or an end before them) fail the test, naming what it wrote.
+
+    Twice by default: tqdm notes that it has drawn a bar only after drawing it, so an interrupt right after the first
+    drawing finds a bar it believes was never shown and leaves it on the line, before the one-line error."""
+    import threading
+
+    chunks: list[str] = []
+    seen = threading.Event()
+
+    def pump() -> None:  # stderr as it comes: tqdm ends its updates with "\r", not a newline
+        while data := os.read(process.stderr.fileno(), 4096):
+            chunks.append(data.decode("utf-8", "replace"))
+            if "".join(chunks).count(marker) >= times:
+                seen.set()
+        seen.set()
+
+    reader = threading.Thread(target=pump, daemon=True)
+    reader.start()
+    seen.wait(timeout)
+    if process.poll() is not None or "".join(chunks).count(marker) < times:
+        process.kill()
+        process.wait(timeout=60)
+        raise AssertionError(f"no {marker!r} on stderr within {timeout:g} s (exit {process.returncode}): "
+                             f"{''.join(chunks)[-2000:]}")
+    process.send_signal(signal.SIGTERM)
+    process.wait(timeout=120)
+    reader.join(timeout=30)
+    return process.returncode, "".join(chunks)
+
+
+def message_lines(stderr: str) -> list[str]:
+    """The non-blank lines of ``stderr`` that are not progress bars (tqdm's, which hold ``/s``, or its clearing)."""
+    return [line for line in stderr.replace("\r", "\n").splitlines()
+            if line.strip() and not re.search(r"(step|it|eval|run)/s\]|\|\s*\d+/\d+", line)]
 
 
 def no_temporary_files(folder: Path) -> None:

@@ -422,3 +422,14 @@ def test_after_an_interrupt_a_half_built_dask_future_is_not_reported_and_other_f
     del other
     gc.collect()
     assert "a finalizer of the workbench's own" in capsys.readouterr().err
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(monkeypatch, capsys, buck_fmu):
+    """``buck-cosim inspect X.fmu | head``: the pipe closes after the first lines -- a normal end (exit 0, nothing on
+    stderr), not "error: Broken pipe"."""
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the first line
+    closed = os.fdopen(write, "w", buffering=1)  # line-buffered: the first line already meets the closed pipe
+    monkeypatch.setattr(sys, "stdout", closed)
+    assert main(["inspect", str(buck_fmu)]) == 0
+    assert capsys.readouterr().err == ""

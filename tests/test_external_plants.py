@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import struct
 import subprocess
@@ -10,7 +11,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from conftest import PLANT_CONVERTER, cli, one_line_error
+from conftest import CORPUS, PLANT_CONVERTER, cli, one_line_error, role_named_binding
 
 from cosim.base.errors import ConfigError, FmuArchiveError, WorkbenchError
 from cosim.cli import main
@@ -226,6 +227,22 @@ def _fmu_with(tmp_path: Path, name: str, members: dict[str, bytes]) -> Path:
     return path
 
 
+def damaged_copy(fmu: Path, path: Path) -> Path:
+    """``fmu`` with one byte of its shared library's data flipped: the zip directory, modelDescription.xml and every
+    header sound, the library's bytes no longer matching their CRC-32 (a file damaged on disk or in transfer)."""
+    with zipfile.ZipFile(fmu) as source, zipfile.ZipFile(path, "w") as target:
+        for info in source.infolist():  # stored, not deflated: the flipped byte stays a readable byte
+            target.writestr(info.filename, source.read(info.filename), zipfile.ZIP_STORED)
+    with zipfile.ZipFile(path) as archive:
+        info = next(i for i in archive.infolist() if i.filename.endswith(".so"))
+    data = bytearray(path.read_bytes())
+    name_length, extra_length = struct.unpack("<HH", data[info.header_offset + 26:info.header_offset + 30])
+    middle = info.header_offset + 30 + name_length + extra_length + info.file_size // 2
+    data[middle] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return path
+
+
 MD = '<?xml version="1.0"?><fmiModelDescription fmiVersion="{v}" modelName="x" guid="{{1}}"/>'
 
 
@@ -249,6 +266,8 @@ def _crafted(tmp_path: Path, buck_fmu: Path, kind: str) -> Path:
         data[entry + 24:entry + 28] = struct.pack("<I", 0xFFFFFFF0)
         path.write_bytes(bytes(data))
         return path
+    if kind == "damaged member":
+        return damaged_copy(buck_fmu, tmp_path / "damaged.fmu")
     if kind == "fmi1":
         return _fmu_with(tmp_path, "fmi1.fmu", {"modelDescription.xml": MD.format(v="1.0")})
     if kind == "fmi4":
@@ -272,6 +291,8 @@ def _crafted(tmp_path: Path, buck_fmu: Path, kind: str) -> Path:
     ("absolute member", r"member '/etc/evil' is an absolute path; refusing to extract it"),
     ("climbing member", r"member '../../evil.so' climbs out of the archive"),
     ("huge", r"huge.fmu would expand to 4096 MiB, more than the limit of 1024 MiB"),
+    ("damaged member", r"damaged.fmu is damaged: member 'binaries/linux64/BuckConverter.so' does not match its "
+                       r"CRC-32 checksum \(the archive was corrupted on disk or in transfer\)"),
     ("fmi1", r"fmi1.fmu is FMI 1.0; the workbench supports FMI 2.0"),
     ("fmi4", r"fmi4.fmu is FMI 4.0; the workbench supports FMI 2.0 and FMI 3.0"),
     ("no binary", r"source.fmu has no linux64 binary for its interfaces \(co-simulation, model-exchange\); binaries present: none"),
@@ -296,3 +317,53 @@ def test_a_measured_voltage_without_a_measured_load_current_is_warned_about(pyth
     assert "plant.toml: [roles.measured_output_voltage] is bound but [roles.measured_load_current] is not" in warning
     load_binding(write(python_binding.parent, text + '\n[roles.measured_load_current]\nvariable = "Iout"\n'))
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("isolate", ["--isolate", "--no-isolate"])
+def test_a_damaged_fmu_is_refused_in_one_line_and_nothing_is_left_behind(tmp_path, buck_fmu, isolate):
+    """A member whose bytes fail their CRC: refused at the binding's fmu line, exit 2, before anything is extracted
+    (no partly unpacked FMU in the temporary folder), with the plant process or without."""
+    fmu = damaged_copy(buck_fmu, tmp_path / "Damaged.fmu")
+    binding = write(tmp_path, role_named_binding(fmu, parameters=""), "damaged.toml")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    done = cli("run", "startup", "--plant", str(binding), isolate, "--kp", "0", "--ki", "14", "--out",
+               str(tmp_path / "out"), env={**os.environ, "TMPDIR": str(scratch)})
+    line = one_line_error(done, 2, f"damaged.toml:1: FMU {fmu} is damaged: member 'binaries/linux64/BuckConverter.so' "
+                                   "does not match its CRC-32 checksum")
+    assert str(binding) in line
+    assert list(scratch.iterdir()) == [] and not (tmp_path / "out" / "runs").exists()
+
+
+def test_an_input_role_bound_to_a_fixed_parameter_is_refused_at_its_line(python_binding, tmp_path):
+    """The duty written into the capacitance (a fixed parameter: the FMU takes it only before initialisation) would
+    run silently on a lax FMU: refused when the binding is read, at the role's variable line, exit 2."""
+    text = python_binding.read_text().replace('[roles.duty_cycle]\nvariable = "D"', '[roles.duty_cycle]\nvariable = "C"')
+    write(tmp_path, text)
+    done = cli("run", "startup", "--plant", str(python_binding), "--kp", "0", "--ki", "14", "--out",
+               str(tmp_path / "out"))
+    one_line_error(done, 2, f"{python_binding}:5: role 'duty_cycle' is set by the workbench during the run, so it needs "
+                            "an input or a tunable parameter, but 'C' is a parameter with variability fixed (the FMU "
+                            "takes it only before initialisation)")
+    assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_a_draft_binding_guesses_from_declared_units_where_names_say_nothing(tmp_path):
+    """An FMI 3.0 FMU with opaque names and declared units (% V Ohm V mA): every role its units single out is
+    guessed, with the scale its unit implies, and the command says which guesses came from units alone."""
+    from pythonfmu3.builder import FmuBuilder
+
+    fmu = Path(FmuBuilder.build_FMU(CORPUS / "unit_named_buck3.py", dest=tmp_path,
+                                    project_files=[CORPUS / "buck_math.py"], canHandleVariableCommunicationStepSize=True))
+    done = cli("inspect", str(fmu), "--draft-binding", str(tmp_path / "draft.toml"))
+    assert done.returncode == 0, done.stderr
+    assert ("guessed from the declared units alone (no name matched): duty_cycle = command (scale 100), input_voltage "
+            "= rail, load_resistance = sink, output_voltage = terminal, inductor_current = winding (scale 1000)"
+            in done.stdout)
+    text = (tmp_path / "draft.toml").read_text()
+    assert "[roles.duty_cycle]   # guessed from unit % alone (the only input in a duty unit" in text
+    draft = load_binding(tmp_path / "draft.toml")
+    assert {r: (m.variable, m.scale) for r, m in draft.roles.items()} == {
+        "duty_cycle": ("command", 100.0), "input_voltage": ("rail", 1.0), "load_resistance": ("sink", 1.0),
+        "output_voltage": ("terminal", 1.0), "inductor_current": ("winding", 1000.0)}
+    assert "warning" not in done.stderr  # every guessed role declares its unit: no unitless-scale warning

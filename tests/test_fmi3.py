@@ -509,3 +509,27 @@ def test_export_ssp_builds_a_named_controller_in_the_fmi_version_asked_for(tmp_p
     loop = read_ssp(tmp_path / "loop.ssp")
     assert {name: c.fmi_version for name, c in loop.components.items()} == \
         {"scenario": f"{version}.0", "controller": f"{version}.0", "plant": f"{version}.0"}
+
+
+def test_the_fmi3_edition_names_fmi3_functions_in_its_messages(buck_fmu3):
+    """The model is written against the FMI 2.0 API; its FMI 3.0 edition's messages name what the caller called."""
+    from fmpy.fmi1 import FMICallException
+    from fmpy.fmi3 import FMU3Slave
+
+    md = fmpy.read_model_description(str(buck_fmu3))
+    messages = []
+    unzipped = fmpy.extract(str(buck_fmu3))
+    fmu = FMU3Slave(guid=md.guid, unzipDirectory=unzipped, modelIdentifier=md.coSimulation.modelIdentifier,
+                    instanceName="names")
+    fmu.instantiate(loggingOn=True, logMessage=lambda env, status, category, message: messages.append(message.decode()))
+    try:
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+        frequency = next(v.valueReference for v in md.modelVariables if v.name == "switching_frequency")
+        with pytest.raises(FMICallException):
+            fmu.setFloat64([frequency], [1e5])
+    finally:
+        fmu.freeInstance()
+        shutil.rmtree(unzipped, ignore_errors=True)
+    assert messages[-1] == "fmi3SetFloat64: switching_frequency can only be set before fmi3ExitInitializationMode"
+    assert not any("fmi2" in m for m in messages)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -13,7 +12,15 @@ from dataclasses import replace
 
 import pyarrow.parquet as pq
 import pytest
-from conftest import cli, faulty_binding, no_temporary_files, one_line_error, role_named_binding
+from conftest import (
+    cli,
+    faulty_binding,
+    interrupt_on,
+    message_lines,
+    no_temporary_files,
+    one_line_error,
+    role_named_binding,
+)
 
 from cosim.results import read_run
 from cosim.study.vocabulary import PAPER_SPEC
@@ -248,27 +255,19 @@ def test_a_controller_fault_in_a_batch_writes_the_partial_run(tmp_path):
 
 
 def _start(*args, cwd=None):
-    return subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=cwd, stdin=subprocess.DEVNULL)
-
-
-def _terminate_after(process, seconds: float):
-    time.sleep(seconds)
-    assert process.poll() is None, "finished before the interrupt: make the workload longer"
-    process.send_signal(signal.SIGTERM)
-    out, err = process.communicate(timeout=120)
-    return process.returncode, err
+    """The command with its progress bars on stderr (the events the interrupts below wait for)."""
+    return subprocess.Popen([sys.executable, "-m", "cosim.cli", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, cwd=cwd, stdin=subprocess.DEVNULL)
 
 
 def test_sigterm_during_a_run_keeps_the_rows_marked_incomplete(tmp_path):
     scenario = tmp_path / "long.toml"
     scenario.write_text('name = "long"\nduration = 500.0\n[initial]\nreference = 12.0\n')
-    for wait in (6.0, 15.0, 40.0):  # a loaded machine may still be setting up after 6 s: then wait longer
-        process = _start("run", str(scenario), "--kp", "0", "--ki", "14", "--out", str(tmp_path / "out"))
-        code, err = _terminate_after(process, wait)
-        if "error: interrupted; files already complete were kept" not in err:  # the interrupt came mid-run
-            break
-    assert code == 130 and "error: run long / PI interrupted at t = " in err and "Traceback" not in err
+    process = _start("run", str(scenario), "--kp", "0", "--ki", "14", "--out", str(tmp_path / "out"))
+    code, err = interrupt_on(process, "step/s")  # the run's progress bar: it has been stepping for a second
+    assert code == 130 and "Traceback" not in err
+    [line] = message_lines(err)
+    assert line.startswith("error: run long / PI interrupted at t = "), err
     run = read_run(tmp_path / "out" / "runs" / "long__pi__nominal-averaged__1ms.parquet")
     assert run.metadata["complete"] is False and run.metadata["error"].startswith("interrupted at t = ")
     assert len(run.frame) > 1000
@@ -282,7 +281,7 @@ def test_sigterm_during_data_collection_writes_no_data_file(tmp_path):
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached, so the run goes straight to collecting
     process = _start("collect-data", "--samples", "20000000", "--work-dir", str(tmp_path), "--out",
                      str(tmp_path / "data.parquet"))
-    code, err = _terminate_after(process, 6.0)
+    code, err = interrupt_on(process, "step/s")  # the collection's run is under way
     assert code == 130 and "interrupted" in err and "Traceback" not in err
     assert not (tmp_path / "data.parquet").exists()
     no_temporary_files(tmp_path)
@@ -301,7 +300,7 @@ def test_sigterm_during_training_writes_no_model_file(tmp_path):
     write_parquet(frame, {"control_period_s": 1e-3}, tmp_path / "data.parquet")
     process = _start("train", str(tmp_path / "data.parquet"), "--hidden", "64", "64", "--out",
                      str(tmp_path / "model.pt"))
-    code, err = _terminate_after(process, 7.0)
+    code, err = interrupt_on(process, "it/s")  # the training's progress bar: iterations under way
     assert code == 130 and "interrupted" in err and "Traceback" not in err
     assert not (tmp_path / "model.pt").exists()
     no_temporary_files(tmp_path)

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import cli, faulty_binding, one_line_error, role_named_binding
+from conftest import cli, faulty_binding, interrupt_on, message_lines, one_line_error, role_named_binding
 
 from controllers.nn_config import NNConfig, TrainingSettings
 from controllers.nn_model import _checksum, load_model, save_model, train
@@ -301,20 +301,12 @@ def test_an_interrupted_data_collection_says_that_nothing_was_written(tmp_path):
     from cosim.design.plants import plant_binding
 
     tuned_pi(plant_binding("nominal", "averaged"), 1e-3, tmp_path)  # cached: the command goes straight to collecting
-    private_tmp = tmp_path / "tmp"  # where fmpy extracts the plant FMU: a folder appears once collecting starts
-    private_tmp.mkdir()
-    process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "--no-progress", "collect-data", "--samples",
-                                "300000", "--work-dir", str(tmp_path), "--out", str(tmp_path / "d.parquet")],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
-                               env={**os.environ, "TMPDIR": str(private_tmp)})
-    deadline = time.monotonic() + 120.0
-    while not any(private_tmp.iterdir()) and time.monotonic() < deadline and process.poll() is None:
-        time.sleep(0.1)
-    time.sleep(2.0)  # well into the collection (300 000 samples, 300 s of plant time, take many seconds)
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 130
-    lines = [line for line in err.splitlines() if line.strip()]
+    process = subprocess.Popen([sys.executable, "-m", "cosim.cli", "collect-data", "--samples", "300000",
+                                "--work-dir", str(tmp_path), "--out", str(tmp_path / "d.parquet")],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
+    code, err = interrupt_on(process, "step/s")  # the collection's progress bar: well into the collection
+    assert code == 130
+    lines = message_lines(err)
     assert len(lines) == 1 and "data collection interrupted at t = " in lines[0] and "no data file written" in \
         lines[0] and "rows kept" not in lines[0], err
     assert not (tmp_path / "d.parquet").exists()

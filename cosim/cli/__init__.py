@@ -12,6 +12,7 @@ and the dispatch (signals, one-line errors, exit codes) are here, in one place.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 
@@ -65,6 +66,14 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def _discard_stdout() -> None:
+    """Point stdout at /dev/null: Python flushes it again at exit, which would fail on the closed pipe once more."""
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -78,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
         _interrupted()
         print("error: interrupted; files already complete were kept and none is half-written", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of the output went away (``| head``): a normal end, not an error
+        _discard_stdout()
+        return 0
     except OSError as error:  # a file system refusal (disk full, permissions): one line, not a traceback
         where = f"{error.filename}: " if error.filename else ""
         print(f"error: {where}{error.strerror or error}", file=sys.stderr)

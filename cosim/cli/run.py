@@ -123,10 +123,16 @@ def cmd_inspect(args) -> int:
         return 0
     print(describe_fmu(args.fmu))
     if args.draft_binding:
-        from cosim.fmi.binding_file import unitless_guesses, write_draft_binding
+        from cosim.fmi.archive import check_fmu
+        from cosim.fmi.binding_file import guess_roles, unitless_guesses, write_draft_binding
 
         path = write_draft_binding(args.fmu, args.draft_binding)
         print(f"wrote a draft binding to {path}: the roles are guesses, check every one before use")
+        by_unit = [f"{role} = {name}" + (f" (scale {scale:g})" if scale != 1 else "")
+                   for role, (name, scale, reason) in guess_roles(check_fmu(args.fmu).model_description).items()
+                   if not reason.startswith("name")]
+        if by_unit:
+            print(f"guessed from the declared units alone (no name matched): {', '.join(by_unit)}")
         unitless = unitless_guesses(args.fmu)
         if unitless:
             print(f"warning: {path}: the FMU declares no unit for {', '.join(unitless)}: the draft assumes a duty "

@@ -2,13 +2,15 @@
 
 Loading an FMU runs its native code in this process, so an archive is refused early, with one
 line naming the problem, if it is not a zip, has members that would land outside the extraction
-folder, would expand to an unreasonable size, is neither FMI 2.0 nor FMI 3.0, or has no binary for this
+folder, would expand to an unreasonable size, has a member whose bytes do not match their CRC-32 (a damaged
+file), is neither FMI 2.0 nor FMI 3.0, or has no binary for this
 platform (FMI 2.0 keeps it under ``binaries/linux64/``, FMI 3.0 under ``binaries/x86_64-linux/``).
 """
 
 from __future__ import annotations
 
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from xml.etree import ElementTree
@@ -47,6 +49,30 @@ def _member_problem(name: str) -> str | None:
     return None
 
 
+#: archives whose members' bytes were verified, by (path, size, modification time): a file that changes is read again
+_VERIFIED: set[tuple[str, int, int]] = set()
+
+
+def _check_member_bytes(path: Path, archive: zipfile.ZipFile) -> None:
+    """Every member's bytes against the CRC-32 its zip directory records (``ZipFile.testzip``), so a damaged member --
+    a shared library corrupted on disk or in transfer -- is refused naming it before anything is extracted or loaded
+    (fmpy's extraction would fail half-way, leaving a partly unpacked FMU behind). Done once per unchanged file."""
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key in _VERIFIED:
+        return
+    try:
+        damaged = archive.testzip()
+    except zipfile.BadZipFile as error:
+        raise FmuArchiveError(f"FMU {path} is a damaged zip archive ({error})") from None
+    except (EOFError, OSError, zlib.error, NotImplementedError) as error:
+        raise FmuArchiveError(f"FMU {path} has a member that cannot be read ({type(error).__name__}: {error})") from None
+    if damaged is not None:
+        raise FmuArchiveError(f"FMU {path} is damaged: member {damaged!r} does not match its CRC-32 checksum (the "
+                              "archive was corrupted on disk or in transfer): copy or build the FMU again")
+    _VERIFIED.add(key)
+
+
 def _binary_platforms(names: list[str]) -> tuple[str, ...]:
     platforms = {
         parts[1]
@@ -81,6 +107,7 @@ def check_fmu(path: str | Path, max_uncompressed_bytes: int = MAX_UNCOMPRESSED_B
                 )
             if "modelDescription.xml" not in names:
                 raise FmuArchiveError(f"FMU {path} has no modelDescription.xml at the top level")
+            _check_member_bytes(path, archive)
             xml = archive.read("modelDescription.xml")
     except zipfile.BadZipFile as error:
         raise FmuArchiveError(f"FMU {path} is a damaged zip archive ({error})") from None

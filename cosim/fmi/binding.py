@@ -281,7 +281,8 @@ def apply_parameters(fmu, parameters) -> None:
 
 def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[str, ResolvedRole]:
     """Each bound role's variable: it exists, is Real, has a causality that fits the role (an
-    ``input_roles`` role: input or parameter; any other: output or local), and the role's scale
+    ``input_roles`` role: input or tunable parameter -- the workbench writes it during the run -- except a controller's
+    own settings, such as its sample period, any parameter; any other: output or local), and the role's scale
     is finite and non-zero. Raises :class:`BindingMismatch` naming the role. ``binding``: a plant
     or a controller binding (anything with ``roles`` and ``fmu_path``)."""
     variables = {v.name: v for v in model_description.modelVariables}
@@ -306,6 +307,11 @@ def resolve_roles(binding, model_description, input_roles=INPUT_ROLES) -> dict[s
         if variable.causality not in wanted:
             raise BindingMismatch(f"role {role!r} needs causality {' or '.join(wanted)}, but {mapping.variable!r} "
                                   f"has causality {variable.causality}", "role", role)
+        if variable.causality == "parameter" and role not in CONTROLLER_PARAMETER_ROLES \
+                and variable.variability != "tunable":  # the workbench writes it during the run
+            raise BindingMismatch(f"role {role!r} is set by the workbench during the run, so it needs an input or a "
+                                  f"tunable parameter, but {mapping.variable!r} is a parameter with variability "
+                                  f"{variable.variability} (the FMU takes it only before initialisation)", "role", role)
         if mapping.scale == 0.0 or not math.isfinite(mapping.scale) or not math.isfinite(mapping.offset):
             raise BindingMismatch(f"role {role!r} has scale {mapping.scale} / offset {mapping.offset}; expected a "
                                   "finite, non-zero scale and a finite offset", "role", role)

@@ -434,7 +434,9 @@ _PATTERNS = {
     "inductor_current": (r"i_?l\b|i_?l_|^il|inductor.*i|i_?ind|l\.i$|inductor_?current", ("A", "mA", "")),
     "load_current": (r"i_?out|i_?o$|i_?load|load_?current", ("A", "mA", "")),
 }
-_SCALES = {"%": 100.0, "mV": 1000.0, "mA": 1000.0}
+#: an FMI quantity (the variable's or its declared type's ``quantity``) -> the workbench quantity it measures
+_QUANTITIES = {"electricpotential": "voltage", "voltage": "voltage", "electriccurrent": "current", "current": "current",
+               "resistance": "resistance", "electricresistance": "resistance", "dutycycle": "duty", "duty": "duty"}
 
 
 def _unit_of(variable) -> str:
@@ -442,19 +444,35 @@ def _unit_of(variable) -> str:
     return unit or ""
 
 
+def _quantity_of(variable) -> str | None:
+    """The workbench quantity (:data:`ROLE_QUANTITIES`' values) the variable's declared unit or FMI quantity names,
+    or None."""
+    unit = _unit_of(variable)
+    found = next((q for q, units in UNIT_SCALES.items() if unit in units), None)
+    if found is not None:
+        return found
+    declared = variable.quantity or (getattr(variable.declaredType, "quantity", None) if variable.declaredType else None)
+    return _QUANTITIES.get(re.sub(r"[^a-z]", "", (declared or "").lower()))
+
+
 def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
-    """Role -> (variable, scale, reason) guessed from names, causality and units."""
+    """Role -> (variable, scale, reason) guessed from names, causality and units: first by name (a declared unit must
+    fit the role), then, for a role still unguessed, the one variable of the right causality whose declared unit or
+    FMI quantity measures the role's quantity (a current output only if it is the only one left: inductor or load
+    current cannot be told apart by unit). The scale is the one the unit implies (``%`` -> 100, ``mA`` -> 1000)."""
     guesses: dict[str, tuple[str, float, str]] = {}
     taken: set[str] = set()
-    for role, (pattern, units) in _PATTERNS.items():
+
+    def candidates(role: str):
         wanted = ("input",) if role in INPUT_ROLES else ("output",)
-        for variable in model_description.modelVariables:
-            if not is_float(variable) or array_shape(variable) or variable.causality not in wanted \
-                    or variable.name in taken:
-                continue
+        return [v for v in model_description.modelVariables if is_float(v) and not array_shape(v)
+                and v.causality in wanted and v.name not in taken]
+
+    for role, (pattern, units) in _PATTERNS.items():
+        for variable in candidates(role):
             unit = _unit_of(variable)
             if re.search(pattern, variable.name, re.IGNORECASE) and (unit in units or not units):
-                scale = _SCALES.get(unit, 1.0)
+                scale = UNIT_SCALES[ROLE_QUANTITIES[role]].get(unit, 1.0)
                 if not unit:  # no declared unit: hints in the name, e.g. IL_mA or duty_pct
                     if re.search(r"(^|_)mA($|_)", variable.name):
                         scale = 1000.0
@@ -464,6 +482,21 @@ def guess_roles(model_description) -> dict[str, tuple[str, float, str]]:
                 guesses[role] = (variable.name, scale, reason)
                 taken.add(variable.name)
                 break
+    for role in _PATTERNS:
+        if role in guesses:
+            continue
+        quantity = ROLE_QUANTITIES[role]
+        fitting = [v for v in candidates(role) if _quantity_of(v) == quantity]
+        if len(fitting) != 1:  # none, or several the units cannot tell apart: left to the user
+            continue
+        variable = fitting[0]
+        unit = _unit_of(variable)
+        scale = UNIT_SCALES[quantity].get(unit, 1.0)
+        reason = (f"unit {unit} alone (the only {'input' if role in INPUT_ROLES else 'output'} in a {quantity} unit; "
+                  f"the name {variable.name!r} says nothing)" if unit else
+                  f"quantity {variable.quantity or variable.declaredType.quantity} alone")
+        guesses[role] = (variable.name, scale, reason)
+        taken.add(variable.name)
     return guesses
 
 

@@ -59,12 +59,42 @@ typedef struct {
 /* ------------------------------------------------------------------------------------------ */
 /* Logging and state checks                                                                   */
 
+/* The model speaks the FMI 2.0 API (fmu_model.h) and names its functions so in its messages; this edition's
+ * caller called their FMI 3.0 counterparts, so a message names those (pairs: FMI 2.0 name, FMI 3.0 name). */
+static const char *const FUNCTION_NAMES[][2] = {
+    {"fmi2SetReal", "fmi3SetFloat64"},       {"fmi2GetReal", "fmi3GetFloat64"},
+    {"fmi2SetInteger", "fmi3SetInt32"},      {"fmi2GetInteger", "fmi3GetInt32"},
+    {"fmi2DoStep", "fmi3DoStep"},            {"fmi2EnterEventMode", "fmi3EnterEventMode"},
+    {"fmi2ExitInitializationMode", "fmi3ExitInitializationMode"},
+};
+
+/* `text` with every FMI 2.0 function name of FUNCTION_NAMES replaced by its FMI 3.0 name, into `out` (`size` bytes). */
+static void fmi3_names(const char *text, char *out, size_t size) {
+    size_t n = 0;
+    while (*text != '\0' && n + 1 < size) {
+        size_t k, count = sizeof FUNCTION_NAMES / sizeof FUNCTION_NAMES[0];
+        for (k = 0; k < count; k++) {
+            size_t length = strlen(FUNCTION_NAMES[k][0]);
+            if (strncmp(text, FUNCTION_NAMES[k][0], length) == 0) break;
+        }
+        if (k < count) {
+            const char *name = FUNCTION_NAMES[k][1];
+            while (*name != '\0' && n + 1 < size) out[n++] = *name++;
+            text += strlen(FUNCTION_NAMES[k][0]);
+        } else {
+            out[n++] = *text++;
+        }
+    }
+    out[n] = '\0';
+}
+
 static void vlog(const FmuInstance *inst, fmi3Status status, const char *category, const char *format, va_list args) {
     if (inst == NULL || inst->logger == NULL) return;
     if (status == fmi3OK && !inst->logging_on) return;
-    char buffer[1024];
+    char buffer[1024], named[1100];
     vsnprintf(buffer, sizeof buffer, format, args);
-    inst->logger(inst->environment, status, category, buffer);
+    fmi3_names(buffer, named, sizeof named);
+    inst->logger(inst->environment, status, category, named);
 }
 
 void fmu_log(FmuInstance *fmu, fmi2Status status, const char *category, const char *format, ...) {
