@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cosim.base.errors import ConfigError
+from cosim.base.labels import MIN_PERIOD, period_too_short
 from cosim.scenarios import Scenario
 
 CONTROL, RECORD, EVENT = 1, 2, 4
@@ -26,10 +27,6 @@ MAX_INSTANTS = 200_000_000  # a sanity limit; memory stays bounded below it (win
 #: a run whose recorded part holds fewer controller samples than this is refused: with one sample
 #: (a control period as long as the scenario) the controller acts once and the rest is open loop
 MIN_CONTROL_SAMPLES = 2
-#: the shortest control or record period accepted [s]: 100 ns, far below any digital controller's sample period (one
-#: switching period of the paper's converter is 13.3 us). A shorter one is almost surely a unit slip (ns for us) and
-#: would make tens of millions of steps that fill the memory before anything is written.
-MIN_PERIOD = 1e-7
 #: the recording step of a run when none is given [s]: the LC ringing inside a control period shows in the figures
 DEFAULT_RECORD_PERIOD = 1e-5
 WINDOW_INSTANTS = 16_384  # instants generated at a time
@@ -102,12 +99,6 @@ class TimelinePlan:
         step = max(1, int(size / per_control))
         for k0 in range(0, self.control_count, step):
             yield self.window(k0, k0 + step)
-
-
-def period_too_short(what: str) -> str:
-    """The refusal of a period below :data:`MIN_PERIOD`, ``what`` naming it and its value."""
-    return (f"{what} is invalid: expected >= {MIN_PERIOD:g} s (one switching period of the paper's converter is "
-            "13.3 us): was it given in another unit?")
 
 
 def plan_timeline(scenario: Scenario, control_period: float, record_period: float) -> TimelinePlan:

@@ -433,3 +433,15 @@ def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(monkeypatch, cap
     monkeypatch.setattr(sys, "stdout", closed)
     assert main(["inspect", str(buck_fmu)]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_broken_pipe_that_is_not_the_output_is_an_error(monkeypatch, capsys, buck_fmu):
+    """Only the reader of stdout going away is a normal end: a pipe to another process breaking is one error line."""
+    import cosim.fmi.inspect
+
+    def broken(path):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(cosim.fmi.inspect, "describe_fmu", broken)
+    assert main(["inspect", str(buck_fmu)]) == 2
+    assert capsys.readouterr().err == "error: Broken pipe\n"

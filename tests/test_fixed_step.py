@@ -10,13 +10,14 @@ from pathlib import Path
 import fmpy
 import pandas as pd
 import pytest
-from conftest import CORPUS, cli, one_line_error
+from conftest import CORPUS, cli, one_line_error, role_named_binding
 from test_fmi3 import BUCK2, BUCK3, bound
 
 from controllers.pi import PIController
 from cosim.base.errors import ConfigError, PlantError
 from cosim.fmi.binding_file import load_binding
 from cosim.fmi.communication import FROM_CONTROL_PERIOD, FROM_DEFAULT_EXPERIMENT, CommunicationStep, record_period_for
+from cosim.fmi.inspect import describe_fmu
 from cosim.fmi.plant import open_plant
 from cosim.master import check_rates, communication_of, simulate
 from cosim.scenarios import PAPER_SCENARIOS, load_scenario
@@ -63,6 +64,8 @@ def test_the_corpus_fmus_declare_a_fixed_step_and_refuse_any_other(fmi_version, 
     assert md.fmiVersion.startswith(str(fmi_version))
     assert md.coSimulation.canHandleVariableCommunicationStepSize is False
     assert float(md.defaultExperiment.stepSize) == STEP
+    assert ("fixed step: the workbench steps it by 1e-05 s (its DefaultExperiment stepSize) unless a binding gives "
+            "step") in describe_fmu(binding.fmu_path)
     with open_plant(binding) as plant:
         plant.initialize([0.25, 48.0, 6.0])
         plant.use_step(STEP)
@@ -217,5 +220,47 @@ def test_a_sweep_and_the_quick_study_run_on_a_fixed_step_fmu(tmp_path, pairs):
     assert list(rows["status"]) == ["ok", "ok"] and rows["iae_Vs"].gt(0).all()
     sweep.write_text(sweep.read_text().replace('scenarios = ["load_change"]\n',
                                                'scenarios = ["load_change"]\nrecord_period = 2.5e-5\n'))
-    one_line_error(cli("sweep", str(sweep), "--out", str(tmp_path / "refused"), "--workers", "1"), 2,
-                   "but the record period 2.5e-05 s is not a whole number of steps")
+    line = one_line_error(cli("sweep", str(sweep), "--out", str(tmp_path / "refused"), "--workers", "1"), 2,
+                          "but the record period 2.5e-05 s is not a whole number of steps")
+    assert line.startswith(f"error: {sweep}:2: ")  # at the record_period line
+
+
+def test_every_instant_of_a_long_run_lies_on_the_fixed_steps_grid():
+    """Far into a run (200 s of plant time), the instants the master steps between still count as whole steps of a
+    10 us grid, though their float rounding (about 3e-14 s) exceeds a billionth of the step."""
+    from cosim.fmi.communication import grid_index
+    from cosim.scenarios import Scenario
+    from cosim.timeline import plan_timeline
+
+    plan = plan_timeline(Scenario("long", "", 250.0, {"reference": 12.0, "load_resistance": 6.0,
+                                                      "input_voltage": 48.0}, settle=0.015), 1e-3, STEP)
+    times = plan.window(200_000, 200_010).times
+    indices = [grid_index(t, STEP) for t in times]
+    assert None not in indices and len(times) == 10 * 100  # ten control periods, each 100 steps
+    assert all(b - a == 1 for a, b in zip(indices, indices[1:]))
+    assert grid_index(200.0 + STEP / 2, STEP) is None and grid_index(200.0 + 1e-9, STEP) is None
+
+
+def test_a_binding_step_needs_the_co_simulation_interface_and_a_sensible_size(tmp_path, me_only_fmu, python_buck_fmu):
+    with pytest.raises(ConfigError, match=r"b.toml:\d+: step is a co-simulation FMU's communication step, but "
+                                          r"BuckConverterME.fmu offers only model exchange here"):
+        load_binding(bound(tmp_path, "step = 1e-5\n" + role_named_binding(me_only_fmu, parameters=""), me_only_fmu,
+                           "b.toml"))
+    with pytest.raises(ConfigError, match=r"c.toml:1: step = 1e-12 s is invalid: expected >= 1e-07 s"):
+        load_binding(bound(tmp_path, "step = 1e-12\n" + BUCK2, python_buck_fmu, "c.toml"))
+
+
+def test_an_ssp_of_a_fixed_step_plant_takes_its_step(tmp_path, pairs):
+    """export-ssp steps a fixed-step plant by its own step by default, and refuses another."""
+    from cosim.fmi.controller_export import export_controller
+    from cosim.ssp.package import SspError, export_ssp
+
+    controller_fmu_2 = export_controller(PIController(*PI_GAINS, 1e-3), tmp_path / "PI.fmu")[0]
+    binding = load_binding(pairs[2][0])
+    scenario = load_scenario("startup", binding.converter)
+    with pytest.raises(SspError, match=r"the plant FMU steps only by its fixed communication step 1e-05 s \(the FMU's "
+                                       r"DefaultExperiment stepSize\), but the communication step is 2e-05 s: use "
+                                       r"--communication-step 1e-05"):
+        export_ssp(scenario, binding, controller_fmu_2, tmp_path / "a.ssp", step=2e-5)
+    loop = export_ssp(scenario, binding, controller_fmu_2, tmp_path / "b.ssp")
+    assert (tmp_path / "b.ssp").is_file() and loop.step == STEP

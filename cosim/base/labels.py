@@ -3,13 +3,25 @@
 * :func:`period_label` -- a control period in file names: ``1ms``, ``13p33us``;
 * :func:`period_text` -- the same period in tables, titles and text: ``1 ms``, ``13.33 µs`` (``13.33 us`` in
   ASCII, the benchmark table's);
-* :func:`slug` -- any label reduced to lower-case letters, digits and dashes for file names.
+* :func:`slug` -- any label reduced to lower-case letters, digits and dashes for file names;
+* :data:`MIN_PERIOD` -- the shortest period (control, record, communication step) taken for one, not a unit slip.
 """
 
 from __future__ import annotations
 
 import math
 import re
+
+#: the shortest control or record period accepted [s]: 100 ns, far below any digital controller's sample period (one
+#: switching period of the paper's converter is 13.3 us). A shorter one is almost surely a unit slip (ns for us) and
+#: would make tens of millions of steps that fill the memory before anything is written.
+MIN_PERIOD = 1e-7
+
+
+def period_too_short(what: str) -> str:
+    """The refusal of a period below :data:`MIN_PERIOD`, ``what`` naming it and its value."""
+    return (f"{what} is invalid: expected >= {MIN_PERIOD:g} s (one switching period of the paper's converter is "
+            "13.3 us): was it given in another unit?")
 
 
 def _whole_milliseconds(period: float) -> int | None:

@@ -66,6 +66,18 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def _stdout_closed() -> bool:
+    """Is stdout a pipe whose reader has gone? (Polling its descriptor reports an error condition then.)"""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(event & select.POLLERR for _, event in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no descriptor (a captured stream): not a closed pipe
+        return False
+
+
 def _discard_stdout() -> None:
     """Point stdout at /dev/null: Python flushes it again at exit, which would fail on the closed pipe once more."""
     try:
@@ -87,9 +99,12 @@ def main(argv: list[str] | None = None) -> int:
         _interrupted()
         print("error: interrupted; files already complete were kept and none is half-written", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # the reader of the output went away (``| head``): a normal end, not an error
-        _discard_stdout()
-        return 0
+    except BrokenPipeError as error:
+        if _stdout_closed():  # the reader of the output went away (``| head``): a normal end, not an error
+            _discard_stdout()
+            return 0
+        print(f"error: {error.strerror or error}", file=sys.stderr)  # another pipe (a process, a socket)
+        return 2
     except OSError as error:  # a file system refusal (disk full, permissions): one line, not a traceback
         where = f"{error.filename}: " if error.filename else ""
         print(f"error: {where}{error.strerror or error}", file=sys.stderr)

@@ -233,7 +233,8 @@ def add_export_ssp_parser(sub) -> None:
                    help="controller sample period in s (default: 1e-3; a controller FMU's own period)")
     p.add_argument("--communication-step", type=parse_period, default=None, metavar="SECONDS",
                    help="the engines' communication step in s; must divide the control period and land on every "
-                        "event (default: 1e-5, the workbench's recording period)")
+                        "event (default: 1e-5, the workbench's recording period; a fixed-step plant FMU's own step, "
+                        "the only one it takes)")
     p.add_argument("--out", required=True, metavar="LOOP.ssp", help="the archive to write")
     p.add_argument("--model", metavar="MODEL.pt", help="trained NN plant model for nnpc (default: trained on demand)")
     p.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, metavar="{2,3}",

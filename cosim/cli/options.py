@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from cosim.base.errors import ConfigError
+from cosim.base.labels import MIN_PERIOD, period_too_short
 from cosim.design.data_collection import MIN_SAMPLES
 from cosim.design.vocabulary import (
     DEFAULT_IMPLEMENTATION,
@@ -24,7 +25,6 @@ from cosim.design.vocabulary import (
     SENSORS,
 )
 from cosim.fmi.binding import PLANT_MODE_CODES
-from cosim.timeline import MIN_PERIOD, period_too_short
 
 DEFAULT_RESULTS = Path("results")
 

@@ -52,7 +52,7 @@ from typing import Callable, Mapping
 
 from cosim.base.errors import ConfigError, FmuArchiveError
 from cosim.base.files import atomic_write_text
-from cosim.base.labels import did_you_mean
+from cosim.base.labels import MIN_PERIOD, did_you_mean, period_too_short
 from cosim.base.toml_files import TomlLocator, finite_number, parse_toml, where
 from cosim.converter_spec import ConverterSpec, parse_converter_table
 from cosim.fmi.archive import check_fmu
@@ -100,6 +100,8 @@ def _communication_step(data: dict, path: Path, loc: TomlLocator, interface: str
     if not step > 0:
         raise ConfigError(f"{where(path, loc, 'step')}: step = {step:g} s is invalid: expected > 0 (the one "
                           "communication step the master steps the FMU by)")
+    if step < MIN_PERIOD:
+        raise ConfigError(f"{where(path, loc, 'step')}: {period_too_short(f'step = {step:g} s')}")
     if interface == "model-exchange":
         raise ConfigError(f"{where(path, loc, 'step')}: step is a co-simulation FMU's communication step, but "
                           "interface = \"model-exchange\" (CVode chooses its own steps): drop one of them")
@@ -110,9 +112,13 @@ def _communication_step(data: dict, path: Path, loc: TomlLocator, interface: str
 
 
 def _check_fixed_step(binding: PlantBinding, checked, loc: TomlLocator) -> None:
-    """``max_step`` splits the master's steps into shorter ones: refused for a co-simulation FMU that cannot vary its
-    communication step (its ``step`` is what it needs instead)."""
+    """``step`` needs the co-simulation interface; ``max_step`` splits the master's steps into shorter ones: refused for
+    a co-simulation FMU that cannot vary its communication step (its ``step`` is what it needs instead)."""
     uses_cs = binding.interface != "model-exchange" and "co-simulation" in checked.interfaces
+    if binding.step is not None and not uses_cs:
+        raise ConfigError(f"{where(binding.source, loc, 'step')}: step is a co-simulation FMU's communication step, "
+                          f"but {binding.fmu_path.name} offers only model exchange here (CVode chooses its own "
+                          "steps): drop step")
     if binding.max_step is None or not uses_cs or can_vary_step(checked.model_description):
         return
     declared = declared_step(checked.model_description)

@@ -84,8 +84,14 @@ def communication_step(binding, model_description, interface: str) -> Communicat
 
 def steps_in(duration: float, step: float) -> int | None:
     """How many steps of ``step`` make ``duration`` [s] (>= 0), or None if it is not a whole number of them."""
-    count = round(duration / step)
-    return count if abs(duration - count * step) <= GRID_TOLERANCE * step else None
+    return grid_index(duration, step)
+
+
+def grid_index(t: float, step: float) -> int | None:
+    """``n`` if ``t`` [s] is the grid point ``n * step`` -- within :data:`GRID_TOLERANCE` of a step plus the rounding
+    of ``t`` itself (a time of 200 s carries about 3e-14 s of it) -- else None."""
+    n = round(t / step)
+    return n if abs(t - n * step) <= GRID_TOLERANCE * step + 4 * math.ulp(t) else None
 
 
 def record_period_for(step: CommunicationStep, wanted: float, control_period: float) -> float:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import array_shape
+from cosim.fmi.communication import can_vary_step, declared_step
 
 
 def _unit(variable) -> str:
@@ -30,6 +31,12 @@ def describe_fmu(path: str | Path) -> str:
         cs = md.coSimulation
         lines.append(f"co-simulation    variable step size: {bool(cs.canHandleVariableCommunicationStepSize)}, "
                      f"FMU state: {bool(cs.canGetAndSetFMUstate)}")
+        if not can_vary_step(md):
+            step = declared_step(md)
+            lines.append("                 fixed step: the workbench steps it by "
+                         + (f"{step:g} s (its DefaultExperiment stepSize)" if step else "the control period (it "
+                            "declares no DefaultExperiment stepSize)")
+                         + " unless a binding gives step; periods and events must be multiples of it")
         if checked.fmi_major == 3:
             lines.append(f"                 event mode: {bool(cs.hasEventMode)}, early return: "
                          f"{bool(cs.mightReturnEarlyFromDoStep)} (the workbench uses neither)")

@@ -335,6 +335,7 @@ class IsolatedPlant:
 
     def use_step(self, step: float | None) -> None:
         self._refuse_if_dead()
+        self._queue.clear()  # a run starts here: nothing of an earlier, interrupted one is sent under the new step
         self._call("setting the communication step", "use_step", step)
 
     def set_inputs(self, values: Sequence[float]) -> None:

@@ -43,7 +43,7 @@ from cosim.fmi.binding import (
     resolve_parameters,
     resolve_roles,
 )
-from cosim.fmi.communication import CommunicationStep, communication_step, steps_in
+from cosim.fmi.communication import CommunicationStep, communication_step, grid_index
 from cosim.fmi.fmu_log import STATUS_NAMES, callbacks_for, release
 
 FATAL_STATUS = 4
@@ -437,12 +437,11 @@ class CoSimulationPlant(FmuPlant):
     def _advance_fixed(self, t0: float, t_next: float, step: float) -> None:
         """From ``t0`` to ``t_next`` in steps of exactly ``step`` [s], each from a multiple of it (the master checked
         before the run that every instant lies on that grid: :func:`cosim.master.check_communication_step`)."""
-        count = steps_in(t_next - t0, step)
-        if count is None:
+        first, last = grid_index(t0, step), grid_index(t_next, step)
+        if first is None or last is None:
             raise PlantError(f"{self.binding.origin}: cannot step from t = {t0:.9g} s to {t_next:.9g} s in whole "
                              f"communication steps of {step:.6g} s (the FMU's fixed step)")
-        first = round(t0 / step)
-        for i in range(count):
+        for i in range(last - first):
             status = self._do_step(self._component, (first + i) * step, step, fmi2True)
             if status > 1:
                 raise self._fail(self._step_call, status, at=(first + i) * step)

@@ -56,8 +56,9 @@ from cosim.fmi.binding import (
     is_float,
     is_integer,
 )
+from cosim.fmi.communication import CommunicationStep
 from cosim.fmi.controller import builtin_controller_binding
-from cosim.master import check_plant_supports
+from cosim.master import check_plant_supports, communication_of
 from cosim.scenarios import Scenario, parse_scenario
 from cosim.ssp.scenario_source import OUTPUTS as SCENARIO_OUTPUTS
 from cosim.ssp.scenario_source import scenario_fmu, scenario_toml, settle_time
@@ -276,9 +277,11 @@ def _on_grid(value: float, step: float) -> bool:
     return abs(ratio - round(ratio)) <= GRID_TOLERANCE * max(1.0, abs(ratio))
 
 
-def check_step(step: float, control_period: float, scenario: Scenario, settle: float, binding: PlantBinding) -> None:
+def check_step(step: float, control_period: float, scenario: Scenario, settle: float, binding: PlantBinding,
+               communication: CommunicationStep | None = None) -> None:
     """Refuse a communication step that misses a control sample or an event instant, or that the
-    plant FMU cannot take in one step (its binding's ``max_step``)."""
+    plant FMU cannot take in one step (its binding's ``max_step``, or, given the plant's ``communication``, another
+    than a fixed-step FMU's own, :mod:`cosim.fmi.communication`)."""
     if not (step > 0 and math.isfinite(step)):
         raise SspError(f"communication step {step} s is invalid: expected a finite value > 0")
     if step > control_period * (1 + GRID_TOLERANCE) or not _on_grid(control_period, step):
@@ -290,6 +293,11 @@ def check_step(step: float, control_period: float, scenario: Scenario, settle: f
             raise SspError(f"scenario {scenario.name}: the event at t = {event.time:.9g} s (plant time "
                            f"{settle + event.time:.9g} s) is not on the grid of communication step {step:.6g} s: "
                            "an engine would apply it late (use --communication-step with a divisor of the event time)")
+    fixed = communication.for_run(control_period) if communication is not None else None
+    if fixed is not None and not math.isclose(step, fixed, rel_tol=GRID_TOLERANCE):
+        raise SspError(f"{binding.origin}: the plant FMU steps only by its fixed communication step "
+                       f"{communication.describe(control_period)}, but the communication step is {step:.6g} s: use "
+                       f"--communication-step {fixed:.6g}")
     if binding.max_step is not None and step > binding.max_step * (1 + GRID_TOLERANCE):
         raise SspError(f"{binding.origin}: communication step {step:.6g} s is longer than the plant's max_step "
                        f"{binding.max_step:.6g} s (engines step the FMU once per communication step)")
@@ -327,7 +335,7 @@ def build_loop(scenario: Scenario, binding: PlantBinding, controller: CheckedFmu
     if "co-simulation" not in plant.interfaces:
         raise SspError(f"{binding.origin}: the plant FMU offers no co-simulation for this platform (an SSP's "
                        "engines step every FMU with fmi2DoStep or fmi3DoStep)")
-    check_step(step, control_period, scenario, settle, binding)
+    check_step(step, control_period, scenario, settle, binding, communication_of(binding, "co-simulation"))
     roles = dict(binding.roles)
     # plant connectors: every bound role's variable (inputs and outputs), then the parameters
     plant_connectors, seen = [], set()
@@ -413,7 +421,8 @@ def export_ssp(scenario: Scenario, binding: PlantBinding, controller_fmu: Path, 
         raise SspError(f"controller FMU {controller_fmu} offers no co-simulation for this platform")
     check_plant_supports(binding, scenario)
     control_period = controller_sample_period(controller)
-    step = DEFAULT_STEP if step is None else step
+    if step is None:  # 10 us, or a fixed-step plant's own step
+        step = communication_of(binding, "co-simulation").for_run(control_period) or DEFAULT_STEP
     source = check_fmu(scenario_fmu(scenario, control_period, fmi_version=controller.fmi_major))
     loop = build_loop(scenario, binding, controller, source, control_period, step)
     description = (f"buck-cosim closed loop: scenario {scenario.name} ({scenario.description}), controller "
