@@ -406,9 +406,9 @@ class _Run:
                 duty = step(measurement)
             except WorkbenchError as error:
                 raise ControllerError(f"controller {name} failed at t = {t:.9g} s: {error}") from None
-            except Exception as error:
-                raise ControllerError(f"controller {name} raised {type(error).__name__} at t = {t:.9g} s: "
-                                      f"{error}") from None
+            except Exception as error:  # the raising line named; the exception kept for --debug
+                raise ControllerError(f"controller {name} raised {type(error).__name__} at t = {t:.9g} s "
+                                      f"({raising_line(error)}): {error}") from error
             compute = (clock() - start) * 1e-9
             if not (isinstance(duty, (int, float, np.floating)) and isfinite(duty)):
                 raise ControllerError(f"controller {name} returned duty cycle {duty!r} at t = {t:.9g} s: "
@@ -429,6 +429,14 @@ class _Run:
         self.stream.close(result.metadata)
         result.rows, result.streamed, result.streamed_to = self.stream.rows, True, str(self.stream_to)
         return result
+
+
+def raising_line(error: BaseException) -> str:
+    """``file:line`` of the innermost frame of ``error``'s traceback: where a user's controller raised."""
+    import traceback
+
+    frames = traceback.extract_tb(error.__traceback__)
+    return f"{frames[-1].filename}:{frames[-1].lineno}" if frames else "no traceback"
 
 
 def _check_finite(values: list[float], roles: tuple[str, ...], t: float, origin: str) -> None:

@@ -6,8 +6,11 @@ y0 = y(t0), r_f = the reference at the end of the run. A run is a *step* when
 |r_f - y0| > 2 % of r_f (start-up, reference changes) and a *regulation* run otherwise (load or
 supply disturbances at constant reference).
 
-* ``rise_time_ms`` -- step only: time from first reaching y0 + 10 % (r_f - y0) to first reaching
-  y0 + 90 % (r_f - y0) (python-control ``RiseTime``); NaN for regulation runs.
+* ``rise_time_ms`` -- step only: time from first reaching y0 + 10 % (r_f - y0) to the crossing of
+  y0 + 90 % (r_f - y0) after which the output stays beyond it to the end of the window -- the rise an engineer reads
+  off the trace. (python-control's ``RiseTime`` takes the *first* 90 % crossing: at a 1 ms sample period the LC
+  ring of the first sample crosses it within 0.1 ms before the output falls back to 77 % and rises for
+  milliseconds.) NaN for regulation runs, and where the output ends short of 90 %.
 * ``overshoot_pct`` -- step: largest excursion beyond r_f in the direction of the step, in % of
   |r_f - y0|; regulation: largest excursion above r, in % of r.
 * ``undershoot_pct`` -- step: largest excursion from y0 *against* the step direction, in % of
@@ -80,6 +83,20 @@ def _first_crossing(t: np.ndarray, y: np.ndarray, level: float, rising: bool) ->
     return float(t[index - 1] + fraction * (t[index] - t[index - 1]))
 
 
+def _final_entry(t: np.ndarray, y: np.ndarray, level: float) -> float:
+    """When ``y`` reaches ``level`` for the last time, staying at or above it to the end (linear interpolation
+    between samples); NaN if it ends below, ``t[0]`` if it never is below."""
+    below = y < level
+    if below[-1]:
+        return math.nan
+    if not below.any():
+        return float(t[0])
+    last = int(np.nonzero(below)[0][-1])
+    y0, y1 = y[last], y[last + 1]
+    fraction = (level - y0) / (y1 - y0) if y1 != y0 else 1.0
+    return float(t[last] + fraction * (t[last + 1] - t[last]))
+
+
 def _trapezoid(t: np.ndarray, values: np.ndarray) -> float:
     return float(np.trapezoid(values, t)) if len(t) > 1 else 0.0
 
@@ -102,7 +119,7 @@ def signal_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray, t0: float = 0.0,
         delta = r_final - y0
         sign = 1.0 if delta > 0 else -1.0
         t10 = _first_crossing(t, sign * y, sign * (y0 + 0.1 * delta), rising=True)
-        t90 = _first_crossing(t, sign * y, sign * (y0 + 0.9 * delta), rising=True)
+        t90 = _final_entry(t, sign * y, sign * (y0 + 0.9 * delta))
         out["rise_time_ms"] = (t90 - t10) * 1e3
         out["overshoot_pct"] = max(0.0, float(np.max(sign * (y - r_final)))) / abs(delta) * 100
         out["undershoot_pct"] = max(0.0, float(np.max(sign * (y0 - y)))) / abs(delta) * 100

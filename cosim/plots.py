@@ -21,8 +21,13 @@ from cosim.base.labels import period_text  # noqa: E402
 from cosim.results import RunResult  # noqa: E402
 
 plt.rcParams["svg.hashsalt"] = "buck-cosim"
-#: controller name -> (colour, line style); controllers not named get matplotlib's colour cycle
+#: controller name -> (colour, line style); controllers not named get :data:`OTHER_COLOURS`
 Styles = Mapping[str, tuple[str, object]]
+#: colours of controllers without a style (a user's own): none is a built-in controller's
+#: (cosim.design.vocabulary.CONTROLLER_STYLES), and none repeats a colour the figure already shows
+OTHER_COLOURS = ("black", "magenta", "gold", "teal", "navy", "lime", "maroon", "darkorange", "slateblue")
+#: their line style: dash-dot-dot, unlike every built-in controller's
+OTHER_LINE_STYLE = (0, (6, 1.5, 1, 1.5, 1, 1.5))
 #: a run whose output ends this far from the reference (relative) does not set the axis limits
 DIVERGED = 0.05
 ZOOM_BEFORE, ZOOM_AFTER = 1e-3, 10e-3  # [s] the zoom window around a long run's main event
@@ -38,6 +43,23 @@ ZOOM_MIN_SAMPLES = 5
 ZOOM_LEAD = 0.1
 MEAN_NOTE = ("bold: PWM-period mean (what the controller reads); faint: instantaneous -- the metrics' signal "
              "(overshoot, settling, peak current, ripple)")
+
+
+def figure_styles(names, styles: Styles | None) -> dict[str, tuple[str, object]]:
+    """Colour and line style of each controller of one figure: its own (``styles``), else the next of
+    :data:`OTHER_COLOURS` not shown by another controller of the figure, dash-dot-dot -- so a user's controller
+    is never drawn in the PI's blue, nor two of them alike."""
+    styles = styles or {}
+    shown = {styles[name][0] for name in names if name in styles}
+    free = [c for c in OTHER_COLOURS if c not in shown] or list(OTHER_COLOURS)
+    chosen, others = {}, 0
+    for name in names:
+        if name in styles:
+            chosen[name] = styles[name]
+        elif name not in chosen:
+            chosen[name] = (free[others % len(free)], OTHER_LINE_STYLE)
+            others += 1
+    return chosen
 
 
 def transient_window(results: list[RunResult], metrics: list[dict]) -> tuple[float, float]:
@@ -68,6 +90,7 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
 
     metrics = [run_metrics(r) for r in results]
     window = transient_window(results, metrics)
+    chosen = figure_styles([r.info.controller for r in results], styles)
     fig, axes = plt.subplots(3, 2, figsize=(12, 8.5), sharex="col", constrained_layout=True,
                              gridspec_kw={"width_ratios": [1.6, 1.0], "height_ratios": [1.25, 1.0, 0.7]})
     columns = (("full", zoom), ("transient", window))
@@ -87,7 +110,7 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
                 continue
             t_ms = frame["time"].to_numpy() * 1e3
             name = result.info.controller
-            color, style = (styles or {}).get(name, (f"C{k % 10}", "-"))
+            color, style = chosen[name]
             if k == 0:
                 ax_v.plot(t_ms, frame["reference"], "k--", linewidth=1.0, label="reference")
                 r_final = float(result.frame["reference"].iloc[-1])

@@ -154,6 +154,18 @@ def package_versions() -> dict[str, str]:
     return dict(_package_versions())
 
 
+def controller_description(controller) -> dict:
+    """The controller's ``describe()``, or -- for a user's controller that gives none (a subclass of the
+    :class:`controllers.base.Controller` protocol inherits a ``describe`` that returns None) -- what the workbench
+    knows of it: its class, name, sample period and duty limits."""
+    described = controller.describe() if callable(getattr(controller, "describe", None)) else None
+    if isinstance(described, dict):
+        return described
+    return {"type": type(controller).__name__, "name": getattr(controller, "name", type(controller).__name__),
+            "sample_period_s": getattr(controller, "sample_period", None),
+            "duty_limits": list(getattr(controller, "duty_limits", (0.0, 1.0)))}
+
+
 def run_details(*, scenario, controller, plant, control_period: float, record_period: float,
                 seed: int | None, extra: dict | None = None) -> dict:
     """Everything needed to understand and repeat a run (no wall-clock fields: runs compare byte for byte)."""
@@ -161,7 +173,7 @@ def run_details(*, scenario, controller, plant, control_period: float, record_pe
     meta = {
         "format": RUN_FORMAT,
         "scenario": scenario.describe(),
-        "controller": controller.describe(),
+        "controller": controller_description(controller),
         "plant": {
             **plant.binding.describe(),
             "interface": plant.interface,
@@ -215,6 +227,16 @@ def write_parquet(frame: pd.DataFrame, metadata: dict, path: Path, units: dict |
     schema = pa.schema(fields, metadata={**(table.schema.metadata or {}), METADATA_KEY: text, PANDAS_ATTRS_KEY: text})
     table = table.cast(schema)
     return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
+
+
+def is_parquet(path: Path) -> bool:
+    """Does the file begin with Parquet's magic bytes (``PAR1``)? (pyarrow's own refusal of another file speaks of
+    its footer, not of what was expected.)"""
+    try:
+        with open(path, "rb") as file:
+            return file.read(4) == b"PAR1"
+    except OSError:
+        return False
 
 
 def read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
@@ -304,6 +326,11 @@ def read_run_file(path: str | Path) -> RunResult:
         raise ConfigError(f"run file {path} does not exist")
     if path.suffix not in (".parquet", ".csv"):
         raise ConfigError(f"run file {path} is not a run: expected a .parquet, or a .csv with its .json")
+    if path.suffix == ".csv" and _is_metrics_table(path):
+        raise ConfigError(f"{path} is a metrics table (one row of metrics per run), not a run: give the runs' own "
+                          "files (runs/<run>.parquet, or a .csv with its .json)")
+    if path.suffix == ".parquet" and not is_parquet(path):
+        raise ConfigError(f"run file {path} is not a Parquet file: expected a run's .parquet as write_run writes it")
     if path.suffix == ".csv" and not path.with_suffix(".json").is_file():
         raise ConfigError(f"run file {path} has no {path.with_suffix('.json').name} beside it (the run's "
                           "metadata: scenario, controller, rates)")
@@ -317,6 +344,16 @@ def read_run_file(path: str | Path) -> RunResult:
         raise ConfigError(f"{path}: not a workbench run (" + (f"no column {', '.join(missing)}" if missing else
                                                               "no run metadata") + ")")
     return result
+
+
+def _is_metrics_table(path: Path) -> bool:
+    """Is the CSV a metrics table (``metrics/metrics__*.csv``: a scenario and controller per row, no time column)?"""
+    try:
+        with open(path, encoding="utf-8") as file:
+            header = file.readline().strip().split(",")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return "time" not in header and {"scenario", "controller", "iae_Vs"} <= set(header)
 
 
 def read_run(path: Path) -> RunResult:

@@ -10,6 +10,8 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import cli as command
+from conftest import one_line_error
 
 from cosim.cli import main
 from cosim.results import read_run
@@ -445,3 +447,50 @@ def test_a_broken_pipe_that_is_not_the_output_is_an_error(monkeypatch, capsys, b
     monkeypatch.setattr(cosim.fmi.inspect, "describe_fmu", broken)
     assert main(["inspect", str(buck_fmu)]) == 2
     assert capsys.readouterr().err == "error: Broken pipe\n"
+
+
+@pytest.mark.parametrize("option", ["--control-period", "--record-period"])
+def test_a_negative_period_gets_the_periods_own_message(tmp_path, option):
+    """argparse takes "-1e-3" for an option ("expected one argument"); the workbench passes it to the option."""
+    done = cli("run", "startup", option, "-1e-3", "--kp", "0", "--ki", "14", "--out", str(tmp_path))
+    assert done.returncode == 2 and "expected one argument" not in done.stderr, done.stderr
+    assert "-1e-3" in done.stderr and "expected" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+
+
+def test_the_version_is_the_installed_packages():
+    from importlib.metadata import version
+
+    done = cli("--version")
+    assert done.returncode == 0 and done.stdout.strip() == f"buck-cosim {version('buck-cosim')}"
+
+
+def test_a_controller_exception_names_its_line_and_debug_shows_the_traceback(tmp_path):
+    """A user's controller that raises: the one line names the file and line that raised; --debug (or
+    BUCK_COSIM_DEBUG=1) adds the whole traceback, the controller's own frames included."""
+    (tmp_path / "mine.py").write_text(
+        "from controllers.base import Controller\n\n\n"
+        "class Mine(Controller):\n"
+        "    def __init__(self, sample_period, duty_limits=(0.0, 1.0)):\n"
+        "        self.name, self.sample_period, self.duty_limits = 'Mine', sample_period, duty_limits\n\n"
+        "    def reset(self):\n        pass\n\n"
+        "    def step(self, measurement):\n"
+        "        return 1 / 0\n")
+    args = ["run", "startup", "--controller", f"{tmp_path / 'mine.py'}:Mine", "--out", str(tmp_path / "out"),
+            "--no-figures"]
+    line = one_line_error(command(*args), 3, f"controller Mine raised ZeroDivisionError at t = 0 s "
+                                             f"({tmp_path / 'mine.py'}:12): division by zero")
+    assert "Traceback" not in line
+    for done in (command("--debug", *args), command(*args, env={**os.environ, "BUCK_COSIM_DEBUG": "1"})):
+        assert done.returncode == 3 and done.stderr.startswith("error: controller Mine raised ZeroDivisionError")
+        assert "Traceback (most recent call last)" in done.stderr and 'mine.py", line 12, in step' in done.stderr
+
+
+def test_a_csv_where_samples_are_expected_and_a_metrics_table_where_a_run_is_are_named(tmp_path):
+    (tmp_path / "data.csv").write_text("measured_inductor_current,measured_output_voltage,duty_cycle\n1,2,0.3\n")
+    one_line_error(command("train", str(tmp_path / "data.csv"), "--out", str(tmp_path / "m.pt")), 2,
+                   f"{tmp_path / 'data.csv'} is not a Parquet file (it is a CSV): expected the samples .parquet that "
+                   "buck-cosim collect-data writes")
+    (tmp_path / "metrics.csv").write_text("scenario,controller,plant,iae_Vs\nstartup,PI,x,0.01\n")
+    one_line_error(command("compare", str(tmp_path / "metrics.csv"), "--out", str(tmp_path / "cmp")), 2,
+                   f"{tmp_path / 'metrics.csv'} is a metrics table (one row of metrics per run), not a run: give the "
+                   "runs' own files")

@@ -601,3 +601,49 @@ def test_the_run_figure_is_public_api(open_loop_switched, tmp_path):
 
     files = cosim.plot_scenario([open_loop_switched], tmp_path / "mine")
     assert [f.name for f in files] == ["mine.png", "mine.svg"] and files[0].read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_users_controllers_are_drawn_apart_from_the_pi_and_each_other(open_loop_switched):
+    """Controllers without a style of their own (a user's) get colours no controller of the figure shows and a line
+    style of their own -- never the PI's blue, never two alike."""
+    from dataclasses import replace
+
+    import matplotlib.colors as colors
+    import matplotlib.pyplot as plt
+
+    from cosim.plots import OTHER_LINE_STYLE, figure_styles, scenario_figure
+    from cosim.study.vocabulary import STUDY_STYLES
+
+    def renamed(name):
+        return replace(open_loop_switched, info=replace(open_loop_switched.info, controller=name))
+
+    runs = [renamed("PI"), renamed("Mine"), renamed("Mine too")]
+    chosen = figure_styles([r.info.controller for r in runs], STUDY_STYLES)
+    assert chosen["PI"] == STUDY_STYLES["PI"]
+    own = [colors.to_hex(chosen[n][0]) for n in ("Mine", "Mine too")]
+    builtin = {colors.to_hex(c) for c, _ in STUDY_STYLES.values()}
+    assert len(set(own)) == 2 and not set(own) & builtin and chosen["Mine"][1] == OTHER_LINE_STYLE
+    fig = scenario_figure(runs, "start-up", styles=STUDY_STYLES)
+    try:
+        duty = [line for line in fig.axes[4].get_lines() if line.get_drawstyle() == "steps-post"]
+        assert len({colors.to_hex(line.get_color()) for line in duty}) == 3
+    finally:
+        plt.close(fig)
+
+
+def test_run_without_gains_tunes_the_pi_the_reproduction_tuned(tmp_path):
+    """One tuning method, one result per plant and rate: ``run --controller pi`` without gains (the controller
+    factory's tuning) gives the design key and gains of results/tuning/ (the reproduction's), not another tuning
+    at another recording step."""
+    import json
+
+    from cosim.design.controller_factory import tuned_pi
+    from cosim.design.pi_tuning import TUNING_RECORD_PERIOD, pi_design
+    from cosim.design.plants import plant_binding
+
+    binding = plant_binding("nominal", "averaged")
+    committed = json.loads((Path(__file__).resolve().parents[1] / "results" / "tuning" / "pi__nominal-averaged__1ms.json").read_text())
+    assert pi_design(binding, 1e-3).inputs["settings"]["record_period_s"] == TUNING_RECORD_PERIOD
+    assert pi_design(binding, 1e-3).key == committed["design"]["key"]
+    tuning = tuned_pi(binding, 1e-3, tmp_path)
+    assert (tuning.kp, tuning.ki) == (committed["kp"], committed["ki"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -191,14 +192,17 @@ def test_controller_returning_nan_stops_the_run_and_keeps_the_rows(averaged):
     assert info.value.exit_code == 3
 
 
-def test_controller_exception_is_reported_with_its_time(averaged):
+def test_controller_exception_is_reported_with_its_time_and_line(averaged):
     def explode(k):
         if k == 2:
             raise ZeroDivisionError("boom")
         return 0.2
 
-    with pytest.raises(RunFailed, match=r"controller probe raised ZeroDivisionError at t = 0.002 s: boom"):
+    line = explode.__code__.co_firstlineno + 2
+    with pytest.raises(RunFailed, match=rf"controller probe raised ZeroDivisionError at t = 0.002 s "
+                                        rf"\({re.escape(__file__)}:{line}\): boom") as failed:
         simulate(averaged, Probe(duty=explode), scenario())
+    assert isinstance(failed.value.cause.__cause__, ZeroDivisionError)  # kept, for --debug
 
 
 def test_scenario_needing_a_missing_role_is_refused_before_the_run(averaged):

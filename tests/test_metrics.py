@@ -28,6 +28,21 @@ def test_first_order_step():
     assert m["steady_state_error_V"] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_rise_time_ends_where_the_output_stays_above_90_percent():
+    """A staircase, as a 1 ms loop's start-up: the first sample's LC ring crosses 90 % within 0.1 ms, the output
+    falls back to 77 % and then rises for milliseconds. The rise time ends at the 90 % crossing after which it stays
+    above -- not at the ring's first crossing."""
+    tau, t1 = 1e-3, 0.2e-3
+    ring = np.interp(T, [0.0, 0.1e-3, t1], [0.0, 0.95 * 12, 0.77 * 12])
+    y = np.where(T < t1, ring, 12 * (0.77 + 0.23 * (1 - np.exp(-(T - t1) / tau))))
+    m = signal_metrics(T, y, np.full_like(T, 12.0))
+    t10 = 0.1e-3 * 1.2 / (0.95 * 12)
+    assert m["rise_time_ms"] == pytest.approx((t1 + tau * math.log(0.23 / 0.10) - t10) * 1e3, rel=1e-4)
+    assert m["rise_time_ms"] > 1.0  # python-control's first crossing would say 0.09 ms
+    short = signal_metrics(T, np.minimum(y, 10.0), np.full_like(T, 12.0))
+    assert math.isnan(short["rise_time_ms"])  # never stays above 90 %: no rise time
+
+
 def test_second_order_overshoot_matches_the_damping_formula():
     zeta, wn = 0.39, 2 * math.pi * 3390
     wd = wn * math.sqrt(1 - zeta**2)

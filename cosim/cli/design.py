@@ -76,7 +76,7 @@ def cmd_collect(args) -> int:
 
 def cmd_train(args) -> int:
     from controllers.nn_config import NNConfig, TrainingSettings, extra_columns
-    from cosim.results import read_parquet
+    from cosim.results import is_parquet, read_parquet
 
     try:  # arguments first, before any file is read
         config = NNConfig(hidden=tuple(args.hidden), activation=args.activation, delays=args.delays,
@@ -91,6 +91,9 @@ def cmd_train(args) -> int:
 
     def samples(name: str):
         source = input_file(name, "data file", "write one with buck-cosim collect-data")
+        if not is_parquet(source):
+            raise ConfigError(f"{source} is not a Parquet file{' (it is a CSV)' if source.suffix == '.csv' else ''}: "
+                              "expected the samples .parquet that buck-cosim collect-data writes")
         try:
             frame, metadata = read_parquet(source)
         except Exception as error:

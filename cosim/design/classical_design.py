@@ -528,7 +528,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     return the controllers to run beside the others (none at other rates)."""
     import time
 
-    from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, tune_pi_envelope
+    from cosim.design.pi_tuning import tune_pi_envelope
     from cosim.design.vocabulary import CURRENT_MODE, CURRENT_MODE_NO_DELAY, PI_ENVELOPE, TYPE_III, pipeline_tag
 
     period = pipeline.control_period
@@ -546,7 +546,7 @@ def in_pipeline(pipeline, binding, parameters: CircuitParameters, pi, out_dir: P
     write_design(linear_design("pi", pi, parameters, targets, pi.tuning.get("method", "")), files["pi-margins"])
     controllers = [d.controller for d in designs]
     if pipeline.plant_tag == ENVELOPE_PIPELINE_PLANT:
-        tuning = tune_pi_envelope(binding, period, record_period=REPRODUCTION_RECORD_PERIOD, quick=quick)
+        tuning = tune_pi_envelope(binding, period, quick=quick)
         envelope_pi = tuning.controller(name=PI_ENVELOPE)
         design = linear_design("pi-envelope", envelope_pi, parameters, targets, tuning.method)
         design.notes.append(f"kp = {tuning.kp:.6g} 1/V, ki = {tuning.ki:.6g} 1/(V s); cost {tuning.cost:.4g} after "

@@ -44,9 +44,10 @@ METHOD = (
     "<= 5 % and |steady-state error| <= 0.5 % (quadratic penalties); grid over a = Kp*Vs, b = Ki*Ts*Vs, "
     "then Nelder-Mead"
 )
-#: the recording step the reproduction tunes with [s] (half the resolution of a run's default: twice as fast, the
-#: same gains within the search's tolerance); part of the design key, so every reader of its tuning uses it
-REPRODUCTION_RECORD_PERIOD = 2e-5
+#: the recording step every PI tuning simulates with [s] -- ``run`` and ``tune-pi`` without gains, the reproduction,
+#: the study, the sweeps: one tuning per plant and rate, whichever command asks (half the resolution of a run's
+#: default: twice as fast, the same gains within the search's tolerance); part of the design key
+TUNING_RECORD_PERIOD = 2e-5
 #: tuning runs are shortened versions of the paper scenarios: long enough to settle at either rate
 TUNING_DURATION = 0.02  # [s]
 TUNING_SETTLE = 0.015  # [s]
@@ -104,7 +105,7 @@ def nominal_supply(binding: PlantBinding, input_voltage: float | None, purpose: 
     return float(input_voltage if input_voltage is not None else binding.converter.require("input_voltage", purpose))
 
 
-def pi_design(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
+def pi_design(binding: PlantBinding, control_period: float, *, record_period: float = TUNING_RECORD_PERIOD,
               input_voltage: float | None = None, quick: bool = False) -> DesignKey:
     """The design key of :func:`tune_pi` with these arguments: the plant, the rate, the tuning
     scenarios (resolved against the plant's converter spec) and every setting of the search (no tuning is done)."""
@@ -121,7 +122,7 @@ def tuning_evaluations(quick: bool = False) -> int:
     return len(_grid(quick)) + _nelder_mead_evaluations(quick)
 
 
-def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = 1e-5,
+def tune_pi(binding: PlantBinding, control_period: float, *, record_period: float = TUNING_RECORD_PERIOD,
             input_voltage: float | None = None, progress: bool = False, quick: bool = False,
             on_estimate: Callable[[float], None] | None = None) -> PITuning:
     """Tune a PI for ``binding`` at ``control_period`` by the method in the module docstring.
@@ -248,7 +249,7 @@ def envelope_scenario(reference: float, load: float, supply: float) -> Scenario:
 
 
 def tune_pi_envelope(binding: PlantBinding, control_period: float, points=None, aggregate: str = "max",
-                     *, record_period: float = 1e-5, input_voltage: float | None = None,
+                     *, record_period: float = TUNING_RECORD_PERIOD, input_voltage: float | None = None,
                      quick: bool = False, progress: bool = False) -> PITuning:
     """The PI tuned for the envelope: the nominal method's ISE and penalties at each of ``points`` (None: the
     :func:`envelope_points` of the plant's converter spec),

@@ -204,7 +204,7 @@ def summary_figure(metrics: pd.DataFrame, tags: dict[float, str], out_dir: Path)
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from cosim.plots import save_figure
+    from cosim.plots import figure_styles, save_figure
 
     periods = list(tags)
     fig, axes = plt.subplots(1, len(periods), figsize=(6.2 * len(periods), 4.2), squeeze=False)
@@ -218,7 +218,7 @@ def summary_figure(metrics: pd.DataFrame, tags: dict[float, str], out_dir: Path)
         seeds = seed_controllers(metrics, tag)
         for k, controller in enumerate(present):
             heights = [value(metrics, tag, controller, s, "iae_Vs") * 1e3 for s in scenarios]
-            color, _ = CONTROLLER_STYLES.get(controller, (f"C{k}", "-"))
+            color, _ = figure_styles(present, CONTROLLER_STYLES)[controller]
             bars = ax.bar(x + (k - (len(present) - 1) / 2) * width, heights, width, label=controller, color=color,
                           edgecolor="black", linewidth=0.4)
             if controller == NNPC and len(seeds) > 1:

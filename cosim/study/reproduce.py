@@ -69,7 +69,7 @@ from cosim.design.identification import (
     network_design,
     write_identification_figure,
 )
-from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
+from cosim.design.pi_tuning import load_or_tune
 from cosim.design.plants import plant_binding
 from cosim.design.vocabulary import (
     CLOSED_LOOP_SAMPLES,
@@ -248,7 +248,7 @@ def log(message: str) -> None:
 
 def _tuned(pipeline: Pipeline, out_dir: Path, profile: Profile):
     return load_or_tune(pi_file(out_dir, pipeline.plant_tag, pipeline.control_period), pipeline.binding(),
-                        pipeline.control_period, record_period=REPRODUCTION_RECORD_PERIOD, quick=profile.quick)
+                        pipeline.control_period, quick=profile.quick)
 
 
 def _tune_job(job) -> tuple[str, float]:

@@ -94,11 +94,11 @@ def controllers_for(out_dir: Path, mode: str, quick: bool = False) -> dict:
     tuning settings -- ``quick``: the quick profile's -- so its design key matches)."""
     from controllers.nn_model import load_model
     from cosim.design.design_cache import pi_file
-    from cosim.design.pi_tuning import REPRODUCTION_RECORD_PERIOD, load_or_tune
+    from cosim.design.pi_tuning import load_or_tune
 
     binding = plant_binding("nominal", mode)
     pi = load_or_tune(pi_file(out_dir, binding.tag, PAPER_PERIOD), binding, PAPER_PERIOD,
-                      record_period=REPRODUCTION_RECORD_PERIOD, quick=quick).controller()
+                      quick=quick).controller()
     model = load_model(out_dir / "models" / f"{pipeline_tag(binding.tag, PAPER_PERIOD)}__nnpc.pt",
                        expect_period=PAPER_PERIOD)
     return {PI: pi, NNPC: nnpc(model, PAPER_PERIOD, NNPC)}

@@ -261,8 +261,10 @@ class _Summary:
 
     # ------------------------------------------------------------------ figures
     def _style(self, controller: str, index: int):
-        color, _ = CONTROLLER_STYLES.get(controller, (f"C{index % 10}", "-"))
-        return color
+        """The controller's colour: its own, else one no other controller of the sweep shows (cosim.plots)."""
+        from cosim.plots import figure_styles
+
+        return figure_styles(self.controllers, CONTROLLER_STYLES)[controller][0]
 
     def figures(self, vector: bool = True) -> dict[str, str]:
         from cosim.plots import plt, save_figure
