@@ -11,8 +11,9 @@ PYTHON="${PYTHON:-python3}"
 # qemu-user: qemu-x86_64 runs one process on another x86-64 CPU model, for the test that the trained
 # networks are the same bytes on other CPUs (cosim/benchmark_harness/cpu_emulation.py). valgrind: callgrind
 # counts the C steps' instructions on the host (cosim/benchmark_harness/instruction_count.py).
+# BUCK_COSIM_NO_APT=1 skips the Debian packages (the tests that need them then deselect themselves).
 embedded_packages="gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm qemu-user valgrind"
-if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && command -v dpkg-query >/dev/null 2>&1; then
+if [ -z "${BUCK_COSIM_NO_APT:-}" ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && command -v dpkg-query >/dev/null 2>&1; then
   missing=""
   for package in $embedded_packages; do
     dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "ok installed" || missing="$missing $package"

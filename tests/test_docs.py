@@ -4,6 +4,7 @@ page says (tests/docs_snippets.py: the rules a page's HTML comments set)."""
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -95,3 +96,98 @@ def test_the_rules_catch_a_stale_command_line_and_a_wrong_expectation(tmp_path):
     with pytest.raises(AssertionError, match="the parser refuses"):
         _parse_every_command(stale)
     assert echo.expect == ["goodbye"] and echo.line == 7
+
+
+LINK = re.compile(r"(?<!!)\[[^\]\n]*\]\(([^)\s]+)\)")
+CODE = re.compile(r"```.*?```|`[^`\n]*`", re.S)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_of_a_page_leads_to_a_file(page):
+    """A link's target exists (a file or folder of the repository, or a page of the site); Markdown outside code
+    reads ``[iL, vc, d](k-1)`` as a link to a page "k-1" that does not exist."""
+    text = CODE.sub("", page.read_text(encoding="utf-8"))
+    dead = []
+    for target in LINK.findall(text):
+        if re.match(r"[a-z]+:|#", target):  # a URL, an anchor on the page
+            continue
+        path = (page.parent / target.split("#")[0]).resolve()
+        site = [ROOT / "docs" / target.split("#")[0], ROOT / target.split("#")[0]]  # the site's results/ pages
+        if not path.exists() and not any(p.exists() for p in site):
+            dead.append(target)
+    assert not dead, f"{page.relative_to(ROOT)}: links to nothing: {dead}"
+
+
+def test_the_sites_navigation_has_plain_unique_titles_and_a_guide_overview():
+    """Navigation titles are shown as written (no Markdown): no backticks, no two alike; the guide has an overview
+    page that links every guide page."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):  # mkdocs.yml's !!python tags are the theme's business, not the nav's
+        pass
+
+    Loader.add_multi_constructor("tag:yaml.org,2002:python/", lambda loader, suffix, node: None)
+    nav = yaml.load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"), Loader=Loader)["nav"]
+    titles = []
+
+    def walk(entries):
+        for entry in entries:
+            for title, value in entry.items():
+                titles.append(title)
+                if isinstance(value, list):
+                    walk(value)
+
+    walk(nav)
+    assert not [t for t in titles if "`" in t], titles
+    assert len(titles) == len(set(titles)), sorted(t for t in titles if titles.count(t) > 1)
+    overview = (ROOT / "docs" / "guide" / "index.md").read_text(encoding="utf-8")
+    missing = [p.name for p in (ROOT / "docs" / "guide").glob("*.md") if p.name != "index.md" and
+               f"({p.name})" not in overview]
+    assert not missing, missing
+
+
+def test_following_the_docs_in_the_clone_leaves_git_status_clean():
+    """Every folder or file the README, the quick start and the tutorials tell a reader to write in the clone
+    (``--out``, ``--draft-binding``, the files they save) is ignored by git."""
+    written = set()
+    for page in [ROOT / "README.md", ROOT / "docs" / "quickstart.md", *(ROOT / "docs" / "tutorials").glob("*.md")]:
+        text = page.read_text(encoding="utf-8")
+        written |= set(re.findall(r"--(?:out|draft-binding) ([a-z][a-z0-9_.-]*)", text))
+        written |= {"BuckConverter.fmu", "BuckConverter-source.fmu"} if "build-fmu --output ." in text else set()
+        written |= {snippet.file for snippet in snippets(page) if snippet.file}
+    assert {"quickstart", "own", "tiny.toml"} <= written
+    done = subprocess.run(["git", "check-ignore", "--no-index", *sorted(written)], cwd=ROOT, capture_output=True,
+                          text=True)
+    ignored = set(done.stdout.split())
+    assert ignored == written, sorted(written - ignored)
+
+
+def test_bootstrap_skips_the_debian_packages_when_asked(tmp_path):
+    """As root with apt-get, ``make bootstrap`` installs the embedded toolchain's Debian packages unless
+    BUCK_COSIM_NO_APT is set (a fake apt-get records whether it was called; the .venv is already installed)."""
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    for name, body in (("apt-get", f'echo "$@" >> {tmp_path}/apt.log'), ("dpkg-query", "exit 1"), ("id", "echo 0")):
+        (fake / name).write_text(f"#!/bin/sh\n{body}\n")
+        (fake / name).chmod(0o755)
+    env = {**os.environ, "PATH": f"{fake}{os.pathsep}{os.environ['PATH']}"}
+    for skip, called in (("1", False), ("", True)):
+        (tmp_path / "apt.log").unlink(missing_ok=True)
+        done = subprocess.run(["bash", "scripts/bootstrap.sh"], cwd=ROOT, capture_output=True, text=True,
+                              env={**env, "BUCK_COSIM_NO_APT": skip}, timeout=600)
+        assert done.returncode == 0, done.stderr
+        assert (tmp_path / "apt.log").exists() == called, (skip, done.stdout)
+
+
+def test_the_readme_is_one_screen_and_its_duration_is_the_results():
+    """The README is for a visitor: short, no measurement history; the reproduction's duration it states agrees
+    with the committed wall-clock files (the paper's study and the two converter studies make reproduce runs),
+    within a factor of two (they are wall-clock figures of one machine)."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 80
+    assert not re.search(r"\b(earlier|the run before|before it)\b", text, re.IGNORECASE)
+    stated = float(re.search(r"make reproduce .*: about (\d+) minutes on two cores", text).group(1))
+    seconds = [float(re.search(r"Whole reproduction: ([\d.]+) s", (ROOT / "results" / "timings.md").read_text()).group(1))]
+    seconds += [float(re.search(r"Whole converter study: ([\d.]+) s", (ROOT / "results" / name / "timings.md")
+                                .read_text()).group(1)) for name in ("pol-buck", "pol-buck-pythonfmu")]
+    assert stated / 2 <= sum(seconds) / 60 <= stated * 2, (stated, seconds)
