@@ -30,7 +30,6 @@ OTHER_COLOURS = ("black", "magenta", "gold", "teal", "navy", "lime", "maroon", "
 OTHER_LINE_STYLE = (0, (6, 1.5, 1, 1.5, 1, 1.5))
 #: a run whose output ends this far from the reference (relative) does not set the axis limits
 DIVERGED = 0.05
-ZOOM_BEFORE, ZOOM_AFTER = 1e-3, 10e-3  # [s] the zoom window around a long run's main event
 
 
 
@@ -99,9 +98,11 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
     clipped = [r.info.controller for r in results if len(r.frame) and  # runs ending off the reference
                abs(r.frame[v_column].iloc[-1] - r.frame["reference"].iloc[-1])
                > DIVERGED * max(abs(r.frame["reference"].iloc[-1]), 1.0)]
+    end = max(float(r.frame["time"].iloc[-1]) for r in results if len(r.frame))
     for col, (kind, view) in enumerate(columns):
         ax_v, ax_i, ax_d = axes[:, col]
-        limits_v, limits_i = [], []
+        limits_v, limits_i, duties = [], [], []
+        view = view if view is not None else (0.0, end)
         for k, (result, m) in enumerate(zip(results, metrics)):
             frame = result.frame
             if view is not None:
@@ -122,15 +123,17 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
                 settles = f"{m['settling_time_ms']:.3g} ms" if np.isfinite(m["settling_time_ms"]) else "never"
                 label = f"{name}: overshoot {m['overshoot_pct']:.3g} %, settling {settles}"
             lines = []
-            for ax, (instant, mean) in zip((ax_v, ax_i), signals):
+            # the current's legend names the peak currents (its marks), not the voltage's metrics
+            for ax, (instant, mean), text in zip((ax_v, ax_i), signals, (label, "_nolegend_")):
                 if period_means:
                     lines.append(ax.plot(t_ms, frame[instant], color=color, linestyle="-", linewidth=0.6,
                                          alpha=0.3)[0])
                     lines.append(ax.plot(t_ms, frame[mean], color=color, linestyle=style, linewidth=1.4,
-                                         label=label)[0])
+                                         label=text)[0])
                 else:
                     lines.append(ax.plot(t_ms, frame[instant], color=color, linestyle=style, linewidth=1.3,
-                                         label=label)[0])
+                                         label=text)[0])
+            duties.append((float(frame["duty_cycle"].min()), float(frame["duty_cycle"].max())))
             lines.append(ax_d.plot(t_ms, frame["duty_cycle"], color=color, linestyle=style, linewidth=1.1,
                                    drawstyle="steps-post", label=name)[0])
             if name not in clipped:
@@ -141,17 +144,26 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
                     line.set_alpha(0.35)
                     line.set_linewidth(0.8)
             if col == 1:
-                _mark_transient(ax_v, ax_i, result, m, color)
+                _mark_transient(ax_v, ax_i, result, m, color, view)
         for ax, limits in ((ax_v, limits_v), (ax_i, limits_i)):
             if limits and clipped:  # scale to the settled runs: a diverging one must not squash them
                 low, high = min(l for l, _ in limits), max(h for _, h in limits)
                 margin = 0.08 * (high - low or 1.0)
                 ax.set_ylim(low - margin, high + margin)
-        ax_d.set_ylim(-0.03, 1.03)
+        if duties:  # the duties' own range (a 0.21 -> 0.25 step stays visible), within 0..1
+            low, high = min(d for d, _ in duties), max(d for _, d in duties)
+            margin = max(0.1 * (high - low), 0.02)
+            ax_d.set_ylim(max(low - margin, -0.03), min(high + margin, 1.03))
+        ax_d.set_xlim(view[0] * 1e3, view[1] * 1e3)  # the data's span: no marker stretches it
         ax_d.set_xlabel("time [ms]")
         for ax in (ax_v, ax_i, ax_d):
             ax.grid(True, alpha=0.3)
-        ax_v.legend(loc="best", fontsize=7)
+        if col == 1:  # beside the transient, not over it: its legends name every controller's metrics
+            ax_v.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0.0)
+            if ax_i.get_legend_handles_labels()[0]:
+                ax_i.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0.0)
+        else:
+            ax_v.legend(loc="best", fontsize=7)
         if col == 0:
             ax_v.set_ylabel("output voltage $v_o$ [V]")
             ax_i.set_ylabel("inductor current $i_L$ [A]")
@@ -168,30 +180,30 @@ def scenario_figure(results: list[RunResult], title: str, zoom: tuple[float, flo
     return fig
 
 
-def _mark_transient(ax_v, ax_i, result: RunResult, m: dict, color) -> None:
+def _mark_transient(ax_v, ax_i, result: RunResult, m: dict, color, view: tuple[float, float]) -> None:
     """The metrics on the transient column: the overshoot peak (on the instantaneous output voltage, as
-    :func:`cosim.metrics.signal_metrics` measures it), the settling instant, the peak inductor current."""
+    :func:`cosim.metrics.signal_metrics` measures it), the settling instant, the peak inductor current -- each where
+    it falls inside the column's ``view`` [s] (a peak after it is given in the legend, not drawn off the data)."""
     frame = result.frame
     t0 = result.info.metrics_start
     after = frame[frame["time"] >= t0 - 1e-12]
+    shown = view[1] + 1e-12  # [s] the column's end
     if not len(after):
         return
     y = after["output_voltage"].to_numpy()
     r_final = float(after["reference"].iloc[-1])
     direction = 1.0 if r_final >= y[0] else -1.0
-    if np.isfinite(m["overshoot_pct"]) and m["overshoot_pct"] > 0:
-        k = int(np.argmax(direction * (y - r_final)))
+    if np.isfinite(m["overshoot_pct"]) and m["overshoot_pct"] > 0 and \
+            after["time"].iloc[k := int(np.argmax(direction * (y - r_final)))] <= shown:
         ax_v.plot(after["time"].iloc[k] * 1e3, y[k], marker="v" if direction > 0 else "^", color=color,
                   markersize=7, markeredgecolor="k", markeredgewidth=0.5, linestyle="none")
-    if np.isfinite(m["settling_time_ms"]) and m["settling_time_ms"] > 0:
+    if np.isfinite(m["settling_time_ms"]) and m["settling_time_ms"] > 0 and t0 + m["settling_time_ms"] * 1e-3 <= shown:
         ax_v.axvline(t0 * 1e3 + m["settling_time_ms"], color=color, linestyle=":", linewidth=1.2)
     current = after["inductor_current"].to_numpy()
-    if np.isfinite(current).any():
-        k = int(np.nanargmax(current))
+    if np.isfinite(current).any() and after["time"].iloc[k := int(np.nanargmax(current))] <= shown:
         ax_i.plot(after["time"].iloc[k] * 1e3, current[k], marker="v", color=color, markersize=6,
                   markeredgecolor="k", markeredgewidth=0.5, linestyle="none",
-                  label=f"peak {m['peak_inductor_current_A']:.3g} A")
-        ax_i.legend(loc="best", fontsize=7)
+                  label=f"{result.info.controller}: peak {m['peak_inductor_current_A']:.3g} A")
 
 
 def save_figure(fig, stem: Path) -> list[Path]:
@@ -211,29 +223,18 @@ def save_figure(fig, stem: Path) -> list[Path]:
     return paths
 
 
-def default_zoom(result: RunResult) -> tuple[float, float] | None:
-    """Around the scenario's main event when the run is long: from 1 ms before it to 10 ms after
-    (a 1 ms loop has settled by then); short runs (the fast-rate ones) are shown whole."""
-    t0 = result.info.metrics_start
-    end = float(result.frame["time"].iloc[-1])
-    if end - t0 <= ZOOM_AFTER:
-        return None
-    return max(0.0, t0 - ZOOM_BEFORE), min(end, t0 + ZOOM_AFTER)
-
-
 def plot_scenario(results: list[RunResult], stem: Path, title: str | None = None,
                   zoom: tuple[float, float] | None = None, styles: Styles | None = None) -> list[Path]:
     """Figure of one scenario with every controller overlaid; returns the PNG and SVG paths.
 
     Switched plants are drawn as PWM-period means (the ripple is 0.55 A / 91 mV peak to peak and
     would hide the controllers behind one another) over the faint instantaneous waveforms the
-    metrics use; long runs are zoomed on their event in the left column, the right column shows
-    the transient with its metrics marked (:func:`scenario_figure`).
+    metrics use; the left column shows the whole run (or ``zoom``), the right column the transient with
+    its metrics marked (:func:`scenario_figure`).
     """
     if not results:
         raise ValueError("plot_scenario needs at least one run")
     info = results[0].info
-    zoom = zoom if zoom is not None else default_zoom(results[0])
     if title is None:
         title = f"{info.description}\n{info.plant}, control period {period_text(info.control_period)}"
     return save_figure(scenario_figure(results, title, zoom, period_means=info.plant_mode == "switched",

@@ -647,3 +647,37 @@ def test_run_without_gains_tunes_the_pi_the_reproduction_tuned(tmp_path):
     assert pi_design(binding, 1e-3).key == committed["design"]["key"]
     tuning = tuned_pi(binding, 1e-3, tmp_path)
     assert (tuning.kp, tuning.ki) == (committed["kp"], committed["ki"])
+
+
+def test_the_run_figure_shows_the_whole_run_and_marks_only_what_it_shows():
+    """supply_dip at 1 ms: its recovery at 20 ms is in the left column (the whole run, not 11 ms around the first
+    event); every mark of the transient column lies inside it; the duty axis spans the duties, not 0..1; the current's
+    legend names peak currents, not the voltage's metrics; the transient's legends sit beside the panels."""
+    import matplotlib.pyplot as plt
+
+    from controllers.pi import PIController
+    from cosim import builtin_binding, load_scenario, simulate
+    from cosim.plots import scenario_figure
+
+    result = simulate(builtin_binding("averaged"), PIController(0.0017155, 15.589, 1e-3),
+                      load_scenario("supply_dip", PAPER_SPEC))
+    fig = scenario_figure([result], "supply dip")
+    try:
+        v_full, v_zoom, i_full, i_zoom, d_full, d_zoom = fig.axes[:6]
+        end_ms = float(result.frame["time"].iloc[-1]) * 1e3
+        assert v_full.get_xlim() == pytest.approx((0.0, end_ms))
+        low, high = v_zoom.get_xlim()
+        assert high <= end_ms + 1e-9
+        for ax in (v_zoom, i_zoom):
+            for line in ax.get_lines():
+                if line.get_marker() in ("v", "^"):
+                    assert low <= line.get_xdata()[0] <= high
+        duty_low, duty_high = d_full.get_ylim()
+        assert duty_high - duty_low < 0.6 and duty_low > 0.0  # 0.2-0.35 here, not the whole 0..1
+        current_legend = [t.get_text() for t in i_zoom.get_legend().get_texts()]
+        assert current_legend and not any("overshoot" in t or "settling" in t for t in current_legend)
+        fig.canvas.draw()
+        for ax in (v_zoom, i_zoom):
+            assert ax.get_legend().get_window_extent().x0 >= ax.get_window_extent().x1 - 1.0
+    finally:
+        plt.close(fig)
