@@ -39,3 +39,10 @@ def output_voltage(il, vc, r, rc):
 def substeps(step_size, longest=10e-6):
     """How many equal sub-steps of at most ``longest`` [s] a communication step is solved in."""
     return max(1, math.ceil(step_size / longest - 1e-9))
+
+
+def off_step(current_time, step_size, step):
+    """A fixed-step model's refusal of a communication step other than ``step`` [s] (its message), or None."""
+    if abs(step_size - step) <= 1e-9 * step:
+        return None
+    return f"fixed-step model: communication step {step_size!r} s at t = {current_time!r} s, expected {step!r} s"

@@ -2,6 +2,7 @@
 makes them: canHandleVariableCommunicationStepSize="false" (set when the FMU is built), its one step in
 DefaultExperiment stepSize, and any other step refused with an error (fixed_step_buck3.py: its FMI 3.0 twin)."""
 
+from buck_math import off_step
 from python_buck import PyBuck
 from pythonfmu import DefaultExperiment
 from pythonfmu.enums import Fmi2Status
@@ -14,8 +15,8 @@ class FixedStepBuck(PyBuck):
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=0.05, step_size=STEP)
 
     def do_step(self, current_time, step_size):
-        if abs(step_size - STEP) > 1e-9 * STEP:
-            self.log(f"fixed-step model: communication step {step_size!r} s at t = {current_time!r} s, expected "
-                     f"{STEP!r} s", Fmi2Status.error)
+        refusal = off_step(current_time, step_size, STEP)
+        if refusal:
+            self.log(refusal, Fmi2Status.error)
             return False
         return super().do_step(current_time, step_size)

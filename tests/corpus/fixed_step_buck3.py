@@ -1,6 +1,7 @@
 """The FMI 3.0 twin of fixed_step_buck.py: python_buck3.py's converter as a fixed-step FMU
 (canHandleVariableCommunicationStepSize="false", DefaultExperiment stepSize, any other step refused)."""
 
+from buck_math import off_step
 from python_buck3 import PyBuck3
 from pythonfmu3 import DefaultExperiment, Fmi3Slave, Fmi3Status
 
@@ -15,8 +16,8 @@ class FixedStepBuck3(PyBuck3, Fmi3Slave):  # Fmi3Slave named: pythonfmu3's build
         self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=0.05, step_size=STEP)
 
     def do_step(self, current_time, step_size):
-        if abs(step_size - STEP) > 1e-9 * STEP:
-            self.log(f"fixed-step model: communication step {step_size!r} s at t = {current_time!r} s, expected "
-                     f"{STEP!r} s", Fmi3Status.error)
+        refusal = off_step(current_time, step_size, STEP)
+        if refusal:
+            self.log(refusal, Fmi3Status.error)
             return False
         return super().do_step(current_time, step_size)
