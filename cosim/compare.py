@@ -9,6 +9,7 @@ share a controller name are told apart by the folder (and file) they come from.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -34,6 +35,18 @@ def load_runs(paths: list[str | Path]) -> list[RunResult]:
     return results
 
 
+def unlike_runs(results: list[RunResult]) -> str | None:
+    """Why the runs are not a comparison of controllers alone -- they ran on different plants, scenarios or control
+    periods (``"on different plants: A; B"``) -- or None."""
+    differences = []
+    for what, values in (("plants", [r.info.plant for r in results]), ("scenarios", [r.info.scenario for r in results]),
+                         ("control periods", [f"{r.info.control_period:.6g} s" for r in results])):
+        distinct = list(dict.fromkeys(values))
+        if len(distinct) > 1:
+            differences.append(f"on different {what}: {'; '.join(distinct)}")
+    return ", ".join(differences) or None
+
+
 def run_labels(results: list[RunResult], paths: list[str | Path]) -> list[str]:
     """How each run is named in the legend and the table: its controller, with its folder (and file
     stem) where several runs share a controller name."""
@@ -55,6 +68,10 @@ def overlay(paths: list[str | Path], out: Path, title: str | None = None, styles
     """The runs of ``paths`` overlaid in the run figure (:func:`cosim.plots.scenario_figure`) at ``out``
     (``out.png`` and ``out.svg``; a .png or .svg ending of ``out`` stands for the pair). Returns the written files."""
     results = load_runs(paths)
+    unlike = unlike_runs(results)
+    if unlike:  # the figure is drawn (its title names them), but its differences are not the controllers' alone
+        print(f"warning: the runs overlaid are {unlike}: their differences are not the controllers' alone",
+              file=sys.stderr)
     labels = run_labels(results, paths)
     relabelled = [relabel(r, label) for r, label in zip(results, labels)]
     if title is None:

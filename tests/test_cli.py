@@ -494,3 +494,20 @@ def test_a_csv_where_samples_are_expected_and_a_metrics_table_where_a_run_is_are
     one_line_error(command("compare", str(tmp_path / "metrics.csv"), "--out", str(tmp_path / "cmp")), 2,
                    f"{tmp_path / 'metrics.csv'} is a metrics table (one row of metrics per run), not a run: give the "
                    "runs' own files")
+
+
+def test_compare_warns_when_the_runs_differ_in_more_than_the_controller(tmp_path):
+    """Overlaying a switched-plant run on an averaged-plant run draws the figure, and one warning line says the
+    differences are not the controllers' alone."""
+    for mode in ("averaged", "switched"):
+        assert command("run", "startup", "--mode", mode, "--kp", "0.0017155", "--ki", "15.589", "--no-figures",
+                       "--out", str(tmp_path / mode)).returncode == 0
+    runs = [str(tmp_path / mode / "runs" / f"startup__pi__nominal-{mode}__1ms.parquet") for mode in ("averaged",
+                                                                                                     "switched")]
+    done = command("compare", *runs, "--out", str(tmp_path / "cmp"))
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.strip() == ("warning: the runs overlaid are on different plants: BuckConverter (nominal, "
+                                   "averaged); BuckConverter (nominal, switched): their differences are not the "
+                                   "controllers' alone")
+    same = command("compare", runs[0], runs[0], "--out", str(tmp_path / "same"))
+    assert same.returncode == 0 and "warning" not in same.stderr
