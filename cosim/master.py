@@ -28,7 +28,7 @@ from cosim.base.errors import ConfigError, ControllerError, PlantError, RunInter
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import PlantBinding
 from cosim.fmi.binding_file import PARAMETER, REST, TOGETHER, load_binding, locate_refusal
-from cosim.fmi.communication import CommunicationStep, communication_step, record_period_for, steps_in
+from cosim.fmi.communication import CommunicationStep, communication_step, grid_index, record_period_for
 from cosim.fmi.plant import open_plant
 from cosim.fmi.plant_fmi2 import FmuPlant, choose_interface, normalise_interface
 from cosim.recorder import COLUMNS, MASTER_FIELDS, Recorder
@@ -77,9 +77,9 @@ def check_communication_step(communication: CommunicationStep, plan: TimelinePla
         return None
     misfits = []
     for label, value in (("control period", plan.control_period), ("record period", plan.record_period)):
-        if not steps_in(value, step):
+        if not grid_index(value, step):
             misfits.append(f"the {label} {value:.6g} s")
-    off_grid = [e for e in scenario.events if e.plant_event and steps_in(e.time, step) is None]
+    off_grid = [e for e in scenario.events if e.plant_event and grid_index(e.time, step) is None]
     if off_grid:
         misfits.append(f"scenario {scenario.name}'s event at t = {off_grid[0].time:.6g} s"
                        + (f" ({off_grid[0].where})" if off_grid[0].where else "")
@@ -87,10 +87,11 @@ def check_communication_step(communication: CommunicationStep, plan: TimelinePla
     if not misfits:
         return step
     suggestion = f"multiples of {step:.6g} s"
-    if misfits[0].startswith("the record period") and steps_in(plan.control_period, step):
+    if misfits[0].startswith("the record period") and grid_index(plan.control_period, step):
         lower = max(1, math.floor(plan.record_period / step)) * step
         suggestion += f" (e.g. --record-period {lower:.6g})"
-    raise ConfigError(f"{origin}: the FMU steps by one fixed communication step of {communication.describe(step)}, "
+    raise ConfigError(f"{origin}: the FMU steps by one fixed communication step of "
+                      f"{communication.describe(plan.control_period)}, "
                       f"but {', '.join(misfits)} {'is' if len(misfits) == 1 else 'are'} not a whole number of steps: "
                       f"use {suggestion}")
 

@@ -82,11 +82,6 @@ def communication_step(binding, model_description, interface: str) -> Communicat
     return CommunicationStep(True, None, FROM_CONTROL_PERIOD)
 
 
-def steps_in(duration: float, step: float) -> int | None:
-    """How many steps of ``step`` make ``duration`` [s] (>= 0), or None if it is not a whole number of them."""
-    return grid_index(duration, step)
-
-
 def grid_index(t: float, step: float) -> int | None:
     """``n`` if ``t`` [s] is the grid point ``n * step`` -- within :data:`GRID_TOLERANCE` of a step plus the rounding
     of ``t`` itself (a time of 200 s carries about 3e-14 s of it) -- else None."""
@@ -100,6 +95,6 @@ def record_period_for(step: CommunicationStep, wanted: float, control_period: fl
     (e.g. 1e-4 s for 10 us wanted of a plant that steps by 0.1 ms). For periods the workbench chooses itself (PI
     tuning's recording, figures, the study); a period a user gives is checked, never changed."""
     h = step.for_run(control_period)
-    if h is None or steps_in(wanted, h):
+    if h is None or grid_index(wanted, h):
         return wanted
     return max(1, round(wanted / h)) * h

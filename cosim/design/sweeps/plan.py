@@ -28,7 +28,7 @@ from cosim.design.sweeps.recipes import ControllerRecipe, PlantRecipe
 from cosim.design.sweeps.spec import OPERATING_POINT, Axis, SweepSpec
 from cosim.fmi.archive import check_fmu
 from cosim.fmi.binding import BindingMismatch, PlantBinding, is_float, is_integer, resolve_parameters
-from cosim.fmi.communication import steps_in
+from cosim.fmi.communication import grid_index
 from cosim.master import check_communication_step, check_plant_supports, communication_of, record_period_of
 from cosim.scenarios import Scenario, reference_above_supply, unreachable_text
 
@@ -206,7 +206,7 @@ def check_rates(spec: SweepSpec, binding: PlantBinding) -> None:
             except ConfigError as error:  # named at the first key that misses the grid (the plant's step otherwise)
                 step = communication.for_run(spec.control_period)
                 key = next((k for k in ("control_period", "record_period")
-                            if k in spec.places and steps_in(getattr(spec, k), step) is None), "plant")
+                            if k in spec.places and grid_index(getattr(spec, k), step) is None), "plant")
                 raise ConfigError(f"{spec.place(key)}: {error}") from None
 
 
